@@ -1,0 +1,1 @@
+"""Emulated Kepco BOP bipolar supply driving one coil."""

@@ -1,0 +1,1 @@
+"""The emulated world: robots moved by what the emulated actuators actually do."""

@@ -1,0 +1,1 @@
+"""Plan and workspace schemas, the global-input model, planners and example plans."""

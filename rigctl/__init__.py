@@ -1,0 +1,1 @@
+"""rigctl: run magnetic micro-robot manipulation rigs."""

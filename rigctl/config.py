@@ -1,0 +1,195 @@
+"""The rig file: one TOML document that says what hardware (or emulator) a run talks to.
+
+A rig file names the rig kind, the field settings the realizer uses, the geometry the allocator
+needs, and one entry per device with the URL its driver opens. The emulated bench writes the same
+format with an `[emulation]` table, so a run cannot tell a bench from a rig except by that table.
+This module is the one config loader: everything reads rig files through `load_rig`.
+
+Units: lengths in mm, fields in mT, currents in A, voltages in V, times in s, unless a key's
+name says otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tomli_w
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from rigctl.errors import ConfigError
+
+RigKind = Literal["six-coil", "coil-board", "depm"]
+
+Vector3 = tuple[float, float, float]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RigInfo(_Strict):
+    kind: RigKind
+    name: str = "unnamed rig"
+
+
+class FieldSettings(_Strict):
+    """How a six-coil rig turns moves into a rotating field (seed 000 eq. 1-2)."""
+
+    b0_mT: Annotated[float, Field(gt=0, description="magnitude of the rotating field")] = 3.0
+    rolling_turns_per_s: Annotated[float, Field(gt=0, description="rolling speed omega")] = 2.0
+    steering_deg_per_s: Annotated[float, Field(gt=0, description="steering speed Omega")] = 180.0
+    ramp_s: Annotated[float, Field(ge=0, description="field ramp at start and end")] = 0.1
+    hold_s: Annotated[
+        float, Field(ge=0, description="dwell after each segment so the coils settle (>= 5 L/R)")
+    ] = 0.1
+    initial_heading_deg: Annotated[
+        float, Field(description="direction of the first field in the xy plane (magnets align)")
+    ] = 0.0
+
+
+class MagnetSettings(_Strict):
+    """The rolling cylindrical magnets: one turn rolls them 2*pi*radius_mm."""
+
+    radius_mm: Annotated[float, Field(gt=0)] = 10.0 / (2.0 * math.pi)
+    min_field_mT: Annotated[
+        float, Field(ge=0, description="below this the magnets do not follow the field")
+    ] = 0.5
+
+
+class Coil(_Strict):
+    """One air-core coil (a circular loop of `turns` turns) and the supply pair that feeds it.
+
+    `axis` is the direction of the coil's field at its centre for positive current;
+    `centre_mm` is the loop's centre relative to the workspace centre.
+    """
+
+    name: str
+    url: str = Field(description="driver URL of the master supply, e.g. tcp://10.0.0.11:5025")
+    centre_mm: Vector3
+    axis: Vector3
+    loop_radius_mm: Annotated[float, Field(gt=0)]
+    turns: Annotated[int, Field(gt=0)]
+    resistance_ohm: Annotated[float, Field(gt=0)]
+    inductance_H: Annotated[float, Field(gt=0)]
+    current_limit_A: Annotated[float, Field(gt=0, le=20.0)] = 20.0
+    compliance_V: Annotated[float, Field(gt=0, le=100.0)] = 100.0
+
+    @field_validator("axis")
+    @classmethod
+    def _unit_axis(cls, axis: Vector3) -> Vector3:
+        norm = math.sqrt(sum(a * a for a in axis))
+        if norm == 0:
+            raise ValueError("axis must not be the zero vector")
+        return tuple(a / norm for a in axis)  # type: ignore[return-value]
+
+
+class StreamSettings(_Strict):
+    rate_hz: Annotated[float, Field(gt=0, le=5000)] = 100.0
+    reply_timeout_s: Annotated[
+        float, Field(gt=0, description="watchdog: a device silent this long is a fault")
+    ] = 0.25
+    ramp_down_s: Annotated[float, Field(ge=0, description="safe stop ramp to zero")] = 0.1
+
+
+class Emulation(_Strict):
+    """Present only in rig files written by `rigctl emulate`: where the bench's backdoor is."""
+
+    backdoor: str = Field(description="tcp://host:port of the bench's test backdoor")
+    pid: int | None = None
+
+
+class RigConfig(_Strict):
+    rig: RigInfo
+    field: FieldSettings = FieldSettings()
+    magnets: MagnetSettings = MagnetSettings()
+    coils: list[Coil] = []
+    actuation_matrix_T_per_A: list[list[float]] | None = Field(
+        default=None,
+        description="measured 3 x n_coils matrix at the workspace centre; overrides the geometry",
+    )
+    stream: StreamSettings = StreamSettings()
+    emulation: Emulation | None = None
+
+    @model_validator(mode="after")
+    def _check_kind(self) -> "RigConfig":
+        if self.rig.kind == "six-coil":
+            if len(self.coils) != 6:
+                raise ValueError(f"a six-coil rig needs 6 [[coils]] entries, found {len(self.coils)}")
+            names = [c.name for c in self.coils]
+            if len(set(names)) != len(names):
+                raise ValueError(f"coil names must be unique, got {names}")
+        if self.actuation_matrix_T_per_A is not None:
+            rows = self.actuation_matrix_T_per_A
+            if len(rows) != 3 or any(len(r) != len(self.coils) for r in rows):
+                raise ValueError(
+                    f"actuation_matrix_T_per_A must be 3 rows of {len(self.coils)} columns"
+                )
+        return self
+
+    @property
+    def emulated(self) -> bool:
+        return self.emulation is not None
+
+
+def default_six_coil_coils(urls: list[str] | None = None) -> list[Coil]:
+    """The six-coil cube of the emulated bench: loops on the faces of a cube around a 400 mm
+    workspace, opposite coils wound the same way so their fields add at the centre.
+
+    The numbers are plausible for a 400 mm workspace (about 10 A for 3 mT with the min-norm
+    solution), not measured from the seed's manipulator, whose coil data the paper does not give.
+    """
+    faces = [("x+", 0, +1), ("x-", 0, -1), ("y+", 1, +1), ("y-", 1, -1), ("z+", 2, +1), ("z-", 2, -1)]
+    coils = []
+    for index, (name, axis_index, side) in enumerate(faces):
+        centre = [0.0, 0.0, 0.0]
+        centre[axis_index] = side * 350.0
+        axis = [0.0, 0.0, 0.0]
+        axis[axis_index] = 1.0
+        coils.append(
+            Coil(
+                name=name,
+                url=urls[index] if urls else f"tcp://127.0.0.1:{5025 + index}",
+                centre_mm=tuple(centre),  # type: ignore[arg-type]
+                axis=tuple(axis),  # type: ignore[arg-type]
+                loop_radius_mm=200.0,
+                turns=400,
+                resistance_ohm=1.5,
+                inductance_H=0.03,
+            )
+        )
+    return coils
+
+
+def _format_validation_error(err: ValidationError, source: str) -> str:
+    lines = []
+    for problem in err.errors():
+        where = ".".join(str(p) for p in problem["loc"]) or "(top level)"
+        lines.append(f"{source}: {where}: {problem['msg']}")
+    return "\n".join(lines)
+
+
+def parse_rig(data: dict, source: str = "rig file") -> RigConfig:
+    try:
+        return RigConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_validation_error(err, source)) from None
+
+
+def load_rig(path: str | Path) -> RigConfig:
+    """Read and validate a rig file; a ConfigError names the file and the offending key."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"rig file {path} does not exist") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML: {err}") from None
+    return parse_rig(data, str(path))
+
+
+def dump_rig(rig: RigConfig) -> str:
+    """The rig as TOML text, loadable by `load_rig`."""
+    return tomli_w.dumps(rig.model_dump(mode="json", exclude_none=True))

@@ -1,0 +1,48 @@
+"""The error hierarchy: small, and each class also inherits the built-in a caller would catch.
+
+RigError comes first in each MRO so its constructor (with `device=`) is the one that runs.
+Every error carries the device (where one is involved) and a reason a person can act on; the CLI
+and the daemon print `str(err)` and never a stack trace.
+"""
+
+from __future__ import annotations
+
+
+class RigError(Exception):
+    """Anything rigctl reports as a fault: device, reason, and what to do about it."""
+
+    def __init__(self, message: str, *, device: str | None = None) -> None:
+        super().__init__(message)
+        self.device = device
+
+    def __str__(self) -> str:
+        message = super().__str__()
+        return f"{self.device}: {message}" if self.device else message
+
+
+class PlanError(RigError, ValueError):
+    """A plan (or workspace) is malformed or cannot be realized; the message names the field."""
+
+
+class ConfigError(RigError, ValueError):
+    """A rig file is malformed or incomplete; the message names the key."""
+
+
+class LimitError(RigError, ValueError):
+    """A command would exceed a limit (current, voltage, field, speed); nothing was sent."""
+
+
+class DeviceError(RigError):
+    """The device reported an error (SCPI error queue, board error code, robot error)."""
+
+
+class DeviceTimeout(RigError, TimeoutError):
+    """The device did not answer within its timeout (the watchdog fired)."""
+
+
+class Disconnected(RigError, ConnectionError):
+    """The link to the device is gone (socket closed, serial port unplugged)."""
+
+
+class ProtocolError(RigError):
+    """The device answered something that does not parse (garbage on the line)."""
