@@ -1,0 +1,415 @@
+"""The shared emulator server: one asyncio loop in a background thread serving emulated devices.
+
+Each emulated device is a pure model plus a protocol object whose `handle(line) -> reply | None`
+the server calls for every received line, always in the loop thread, so a device's state is only
+ever touched by one thread. Tests and benches reach into that thread with `call(fn)` (backdoors:
+read ground truth, inject device faults) and run periodic work with `every(period, fn)`.
+
+Link faults are independent of the transport: `LinkFaults` says what a link does with incoming
+lines and outgoing replies (dropped, stalled, corrupting), and each transport (TCP here, a pty
+later) implements only "cut every connection and refuse new ones" and "accept again". The
+`Endpoint` a test holds is the same for every transport:
+
+- `drop_link()`  every connection is reset and new connections are refused until `restore()`
+- `stall()`      lines are still read but ignored: no reply ever comes (a hung device)
+- `corrupt(n)`   the next n replies are replaced by garbage bytes (still terminated)
+- `restore()`    back to normal
+
+Every fault method returns once the fault is in force, so tests never sleep to wait for it.
+Time is taken from `time.monotonic()`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import socket
+import struct
+import threading
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any, Protocol, TypeVar
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+LineHandler = Callable[[str], "str | None"]
+
+GARBAGE = b"\xfe\x81#%!\x00\xff\x9c"  # not ASCII, no terminator inside
+MAX_LINE_BYTES = 65536
+CALL_TIMEOUT_S = 5.0
+
+
+class LinkFaults:
+    """What one emulated link does with traffic; shared by every transport's server."""
+
+    def __init__(self) -> None:
+        self.dropped = False
+        self.stalled = False
+        self.corrupt_remaining = 0
+
+    def handles_input(self) -> bool:
+        """Whether a received line reaches the device at all (not while dropped or stalled)."""
+        return not (self.dropped or self.stalled)
+
+    def outgoing(self, reply: bytes, terminator: bytes) -> bytes | None:
+        """The bytes to send for `reply` (without terminator), or None to send nothing."""
+        if self.dropped or self.stalled:
+            return None
+        if self.corrupt_remaining > 0:
+            self.corrupt_remaining -= 1
+            return GARBAGE + terminator
+        return reply + terminator
+
+    def clear(self) -> None:
+        self.dropped = False
+        self.stalled = False
+        self.corrupt_remaining = 0
+
+
+class _Link(Protocol):
+    """The transport-specific part of a fault: cut all connections, and accept again."""
+
+    async def cut(self) -> None: ...
+
+    async def reopen(self) -> None: ...
+
+    def connection_count(self) -> int: ...
+
+
+class Endpoint:
+    """One served device link: its URL and its fault switches (callable from any thread)."""
+
+    def __init__(self, *, name: str, url: str, faults: LinkFaults, link: _Link,
+                 server: "EmulatorServer") -> None:
+        self.name = name
+        self.url = url
+        self.faults = faults
+        self._link = link
+        self._server = server
+
+    def drop_link(self) -> None:
+        """Reset every connection and refuse new ones until `restore()`."""
+
+        async def drop() -> None:
+            self.faults.dropped = True
+            await self._link.cut()
+
+        self._server._run(drop())
+        log.info("%s: link dropped (fault)", self.name)
+
+    def stall(self) -> None:
+        """Keep reading, never answer."""
+        self._server.call(setattr, self.faults, "stalled", True)
+        log.info("%s: link stalled (fault)", self.name)
+
+    def corrupt(self, n_replies: int = 1) -> None:
+        """Replace the next `n_replies` replies with garbage bytes."""
+        if n_replies < 1:
+            raise ValueError("n_replies must be >= 1")
+        self._server.call(setattr, self.faults, "corrupt_remaining", n_replies)
+        log.info("%s: next %d replies corrupted (fault)", self.name, n_replies)
+
+    def restore(self) -> None:
+        """Clear every fault; a dropped link accepts connections again."""
+
+        async def restore() -> None:
+            was_dropped = self.faults.dropped
+            self.faults.clear()
+            if was_dropped:
+                await self._link.reopen()
+
+        self._server._run(restore())
+        log.info("%s: link restored", self.name)
+
+    @property
+    def connection_count(self) -> int:
+        """Clients connected now."""
+        return self._server.call(self._link.connection_count)
+
+
+class _LineConnection(asyncio.Protocol):
+    """One client of a line link: frames lines, asks the handler, applies the link's faults."""
+
+    def __init__(self, link: "_TcpLineLink") -> None:
+        self.link = link
+        self.transport: asyncio.Transport | None = None
+        self._buffer = bytearray()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        if self.link.faults.dropped:
+            _reset(transport)
+            return
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.transport = transport
+        self.link.connections.add(self)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.link.connections.discard(self)
+
+    def data_received(self, data: bytes) -> None:
+        link, transport = self.link, self.transport
+        if transport is None:
+            return
+        self._buffer += data
+        terminator = link.terminator
+        while not transport.is_closing():
+            index = self._buffer.find(terminator)
+            if index < 0:
+                if len(self._buffer) > MAX_LINE_BYTES:
+                    log.warning("%s: line longer than %d bytes; closing", link.name, MAX_LINE_BYTES)
+                    transport.close()
+                return
+            raw = bytes(self._buffer[:index])
+            del self._buffer[: index + len(terminator)]
+            if not link.faults.handles_input():
+                continue
+            line = raw.decode("ascii", errors="replace").rstrip("\r")
+            try:
+                reply = link.handler(line)
+            except Exception:
+                log.exception("%s: emulator failed on %r; closing the connection", link.name, line)
+                transport.close()
+                return
+            if reply is None:
+                continue
+            out = link.faults.outgoing(reply.encode("ascii", errors="replace"), terminator)
+            if out is not None:
+                transport.write(out)
+
+
+class _TcpLineLink:
+    """A TCP listener whose connections carry terminator-framed text lines."""
+
+    def __init__(self, handler: LineHandler, *, name: str, host: str, port: int,
+                 terminator: bytes, faults: LinkFaults) -> None:
+        self.handler = handler
+        self.name = name
+        self.host = host
+        self.port = port
+        self.terminator = terminator
+        self.faults = faults
+        self.connections: set[_LineConnection] = set()
+        self._server: asyncio.AbstractServer | None = None
+
+    async def open(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(
+            lambda: _LineConnection(self), self.host, self.port, reuse_address=True
+        )
+        self.port = self._server.sockets[0].getsockname()[1]
+
+    def connection_count(self) -> int:
+        return len(self.connections)
+
+    async def _stop_listening(self) -> None:
+        if self._server is not None:
+            await _settle_accepts()
+            self._server.close()  # no await between: no accept can slip in
+            self._server = None
+
+    async def cut(self) -> None:
+        await self._stop_listening()
+        for connection in list(self.connections):
+            if connection.transport is not None:
+                _reset(connection.transport)
+        self.connections.clear()
+
+    async def reopen(self) -> None:
+        if self._server is None:
+            await self.open()
+
+    async def close(self) -> None:
+        await self._stop_listening()
+        for connection in list(self.connections):
+            if connection.transport is not None:
+                connection.transport.close()
+        self.connections.clear()
+
+
+async def _settle_accepts() -> None:
+    """Let connections asyncio has accepted but not yet set up finish setting up.
+
+    asyncio (3.11) sets an accepted connection up in a task of its own; if the listener closes
+    before that task runs, the set-up fails silently and the socket is leaked. Closing right after
+    this returns, without awaiting in between, avoids that.
+    """
+    for _ in range(100):
+        if not any(
+            not task.done() and "_accept_connection" in getattr(task.get_coro(), "__qualname__", "")
+            for task in asyncio.all_tasks()
+        ):
+            return
+        await asyncio.sleep(0)
+
+
+def _reset(transport: asyncio.Transport) -> None:
+    """Close with RST (SO_LINGER 0), as a device that reboots or drops the session does."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        except OSError:
+            pass
+    transport.abort()
+
+
+class EmulatorServer:
+    """One asyncio loop in a background thread serving any number of emulated devices."""
+
+    def __init__(self) -> None:
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._links: list[_TcpLineLink] = []
+        self._tasks: set[asyncio.Task] = set()
+
+    # -- lifetime -------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the loop thread; returns once the loop is running."""
+        if self._thread is not None:
+            raise RuntimeError("EmulatorServer already started")
+        loop = asyncio.new_event_loop()
+        ready = threading.Event()
+
+        def run() -> None:
+            asyncio.set_event_loop(loop)
+            loop.call_soon(ready.set)
+            try:
+                loop.run_forever()
+            finally:
+                pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
+                for task in pending:
+                    task.cancel()
+                loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+                loop.run_until_complete(asyncio.sleep(0))  # transports finish closing
+                loop.close()
+
+        self._loop = loop
+        self._thread = threading.Thread(target=run, name="emulator-server", daemon=True)
+        self._thread.start()
+        if not ready.wait(CALL_TIMEOUT_S):
+            raise RuntimeError("emulator server loop did not start")
+        log.debug("emulator server started")
+
+    def stop(self) -> None:
+        """Close every link and periodic task and end the loop thread; idempotent."""
+        if self._thread is None or self._loop is None:
+            return
+
+        async def shutdown() -> None:
+            for task in list(self._tasks):
+                task.cancel()
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+            for link in self._links:
+                await link.close()
+
+        try:
+            self._run(shutdown())
+        finally:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(CALL_TIMEOUT_S)
+            self._thread = None
+            self._loop = None
+            self._links.clear()
+            self._tasks.clear()
+            log.debug("emulator server stopped")
+
+    def __enter__(self) -> "EmulatorServer":
+        self.start()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.stop()
+
+    # -- running things in the loop ---------------------------------------------------------------
+
+    def _in_loop_thread(self) -> bool:
+        return self._thread is not None and threading.current_thread() is self._thread
+
+    def _run(self, coroutine: Awaitable[T]) -> T:
+        if self._loop is None or self._in_loop_thread():
+            coroutine.close()  # type: ignore[attr-defined]
+            raise RuntimeError(
+                "EmulatorServer is not started" if self._loop is None
+                else "cannot wait on the emulator loop from inside it"
+            )
+        loop = self._loop
+        future = asyncio.run_coroutine_threadsafe(coroutine, loop)  # type: ignore[arg-type]
+        try:
+            return future.result(CALL_TIMEOUT_S)
+        except concurrent.futures.TimeoutError:
+            future.cancel()
+            raise TimeoutError(f"emulator loop did not finish within {CALL_TIMEOUT_S} s") from None
+
+    def call(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run `fn(*args)` in the loop thread and return its result (backdoors, ground truth)."""
+        if self._in_loop_thread():
+            return fn(*args)
+
+        async def invoke() -> T:
+            return fn(*args)
+
+        return self._run(invoke())
+
+    def every(self, period_s: float, fn: Callable[[], None]) -> None:
+        """Call `fn()` in the loop every `period_s` seconds (monotonic schedule, no drift).
+
+        Missed ticks are skipped, not bunched. An exception is logged and ends this task.
+        """
+        if period_s <= 0:
+            raise ValueError("period_s must be positive")
+
+        async def periodic() -> None:
+            next_tick = time.monotonic() + period_s
+            while True:
+                await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
+                try:
+                    fn()
+                except Exception:
+                    log.exception("periodic emulator task %r failed; stopping it", fn)
+                    return
+                next_tick += period_s
+                now = time.monotonic()
+                if next_tick < now:
+                    next_tick = now + period_s
+
+        def schedule() -> None:
+            task = asyncio.get_running_loop().create_task(periodic())
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+
+        self.call(schedule)
+
+    # -- serving --------------------------------------------------------------------------------
+
+    def serve_lines_tcp(
+        self,
+        handler: LineHandler,
+        *,
+        name: str,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        terminator: bytes = b"\n",
+    ) -> Endpoint:
+        """Serve a line protocol on TCP; the endpoint's URL carries the bound port (port 0 = any).
+
+        `handler(line)` gets each line without its terminator (and without a trailing CR) and
+        returns the reply without terminator, or None for no reply. Listening when this returns.
+        """
+        if not terminator:
+            raise ValueError("terminator must not be empty")
+        faults = LinkFaults()
+        link = _TcpLineLink(handler, name=name, host=host, port=port, terminator=terminator,
+                            faults=faults)
+        self._run(link.open())
+        self._links.append(link)
+        shown_host = f"[{host}]" if ":" in host else host
+        url = f"tcp://{shown_host}:{link.port}"
+        log.info("%s: serving on %s", name, url)
+        return Endpoint(name=name, url=url, faults=faults, link=link, server=self)

@@ -1,0 +1,299 @@
+"""The one transport layer: a byte stream to a device, opened from a URL.
+
+A driver never opens a socket or a serial port itself; it is handed a `Transport` made by
+`open_transport(url)`, the way pyserial's `serial_for_url` picks the implementation from the URL:
+
+- `tcp://host:port`                      a TCP socket (TCP_NODELAY), e.g. a Kepco BOP on port 5025
+- `serial:///dev/ttyUSB0?baud=115200`    a serial port through pyserial
+- `/dev/pts/7` (a bare device path)      the same, at the default baud rate (ptys, emulated boards)
+
+Every read has a deadline. The errors are the project's own: `Disconnected` when the peer is gone,
+`DeviceTimeout` when it stays silent past the deadline, `ProtocolError` when a reply grows past
+`max_bytes` without its terminator. These transport errors carry no device name: the driver knows
+which device it is talking to and re-raises with `device=`.
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import socket
+import time
+from typing import Protocol, runtime_checkable
+from urllib.parse import parse_qs, urlsplit
+
+import serial
+
+from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, ProtocolError
+
+log = logging.getLogger(__name__)
+
+ACCEPTED_FORMS = "tcp://host:port, serial:///dev/ttyUSB0?baud=115200, or a device path such as /dev/pts/7"
+DEFAULT_BAUD = 115200
+_RECV_CHUNK = 4096
+
+
+@runtime_checkable
+class Transport(Protocol):
+    """A bidirectional byte stream with deadlines on every read."""
+
+    url: str
+
+    def write(self, data: bytes) -> None:
+        """Send all of `data`; Disconnected if the peer is gone."""
+
+    def read_until(
+        self, terminator: bytes = b"\n", *, timeout_s: float | None = None, max_bytes: int = 65536
+    ) -> bytes:
+        """The next message including its terminator.
+
+        DeviceTimeout after `timeout_s` (default: the transport's timeout) without a complete
+        message, Disconnected if the peer closed, ProtocolError if `max_bytes` arrive without it.
+        """
+
+    def read_exact(self, n: int, *, timeout_s: float | None = None) -> bytes:
+        """Exactly `n` bytes, or DeviceTimeout / Disconnected."""
+
+    def discard_input(self) -> None:
+        """Drop everything received and not yet read (resynchronise after garbage or a timeout)."""
+
+    def close(self) -> None:
+        """Release the link; idempotent."""
+
+
+def open_transport(url: str, *, timeout_s: float = 1.0) -> Transport:
+    """Open the transport that `url` names; `timeout_s` is the default read deadline.
+
+    ConfigError (naming the URL and the accepted forms) for a URL of no known form;
+    Disconnected (naming the URL) when the far end refuses or does not exist.
+    """
+    if timeout_s <= 0:
+        raise ConfigError(f"transport timeout must be positive, got {timeout_s} s for {url!r}")
+    if url.startswith("/"):
+        return SerialTransport(url, url, baud=DEFAULT_BAUD, timeout_s=timeout_s)
+    parts = urlsplit(url)
+    if parts.scheme == "tcp":
+        host, port = _tcp_address(url, parts)
+        return TcpTransport(url, host, port, timeout_s=timeout_s)
+    if parts.scheme == "serial":
+        path, baud = _serial_address(url, parts)
+        return SerialTransport(url, path, baud=baud, timeout_s=timeout_s)
+    raise ConfigError(f"cannot open {url!r}: unknown transport URL; use {ACCEPTED_FORMS}")
+
+
+def _tcp_address(url: str, parts) -> tuple[str, int]:
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    if not parts.hostname or port is None or parts.path not in ("", "/") or parts.query:
+        raise ConfigError(f"cannot open {url!r}: a TCP URL is tcp://host:port; accepted: {ACCEPTED_FORMS}")
+    return parts.hostname, port
+
+
+def _serial_address(url: str, parts) -> tuple[str, int]:
+    if parts.netloc or not parts.path.startswith("/"):
+        raise ConfigError(
+            f"cannot open {url!r}: a serial URL is serial:///dev/name?baud=N; accepted: {ACCEPTED_FORMS}"
+        )
+    query = parse_qs(parts.query, keep_blank_values=True)
+    unknown = set(query) - {"baud"}
+    if unknown:
+        raise ConfigError(f"cannot open {url!r}: unknown serial option(s) {sorted(unknown)}; only baud=N")
+    baud = DEFAULT_BAUD
+    if "baud" in query:
+        try:
+            baud = int(query["baud"][-1])
+        except ValueError:
+            raise ConfigError(f"cannot open {url!r}: baud must be an integer") from None
+        if baud <= 0:
+            raise ConfigError(f"cannot open {url!r}: baud must be positive")
+    return parts.path, baud
+
+
+class _BufferedReads:
+    """Terminator and length framing over a `_receive(deadline)` primitive, shared by both links."""
+
+    url: str
+    timeout_s: float
+
+    def __init__(self) -> None:
+        self._buffer = bytearray()
+
+    def _receive(self, deadline: float) -> bytes:  # pragma: no cover - implemented by subclasses
+        raise NotImplementedError
+
+    def _deadline(self, timeout_s: float | None) -> tuple[float, float]:
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        return timeout, time.monotonic() + timeout
+
+    def read_until(
+        self, terminator: bytes = b"\n", *, timeout_s: float | None = None, max_bytes: int = 65536
+    ) -> bytes:
+        if not terminator:
+            raise ValueError("terminator must not be empty")
+        timeout, deadline = self._deadline(timeout_s)
+        searched = 0
+        while True:
+            index = self._buffer.find(terminator, searched)
+            if index >= 0:
+                end = index + len(terminator)
+                message = bytes(self._buffer[:end])
+                del self._buffer[:end]
+                return message
+            if len(self._buffer) > max_bytes:
+                head = bytes(self._buffer[:40])
+                self._buffer.clear()
+                raise ProtocolError(
+                    f"reply from {self.url} exceeds {max_bytes} bytes without terminator "
+                    f"{terminator!r} (starts {head!r})"
+                )
+            searched = max(0, len(self._buffer) - len(terminator) + 1)
+            if time.monotonic() >= deadline:
+                raise DeviceTimeout(f"no reply within {timeout:g} s from {self.url}")
+            self._buffer += self._receive(deadline)
+
+    def read_exact(self, n: int, *, timeout_s: float | None = None) -> bytes:
+        if n < 0:
+            raise ValueError("n must be >= 0")
+        timeout, deadline = self._deadline(timeout_s)
+        while len(self._buffer) < n:
+            if time.monotonic() >= deadline:
+                raise DeviceTimeout(
+                    f"only {len(self._buffer)} of {n} bytes within {timeout:g} s from {self.url}"
+                )
+            self._buffer += self._receive(deadline)
+        message = bytes(self._buffer[:n])
+        del self._buffer[:n]
+        return message
+
+
+class TcpTransport(_BufferedReads):
+    """A TCP connection with Nagle off (small SCPI lines must leave at once)."""
+
+    def __init__(self, url: str, host: str, port: int, *, timeout_s: float) -> None:
+        super().__init__()
+        self.url = url
+        self.timeout_s = timeout_s
+        try:
+            self._sock: socket.socket | None = socket.create_connection((host, port), timeout=timeout_s)
+        except ConnectionRefusedError:
+            raise Disconnected(f"connection refused by {url}") from None
+        except TimeoutError:
+            raise Disconnected(f"no answer from {url} within {timeout_s:g} s (connect)") from None
+        except OSError as err:
+            raise Disconnected(f"cannot connect to {url}: {err.strerror or err}") from None
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        log.debug("connected to %s", url)
+
+    def _socket(self) -> socket.socket:
+        if self._sock is None:
+            raise Disconnected(f"transport to {self.url} is closed")
+        return self._sock
+
+    def write(self, data: bytes) -> None:
+        sock = self._socket()
+        try:
+            sock.settimeout(self.timeout_s)
+            sock.sendall(data)
+        except TimeoutError:
+            raise DeviceTimeout(f"could not send to {self.url} within {self.timeout_s:g} s") from None
+        except ConnectionResetError:
+            raise Disconnected(f"connection reset by {self.url}") from None
+        except OSError as err:
+            raise Disconnected(f"connection to {self.url} lost: {err.strerror or err}") from None
+
+    def _receive(self, deadline: float) -> bytes:
+        sock = self._socket()
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return b""
+        try:
+            sock.settimeout(remaining)
+            chunk = sock.recv(_RECV_CHUNK)
+        except TimeoutError:
+            return b""
+        except ConnectionResetError:
+            raise Disconnected(f"connection reset by {self.url}") from None
+        except OSError as err:
+            raise Disconnected(f"connection to {self.url} lost: {err.strerror or err}") from None
+        if not chunk:
+            raise Disconnected(f"connection closed by {self.url}")
+        return chunk
+
+    def discard_input(self) -> None:
+        self._buffer.clear()
+        sock = self._socket()
+        try:
+            while select.select([sock], [], [], 0)[0]:
+                if not sock.recv(_RECV_CHUNK):
+                    break  # EOF: the next read reports it
+        except OSError:
+            pass  # a dead link is reported by the next read or write
+
+    def close(self) -> None:
+        if self._sock is not None:
+            try:
+                self._sock.close()
+            finally:
+                self._sock = None
+                log.debug("closed %s", self.url)
+
+
+class SerialTransport(_BufferedReads):
+    """A serial port or pty through pyserial."""
+
+    def __init__(self, url: str, path: str, *, baud: int, timeout_s: float) -> None:
+        super().__init__()
+        self.url = url
+        self.timeout_s = timeout_s
+        try:
+            self._port: serial.Serial | None = serial.serial_for_url(
+                path, baudrate=baud, timeout=timeout_s, write_timeout=timeout_s
+            )
+        except (serial.SerialException, OSError) as err:
+            raise Disconnected(f"cannot open {url}: {err}") from None
+        self._timeout_set = timeout_s
+
+    def _serial(self) -> serial.Serial:
+        if self._port is None:
+            raise Disconnected(f"transport to {self.url} is closed")
+        return self._port
+
+    def write(self, data: bytes) -> None:
+        port = self._serial()
+        try:
+            port.write(data)
+        except serial.SerialTimeoutException:
+            raise DeviceTimeout(f"could not send to {self.url} within {self.timeout_s:g} s") from None
+        except (serial.SerialException, OSError) as err:
+            raise Disconnected(f"{self.url} lost: {err}") from None
+
+    def _receive(self, deadline: float) -> bytes:
+        port = self._serial()
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return b""
+        try:
+            # Changing pyserial's timeout reconfigures the port: do it only when the deadline
+            # is nearer than the current setting (never overshoot) or much farther.
+            if self._timeout_set > remaining or remaining - self._timeout_set > 0.05:
+                port.timeout = remaining
+                self._timeout_set = remaining
+            return port.read(max(1, port.in_waiting))
+        except (serial.SerialException, OSError) as err:
+            raise Disconnected(f"{self.url} lost: {err}") from None
+
+    def discard_input(self) -> None:
+        self._buffer.clear()
+        try:
+            self._serial().reset_input_buffer()
+        except (serial.SerialException, OSError):
+            pass  # a dead link is reported by the next read or write
+
+    def close(self) -> None:
+        if self._port is not None:
+            try:
+                self._port.close()
+            finally:
+                self._port = None

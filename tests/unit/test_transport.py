@@ -1,0 +1,222 @@
+"""The transport layer on real sockets and ptys, and the scripted transport drivers are tested with."""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+
+import pytest
+
+from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, ProtocolError
+from rigctl.testing import ScriptedTransport
+from rigctl.transport import SerialTransport, TcpTransport, open_transport
+
+
+# -- URLs ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "url",
+    [
+        "http://127.0.0.1:80",
+        "tcp://127.0.0.1",
+        "tcp://127.0.0.1:notaport",
+        "tcp://:5025",
+        "tcp://127.0.0.1:5025/path",
+        "serial://dev/ttyUSB0",
+        "serial:///dev/ttyUSB0?baud=fast",
+        "serial:///dev/ttyUSB0?parity=E",
+        "ttyUSB0",
+        "",
+    ],
+)
+def test_bad_url_names_the_url_and_the_accepted_forms(url: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        open_transport(url)
+    assert repr(url) in str(info.value)
+    assert "tcp://host:port" in str(info.value) or "baud" in str(info.value)
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_refused_connection_is_disconnected_naming_the_url() -> None:
+    url = f"tcp://127.0.0.1:{_free_port()}"
+    with pytest.raises(Disconnected) as info:
+        open_transport(url)
+    assert url in str(info.value)
+    assert "refused" in str(info.value)
+
+
+def test_missing_serial_device_is_disconnected_naming_the_url() -> None:
+    with pytest.raises(Disconnected) as info:
+        open_transport("serial:///dev/does-not-exist-rigctl?baud=9600")
+    assert "/dev/does-not-exist-rigctl" in str(info.value)
+
+
+# -- TCP -----------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def tcp_pair():
+    """A TcpTransport and the server side of its connection (no thread: the backlog accepts)."""
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(1)
+    url = f"tcp://127.0.0.1:{listener.getsockname()[1]}"
+    transport = open_transport(url, timeout_s=0.2)
+    peer, _ = listener.accept()
+    yield transport, peer, url
+    transport.close()
+    peer.close()
+    listener.close()
+
+
+def test_tcp_is_a_tcp_transport_with_nagle_off(tcp_pair) -> None:
+    transport, _, url = tcp_pair
+    assert isinstance(transport, TcpTransport)
+    assert transport.url == url
+    assert transport._sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
+
+
+def test_tcp_write_and_framed_reads(tcp_pair) -> None:
+    transport, peer, _ = tcp_pair
+    transport.write(b"MEAS:CURR?\n")
+    assert peer.recv(100) == b"MEAS:CURR?\n"
+    # two messages in one segment, then one split over two segments
+    peer.sendall(b"1.0\n2.0\n3.")
+    assert transport.read_until(b"\n") == b"1.0\n"
+    assert transport.read_until(b"\n") == b"2.0\n"
+    peer.sendall(b"5\r\n")
+    assert transport.read_until(b"\r\n") == b"3.5\r\n"
+    peer.sendall(b"\x01\x02\x03\x04tail")
+    assert transport.read_exact(4) == b"\x01\x02\x03\x04"
+    assert transport.read_exact(4) == b"tail"
+
+
+def test_tcp_silence_times_out_after_the_deadline(tcp_pair) -> None:
+    transport, peer, _ = tcp_pair
+    peer.sendall(b"partial")
+    start = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        transport.read_until(b"\n", timeout_s=0.1)
+    elapsed = time.monotonic() - start
+    assert 0.1 <= elapsed < 0.3
+    peer.sendall(b" line\n")  # the partial message was kept
+    assert transport.read_until(b"\n") == b"partial line\n"
+    with pytest.raises(DeviceTimeout):
+        transport.read_exact(3, timeout_s=0.05)
+
+
+def test_tcp_overlong_reply_is_a_protocol_error_quoting_it(tcp_pair) -> None:
+    transport, peer, _ = tcp_pair
+    peer.sendall(b"X" * 300)
+    with pytest.raises(ProtocolError) as info:
+        transport.read_until(b"\n", max_bytes=100)
+    assert "XXXX" in str(info.value)
+
+
+def test_tcp_discard_input_drops_pending_bytes(tcp_pair) -> None:
+    transport, peer, _ = tcp_pair
+    peer.sendall(b"stale\nreply\n")
+    assert transport.read_exact(2) == b"st"  # some in the buffer, the rest in the socket
+    transport.discard_input()
+    peer.sendall(b"fresh\n")
+    assert transport.read_until(b"\n") == b"fresh\n"
+
+
+def test_tcp_peer_close_is_disconnected_naming_the_url(tcp_pair) -> None:
+    transport, peer, url = tcp_pair
+    peer.close()
+    with pytest.raises(Disconnected) as info:
+        transport.read_until(b"\n")
+    assert url in str(info.value)
+
+
+def test_tcp_closed_transport_refuses_io(tcp_pair) -> None:
+    transport, _, _ = tcp_pair
+    transport.close()
+    transport.close()  # idempotent
+    with pytest.raises(Disconnected):
+        transport.write(b"x\n")
+
+
+# -- serial (a pty stands in for the port) ----------------------------------------------------------
+
+
+@pytest.fixture
+def pty_pair():
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    yield master, path
+    os.close(master)
+    os.close(slave)
+
+
+@pytest.mark.parametrize("form", ["bare", "url"])
+def test_serial_over_a_pty(pty_pair, form: str) -> None:
+    master, path = pty_pair
+    url = path if form == "bare" else f"serial://{path}?baud=9600"
+    transport = open_transport(url, timeout_s=0.2)
+    try:
+        assert isinstance(transport, SerialTransport)
+        transport.write(b"\xaa\x01\x02")
+        assert os.read(master, 100) == b"\xaa\x01\x02"
+        os.write(master, b"ok\nmore")
+        assert transport.read_until(b"\n") == b"ok\n"
+        assert transport.read_exact(4) == b"more"
+        start = time.monotonic()
+        with pytest.raises(DeviceTimeout):
+            transport.read_exact(1, timeout_s=0.05)
+        assert time.monotonic() - start < 0.2
+    finally:
+        transport.close()
+
+
+# -- ScriptedTransport -------------------------------------------------------------------------------
+
+
+def test_scripted_transport_plays_the_script() -> None:
+    script = ScriptedTransport(
+        [(b"*IDN?\n", b"KEPCO\n"), (b"OUTP ON\n", None), (None, b"late\n")]
+    )
+    script.write(b"*IDN?\n")
+    assert script.read_until(b"\n") == b"KEPCO\n"
+    script.write(b"OUTP ON\n")
+    assert script.read_until(b"\n") == b"late\n"
+    script.assert_done()
+
+
+def test_scripted_transport_fails_on_a_wrong_write_even_if_swallowed() -> None:
+    script = ScriptedTransport([(b"CURR 1.0000\n", None)])
+    try:
+        script.write(b"CURR 2.0000\n")
+    except AssertionError:
+        pass
+    with pytest.raises(AssertionError, match="CURR 2.0000"):
+        script.assert_done()
+
+
+def test_scripted_transport_fails_on_leftovers() -> None:
+    script = ScriptedTransport([(b"A\n", b"1\n"), (b"B\n", None)])
+    script.write(b"A\n")
+    with pytest.raises(AssertionError, match="left"):
+        script.assert_done()
+    script.write(b"B\n")
+    with pytest.raises(AssertionError, match="never read"):
+        script.assert_done()
+
+
+def test_scripted_transport_silence_and_errors() -> None:
+    script = ScriptedTransport([(b"Q?\n", None), (b"R?\n", Disconnected("gone"))])
+    script.write(b"Q?\n")
+    with pytest.raises(DeviceTimeout):
+        script.read_until(b"\n")
+    script.write(b"R?\n")
+    with pytest.raises(Disconnected, match="gone"):
+        script.read_until(b"\n")
+    script.assert_done()
