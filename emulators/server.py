@@ -332,13 +332,15 @@ class EmulatorServer:
     def _in_loop_thread(self) -> bool:
         return self._thread is not None and threading.current_thread() is self._thread
 
-    def _run(self, coroutine: Awaitable[T]) -> T:
-        if self._loop is None or self._in_loop_thread():
+    def _run(self, coroutine: Awaitable[T]) -> T | None:
+        """Run `coroutine` in the loop and wait for it; from inside the loop (a backdoor handler
+        injecting a fault) it is scheduled instead and takes effect once the handler returns."""
+        if self._loop is None:
             coroutine.close()  # type: ignore[attr-defined]
-            raise RuntimeError(
-                "EmulatorServer is not started" if self._loop is None
-                else "cannot wait on the emulator loop from inside it"
-            )
+            raise RuntimeError("EmulatorServer is not started")
+        if self._in_loop_thread():
+            self._loop.create_task(coroutine)  # type: ignore[arg-type]
+            return None
         loop = self._loop
         future = asyncio.run_coroutine_threadsafe(coroutine, loop)  # type: ignore[arg-type]
         try:

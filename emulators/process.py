@@ -1,0 +1,71 @@
+"""Run an emulated bench in its own process, as `rigctl emulate KIND` does, and wait until it is up.
+
+`rigctl execute` without `--rig` uses this, so that path and `rigctl emulate` + `--rig` are the same
+code: a separate process that serves the devices on loopback and writes the rig file. Readiness is
+the line `READY <rig file>` on the child's stdout, never a sleep.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from rigctl.errors import RigError
+
+log = logging.getLogger(__name__)
+
+READY_PREFIX = "READY "
+
+
+class EmulatedBenchProcess:
+    """Context manager: `with EmulatedBenchProcess("six-coil", rig_path) as rig_file: ...`"""
+
+    def __init__(self, kind: str, rig_out: str | Path, *, extra_args: list[str] | None = None,
+                 start_timeout_s: float = 60.0) -> None:
+        self.kind = kind
+        self.rig_out = Path(rig_out)
+        self.extra_args = extra_args or []
+        self.start_timeout_s = start_timeout_s
+        self.proc: subprocess.Popen[str] | None = None
+        self.log_path = self.rig_out.with_suffix(".log")
+
+    def __enter__(self) -> Path:
+        cmd = [sys.executable, "-m", "rigctl", "emulate", self.kind, "--rig-out", str(self.rig_out),
+               *self.extra_args]
+        # the child's log goes to a file beside the rig file: a pipe nobody drains would block it
+        self._log = open(self.log_path, "w")
+        self.proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=self._log, text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        deadline = time.monotonic() + self.start_timeout_s
+        assert self.proc.stdout is not None
+        while time.monotonic() < deadline:
+            line = self.proc.stdout.readline()
+            if not line:
+                break  # the child exited
+            if line.startswith(READY_PREFIX):
+                return Path(line[len(READY_PREFIX):].strip())
+        self._terminate()
+        err = self.log_path.read_text()
+        raise RigError(f"the emulated {self.kind} bench did not start: {err.strip()[-2000:]}",
+                       device="emulated bench")
+
+    def __exit__(self, *exc: object) -> None:
+        self._terminate()
+
+    def _terminate(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if self.proc is not None and self.proc.stdout is not None:
+            self.proc.stdout.close()
+        self._log.close()

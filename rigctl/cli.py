@@ -1,0 +1,178 @@
+"""The `rigctl` command line: execute plans, validate them, plan, and run emulated benches.
+
+Exit status, for every command: 0 success (for `execute`: every agent reached its goal), 1 the
+job ran but did not succeed (goal missed, plan not solved), 2 bad input (malformed plan or rig file,
+a limit the plan would break; nothing was energised), 3 a device fault stopped the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+from rigctl.cli_plan import register as register_planners
+from rigctl.config import load_rig
+from rigctl.errors import ConfigError, LimitError, PlanError, RigError
+
+EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
+
+log = logging.getLogger("rigctl")
+
+
+def _cmd_execute(args: argparse.Namespace) -> int:
+    from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.execute import execute_plan, format_summary, summary_json_line
+    from rigctl.plans.schema import load_plan
+
+    plan = load_plan(args.plan)
+    out = sys.stderr if not args.quiet else None
+    if args.rig is not None:
+        rig = load_rig(args.rig)
+        summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out)
+    else:
+        with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
+            if out:
+                print(f"no --rig given: starting the emulated {plan.rig} bench on loopback "
+                      "(nothing real is energised)", file=out)
+            with EmulatedBenchProcess(plan.rig, Path(tmp) / "bench.toml") as rig_path:
+                rig = load_rig(rig_path)
+                summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out)
+    print(format_summary(summary))
+    if args.json:
+        print(summary_json_line(summary))
+    if summary.faults:
+        return EXIT_FAULT
+    return EXIT_OK if summary.reached else EXIT_NOT_REACHED
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    from rigctl.plans.schema import check_plan, dump_plan, load_plan, simulate
+
+    plan = load_plan(args.file)
+    if args.simulate:
+        plan = simulate(plan)
+    check_plan(plan)
+    if args.simulate:
+        text = dump_plan(plan)
+        if args.output:
+            Path(args.output).write_text(text)
+        else:
+            print(text)
+    print(f"OK: {args.file}: {plan.kind} plan for a {plan.rig} rig, {len(plan.agents)} agents, "
+          f"{len(plan.moves)} moves", file=sys.stderr if args.simulate and not args.output else sys.stdout)
+    return EXIT_OK
+
+
+def _cmd_schema(args: argparse.Namespace) -> int:
+    if args.what == "plan":
+        from rigctl.plans.schema import plan_json_schema
+
+        schema = plan_json_schema()
+    else:
+        from rigctl.config import RigConfig
+
+        schema = RigConfig.model_json_schema()
+    print(json.dumps(schema, indent=2))
+    return EXIT_OK
+
+
+def _cmd_emulate(args: argparse.Namespace) -> int:
+    from rigctl.config import dump_rig
+    from rigctl.emulators.bench import SixCoilBench
+    from rigctl.emulators.process import READY_PREFIX
+
+    if args.kind != "six-coil":
+        raise ConfigError(f"no emulated bench for {args.kind!r} yet; available: six-coil")
+    rig_out = Path(args.rig_out)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    with SixCoilBench(host=args.host) as bench:
+        assert bench.rig is not None
+        rig = bench.rig.model_copy(update={"emulation": bench.rig.emulation.model_copy(
+            update={"pid": os.getpid()})})
+        rig_out.write_text(dump_rig(rig))
+        print(f"{READY_PREFIX}{rig_out.resolve()}", flush=True)
+        print(f"emulated six-coil bench up; rig file: {rig_out}; stop with Ctrl-C", file=sys.stderr)
+        for coil in rig.coils:
+            print(f"  supply {coil.name:<3} {coil.url}", file=sys.stderr)
+        print(f"  backdoor   {rig.emulation.backdoor}", file=sys.stderr, flush=True)
+        stop.wait()
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rigctl",
+        description="Run magnetic micro-robot rigs: execute plans on real or emulated hardware, "
+        "validate and write plans, start emulated benches.",
+        epilog="Exit status: 0 success, 1 goal not reached / not solved, 2 bad input (nothing "
+        "energised), 3 device fault. Start with: rigctl execute plans/examples/fig4-two-magnets.json",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser(
+        "execute", help="run a plan on a rig (the emulated bench unless --rig names one)",
+        description="Run a plan. Without --rig, an emulated bench of the plan's rig kind is started "
+        "on loopback, so nothing real can be energised. Every limit is checked before anything is "
+        "switched on. Prints progress, a summary, and writes a run record directory.",
+    )
+    p.add_argument("plan", help="plan file (JSON, see `rigctl schema plan`)")
+    p.add_argument("--rig", help="rig file (TOML) for real hardware or one written by `rigctl emulate`")
+    p.add_argument("--json", action="store_true", help="end the output with one JSON line")
+    p.add_argument("--runs", default="runs", help="directory for run records (default: ./runs)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=_cmd_execute)
+
+    p = sub.add_parser("validate", help="check a plan file; name what is wrong",
+                       description="Check a plan against the schema and the workspace (agents in free "
+                       "space, expected states consistent with the moves). Exit 2 if not valid.")
+    p.add_argument("file")
+    p.add_argument("--simulate", action="store_true",
+                   help="fill `expected` from the model and print the plan (or write it with -o)")
+    p.add_argument("-o", "--output", help="with --simulate: write the completed plan here")
+    p.set_defaults(func=_cmd_validate)
+
+    p = sub.add_parser("schema", help="print the JSON Schema of a plan or a rig file")
+    p.add_argument("what", choices=["plan", "rig"])
+    p.set_defaults(func=_cmd_schema)
+
+    p = sub.add_parser("emulate", help="start an emulated bench and write the rig file for it",
+                       description="Serve every device of the rig kind on its real protocol on "
+                       "loopback, write a rig file pointing at them, run until interrupted.")
+    p.add_argument("kind", choices=["six-coil"], help="rig kind")
+    p.add_argument("--rig-out", default="bench.toml", help="where to write the rig file")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
+    p.set_defaults(func=_cmd_emulate)
+
+    register_planners(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return args.func(args)
+    except (PlanError, ConfigError, LimitError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except RigError as err:
+        print(f"fault: {err}", file=sys.stderr)
+        return EXIT_FAULT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

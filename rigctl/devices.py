@@ -1,0 +1,104 @@
+"""The six-coil rig's supplies as one group: connect, stream a cycle, watch health, stop safely.
+
+A stream cycle writes every supply's setpoint first and then reads every reply, so the six round
+trips overlap instead of adding up. Health is checked between cycles, one supply at a time in
+turn, by draining its SCPI error queue: that is how a trip the supply reports on its own (an
+over-temperature) surfaces within about a second even though the replies keep coming. Stopping
+ramps all supplies down together, then switches each off; a supply whose link is dead is skipped
+(its own watchdog is what makes the hardware safe then) and named in the log.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from rigctl.config import RigConfig
+from rigctl.drivers.kepco_bop import KepcoBop
+from rigctl.errors import RigError
+from rigctl.transport import open_transport
+
+log = logging.getLogger(__name__)
+
+
+class CoilSupplies:
+    """The connected supplies of a rig, in the rig file's coil order."""
+
+    def __init__(self, supplies: list[KepcoBop], *, identities: list[str] | None = None,
+                 health_period_s: float = 1.0, rate_hz: float = 100.0) -> None:
+        self.supplies = supplies
+        self.identities = identities or []
+        self.names = [s.name for s in supplies]
+        self.measured_A = np.zeros(len(supplies))
+        # one supply's error queue is read every `health_every` cycles, in turn
+        self._health_every = max(1, round(health_period_s * rate_hz / max(1, len(supplies))))
+        self._cycles = 0
+
+    @classmethod
+    def connect(cls, rig: RigConfig) -> "CoilSupplies":
+        """Open, identify and configure every supply (outputs stay off). On any failure the ones
+        already opened are switched off and closed, and the error is raised."""
+        supplies: list[KepcoBop] = []
+        identities: list[str] = []
+        try:
+            for coil in rig.coils:
+                transport = open_transport(coil.url, timeout_s=rig.stream.reply_timeout_s)
+                supply = KepcoBop(
+                    transport, name=coil.name, current_limit_A=coil.current_limit_A,
+                    compliance_V=coil.compliance_V, timeout_s=rig.stream.reply_timeout_s,
+                )
+                supplies.append(supply)
+                identities.append(supply.identify())
+                supply.configure()
+        except RigError:
+            group = cls(supplies)
+            group.stop(ramp_s=0.0)
+            raise
+        return cls(supplies, identities=identities, rate_hz=rig.stream.rate_hz)
+
+    def energise(self) -> None:
+        for supply in self.supplies:
+            supply.output(True)
+
+    def cycle(self, setpoints_A: np.ndarray) -> np.ndarray:
+        """Send one setpoint per supply and return the measured currents (A), shape (n,)."""
+        for supply, amps in zip(self.supplies, setpoints_A):
+            supply.send_setpoint(float(amps))
+        for j, supply in enumerate(self.supplies):
+            self.measured_A[j] = supply.read_measured()
+        self._cycles += 1
+        if self._cycles % self._health_every == 0:
+            turn = (self._cycles // self._health_every) % len(self.supplies)
+            self.supplies[turn].check_errors()
+        return self.measured_A
+
+    def zero_now(self) -> None:
+        """E-stop: every setpoint to zero at once, then every output off; best effort per supply."""
+        for supply in self.supplies:
+            try:
+                supply.set_current(0.0)
+            except RigError as err:
+                log.error("e-stop: %s", err)
+        for supply in self.supplies:
+            supply.safe_stop(ramp_s=0.0)
+
+    def stop(self, ramp_s: float, steps: int = 10) -> None:
+        """Ramp every supply from its last setpoint to zero together over `ramp_s`, then switch
+        each off and close it. Never raises: a dead supply is logged and skipped."""
+        alive = list(self.supplies)
+        starts = {s.name: s.last_setpoint_A for s in alive}
+        t0 = time.monotonic()
+        if ramp_s > 0 and any(starts.values()):
+            for k in range(1, steps + 1):
+                for supply in list(alive):
+                    try:
+                        supply.set_current(starts[supply.name] * (1.0 - k / steps))
+                    except RigError as err:
+                        log.error("safe stop: %s", err)
+                        alive.remove(supply)
+                time.sleep(max(0.0, t0 + k * ramp_s / steps - time.monotonic()))
+        for supply in self.supplies:
+            supply.safe_stop(ramp_s=0.0)  # zero and output off, best effort
+            supply.close()

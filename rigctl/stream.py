@@ -1,0 +1,109 @@
+"""The fixed-rate stream loop: one cycle per sample of the command program, on an absolute schedule.
+
+Cycle k is due at t0 + k / rate. The loop sleeps until a cycle is due, runs it, and records how
+late it started (the period error). It never skips a sample: a field program is a path, and
+dropping samples would change where the robots go. A cycle that starts behind schedule runs at
+once, so the loop catches up. A cycle counts as late when it starts more than `late_fraction` of a
+period after its due time.
+
+The loop owns timing only; what a cycle does (send currents, read them back) is the caller's.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class StreamStats:
+    """Timing of one stream run. Period errors in seconds (start time minus due time)."""
+
+    rate_hz: float
+    cycles: int
+    late_cycles: int
+    period_error_p50_s: float
+    period_error_p99_s: float
+    period_error_max_s: float
+    overrun_cycles: int  # cycles whose own work took longer than one period
+
+    @property
+    def late_share(self) -> float:
+        return self.late_cycles / self.cycles if self.cycles else 0.0
+
+    def as_dict(self) -> dict:
+        return {
+            "rate_hz": self.rate_hz,
+            "cycles": self.cycles,
+            "late_cycles": self.late_cycles,
+            "late_share": self.late_share,
+            "overrun_cycles": self.overrun_cycles,
+            "period_error_us": {
+                "p50": self.period_error_p50_s * 1e6,
+                "p99": self.period_error_p99_s * 1e6,
+                "max": self.period_error_max_s * 1e6,
+            },
+        }
+
+
+class StreamLoop:
+    """Run `cycle(k)` for k = 0, 1, ... at `rate_hz` until it returns False."""
+
+    def __init__(self, rate_hz: float, *, late_fraction: float = 0.5) -> None:
+        if rate_hz <= 0:
+            raise ValueError(f"stream rate must be positive, got {rate_hz}")
+        self.rate_hz = float(rate_hz)
+        self.period_s = 1.0 / self.rate_hz
+        self.late_fraction = late_fraction
+        self._errors: np.ndarray = np.zeros(0)
+        self._count = 0
+        self._late = 0
+        self._overruns = 0
+
+    def run(self, cycle: Callable[[int], bool | None], max_cycles: int | None = None) -> StreamStats:
+        """Run until `cycle` returns False (or `max_cycles` cycles ran)."""
+        self._errors = np.empty(max_cycles if max_cycles is not None else 4096)
+        self._count = self._late = self._overruns = 0
+        late_after = self.late_fraction * self.period_s
+        t0 = time.perf_counter() + self.period_s  # first cycle one period from now
+        k = 0
+        while max_cycles is None or k < max_cycles:
+            if k == len(self._errors):
+                self._errors = np.resize(self._errors, 2 * len(self._errors))
+            due = t0 + k * self.period_s
+            wait = due - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
+            start = time.perf_counter()
+            error = start - due
+            self._errors[k] = error
+            self._count = k + 1
+            if error > late_after:
+                self._late += 1
+            keep_going = cycle(k)
+            if time.perf_counter() - start > self.period_s:
+                self._overruns += 1
+            k += 1
+            if keep_going is False:
+                break
+        return self.stats()
+
+    def stats(self) -> StreamStats:
+        errors = self._errors[: self._count]
+        if errors.size == 0:
+            return StreamStats(self.rate_hz, 0, 0, 0.0, 0.0, 0.0, 0)
+        return StreamStats(
+            rate_hz=self.rate_hz,
+            cycles=int(errors.size),
+            late_cycles=self._late,
+            period_error_p50_s=float(np.percentile(errors, 50)),
+            period_error_p99_s=float(np.percentile(errors, 99)),
+            period_error_max_s=float(errors.max()),
+            overrun_cycles=self._overruns,
+        )

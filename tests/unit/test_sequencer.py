@@ -1,0 +1,69 @@
+"""Run control on the stream thread: what the sequencer sends when a run is paused, resumed and
+aborted. Sequences worked out by hand on a 10-sample, one-coil program."""
+
+import numpy as np
+
+from rigctl.allocate import CurrentProgram
+from rigctl.execute import Sequencer
+
+
+def make(ramp_samples=2):
+    program = CurrentProgram(
+        t_s=np.arange(10) * 0.01,
+        currents_A=np.arange(1.0, 11.0).reshape(10, 1),
+        segment=np.array([0, 0, 0, 1, 1, 1, 2, 2, 2, -1]),
+        coil_names=("x+",),
+    )
+    return Sequencer(program, move_ends=[3, 6, 9], ramp_samples=ramp_samples)
+
+
+def take(seq, n):
+    out = []
+    for _ in range(n):
+        step = seq.next()
+        out.append(None if step is None else float(step[0][0]))
+    return out
+
+
+def test_plays_the_program_then_finishes():
+    seq = make()
+    assert take(seq, 11) == [1, 2, 3, 4, 5, 6, 7, 8, 9, 10, None]
+
+
+def test_pause_waits_for_the_end_of_the_move_and_holds():
+    seq = make()
+    assert take(seq, 1) == [1]
+    seq.request_pause()
+    # samples 2 and 3 finish move 0 (it ends at index 3), then the field holds at 3
+    assert take(seq, 5) == [2, 3, 3, 3, 3]
+    assert seq.paused
+    seq.request_resume()
+    assert take(seq, 3) == [4, 5, 6]
+    assert not seq.paused
+
+
+def test_immediate_pause_ramps_down_and_resume_ramps_back():
+    seq = make(ramp_samples=2)
+    assert take(seq, 5) == [1, 2, 3, 4, 5]
+    seq.request_pause(immediate=True)
+    assert take(seq, 4) == [2.5, 0, 0, 0]
+    seq.request_resume()
+    # ramp from 0 to the next program sample (6) in two samples, then carry on
+    assert take(seq, 5) == [3, 6, 6, 7, 8]
+
+
+def test_abort_ramps_to_zero_and_ends():
+    seq = make(ramp_samples=2)
+    assert take(seq, 4) == [1, 2, 3, 4]
+    seq.request_abort()
+    assert take(seq, 3) == [2, 0, None]
+    assert seq.aborted
+
+
+def test_abort_while_paused():
+    seq = make(ramp_samples=4)
+    take(seq, 3)
+    seq.request_pause()
+    assert take(seq, 2) == [3, 3]
+    seq.request_abort()
+    assert take(seq, 5) == [2.25, 1.5, 0.75, 0, None]
