@@ -1,0 +1,159 @@
+"""Tracker benchmark: prints one JSON object.
+
+- `tracker`: frames per second of `Tracker.update` alone (frames already decoded), on one core
+  (`cv2.setNumThreads(1)` and the process pinned to one CPU), at 659 x 494 and 1280 x 1024 with
+  2, 4 and 8 robots moving, with the per-frame p50 / p99 time and the tracking error against the
+  scene's ground truth (mm; the robots' radius is `radius_mm`).
+- `jpeg_decode_ms`: `cv2.imdecode` of one emulated frame (quality 85) at each resolution, one core.
+- `stream`: through the emulated MJPEG camera at 60 fps, read by the camera driver
+  (VideoCapture): latency from a frame's stamped capture time to the tracker's result, p50 / p99
+  (this part uses every core: the camera is another machine on a rig).
+
+Run: `.venv/bin/python bench/tracker.py [--seconds S]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import cv2
+import numpy as np
+
+from rigctl.drivers.camera import CameraDriver
+from rigctl.emulators.camera import CameraModel, Renderer, Scene, serve_camera
+from rigctl.emulators.server import EmulatorServer
+from rigctl.plans.workspace import ShapeWorkspace
+from rigctl.tracker import Tracker
+
+RADIUS_MM = 5.0
+WORKSPACE = ShapeWorkspace(
+    ("rect", (0, 0, 400, 400)), [("rect", (150, 170, 100, 40)), ("disk", (300, 300, 25))]
+)
+RESOLUTIONS = ((659, 494), (1280, 1024))
+ROBOT_COUNTS = (2, 4, 8)
+FRAMES = 120
+STEP_MM = np.array([0.25, 0.15])  # per frame: 15 mm/s and 9 mm/s at 60 fps
+
+
+def starts(n: int) -> np.ndarray:
+    """n robot positions (n, 2) mm, spread over the free floor."""
+    grid = np.array([[40.0, 40.0], [120.0, 60.0], [220.0, 50.0], [330.0, 70.0],
+                     [50.0, 250.0], [120.0, 320.0], [220.0, 260.0], [200.0, 350.0]])
+    return grid[:n]
+
+
+def decoded_frames(camera: CameraModel, n: int) -> tuple[list[np.ndarray], np.ndarray, list[bytes]]:
+    """FRAMES pictures of n robots moving, through JPEG and back, with the truth (FRAMES, n, 2)."""
+    renderer = Renderer(camera, seed=7)
+    path = starts(n)[None] + np.arange(FRAMES)[:, None, None] * STEP_MM
+    jpegs = []
+    for positions in path:
+        image = renderer.render(Scene(WORKSPACE, positions, np.full(n, RADIUS_MM)))
+        jpegs.append(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 85])[1].tobytes())
+    frames = [cv2.imdecode(np.frombuffer(j, np.uint8), cv2.IMREAD_COLOR) for j in jpegs]
+    return frames, path, jpegs
+
+
+def time_tracker(seconds: float) -> tuple[dict, dict]:
+    results: dict = {}
+    decode: dict = {}
+    for width, height in RESOLUTIONS:
+        key = f"{width}x{height}"
+        camera = CameraModel.overhead(WORKSPACE.bounds, resolution=(width, height), tilt_deg=6)
+        calibration = camera.calibration()
+        results[key] = {}
+        for n in ROBOT_COUNTS:
+            frames, path, jpegs = decoded_frames(camera, n)
+            durations, errors = [], []
+            deadline = time.perf_counter() + seconds
+            while time.perf_counter() < deadline or not durations:
+                tracker = Tracker(calibration, RADIUS_MM, path[0], roi_mm=WORKSPACE.bounds)
+                tracker.update(frames[0])  # first frame sets the grey levels
+                for k in range(1, FRAMES):
+                    started = time.perf_counter()
+                    robots = tracker.update(frames[k], k / 60.0)
+                    durations.append(time.perf_counter() - started)
+                    found = np.array([r.position_mm for r in robots])
+                    errors.append(np.linalg.norm(found - path[k], axis=1))
+            d = np.array(durations)
+            e = np.concatenate(errors)
+            results[key][str(n)] = {
+                "fps": round(1.0 / float(d.mean()), 1),
+                "p50_ms": round(1e3 * float(np.percentile(d, 50)), 3),
+                "p99_ms": round(1e3 * float(np.percentile(d, 99)), 3),
+                "mean_error_mm": round(float(e.mean()), 4),
+                "max_error_mm": round(float(e.max()), 4),
+            }
+        buffer = np.frombuffer(jpegs[0], np.uint8)
+        started = time.perf_counter()
+        repeats = 200
+        for _ in range(repeats):
+            cv2.imdecode(buffer, cv2.IMREAD_COLOR)
+        decode[key] = round(1e3 * (time.perf_counter() - started) / repeats, 3)
+    return results, decode
+
+
+def stream_latency(seconds: float) -> dict:
+    camera_model = CameraModel.overhead(WORKSPACE.bounds, tilt_deg=6)
+    t0 = time.monotonic()
+    n = 4
+
+    def scene() -> Scene:
+        step = (time.monotonic() - t0) * 60.0
+        return Scene(WORKSPACE, starts(n) + step * STEP_MM, np.full(n, RADIUS_MM))
+
+    latencies, skipped = [], 0
+    with EmulatorServer() as server:
+        camera = serve_camera(server, scene, Renderer(camera_model, seed=3), fps=60.0)
+        with CameraDriver(camera.url, stamped=True) as driver:
+            first = driver.read()
+            tracker = Tracker(camera_model.calibration(), RADIUS_MM,
+                              starts(n) + (first.t_source - t0) * 60.0 * STEP_MM,
+                              roi_mm=WORKSPACE.bounds)
+            previous = first.source_number
+            deadline = time.monotonic() + seconds
+            while time.monotonic() < deadline:
+                frame = driver.read()
+                tracker.update(frame.image, frame.t_source)
+                latencies.append(time.monotonic() - frame.t_source)
+                skipped += max(0, frame.source_number - previous - 1)
+                previous = frame.source_number
+    lat = np.array(latencies)
+    return {
+        "frames": len(lat),
+        "frames_skipped": skipped,
+        "capture_to_tracked_p50_ms": round(1e3 * float(np.percentile(lat, 50)), 2),
+        "capture_to_tracked_p99_ms": round(1e3 * float(np.percentile(lat, 99)), 2),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=0.5, help="timing per configuration")
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    every_cpu = os.sched_getaffinity(0)
+    one_cpu = {min(every_cpu)}
+    os.sched_setaffinity(0, one_cpu)
+    try:
+        tracker, decode = time_tracker(args.seconds)
+    finally:
+        os.sched_setaffinity(0, every_cpu)
+    stream = stream_latency(max(2.0, 4 * args.seconds))
+    print(json.dumps({
+        "machine": {"cpu": platform.processor() or platform.machine(), "cpus": len(every_cpu),
+                    "opencv": cv2.__version__},
+        "radius_mm": RADIUS_MM,
+        "one_core": True,
+        "tracker": tracker,
+        "jpeg_decode_ms": decode,
+        "stream": stream,
+    }, indent=2))
+
+
+if __name__ == "__main__":
+    main()

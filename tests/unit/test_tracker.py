@@ -1,0 +1,156 @@
+"""The tracker against the renderer's ground truth: the scene says where each robot is, the picture
+is drawn from it through a tilted, distorting, noisy camera, and the tracker must find every robot
+there, under its own name, through contact and occlusion.
+
+The calibration handed to the tracker is the camera's exact one (`CameraModel.calibration`, checked in
+test_render.py), so these tests measure the tracker alone; fitting one is test_calibration.py's."""
+
+import math
+
+import numpy as np
+import pytest
+
+from rigctl.emulators.camera.render import CameraModel, Renderer, Scene
+from rigctl.plans.workspace import ShapeWorkspace
+from rigctl.tracker import Tracker, TrackerSettings, find_dark_blobs
+
+RADIUS = 5.0
+WORKSPACE = ShapeWorkspace(
+    ("rect", (0, 0, 400, 400)), [("rect", (100, 150, 80, 40)), ("disk", (300, 300, 30))]
+)
+
+
+@pytest.fixture(scope="module")
+def rig():
+    camera = CameraModel.overhead(
+        WORKSPACE.bounds, tilt_deg=12, tilt_azimuth_deg=35, yaw_deg=4, distortion=(-0.1, 0.02)
+    )
+    return camera, Renderer(camera, seed=11), camera.calibration()
+
+
+def run(rig, path, occluded=lambda k: ()):
+    """Render every frame of `path` (frames, n, 2) and track it; the tracked states per frame."""
+    camera, renderer, calibration = rig
+    tracker = Tracker(calibration, RADIUS, path[0], roi_mm=WORKSPACE.bounds)
+    states = []
+    for k, positions in enumerate(path):
+        hidden = [i for i in occluded(k)]
+        glare = np.column_stack([positions[hidden], np.full(len(hidden), 1.6 * RADIUS)])
+        scene = Scene(WORKSPACE, positions, np.full(len(positions), RADIUS), glare.reshape(-1, 3))
+        states.append(tracker.update(renderer.render(scene), t_s=k / 60.0))
+    return states
+
+
+def errors(states, path):
+    found = np.array([[r.position_mm for r in state] for state in states])
+    return np.linalg.norm(found - path, axis=2)
+
+
+def test_four_robots_tracked_to_a_fraction_of_their_radius(rig):
+    k = np.arange(90)[:, None]
+    starts = np.array([[30.0, 30.0], [220.0, 60.0], [60.0, 330.0], [370.0, 200.0]])
+    # a shared global move with a turn, as under a rolling field
+    step = np.where(k < 45, [0.35, 0.2], [-0.1, 0.4])
+    path = starts[None] + np.cumsum(step, axis=0)[:, None, :]
+    states = run(rig, path)
+    err = errors(states, path)
+    assert err.max() < 0.2 * RADIUS
+    assert err.mean() < 0.05 * RADIUS
+    assert not any(r.lost for state in states for r in state)
+    assert min(r.confidence for r in states[-1]) > 0.7
+
+
+def test_identity_kept_while_two_robots_touch_and_roll_round_each_other(rig):
+    # A comes from the left, B from the right; they touch, B orbits A by 180 degrees in contact
+    # (so their order along x swaps), then they part.
+    a0, b0 = np.array([150.0, 250.0]), np.array([250.0, 250.0])
+    frames = []
+    for s in np.linspace(0, 1, 30):  # approach to contact: centres 2 r apart
+        frames.append([a0 + s * np.array([45.0, 0.0]), b0 - s * np.array([45.0, 0.0])])
+    a = a0 + [45.0, 0.0]
+    for angle in np.linspace(0, math.pi, 45):  # B rolls round A, always in contact
+        frames.append([a, a + 2 * RADIUS * np.array([math.cos(angle), math.sin(angle)])])
+    b = frames[-1][1]
+    for s in np.linspace(0, 1, 20):  # and away again
+        frames.append([a + s * np.array([0.0, -20.0]), b + s * np.array([-20.0, 0.0])])
+    path = np.array(frames)
+    states = run(rig, path)
+    err = errors(states, path)
+    assert err.max() < 0.2 * RADIUS, f"worst frame {int(np.argmax(err.max(axis=1)))}"
+    assert not any(r.lost for state in states for r in state)
+    assert states[-1][0].position_mm[0] > states[-1][1].position_mm[0]  # order along x did swap
+
+
+def test_three_robots_in_a_row_of_contacts_are_all_found(rig):
+    row = np.array([[200.0, 100.0], [210.0, 100.0], [220.0, 100.0]])
+    path = np.array([row + [0.2 * k, 0.1 * k] for k in range(20)])
+    err = errors(run(rig, path), path)
+    assert err.max() < 0.2 * RADIUS
+
+
+def test_occluded_robot_is_lost_then_found_again_under_its_name(rig):
+    starts = np.array([[60.0, 60.0], [200.0, 80.0], [330.0, 120.0]])
+    k = np.arange(70)[:, None]
+    path = starts[None] + (k * np.array([0.3, 0.25]))[:, None, :]
+    hidden = range(20, 40)  # robot 1 under a glare disc, still moving
+    states = run(rig, path, occluded=lambda i: (1,) if i in hidden else ())
+    for i, state in enumerate(states):
+        robot = state[1]
+        if i in hidden:
+            assert robot.lost and robot.confidence == 0.0
+            assert robot.frames_unseen == i - 19
+            # reported where it was last seen, not where it went
+            np.testing.assert_allclose(robot.position_mm, path[19, 1], atol=1.0)
+        else:
+            assert not robot.lost
+            assert np.linalg.norm(robot.position_mm - path[i, 1]) < 0.2 * RADIUS
+        assert not state[0].lost and not state[2].lost
+
+
+def test_black_frames_lose_everyone_and_tracking_resumes(rig):
+    camera, renderer, calibration = rig
+    positions = np.array([[60.0, 60.0], [200.0, 80.0]])
+    tracker = Tracker(calibration, RADIUS, positions, roi_mm=WORKSPACE.bounds)
+    scene = Scene(WORKSPACE, positions, np.full(2, RADIUS))
+    tracker.update(renderer.render(scene))
+    assert all(r.lost for r in tracker.update(renderer.blank()))
+    assert all(r.lost for r in tracker.update(renderer.blank()))
+    moved = Scene(WORKSPACE, positions + [3.0, -2.0], np.full(2, RADIUS))
+    robots = tracker.update(renderer.render(moved))
+    assert not any(r.lost for r in robots)
+    np.testing.assert_allclose([r.position_mm for r in robots], positions + [3.0, -2.0], atol=1.0)
+
+
+def test_levels_are_estimated_between_the_robots_and_the_floor(rig):
+    camera, renderer, calibration = rig
+    positions = np.array([[60.0, 60.0], [200.0, 80.0]])
+    tracker = Tracker(calibration, RADIUS, positions, roi_mm=WORKSPACE.bounds)
+    tracker.update(renderer.render(Scene(WORKSPACE, positions, np.full(2, RADIUS))))
+    appearance = renderer.appearance
+    def grey(bgr):  # ITU-R 601 luma, as OpenCV's BGR2GRAY
+        return 0.114 * bgr[0] + 0.587 * bgr[1] + 0.299 * bgr[2]
+    robot_grey, obstacle_grey = grey(appearance.robot_bgr), grey(appearance.obstacle_bgr)
+    # between the robots' grey and the darkest thing that is not a robot (lighting spans +-20 %)
+    assert 0.8 * robot_grey < tracker.dark_level < 1.25 * robot_grey
+    assert 1.25 * robot_grey < tracker.threshold < 0.8 * obstacle_grey
+
+
+def test_a_robot_far_from_where_it_was_put_is_not_taken_for_it(rig):
+    camera, renderer, calibration = rig
+    truth = np.array([[60.0, 60.0], [250.0, 80.0]])
+    settings = TrackerSettings(acquire_radius_mm=20.0)
+    tracker = Tracker(calibration, RADIUS, [[60.0, 60.0], [150.0, 80.0]], roi_mm=WORKSPACE.bounds,
+                      settings=settings)
+    robots = tracker.update(renderer.render(Scene(WORKSPACE, truth, np.full(2, RADIUS))))
+    assert not robots[0].lost and robots[1].lost  # 100 mm away from where robot 1 should be
+
+
+def test_find_dark_blobs_returns_marker_centres(rig):
+    camera, renderer, _ = rig
+    markers = np.array([[40.0, 40.0], [360.0, 50.0], [350.0, 360.0], [50.0, 350.0], [220.0, 240.0]])
+    image = renderer.render(Scene(WORKSPACE, markers, np.full(5, 4.0)))
+    found = find_dark_blobs(image)
+    expected = camera.project(markers)
+    assert len(found) == 5
+    nearest = np.min(np.linalg.norm(expected[:, None] - found[None], axis=2), axis=1)
+    assert nearest.max() < 0.3
