@@ -1,5 +1,6 @@
 """The emulated six-coil bench: six Kepco BOP supplies on their own TCP ports, the coils' field, the
-rolling magnets, and a backdoor for tests, all in one asyncio server thread.
+rolling magnets, an overhead camera serving MJPEG over HTTP, and a backdoor for tests, all on one
+asyncio server thread.
 
 The simulation is advanced lazily and in fixed sub-steps of simulated time: before every SCPI command
 and on a periodic tick, `advance()` steps every supply's R-L model and the world up to "now"
@@ -16,6 +17,8 @@ Backdoor (JSON lines over TCP, one request per line, one reply per line):
 - `{"cmd": "truth"}`: agents' true positions (mm), axis, field (T), each coil's current (A);
 - `{"cmd": "fault", "device": "x+", "kind": "drop_link" | "stall" | "corrupt" | "overtemp" |
   "restore"}`: inject a fault into one supply;
+- `{"cmd": "camera", "kind": "drop_frames" | "freeze" | "black_out" | "occlude" | "drop_link" |
+  "restore", "n": frames, "robot": index}`: camera faults (also as `fault` with device "camera");
 - `{"cmd": "speed", "factor": f}`: simulated seconds per real second.
 Replies are `{"ok": true, ...}` or `{"ok": false, "error": "..."}`.
 """
@@ -30,7 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.config import Emulation, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.config import CameraSettings, Emulation, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.emulators.camera.mjpeg import serve_camera
+from rigctl.emulators.camera.render import PAPER_RESOLUTION, CameraModel, Renderer, Scene
 from rigctl.emulators.kepco_bop.model import BopCoilModel
 from rigctl.emulators.kepco_bop.protocol import BopScpi
 from rigctl.emulators.server import Endpoint, EmulatorServer
@@ -44,6 +49,7 @@ log = logging.getLogger(__name__)
 
 PHYSICS_STEP_S = 1e-3  # simulated time per sub-step: the field turns < 3 degrees per step at 8 turns/s
 TICK_S = 5e-3  # how often the server advances the simulation when no command arrives
+CAMERA_FIELD_MM = (0.0, 0.0, 400.0, 400.0)  # what the emulated camera's picture covers
 
 
 @dataclass
@@ -98,10 +104,18 @@ class SixCoilBench:
             self.supplies.append(_Supply(coil.name, model, endpoint, np.asarray(field, dtype=float)))
             coils.append(coil.model_copy(update={"url": endpoint.url}))
         self.backdoor = self.server.serve_lines_tcp(self._backdoor, name="backdoor", host=self.host)
+        # The camera looks down on a fixed 400 x 400 mm field from 600 mm, slightly tilted, as a
+        # real one would be mounted; it is not re-aimed when robots are placed.
+        camera_model = CameraModel.overhead(CAMERA_FIELD_MM, tilt_deg=5.0)
+        self.camera = serve_camera(self.server, self._scene, Renderer(camera_model, seed=1),
+                                   fps=60.0, host=self.host)
         self._last_real = time.monotonic()
         self.server.every(TICK_S, self.advance)
+        camera = CameraSettings(url=self.camera.url, stamped=True, fps=60.0,
+                                resolution=PAPER_RESOLUTION, calibration=camera_model.calibration())
         self.rig = self.template.model_copy(
-            update={"coils": coils, "emulation": Emulation(backdoor=self.backdoor.url)}
+            update={"coils": coils, "camera": camera,
+                    "emulation": Emulation(backdoor=self.backdoor.url)}
         )
         log.info("six-coil bench up: backdoor %s", self.backdoor.url)
         return self.rig
@@ -138,6 +152,15 @@ class SixCoilBench:
         for supply in self.supplies:
             total += supply.field_per_amp_T * supply.model.current_A
         return total
+
+    def _scene(self) -> Scene | None:
+        """What the camera sees now (None: nothing placed yet, a black frame)."""
+        self.advance()
+        with self._lock:
+            if self.world is None:
+                return None
+            return Scene(self.world.model.workspace, self.world.positions_mm.copy(),
+                         np.asarray(self.world.model.radii, dtype=float).copy())
 
     # -- backdoor -----------------------------------------------------------------------------
     def _backdoor(self, line: str) -> str:
@@ -186,6 +209,8 @@ class SixCoilBench:
                     slip=float(request.get("slip", 1.0)),
                 )
             return {"agents": positions.tolist()}
+        if cmd == "fault" and request.get("device") == "camera":
+            return self._backdoor_command({**request, "cmd": "camera"})
         if cmd == "fault":
             supply = self._supply(request.get("device"))
             kind = request.get("kind")
@@ -205,6 +230,24 @@ class SixCoilBench:
                     f"unknown fault kind {kind!r}; use drop_link, stall, corrupt, overtemp, restore"
                 )
             return {"device": supply.name, "kind": kind}
+        if cmd == "camera":
+            kind = request.get("kind")
+            if kind == "drop_frames":
+                self.camera.drop_frames(int(request.get("n", 1)))
+            elif kind == "freeze":
+                self.camera.freeze()
+            elif kind == "black_out":
+                self.camera.black_out()
+            elif kind == "occlude":
+                self.camera.occlude(int(request["robot"]))
+            elif kind == "drop_link":
+                self.camera.endpoint.drop_link()
+            elif kind == "restore":
+                self.camera.restore()
+            else:
+                raise ValueError(f"unknown camera fault {kind!r}; use drop_frames, freeze, "
+                                 "black_out, occlude, drop_link, restore")
+            return {"device": "camera", "kind": kind}
         if cmd == "speed":
             factor = float(request["factor"])
             if not factor > 0:
@@ -212,7 +255,7 @@ class SixCoilBench:
             self.advance()
             self.speed = factor
             return {"factor": factor}
-        raise ValueError(f"unknown command {cmd!r}; use ping, place, truth, fault, speed")
+        raise ValueError(f"unknown command {cmd!r}; use ping, place, truth, fault, camera, speed")
 
     def _supply(self, name: object) -> _Supply:
         for supply in self.supplies:

@@ -19,6 +19,7 @@ from typing import Annotated, Literal
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from rigctl.calibration import Calibration
 from rigctl.errors import ConfigError
 
 RigKind = Literal["six-coil", "coil-board", "depm"]
@@ -94,6 +95,23 @@ class StreamSettings(_Strict):
     ramp_down_s: Annotated[float, Field(ge=0, description="safe stop ramp to zero")] = 0.1
 
 
+class CameraSettings(_Strict):
+    """The overhead camera: where its frames come from and how pixels map to workspace mm."""
+
+    url: str = Field(description="device index, stream URL (http://.../stream.mjpg) or video file")
+    stamped: bool = Field(
+        default=False, description="frames carry the emulated camera's capture-time stamp rows"
+    )
+    fps: Annotated[float, Field(gt=0)] = 60.0
+    resolution: tuple[int, int] | None = None
+    timeout_s: Annotated[float, Field(gt=0, description="no frame this long: tracking lost")] = 2.0
+    reconnect_attempts: Annotated[int, Field(ge=0)] = 5
+    threshold: float | None = Field(default=None, description="blob threshold; None = automatic")
+    calibration: Calibration | None = Field(
+        default=None, description="pixel -> mm homography (`rigctl calibrate camera`)"
+    )
+
+
 class Emulation(_Strict):
     """Present only in rig files written by `rigctl emulate`: where the bench's backdoor is."""
 
@@ -111,6 +129,7 @@ class RigConfig(_Strict):
         description="measured 3 x n_coils matrix at the workspace centre; overrides the geometry",
     )
     stream: StreamSettings = StreamSettings()
+    camera: CameraSettings | None = None
     emulation: Emulation | None = None
 
     @model_validator(mode="after")

@@ -1,0 +1,487 @@
+"""The plan format, version 1: what a plan file says, how it is checked, and how it is written back.
+
+A plan is a JSON document ``{"schema": "rigctl.plan/1", "kind": ..., ...}``. `kind` selects the
+document type (a discriminated union, so new kinds such as ``pair-formation`` or ``field-sequence``
+slot in beside ``global-moves``). Lengths are in mm.
+
+Shapes are one-key objects: ``{"rect": [x, y, w, h]}`` (lower-left corner, w, h > 0),
+``{"polygon": [[x, y], ...]}`` (>= 3 vertices, simple, either orientation), ``{"disk": [cx, cy, r]}``.
+A workspace is ``{"boundary": shape, "obstacles": [shape, ...]}`` or a picture
+``{"image": "maze.png", "mm_per_px": 0.5, "origin": [x, y]}`` (path relative to the plan file, dark
+pixels are obstacles, origin = workspace position of the image's lower-left corner).
+
+Two levels of checking: `parse_plan` / `load_plan` validate the document (types, ranges, shapes)
+and `check_plan` checks what only geometry can tell (agents in free space, apart, and `expected`
+reproduced by the global-input model). Every error is a `PlanError` naming the file and the field
+by its JSON path, e.g. ``plan.json: agents.1.radius: Input should be greater than 0``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    PrivateAttr,
+    Tag,
+    TypeAdapter,
+    ValidationError,
+    field_validator,
+)
+
+from rigctl.errors import PlanError
+
+log = logging.getLogger(__name__)
+
+SCHEMA_ID = "rigctl.plan/1"
+RigName = Literal["six-coil", "coil-board"]
+Contact = Literal["slide", "non-slip"]
+
+Point = tuple[float, float]
+PositiveLength = Annotated[float, Field(gt=0)]
+
+# `replay` agreement demanded by check_plan (mm).
+REPLAY_TOLERANCE_MM = 1e-6
+
+
+class _Document(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+# Shapes
+
+
+class RectShape(_Document):
+    rect: tuple[float, float, PositiveLength, PositiveLength] = Field(
+        description="[x, y, w, h]: lower-left corner, width and height (mm)"
+    )
+
+
+class PolygonShape(_Document):
+    polygon: list[Point] = Field(
+        min_length=3, description="vertices [[x, y], ...] (mm), simple, either orientation"
+    )
+
+    @field_validator("polygon")
+    @classmethod
+    def _simple(cls, vertices: list[Point]) -> list[Point]:
+        problem = _polygon_problem(np.asarray(vertices, dtype=float))
+        if problem:
+            raise ValueError(problem)
+        return vertices
+
+
+class DiskShape(_Document):
+    disk: tuple[float, float, PositiveLength] = Field(description="[cx, cy, r] (mm)")
+
+
+_SHAPE_KEYS = ("rect", "polygon", "disk")
+
+
+def _shape_tag(value: Any) -> str | None:
+    keys = value.keys() if isinstance(value, dict) else [k for k in _SHAPE_KEYS if hasattr(value, k)]
+    found = [k for k in _SHAPE_KEYS if k in keys]
+    return f"shape:{found[0]}" if len(found) == 1 else None
+
+
+Shape = Annotated[
+    Union[
+        Annotated[RectShape, Tag("shape:rect")],
+        Annotated[PolygonShape, Tag("shape:polygon")],
+        Annotated[DiskShape, Tag("shape:disk")],
+    ],
+    Discriminator(
+        _shape_tag,
+        custom_error_type="shape_kind",
+        custom_error_message="expected one of rect, polygon, disk",
+    ),
+]
+
+
+# Workspaces
+
+
+class ShapeWorkspaceSpec(_Document):
+    boundary: Shape
+    obstacles: list[Shape] = []
+
+
+class ImageWorkspaceSpec(_Document):
+    image: str = Field(description="PNG path, relative to the plan file; dark (< 128) = obstacle")
+    mm_per_px: PositiveLength
+    origin: Point = Field(
+        default=(0.0, 0.0), description="workspace position (mm) of the image's lower-left corner"
+    )
+
+
+def _workspace_tag(value: Any) -> str | None:
+    if isinstance(value, dict):
+        if "image" in value:
+            return "workspace:image"
+        if "boundary" in value:
+            return "workspace:shapes"
+        return None
+    return "workspace:image" if hasattr(value, "image") else "workspace:shapes"
+
+
+WorkspaceSpec = Annotated[
+    Union[
+        Annotated[ShapeWorkspaceSpec, Tag("workspace:shapes")],
+        Annotated[ImageWorkspaceSpec, Tag("workspace:image")],
+    ],
+    Discriminator(
+        _workspace_tag,
+        custom_error_type="workspace_kind",
+        custom_error_message="expected {boundary, obstacles} or {image, mm_per_px, origin}",
+    ),
+]
+
+
+# Plans
+
+
+class Agent(_Document):
+    start: Point
+    goal: Point
+    radius: PositiveLength
+
+
+class GlobalMovesPlan(_Document):
+    """Every agent receives the same displacements `moves` in turn (seed 000, seed 004)."""
+
+    schema_: Literal["rigctl.plan/1"] = Field(alias="schema")
+    kind: Literal["global-moves"]
+    rig: RigName
+    name: str | None = None
+    workspace: WorkspaceSpec
+    agents: list[Agent] = Field(min_length=1)
+    moves: list[Point] = Field(description="shared displacements [dx, dy] (mm), applied in order")
+    expected: list[list[Point]] | None = Field(
+        default=None, description="expected[i][j]: agent j's position after move i (mm)"
+    )
+    tolerance_mm: PositiveLength = Field(
+        default=1.0, description="how far a measured agent may be from expected before correcting"
+    )
+    min_separation_mm: Annotated[float, Field(ge=0)] = Field(
+        default=0.0, description="agents keep centre distance >= r_i + r_j + this (planner option)"
+    )
+
+    model_config = ConfigDict(populate_by_name=True)
+
+    # Where the plan came from: names it in messages and resolves a relative image path.
+    _source: str = PrivateAttr(default="plan")
+    _base_dir: Path | None = PrivateAttr(default=None)
+
+    @property
+    def source(self) -> str:
+        return self._source
+
+    @property
+    def base_dir(self) -> Path | None:
+        return self._base_dir
+
+
+def _plan_tag(value: Any) -> str | None:
+    kind = value.get("kind") if isinstance(value, dict) else getattr(value, "kind", None)
+    return f"plan:{kind}" if isinstance(kind, str) else None
+
+
+PLAN_KINDS = ("global-moves",)
+
+Plan = Annotated[
+    Union[Annotated[GlobalMovesPlan, Tag("plan:global-moves")]],
+    Discriminator(
+        _plan_tag,
+        custom_error_type="plan_kind",
+        custom_error_message="expected one of " + ", ".join(PLAN_KINDS),
+    ),
+]
+
+_PLAN_ADAPTER: TypeAdapter = TypeAdapter(Plan)
+_WORKSPACE_ADAPTER: TypeAdapter = TypeAdapter(WorkspaceSpec)
+_TAGS = {"shape:rect", "shape:polygon", "shape:disk", "workspace:shapes", "workspace:image"}
+_TAGS |= {f"plan:{kind}" for kind in PLAN_KINDS}
+
+
+# Reading and writing
+
+
+def parse_plan(data: Any, source: str = "plan", base_dir: str | Path | None = None) -> GlobalMovesPlan:
+    """Validate a decoded plan document; `source` names it in messages (usually the file name).
+
+    `base_dir` resolves a relative workspace image (default: the folder of `source`).
+    """
+    if not isinstance(data, dict):
+        raise PlanError(f"{source}: a plan is a JSON object, got {type(data).__name__}")
+    if "schema" not in data:
+        raise PlanError(f"{source}: schema: missing; a plan starts with \"schema\": \"{SCHEMA_ID}\"")
+    if data["schema"] != SCHEMA_ID:
+        raise PlanError(
+            f"{source}: schema: {data['schema']!r} is not a plan format this version reads "
+            f"(expected {SCHEMA_ID!r})"
+        )
+    try:
+        plan = _PLAN_ADAPTER.validate_python(data)
+    except ValidationError as err:
+        raise PlanError(_describe(err, source)) from None
+    plan._source = source
+    plan._base_dir = Path(base_dir) if base_dir is not None else Path(source).parent
+    return plan
+
+
+def load_plan(path: str | Path) -> GlobalMovesPlan:
+    """Read and validate a plan file (schema level; `check_plan` does the geometry)."""
+    path = Path(path)
+    data = _read_json(path)
+    return parse_plan(data, str(path), base_dir=path.parent)
+
+
+def parse_workspace(
+    data: Any, source: str = "workspace"
+) -> ShapeWorkspaceSpec | ImageWorkspaceSpec:
+    """Validate a workspace document on its own (the `workspace` object of a plan)."""
+    try:
+        return _WORKSPACE_ADAPTER.validate_python(data)
+    except ValidationError as err:
+        raise PlanError(_describe(err, source)) from None
+
+
+def load_workspace(path: str | Path) -> ShapeWorkspaceSpec | ImageWorkspaceSpec:
+    """Read a workspace file: a bare workspace object, or a plan whose workspace is taken."""
+    path = Path(path)
+    data = _read_json(path)
+    if isinstance(data, dict) and "workspace" in data and "boundary" not in data:
+        data = data["workspace"]
+        source = f"{path}: workspace"
+    else:
+        source = str(path)
+    return parse_workspace(data, source)
+
+
+def dump_plan(plan: GlobalMovesPlan) -> str:
+    """The plan as JSON text (indent 2, key `schema` first) that `parse_plan` reads back."""
+    data = plan.model_dump(mode="json", by_alias=True, exclude_none=True)
+    return _format_json(data) + "\n"
+
+
+def _format_json(value: Any, depth: int = 0) -> str:
+    """JSON with indent 2, except that a point list or a list of points stays on one line."""
+    pad, inner = "  " * depth, "  " * (depth + 1)
+    if isinstance(value, dict) and len(value) == 1:
+        ((key, item),) = value.items()
+        if not isinstance(item, (dict, list)) or (isinstance(item, list) and _is_flat(item)):
+            return "{" + json.dumps(key) + ": " + _format_json(item, depth + 1) + "}"  # a shape
+    if isinstance(value, dict) and value:
+        items = [f"{inner}{json.dumps(k)}: {_format_json(v, depth + 1)}" for k, v in value.items()]
+        return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+    if isinstance(value, list) and value and not _is_flat(value):
+        items = [inner + _format_json(v, depth + 1) for v in value]
+        return "[\n" + ",\n".join(items) + "\n" + pad + "]"
+    return json.dumps(value)
+
+
+def _is_flat(value: list) -> bool:
+    """Numbers, or lists of numbers: short enough to read on one line."""
+    return all(
+        not isinstance(v, (dict, list)) or (isinstance(v, list) and all(not isinstance(w, (dict, list)) for w in v))
+        for v in value
+    )
+
+
+def plan_json_schema() -> dict:
+    """The published JSON Schema of plan documents (what `rigctl schema plan` prints)."""
+    schema = _PLAN_ADAPTER.json_schema(by_alias=True)
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["$id"] = SCHEMA_ID
+    schema["title"] = "rigctl plan"
+    return schema
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise PlanError(f"{path}: no such file") from None
+    except OSError as err:
+        raise PlanError(f"{path}: cannot read: {err.strerror}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise PlanError(f"{path}: line {err.lineno} column {err.colno}: not valid JSON: {err.msg}") from None
+
+
+def _describe(err: ValidationError, source: str) -> str:
+    """One line per problem: `source: json.path: reason`, union tags left out of the path."""
+    lines = []
+    for problem in err.errors():
+        path = ".".join(str(part) for part in problem["loc"] if part not in _TAGS)
+        where = path or "(top level)"
+        if problem["type"] == "shape_kind":
+            message = f"{problem['msg']}, got {_brief(problem['input'])}"
+        elif problem["type"] == "plan_kind":
+            kind = problem["input"].get("kind") if isinstance(problem["input"], dict) else None
+            where = f"{path}.kind" if path else "kind"
+            message = f"{problem['msg']}, got {_brief(kind)}"
+        elif problem["type"] == "workspace_kind":
+            message = f"{problem['msg']}, got {_brief(problem['input'])}"
+        else:
+            message = problem["msg"].removeprefix("Value error, ")
+        lines.append(f"{source}: {where}: {message}")
+    return "\n".join(lines)
+
+
+def _brief(value: Any, limit: int = 60) -> str:
+    """A value as short JSON: `{"circle": ...}` rather than the whole thing."""
+    if isinstance(value, dict):
+        inner = ", ".join(f"{json.dumps(str(k))}: ..." for k in value)
+        return "{" + inner + "}"
+    try:
+        text = json.dumps(value)
+    except (TypeError, ValueError):
+        text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _polygon_problem(vertices: np.ndarray) -> str | None:
+    """Why these vertices (V, 2) are not a simple polygon, or None."""
+    count = len(vertices)
+    for i in range(count):
+        if np.array_equal(vertices[i], vertices[(i + 1) % count]):
+            return f"polygon repeats vertex {i}"
+    for i in range(count):
+        a, b = vertices[i], vertices[(i + 1) % count]
+        for j in range(i + 1, count):
+            if j == i or (j + 1) % count == i or j == (i + 1) % count:
+                continue  # neighbouring edges share a vertex
+            c, d = vertices[j], vertices[(j + 1) % count]
+            if _segments_cross(a, b, c, d):
+                return f"polygon is not simple: edges {i} and {j} cross"
+    x, y = vertices[:, 0], vertices[:, 1]
+    if 0.5 * abs(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) == 0.0:
+        return "polygon has zero area"
+    return None
+
+
+def _segments_cross(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> bool:
+    def orient(p, q, r) -> float:
+        return float((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
+
+    def on_segment(p, q, r) -> bool:
+        return min(p[0], q[0]) <= r[0] <= max(p[0], q[0]) and min(p[1], q[1]) <= r[1] <= max(p[1], q[1])
+
+    o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
+    if o1 * o2 < 0 and o3 * o4 < 0:
+        return True
+    return (
+        (o1 == 0 and on_segment(a, b, c))
+        or (o2 == 0 and on_segment(a, b, d))
+        or (o3 == 0 and on_segment(c, d, a))
+        or (o4 == 0 and on_segment(c, d, b))
+    )
+
+
+# Semantics beyond the schema
+
+
+def contact_for_rig(rig: str) -> Contact:
+    """How agents meet walls on a rig: rolling magnets slide (six-coil), particles stick (coil-board)."""
+    if rig == "six-coil":
+        return "slide"
+    if rig == "coil-board":
+        return "non-slip"
+    raise PlanError(f"rig {rig!r} runs no global-moves plans (expected six-coil or coil-board)")
+
+
+def plan_workspace(plan: GlobalMovesPlan):
+    """The plan's workspace geometry (`rigctl.plans.workspace.Workspace`)."""
+    from rigctl.plans.workspace import Workspace  # the geometry imports this module's shapes
+
+    return Workspace.from_spec(plan.workspace, base_dir=plan.base_dir)
+
+
+def plan_model(plan: GlobalMovesPlan, workspace=None):
+    """The global-input model a plan runs under: its workspace, radii, rig contact and separation."""
+    from rigctl.plans.model import GlobalInputModel
+
+    return GlobalInputModel(
+        workspace if workspace is not None else plan_workspace(plan),
+        [agent.radius for agent in plan.agents],
+        contact=contact_for_rig(plan.rig),
+        min_separation_mm=plan.min_separation_mm,
+    )
+
+
+def simulate(plan: GlobalMovesPlan) -> GlobalMovesPlan:
+    """A copy of the plan with `expected` filled in by the global-input model."""
+    model = plan_model(plan)
+    start = np.array([agent.start for agent in plan.agents], dtype=float)
+    states = model.rollout(start, np.array(plan.moves, dtype=float).reshape(-1, 2))
+    expected = [[(float(x), float(y)) for x, y in state] for state in states]
+    copy = plan.model_copy(update={"expected": expected})
+    copy._source, copy._base_dir = plan._source, plan._base_dir
+    return copy
+
+
+def check_plan(plan: GlobalMovesPlan) -> None:
+    """Geometric checks beyond the schema; raises PlanError naming the field.
+
+    Starts and goals lie in free space (at least the agent's radius from every surface), agents do
+    not overlap at start or at goal, `expected` has one entry per move with one position per agent,
+    and replaying the moves through the model reproduces `expected` within 1e-6 mm.
+    """
+    source = plan.source
+    workspace = plan_workspace(plan)
+    model = plan_model(plan, workspace)
+    radii = model.radii
+    for field in ("start", "goal"):
+        points = np.array([getattr(agent, field) for agent in plan.agents], dtype=float)
+        clearance = workspace.clearance(points)
+        for index, (point, room, radius) in enumerate(zip(points, clearance, radii)):
+            if room < radius - 1e-9:
+                where = "inside a wall or outside the boundary" if room < 0 else "too close to a wall"
+                raise PlanError(
+                    f"{source}: agents.{index}.{field}: ({point[0]:g}, {point[1]:g}) is {where} "
+                    f"(clearance {room:.3f} mm, radius {radius:g} mm)"
+                )
+        for i in range(len(points)):
+            for j in range(i + 1, len(points)):
+                distance = float(np.hypot(*(points[j] - points[i])))
+                need = radii[i] + radii[j] + plan.min_separation_mm
+                if distance < need - 1e-9:
+                    raise PlanError(
+                        f"{source}: agents.{j}.{field}: overlaps agent {i} (centres {distance:.3f} mm "
+                        f"apart, need {need:g} mm)"
+                    )
+    if plan.expected is None:
+        return
+    if len(plan.expected) != len(plan.moves):
+        raise PlanError(
+            f"{source}: expected: has {len(plan.expected)} entries for {len(plan.moves)} moves "
+            "(one per move)"
+        )
+    for index, state in enumerate(plan.expected):
+        if len(state) != len(plan.agents):
+            raise PlanError(
+                f"{source}: expected.{index}: has {len(state)} positions for "
+                f"{len(plan.agents)} agents"
+            )
+    start = np.array([agent.start for agent in plan.agents], dtype=float)
+    replay = model.rollout(start, np.array(plan.moves, dtype=float).reshape(-1, 2))
+    expected = np.array(plan.expected, dtype=float)
+    error = np.hypot(*(replay - expected).transpose(2, 0, 1))  # (moves, agents)
+    bad = np.argwhere(error > REPLAY_TOLERANCE_MM)
+    if len(bad):
+        move, agent = bad[0]
+        got = replay[move, agent]
+        raise PlanError(
+            f"{source}: expected.{move}.{agent}: the model puts agent {agent} at "
+            f"({got[0]:.6f}, {got[1]:.6f}) after move {move}, {error[move, agent]:.3g} mm from "
+            "expected"
+        )
