@@ -20,13 +20,17 @@ first contact (solved on the contact surface's line or circle), sliding along a 
 circle in closed form (see `_arc_point`), and the transitions between them (wall ends, corners,
 wedges). On a `ShapeWorkspace` every contact surface is a line or a circle, so a move applied in
 pieces gives the whole move's result to ~1e-6 mm (measured: <= 2e-6 mm over random moves in
-rect, polygon and disk workspaces). On a `GridWorkspace` the same steps use the interpolated
-normal and curvature: straight walls and rounded corners stay exact to ~1e-3 mm, but inside
-corners (wedges) are blunted by the interpolation and agents stop up to about one pixel from
-them. Agent-agent contact is resolved after each sub-step (at most `substep_mm` of input) by
-projecting overlapping pairs apart, an agent the walls hold not moving; sliding of one agent
-around another is therefore first order in the sub-step. Configurations whose agents cannot
-reach a wall or each other during a move are translated in one step.
+rect, polygon and disk workspaces). A workspace rasterized from shapes keeps each sample's
+nearest wall piece and is just as exact for agents wider than about 1.5 pixels (measured: the
+same end points to 1e-12 mm). A grid from a picture knows only its pixels: the same steps use the
+interpolated normal, and agents end within about a pixel of where the drawn walls would put
+them (inside corners are the worst).
+
+Agent-agent contact is resolved after each sub-step (at most `substep_mm` of input, longer while
+agents are far apart) by projecting overlapping pairs apart: an agent the walls hold stays, else
+the one behind gives way. Sliding of one agent round another is therefore first order in the
+sub-step. Configurations whose agents cannot reach a wall or each other during a move are
+translated in one step.
 
 All work is vectorised over the batch; the Python loops run over event rounds and agent pairs,
 never over configurations.
@@ -132,8 +136,8 @@ class GlobalInputModel:
         fits = np.all(self.workspace.clearance(p) >= self.radii - _CONTACT_TOL, axis=-1)
         if self.n > 1:
             gap = p[..., self._pair_second, :] - p[..., self._pair_first, :]
-            apart = np.all(np.hypot(gap[..., 0], gap[..., 1]) >= self._reach - _CONTACT_TOL, axis=-1)
-            fits &= apart
+            distance = np.hypot(gap[..., 0], gap[..., 1])
+            fits &= np.all(distance >= self._reach - _CONTACT_TOL, axis=-1)
         return fits
 
     # Whole moves
@@ -143,7 +147,7 @@ class GlobalInputModel:
         moving = np.flatnonzero(length > 0)
         if moving.size == 0:
             return p
-        clearance = self.workspace.clearance(p[moving])
+        clearance = self.workspace.clearance_lower_bound(p[moving])
         # Agents that cannot reach a wall during the move translate rigidly; since they all move
         # alike, no pair can come closer either.
         far = np.all(clearance - self.radii >= length[moving, None] + _CONTACT_TOL, axis=1)
@@ -152,26 +156,37 @@ class GlobalInputModel:
         hard = moving[~far]
         if hard.size == 0:
             return p
-        steps = np.ones(hard.size, dtype=int)
-        if self.n > 1:
-            gap = p[hard][:, self._pair_second] - p[hard][:, self._pair_first]
-            slack = np.min(np.hypot(gap[..., 0], gap[..., 1]) - self._reach, axis=1)
-            # Two agents close in on each other by at most twice the move: only then sub-step.
-            near = slack <= 2.0 * length[hard] + _CONTACT_TOL
-            steps[near] = np.ceil(length[hard][near] / self.substep_mm).astype(int)
-        sub = d[hard] / steps[:, None]
-        for k in range(int(steps.max())):
-            live = hard[steps > k]
-            piece = sub[steps > k]
+        # Walls are handled exactly however long the step; agents meeting agents need sub-steps.
+        # Two agents close in by at most twice the input, and only if a wall stops or turns one
+        # of them; so a step of half the smallest gap between discs that a wall could bring
+        # together cannot make any two meet: take that, or a sub-step once they are close.
+        direction = d[hard] / length[hard, None]
+        left = length[hard].copy()
+        while True:
+            going = np.flatnonzero(left > 0)
+            if going.size == 0:
+                break
+            live = hard[going]
+            step = left[going]
+            if self.n > 1:
+                gap = p[live][:, self._pair_second] - p[live][:, self._pair_first]
+                slack = np.hypot(gap[..., 0], gap[..., 1]) - self._reach  # (B, pairs)
+                room = self.workspace.clearance_lower_bound(p[live]) - self.radii
+                walled = room < step[:, None]  # (B, n): a wall may stop or turn it
+                may_close = walled[:, self._pair_first] | walled[:, self._pair_second]
+                slack = np.min(np.where(may_close, slack, np.inf), axis=1)
+                step = np.minimum(step, np.maximum(self.substep_mm, 0.5 * slack))
+            piece = direction[going] * step[:, None]
+            before = p[live]
             moved = self._wall_phase(
-                p[live].reshape(-1, 2),
+                before.reshape(-1, 2),
                 np.repeat(piece, self.n, axis=0),
                 np.tile(self.radii, live.size),
             ).reshape(-1, self.n, 2)
             if self.n > 1:
-                still = np.all(np.abs(moved - p[live]) <= 1e-12, axis=2)  # blocked by walls
-                moved = self._pair_phase(moved, piece, still)
+                moved = self._pair_phase(moved, before, piece)
             p[live] = moved
+            left[going] = np.where(step >= left[going], 0.0, left[going] - step)
         return p
 
     # Walls: exact events
@@ -238,7 +253,7 @@ class GlobalInputModel:
             progress[live] = new_s
         left = np.flatnonzero(progress > 0)
         if left.size:
-            log.debug("wall phase: %d agents out of event budget; finishing by projection", left.size)
+            log.debug("wall phase: %d agents out of event rounds; finishing by projection", left.size)
             p[left] += progress[left, None] * u[left]
             p[left] = self._push_out(p[left], r[left])
         if not ws.exact_geometry:
@@ -250,11 +265,18 @@ class GlobalInputModel:
     # surface at a: clearance, normal, curvature) -> (end (K, 2), input used (K,)).
 
     def _step_projected(self, a, s, u, r, phi, n, k, memory, marks):
-        """First order fallback: move straight, then push back out of the wall."""
+        """Fallback: move straight, then push back out of the wall ("slide"), or stop at the
+        last free point on the way, found by bisection ("non-slip")."""
         step = np.minimum(s, self.substep_mm)
-        if self.contact == "non-slip":
-            return a.copy(), step  # stalled against a wall: it does not move
-        return self._push_out(a + step[:, None] * u, r), step
+        if self.contact == "slide":
+            return self._push_out(a + step[:, None] * u, r), step
+        low, high = np.zeros(len(a)), step.copy()
+        blocked = self.workspace.clearance(a + step[:, None] * u) < r - _CONTACT_TOL
+        for _ in range(20 if blocked.any() else 0):
+            mid = 0.5 * (low + high)
+            ok = self.workspace.clearance(a + mid[:, None] * u) >= r - _CONTACT_TOL
+            low, high = np.where(ok, mid, low), np.where(ok, high, mid)
+        return a + np.where(blocked, low, step)[:, None] * u, step
 
     def _step_free(self, a, s, u, r, phi, n, k, memory, marks):
         """Straight along the input, to the first contact if there is one on the way."""
@@ -296,7 +318,8 @@ class GlobalInputModel:
         if off.any():  # the wall ended: back to where the corner's circle begins, follow it next
             centre = end[off] - end_n[off] / end_k[off, None]
             vv = v[off]
-            tangent = np.sum((centre - a[off]) * vv, axis=1) / np.maximum(np.sum(vv * vv, axis=1), _TINY)
+            speed2 = np.maximum(np.sum(vv * vv, axis=1), _TINY)
+            tangent = np.sum((centre - a[off]) * vv, axis=1) / speed2
             used[off] = np.clip(tangent, 0.0, step[off])
             end[off] = a[off] + used[off, None] * vv
             memory.corner(marks[off], centre, np.ones(off.sum()))
@@ -403,7 +426,8 @@ class GlobalInputModel:
                 hi = np.where(ok, hi, mid)
             at[todo] = lo
             met_s[todo] = hi
-            _, met_n[todo], met_k[todo] = self.workspace.surface(start[todo] + hi[:, None] * velocity[todo])
+            beyond = start[todo] + hi[:, None] * velocity[todo]
+            _, met_n[todo], met_k[todo] = self.workspace.surface(beyond)
         return at, start + met_s[:, None] * velocity, met_n, met_k
 
     def _push_out(self, p: np.ndarray, r: np.ndarray, rounds: int = 16) -> np.ndarray:
@@ -421,63 +445,65 @@ class GlobalInputModel:
 
     # Agents against agents
 
-    def _pair_phase(self, p: np.ndarray, piece: np.ndarray, still: np.ndarray) -> np.ndarray:
-        """Separate overlapping agents after a sub-step: p (B, n, 2), the sub-step's move (B, 2).
+    def _pair_phase(self, p: np.ndarray, before: np.ndarray, piece: np.ndarray) -> np.ndarray:
+        """Separate agents that overlap after a sub-step.
 
-        `still` (B, n) marks agents the walls held in place this sub-step: they stay blocked, and
-        whoever ran into them gives way.
+        p (B, n, 2): where the walls alone put each agent, from `before` (B, n, 2), for the
+        sub-step's move `piece` (B, 2). An agent the walls held in place stays; otherwise the
+        agent behind (along the input) gives way, since the one ahead was slowed by something it
+        must not be pushed into. It steps back radially ("slide": it then slides round) or back
+        along its own path to where it first touched ("non-slip"). A configuration that cannot be
+        made free this way keeps its state from before the sub-step.
         """
         u = piece / np.maximum(np.hypot(piece[:, 0], piece[:, 1]), _TINY)[:, None]
+        step = np.hypot(piece[:, 0], piece[:, 1])
+        held = np.all(np.abs(p - before) <= 1e-12, axis=2)  # (B, n)
+        corrected = np.zeros(len(p), dtype=bool)
         for _ in range(_PAIR_ITERATIONS):
-            touched = False
+            touched = np.zeros(len(p), dtype=bool)
             for (i, j), reach in zip(self._pairs, self._reach):
                 gap = p[:, j] - p[:, i]
                 dist = np.hypot(gap[:, 0], gap[:, 1])
-                overlap = reach - dist
-                rows = np.flatnonzero(overlap > _CONTACT_TOL * 0.1)
+                rows = np.flatnonzero(reach - dist > 0.1 * _CONTACT_TOL)
                 if rows.size == 0:
                     continue
-                touched = True
-                g, dd, ov, uu = gap[rows], dist[rows], overlap[rows], u[rows]
-                held_i, held_j = still[rows, i], still[rows, j]
-                # Coincident centres: separate across the move so neither is pushed along it.
-                across = np.stack([-uu[:, 1], uu[:, 0]], axis=1)
+                touched[rows] = True
+                g, dd, uu = gap[rows], dist[rows], u[rows]
+                overlap = reach - dd
+                across = np.stack([-uu[:, 1], uu[:, 0]], axis=1)  # coincident centres: side by side
                 n_ij = np.where(dd[:, None] > 0, g / np.maximum(dd, _TINY)[:, None], across)
-                phi_i, wall_i, _ = self.workspace.surface(p[rows, i])
-                phi_j, wall_j, _ = self.workspace.surface(p[rows, j])
-                touch_i = phi_i <= self.radii[i] + _CONTACT_TOL
-                touch_j = phi_j <= self.radii[j] + _CONTACT_TOL
+                ahead = np.sum(g * uu, axis=1)  # > 0: j is ahead of i
+                held_i, held_j = held[rows, i], held[rows, j]
+                give_i = ~held_i & (held_j | (ahead > 1e-9))
+                give_j = ~held_j & (held_i | (ahead < -1e-9))
+                split = ~give_i & ~give_j
                 if self.contact == "non-slip":
-                    # Stuck agents stay; the other stops where it first touched, back along its move.
-                    stuck_i = held_i | (touch_i & (np.sum(uu * wall_i, axis=1) < -_DIR_EPS))
-                    stuck_j = held_j | (touch_j & (np.sum(uu * wall_j, axis=1) < -_DIR_EPS))
-                    back_j = stuck_i & ~stuck_j
-                    back_i = stuck_j & ~stuck_i
-                    reach_sq = reach * reach
-                    along = np.sum(g * uu, axis=1)
-                    root = np.sqrt(np.maximum(along**2 - dd**2 + reach_sq, 0.0))
-                    p[rows[back_j], j] -= (along + root)[back_j, None] * uu[back_j]
-                    p[rows[back_i], i] -= (-along + root)[back_i, None] * uu[back_i]
-                    split = ~(back_i | back_j)
-                    w_i = np.where(split, 0.5, 0.0)
-                    w_j = np.where(split, 0.5, 0.0)
+                    # Back along its own (straight) path to where the two discs first touched.
+                    sign = np.where(give_j, 1.0, -1.0)
+                    along = sign * ahead
+                    back = along + np.sqrt(np.maximum(along**2 - dd**2 + reach**2, 0.0))
+                    back = np.clip(back, 0.0, step[rows])
+                    p[rows[give_j], j] -= back[give_j, None] * uu[give_j]
+                    p[rows[give_i], i] -= back[give_i, None] * uu[give_i]
+                    w_i = w_j = np.where(split, 0.5, 0.0)
                 else:
-                    blocked_i = held_i | (touch_i & (np.sum(-n_ij * wall_i, axis=1) < -_DIR_EPS))
-                    blocked_j = held_j | (touch_j & (np.sum(n_ij * wall_j, axis=1) < -_DIR_EPS))
-                    w_i = (~blocked_i).astype(float)
-                    w_j = (~blocked_j).astype(float)
-                    total = w_i + w_j
-                    w_i = np.where(total > 0, w_i / np.maximum(total, 1.0), 0.5)
-                    w_j = np.where(total > 0, w_j / np.maximum(total, 1.0), 0.5)
-                p[rows, i] -= (ov * w_i)[:, None] * n_ij
-                p[rows, j] += (ov * w_j)[:, None] * n_ij
-            if not touched:
+                    w_i = np.where(split, 0.5, give_i.astype(float))
+                    w_j = np.where(split, 0.5, give_j.astype(float))
+                p[rows, i] -= (overlap * w_i)[:, None] * n_ij
+                p[rows, j] += (overlap * w_j)[:, None] * n_ij
+            if not touched.any():
                 break
-            if self.contact == "slide":
-                flat = p.reshape(-1, 2)
-                flat[:] = self._push_out(flat, np.tile(self.radii, len(p)), rounds=2)
+            corrected |= touched
+            rows = np.flatnonzero(touched)
+            flat = self._push_out(p[rows].reshape(-1, 2), np.tile(self.radii, rows.size), 4)
+            p[rows] = flat.reshape(-1, self.n, 2)
+        rows = np.flatnonzero(corrected)
+        if rows.size:
+            jammed = rows[~self.is_free(p[rows]) & self.is_free(before[rows])]
+            if jammed.size:
+                log.debug("pair phase: %d configurations jammed; sub-step undone", jammed.size)
+                p[jammed] = before[jammed]
         return p
-
 
 
 class _EventMemory:
@@ -500,7 +526,9 @@ class _EventMemory:
         self.wedge_normal = np.zeros((count, 2))
         self.wedge_curvature = np.zeros(count)
 
-    def touch(self, marks: np.ndarray, where: np.ndarray, normal: np.ndarray, curvature: np.ndarray) -> None:
+    def touch(
+        self, marks: np.ndarray, where: np.ndarray, normal: np.ndarray, curvature: np.ndarray
+    ) -> None:
         """Agents `marks` now touch the surface seen at points `where` (normal, curvature there)."""
         round_ = np.abs(curvature) >= _FLAT_CURVATURE
         self.touched[marks[~round_]] = True

@@ -86,8 +86,10 @@ _SHAPE_KEYS = ("rect", "polygon", "disk")
 
 
 def _shape_tag(value: Any) -> str | None:
-    keys = value.keys() if isinstance(value, dict) else [k for k in _SHAPE_KEYS if hasattr(value, k)]
-    found = [k for k in _SHAPE_KEYS if k in keys]
+    if isinstance(value, dict):
+        found = [k for k in _SHAPE_KEYS if k in value]
+    else:
+        found = [k for k in _SHAPE_KEYS if getattr(value, k, None) is not None]
     return f"shape:{found[0]}" if len(found) == 1 else None
 
 
@@ -213,7 +215,9 @@ _TAGS |= {f"plan:{kind}" for kind in PLAN_KINDS}
 # Reading and writing
 
 
-def parse_plan(data: Any, source: str = "plan", base_dir: str | Path | None = None) -> GlobalMovesPlan:
+def parse_plan(
+    data: Any, source: str = "plan", base_dir: str | Path | None = None
+) -> GlobalMovesPlan:
     """Validate a decoded plan document; `source` names it in messages (usually the file name).
 
     `base_dir` resolves a relative workspace image (default: the folder of `source`).
@@ -221,7 +225,7 @@ def parse_plan(data: Any, source: str = "plan", base_dir: str | Path | None = No
     if not isinstance(data, dict):
         raise PlanError(f"{source}: a plan is a JSON object, got {type(data).__name__}")
     if "schema" not in data:
-        raise PlanError(f"{source}: schema: missing; a plan starts with \"schema\": \"{SCHEMA_ID}\"")
+        raise PlanError(f'{source}: schema: missing; a plan starts with "schema": "{SCHEMA_ID}"')
     if data["schema"] != SCHEMA_ID:
         raise PlanError(
             f"{source}: schema: {data['schema']!r} is not a plan format this version reads "
@@ -289,10 +293,10 @@ def _format_json(value: Any, depth: int = 0) -> str:
 
 def _is_flat(value: list) -> bool:
     """Numbers, or lists of numbers: short enough to read on one line."""
-    return all(
-        not isinstance(v, (dict, list)) or (isinstance(v, list) and all(not isinstance(w, (dict, list)) for w in v))
-        for v in value
-    )
+    def scalar(v: Any) -> bool:
+        return not isinstance(v, (dict, list))
+
+    return all(scalar(v) or (isinstance(v, list) and all(scalar(w) for w in v)) for v in value)
 
 
 def plan_json_schema() -> dict:
@@ -314,7 +318,8 @@ def _read_json(path: Path) -> Any:
     try:
         return json.loads(text)
     except json.JSONDecodeError as err:
-        raise PlanError(f"{path}: line {err.lineno} column {err.colno}: not valid JSON: {err.msg}") from None
+        where = f"line {err.lineno} column {err.colno}"
+        raise PlanError(f"{path}: {where}: not valid JSON: {err.msg}") from None
 
 
 def _describe(err: ValidationError, source: str) -> str:
@@ -374,7 +379,8 @@ def _segments_cross(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) 
         return float((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
 
     def on_segment(p, q, r) -> bool:
-        return min(p[0], q[0]) <= r[0] <= max(p[0], q[0]) and min(p[1], q[1]) <= r[1] <= max(p[1], q[1])
+        inside_x = min(p[0], q[0]) <= r[0] <= max(p[0], q[0])
+        return inside_x and min(p[1], q[1]) <= r[1] <= max(p[1], q[1])
 
     o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
     if o1 * o2 < 0 and o3 * o4 < 0:

@@ -20,8 +20,10 @@ Two backends share that interface:
   boundary from inside. The clearance is the minimum over the boundary and every obstacle.
 - `GridWorkspace` (from an image, a boolean mask, or sampled from a shape workspace with
   `rasterize`): clearance, normal and curvature stored at pixel centres and interpolated bilinearly,
-  so a query costs the same however many obstacle pixels there are. Images are read with row 0 at
-  the top, i.e. the first row of the array is the largest y.
+  so a query costs the same however many obstacle pixels there are. A rasterized workspace also
+  keeps, per sample, the piece of wall nearest to it (a segment or a disk), which makes it exact
+  away from the walls. Images are read with row 0 at the top, i.e. the first row of the array is
+  the largest y.
 
 Lengths are in mm throughout. Points are arrays of shape (..., 2) holding (x, y).
 """
@@ -48,8 +50,10 @@ log = logging.getLogger(__name__)
 # Curvatures larger than this (1/mm) are clipped: a level set tighter than 1 um is a singular point.
 _MAX_CURVATURE = 1e3
 _TINY = 1e-300
-# Blur (pixels) of a mask's distance field before taking normals from it.
-_NORMAL_BLUR_PX = 1.0
+# Grid cells with wall pieces (see GridWorkspace): how a query inside them is answered.
+_CELL_AT_WALL, _CELL_ONE_PIECE, _CELL_PIECES = 0, 1, 2
+# Blur (pixels) of a mask's distance field (see `Workspace.from_mask`).
+_MASK_BLUR_PX = 0.7
 
 
 class Workspace:
@@ -84,7 +88,8 @@ class Workspace:
                 path = Path(base_dir) / path
             return cls.from_image(path, spec.mm_per_px, tuple(spec.origin))
         return ShapeWorkspace(
-            boundary=_shape_tuple(spec.boundary), obstacles=[_shape_tuple(s) for s in spec.obstacles]
+            boundary=_shape_tuple(spec.boundary),
+            obstacles=[_shape_tuple(s) for s in spec.obstacles],
         )
 
     @classmethod
@@ -111,28 +116,33 @@ class Workspace:
         """A workspace from a boolean mask (H, W), True = free, row 0 at the top (largest y).
 
         The signed distance comes from `scipy.ndimage.distance_transform_edt`; everything outside the
-        mask counts as obstacle. Walls along the pixel grid come out within half a pixel; curved
-        walls within about 0.7 pixel (which pixel centres fell inside is all a mask tells).
+        mask counts as obstacle. Straight walls along the pixel grid come out exact; corners and
+        slanted or curved walls within about 0.75 pixel (which pixel centres fell inside is all
+        a mask tells, and the blur that smooths the staircase also rounds corners).
         """
         free = np.asarray(free, dtype=bool)
         if free.ndim != 2 or min(free.shape) < 2:
-            raise PlanError(f"workspace mask must be a 2-D array of at least 2 x 2, got {free.shape}")
+            raise PlanError(f"workspace mask must be 2-D, at least 2 x 2, got {free.shape}")
         if mm_per_px <= 0:
             raise PlanError(f"mm_per_px must be > 0, got {mm_per_px}")
         if not free.any():
             raise PlanError("workspace mask has no free pixel (everything is darker than 128)")
-        # One ring of obstacle around the picture: the world beyond the image is not free space.
-        padded = np.pad(free, 1, constant_values=False)
+        # A ring of obstacle around the picture: the world beyond the image is not free space.
+        # It is as wide as the blur below reaches, so the blur sees a wall there, not an edge.
+        ring = 1 + int(math.ceil(4.0 * _MASK_BLUR_PX))
+        padded = np.pad(free, ring, constant_values=False)
         # Distance from each pixel centre to the nearest pixel of the other kind, then to the edge
         # of that pixel's square along the way: the wall is taken half way between the centres.
         inside = _distance_to_other_square(padded)
         outside = _distance_to_other_square(~padded)
-        clearance = np.where(padded, inside, -outside) * mm_per_px
-        # Normals from a blurred copy: the staircase of a pixelated wall is noise for directions.
-        blurred = ndimage.gaussian_filter(clearance, sigma=_NORMAL_BLUR_PX, mode="nearest")
-        d_row, d_col = np.gradient(blurred)
+        staircase = np.where(padded, inside, -outside) * mm_per_px
+        # A slanted or curved wall drawn in pixels is a staircase, and its distance field ripples
+        # by a tenth of a pixel along it: enough to catch a particle gliding past. A light blur
+        # smooths the ripple and leaves straight walls (a linear field) as they were.
+        clearance = ndimage.gaussian_filter(staircase, sigma=_MASK_BLUR_PX, mode="nearest")
+        d_row, d_col = np.gradient(clearance)
         nx, ny = d_col, -d_row  # rows grow downwards, y grows upwards
-        origin = (float(origin_mm[0]) - mm_per_px, float(origin_mm[1]) - mm_per_px)
+        origin = (float(origin_mm[0]) - ring * mm_per_px, float(origin_mm[1]) - ring * mm_per_px)
         curvature = np.zeros_like(clearance)  # a staircase has no usable curvature
         return GridWorkspace(clearance, nx, ny, curvature, mm_per_px, origin)
 
@@ -148,13 +158,20 @@ class Workspace:
         ys = origin[1] + (np.arange(height)[::-1] + 0.5) * resolution_mm  # row 0 = largest y
         grid = np.stack(np.meshgrid(xs, ys), axis=-1)
         clearance, normal, curvature = self.surface(grid)
+        pieces = self.primitives(grid) if isinstance(self, ShapeWorkspace) else None
+        log.debug("rasterized workspace to %d x %d cells of %g mm", height, width, resolution_mm)
         return GridWorkspace(
-            clearance, normal[..., 0], normal[..., 1], curvature, resolution_mm, origin
+            clearance, normal[..., 0], normal[..., 1], curvature, resolution_mm, origin, pieces
         )
 
     def clearance(self, points: ArrayLike) -> np.ndarray:
         """Signed distance (mm) from points (..., 2) to the nearest surface; > 0 in free space."""
         return self.surface(points)[0]
+
+    def clearance_lower_bound(self, points: ArrayLike) -> np.ndarray:
+        """A cheap lower bound (mm) of `clearance` at points (..., 2), for quick "far from walls"
+        tests; the clearance itself unless a backend has something cheaper."""
+        return self.clearance(points)
 
     def normal(self, points: ArrayLike) -> np.ndarray:
         """Unit vector (..., 2) in which the clearance increases at points (..., 2)."""
@@ -235,6 +252,29 @@ class ShapeWorkspace(Workspace):
         return phi.reshape(lead), normal.reshape(lead + (2,)), kappa.reshape(lead)
 
 
+    def primitives(self, points: ArrayLike) -> np.ndarray:
+        """The piece of wall nearest each point (..., 2), as (..., 6) rows (ax, ay, bx, by, rho,
+        sigma): clearance = sigma * (|p - segment ab| - rho) near it. A side of a rect or polygon
+        is a segment (rho 0, sigma 1: the clearance in free space is the distance to it); a disk
+        obstacle has a = b = centre, rho = radius, sigma 1; a disk boundary the same with sigma -1.
+        """
+        p = np.asarray(points, dtype=float)
+        flat = p.reshape(-1, 2)
+        nearest = np.argmin(self._distances(flat), axis=1)
+        result = np.empty((len(flat), 6))
+        start = 0
+        for family, sign in self._terms:
+            stop = start + family.count
+            mine = (nearest >= start) & (nearest < stop)
+            if mine.any():
+                pieces = family.primitive(flat[mine], nearest[mine] - start)
+                if sign < 0:  # the boundary: free space is inside a disk, outside a segment
+                    pieces[:, 5] = np.where(pieces[:, 4] > 0, -1.0, 1.0)
+                result[mine] = pieces
+            start = stop
+        return result.reshape(p.shape[:-1] + (6,))
+
+
 class _Family:
     """Shapes of one kind, evaluated together: `distance` (N, K) signed distance, > 0 outside;
     `feature` the gradient (N, 2) and level-set curvature (N,) of shape `which` (N,) at each point."""
@@ -248,6 +288,11 @@ class _Family:
         raise NotImplementedError
 
     def feature(self, p: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def primitive(self, p: np.ndarray, which: np.ndarray) -> np.ndarray:
+        """The piece of shape `which` (N,) nearest each point p (N, 2), as (N, 6) rows
+        (ax, ay, bx, by, rho, 1): distance |p - segment ab| - rho (a segment: rho 0; a disk: a = b)."""
         raise NotImplementedError
 
 
@@ -297,6 +342,25 @@ class _Rects(_Family):
         kappa = np.where(corner, np.minimum(1.0 / out, _MAX_CURVATURE), 0.0)
         return np.stack([gx, gy], axis=1), kappa
 
+    def primitive(self, p: np.ndarray, which: np.ndarray) -> np.ndarray:
+        centre, half = self.centre[which], self.half[which]
+        rel = p - centre
+        q = np.abs(rel) - half
+        # The nearest side: across the larger of the two excesses (a corner region is as near
+        # to both sides that meet there; take the horizontal one).
+        corner = (q[:, 0] > 0) & (q[:, 1] > 0)
+        vertical = (q[:, 0] >= q[:, 1]) & ~corner
+        side_x = centre[:, 0] + np.where(rel[:, 0] >= 0, half[:, 0], -half[:, 0])
+        side_y = centre[:, 1] + np.where(rel[:, 1] >= 0, half[:, 1], -half[:, 1])
+        x0, x1 = centre[:, 0] - half[:, 0], centre[:, 0] + half[:, 0]
+        y0, y1 = centre[:, 1] - half[:, 1], centre[:, 1] + half[:, 1]
+        segment = np.where(
+            vertical[:, None],
+            np.stack([side_x, y0, side_x, y1], axis=1),
+            np.stack([x0, side_y, x1, side_y], axis=1),
+        )
+        return np.concatenate([segment, np.zeros((len(p), 1)), np.ones((len(p), 1))], axis=1)
+
 
 class _Disks(_Family):
     """Disks (K, 3) = (cx, cy, r)."""
@@ -322,6 +386,12 @@ class _Disks(_Family):
         normal = np.where(dist[:, None] > 0, rel / safe[:, None], np.array([1.0, 0.0]))
         # The level set through p is the circle of radius |p - centre|.
         return normal, np.minimum(1.0 / safe, _MAX_CURVATURE)
+
+    def primitive(self, p: np.ndarray, which: np.ndarray) -> np.ndarray:
+        c = self.centre[which]
+        return np.concatenate(
+            [c, c, self.radius[which, None], np.ones((len(p), 1))], axis=1
+        )
 
 
 class _Polygon(_Family):
@@ -381,6 +451,20 @@ class _Polygon(_Family):
         kappa = np.where(at_vertex, np.clip(sign / safe, -_MAX_CURVATURE, _MAX_CURVATURE), 0.0)
         return normal, kappa
 
+    def primitive(self, p: np.ndarray, which: np.ndarray) -> np.ndarray:
+        _, _, k, _, _ = self._nearest(p)
+        a, b = self.vertices[k], self.vertices[(k + 1) % len(self.vertices)]
+        return np.concatenate([a, b, np.zeros((len(p), 1)), np.ones((len(p), 1))], axis=1)
+
+
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance (...) from points p to segments ab, all (..., 2), broadcast; a == b is a point."""
+    ab = b - a
+    length2 = np.sum(ab * ab, axis=-1)
+    t = np.clip(np.sum((p - a) * ab, axis=-1) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+    gap = p - a - t[..., None] * ab
+    return np.hypot(gap[..., 0], gap[..., 1])
+
 
 def _signed_area(vertices: np.ndarray) -> float:
     x, y = vertices[:, 0], vertices[:, 1]
@@ -393,6 +477,13 @@ class GridWorkspace(Workspace):
     Arrays are (H, W) with row 0 at the top of the picture (largest y); pixel (row, col) has its
     centre at x = origin_x + (col + 0.5) * mm_per_px, y = origin_y + (H - row - 0.5) * mm_per_px.
     Outside the grid the clearance keeps falling by the distance to the grid's edge.
+
+    `pieces` (grids from `rasterize`, (H, W, 6), see `ShapeWorkspace.primitives`): the piece of
+    wall nearest each sample. In a cell whose four corners are in free space the clearance is
+    then the distance to the nearest of the corners' pieces, exact wherever the point's nearest
+    wall is one of them (everywhere but where three walls meet within a cell): straight walls,
+    rounded corners and the creases of inside corners alike, which bilinear interpolation would
+    blunt. Cells that touch a wall fall back to bilinear interpolation.
     """
 
     exact_geometry = False
@@ -405,8 +496,18 @@ class GridWorkspace(Workspace):
         curvature: np.ndarray,
         mm_per_px: float,
         origin_mm: Sequence[float],
+        pieces: np.ndarray | None = None,
     ) -> None:
         height, width = clearance.shape
+        self._pieces = None
+        self._cell_kind = None
+        # With wall pieces every free cell is answered exactly (contacts of agents wider than
+        # about 1.5 pixels happen in free cells), so the model may treat it as exact geometry.
+        self.exact_geometry = pieces is not None
+        if pieces is not None:
+            pieces = np.asarray(pieces, dtype=float)
+            self._pieces = np.ascontiguousarray(pieces.reshape(-1, 6))
+            self._cell_kind = _cell_kinds(clearance, pieces)
         self.shape = (height, width)
         self.mm_per_px = float(mm_per_px)
         self.origin = (float(origin_mm[0]), float(origin_mm[1]))
@@ -450,6 +551,18 @@ class GridWorkspace(Workspace):
         return p.shape[:-1], base, tx, ty, off_x, off_y
 
     def clearance(self, points: ArrayLike) -> np.ndarray:
+        if self._pieces is not None:
+            return self.surface(points)[0]
+        return self._bilinear_clearance(points)
+
+    def clearance_lower_bound(self, points: ArrayLike) -> np.ndarray:
+        if self._pieces is None:
+            return self._bilinear_clearance(points)
+        # Bilinear interpolation overshoots round corners by at most (pixel^2 / 8) * curvature;
+        # a quarter pixel covers curvatures up to 2 / pixel.
+        return self._bilinear_clearance(points) - 0.25 * self.mm_per_px
+
+    def _bilinear_clearance(self, points: ArrayLike) -> np.ndarray:
         lead, base, tx, ty, off_x, off_y = self._cells(points)
         f = self._clearance
         width = self.shape[1]
@@ -461,13 +574,22 @@ class GridWorkspace(Workspace):
 
     def surface(self, points: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         lead, base, tx, ty, off_x, off_y = self._cells(points)
-        corners = self._fields[base[:, None] + self._corner_offsets]  # (N, 4 corners, 4 fields)
-        weights = np.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], axis=1)
-        value = np.einsum("nc,ncf->nf", weights, corners)
-        normal = value[:, 1:3]
-        norm = np.hypot(normal[:, 0], normal[:, 1])
-        normal = normal / np.maximum(norm, _TINY)[:, None]
-        phi = value[:, 0]
+        if self._cell_kind is None:
+            phi, normal, curvature = self._bilinear(base, tx, ty)
+        else:
+            p = np.asarray(points, dtype=float).reshape(-1, 2)
+            phi, normal, curvature = np.empty(len(p)), np.empty((len(p), 2)), np.empty(len(p))
+            kind = self._cell_kind[base - base // self.shape[1]]  # cell i0 * (W - 1) + j0
+            for code in (_CELL_AT_WALL, _CELL_ONE_PIECE, _CELL_PIECES):
+                rows = np.flatnonzero(kind == code)
+                if rows.size == 0:
+                    continue
+                if code == _CELL_AT_WALL:
+                    found = self._bilinear(base[rows], tx[rows], ty[rows])
+                else:
+                    corners = self._corner_offsets[: 4 if code == _CELL_PIECES else 1]
+                    found = self._from_pieces(p[rows], base[rows, None] + corners)
+                phi[rows], normal[rows], curvature[rows] = found
         # Beyond the grid: keep descending with the distance to the grid, pointing back at it.
         beyond = np.hypot(off_x, off_y)
         outside = beyond > 0
@@ -475,7 +597,53 @@ class GridWorkspace(Workspace):
             phi = phi - beyond
             back = -np.stack([off_x, off_y], axis=1) / np.maximum(beyond, _TINY)[:, None]
             normal = np.where(outside[:, None], back, normal)
-        return phi.reshape(lead), normal.reshape(lead + (2,)), value[:, 3].reshape(lead)
+        return phi.reshape(lead), normal.reshape(lead + (2,)), curvature.reshape(lead)
+
+    def _bilinear(self, base: np.ndarray, tx: np.ndarray, ty: np.ndarray):
+        """Clearance (K,), unit normal (K, 2), curvature (K,) interpolated in cells `base` (K,)."""
+        corners = self._fields[base[:, None] + self._corner_offsets]  # (K, 4 corners, 4 fields)
+        weights = np.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], axis=1)
+        value = np.einsum("nc,ncf->nf", weights, corners)
+        normal = value[:, 1:3]
+        normal = normal / np.maximum(np.hypot(normal[:, 0], normal[:, 1]), _TINY)[:, None]
+        return value[:, 0], normal, value[:, 3]
+
+    def _from_pieces(self, p: np.ndarray, samples: np.ndarray):
+        """Clearance (K,), normal (K, 2), curvature (K,) at points p (K, 2) from the nearest of
+        the wall pieces of grid samples `samples` (K, m)."""
+        pieces = self._pieces[samples]  # (K, m, 6)
+        a, b, rho, sigma = pieces[..., 0:2], pieces[..., 2:4], pieces[..., 4], pieces[..., 5]
+        ab = b - a
+        length2 = np.sum(ab * ab, axis=-1)
+        t = np.sum((p[:, None, :] - a) * ab, axis=-1) / np.where(length2 > 0, length2, 1.0)
+        t = np.clip(t, 0.0, 1.0)
+        gap = p[:, None, :] - a - t[..., None] * ab
+        dist = np.hypot(gap[..., 0], gap[..., 1])
+        value = sigma * (dist - rho)
+        rows = np.arange(len(p))
+        pick = np.argmin(value, axis=1) if samples.shape[1] > 1 else np.zeros(len(p), dtype=np.intp)
+        dist, sigma, gap = dist[rows, pick], sigma[rows, pick], gap[rows, pick]
+        safe = np.maximum(dist, _TINY)
+        # On the wall piece itself the direction is lost; free cells keep points off it.
+        normal = sigma[:, None] * gap / safe[:, None]
+        # Round where the nearest point is an end of the segment (or the centre of a disk).
+        t_pick = t[rows, pick]
+        round_ = (t_pick <= 0.0) | (t_pick >= 1.0) | (length2[rows, pick] == 0)
+        curvature = np.where(round_, np.clip(sigma / safe, -_MAX_CURVATURE, _MAX_CURVATURE), 0.0)
+        return value[rows, pick], normal, curvature
+
+
+def _cell_kinds(clearance: np.ndarray, pieces: np.ndarray) -> np.ndarray:
+    """Per grid cell, row-major ((H - 1) * (W - 1),): at a wall (a corner not in free space), in
+    free space with one wall piece nearest all four corners, or with several."""
+    free = clearance > 0
+    all_free = free[:-1, :-1] & free[:-1, 1:] & free[1:, :-1] & free[1:, 1:]
+    first = pieces[:-1, :-1]
+    same = np.ones(all_free.shape, dtype=bool)
+    for other in (pieces[:-1, 1:], pieces[1:, :-1], pieces[1:, 1:]):
+        same &= np.all(other == first, axis=-1)
+    kind = np.where(all_free, np.where(same, _CELL_ONE_PIECE, _CELL_PIECES), _CELL_AT_WALL)
+    return kind.astype(np.int8).reshape(-1)
 
 
 def _distance_to_other_square(mask: np.ndarray) -> np.ndarray:
