@@ -17,6 +17,7 @@ import tempfile
 import threading
 from pathlib import Path
 
+from rigctl.cli_daemon import register as register_daemon
 from rigctl.cli_plan import register as register_planners
 from rigctl.config import load_rig
 from rigctl.errors import ConfigError, LimitError, PlanError, RigError
@@ -27,29 +28,71 @@ log = logging.getLogger("rigctl")
 
 
 def _cmd_execute(args: argparse.Namespace) -> int:
+    if args.connect:
+        from rigctl.cli_daemon import execute_remote
+
+        return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
     from rigctl.emulators.process import EmulatedBenchProcess
     from rigctl.execute import execute_plan, format_summary, summary_json_line
     from rigctl.plans.schema import load_plan
 
     plan = load_plan(args.plan)
     out = sys.stderr if not args.quiet else None
+    closed_loop = False if args.open_loop else None  # None: whenever the rig has a camera
     if args.rig is not None:
+        if _mismatch_args(args):
+            raise ConfigError("--slip, --speed-spread, --drift, --noise, --seed and "
+                              "--field-at-robots set up the emulated bench that execute starts "
+                              "itself: give them to `rigctl emulate` when using --rig")
         rig = load_rig(args.rig)
-        summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out)
+        summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out,
+                               closed_loop=closed_loop)
     else:
         with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
             if out:
                 print(f"no --rig given: starting the emulated {plan.rig} bench on loopback "
                       "(nothing real is energised)", file=out)
-            with EmulatedBenchProcess(plan.rig, Path(tmp) / "bench.toml") as rig_path:
+            with EmulatedBenchProcess(plan.rig, Path(tmp) / "bench.toml",
+                                      extra_args=_mismatch_args(args)) as rig_path:
                 rig = load_rig(rig_path)
-                summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out)
+                summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out,
+                                       closed_loop=closed_loop)
     print(format_summary(summary))
     if args.json:
         print(summary_json_line(summary))
     if summary.faults:
         return EXIT_FAULT
     return EXIT_OK if summary.reached else EXIT_NOT_REACHED
+
+
+_MISMATCH_FLAGS = (("slip", "--slip"), ("speed_spread", "--speed-spread"), ("drift", "--drift"),
+                   ("noise", "--noise"), ("seed", "--seed"))
+
+
+def _mismatch_args(args: argparse.Namespace) -> list[str]:
+    """The model-mismatch flags given, as `rigctl emulate` arguments."""
+    out = []
+    for name, flag in _MISMATCH_FLAGS:
+        value = getattr(args, name, None)
+        if value is not None:
+            out += [flag, str(value)]
+    if getattr(args, "field_at_robots", False):
+        out.append("--field-at-robots")
+    return out
+
+
+def _add_mismatch_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("model mismatch of the emulated world (recorded in the rig file)")
+    g.add_argument("--slip", type=float, help="distance per turn x F (e.g. 0.85)")
+    g.add_argument("--speed-spread", type=float,
+                   help="each robot's distance per turn x (1 + s_i), s_i ~ N(0, F)")
+    g.add_argument("--drift", type=float, metavar="MM_PER_S",
+                   help="slow steady drift, direction drawn from --seed")
+    g.add_argument("--noise", type=float, metavar="MM",
+                   help="position jitter per turn while touching a wall or another robot")
+    g.add_argument("--seed", type=int, help="seed of the spread, drift direction and jitter")
+    g.add_argument("--field-at-robots", action="store_true",
+                   help="each robot feels the coils' field at its own position (not uniform)")
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
@@ -94,7 +137,21 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    with SixCoilBench(host=args.host) as bench:
+    from rigctl.emulators.world.rolling import Mismatch
+
+    defaults = Mismatch()
+    mismatch = Mismatch(
+        slip=defaults.slip if args.slip is None else args.slip,
+        speed_spread=defaults.speed_spread if args.speed_spread is None else args.speed_spread,
+        drift_mm_per_s=defaults.drift_mm_per_s if args.drift is None else args.drift,
+        noise_mm=defaults.noise_mm if args.noise is None else args.noise,
+        seed=defaults.seed if args.seed is None else args.seed,
+        field_at_robots=args.field_at_robots,
+    )
+    if mismatch.slip <= 0 or mismatch.speed_spread < 0 or mismatch.drift_mm_per_s < 0 or \
+            mismatch.noise_mm < 0:
+        raise ConfigError("--slip must be > 0; --speed-spread, --drift and --noise >= 0")
+    with SixCoilBench(host=args.host, mismatch=mismatch) as bench:
         assert bench.rig is not None
         rig = bench.rig.model_copy(update={"emulation": bench.rig.emulation.model_copy(
             update={"pid": os.getpid()})})
@@ -127,9 +184,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("plan", help="plan file (JSON, see `rigctl schema plan`)")
     p.add_argument("--rig", help="rig file (TOML) for real hardware or one written by `rigctl emulate`")
+    p.add_argument("--connect", metavar="ENDPOINT",
+                   help="submit to a running `rigctl daemon` (e.g. tcp://127.0.0.1:5555) and follow it")
     p.add_argument("--json", action="store_true", help="end the output with one JSON line")
     p.add_argument("--runs", default="runs", help="directory for run records (default: ./runs)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.add_argument("--open-loop", action="store_true",
+                   help="do not close the loop with the rig's camera (default: closed loop "
+                   "whenever the rig has a camera)")
+    _add_mismatch_flags(p)
     p.set_defaults(func=_cmd_execute)
 
     p = sub.add_parser("validate", help="check a plan file; name what is wrong",
@@ -151,9 +214,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("kind", choices=["six-coil"], help="rig kind")
     p.add_argument("--rig-out", default="bench.toml", help="where to write the rig file")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
+    _add_mismatch_flags(p)
     p.set_defaults(func=_cmd_emulate)
 
     register_planners(sub)
+    register_daemon(sub)
     return parser
 
 

@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from rigctl.calibration import Calibration
 from rigctl.errors import ConfigError
+from rigctl.messages import DaemonSettings
 
 RigKind = Literal["six-coil", "coil-board", "depm"]
 
@@ -49,6 +50,11 @@ class FieldSettings(_Strict):
     initial_heading_deg: Annotated[
         float, Field(description="direction of the first field in the xy plane (magnets align)")
     ] = 0.0
+    whole_turns: bool = Field(
+        default=True,
+        description="moves must be whole turns of the magnets (false: fractional turns, B may end "
+        "tilted out of the floor plane)",
+    )
 
 
 class MagnetSettings(_Strict):
@@ -117,6 +123,17 @@ class Emulation(_Strict):
 
     backdoor: str = Field(description="tcp://host:port of the bench's test backdoor")
     pid: int | None = None
+    # How the emulated world departs from the planner's model (`rigctl emulate --slip ...`).
+    slip: Annotated[float, Field(gt=0, description="distance per turn x slip")] = 1.0
+    speed_spread: Annotated[
+        float, Field(ge=0, description="per-robot distance per turn x (1 + s_i), s_i ~ N(0, this)")
+    ] = 0.0
+    drift_mm_per_s: Annotated[float, Field(ge=0, description="steady drift, direction from seed")] = 0.0
+    noise_mm: Annotated[float, Field(ge=0, description="jitter per turn while in contact")] = 0.0
+    seed: int = 0
+    field_at_robots: bool = Field(
+        default=False, description="each robot feels the coils' field at its own position"
+    )
 
 
 class RigConfig(_Strict):
@@ -130,6 +147,7 @@ class RigConfig(_Strict):
     )
     stream: StreamSettings = StreamSettings()
     camera: CameraSettings | None = None
+    daemon: DaemonSettings | None = None
     emulation: Emulation | None = None
 
     @model_validator(mode="after")

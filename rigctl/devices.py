@@ -44,7 +44,12 @@ class CoilSupplies:
         identities: list[str] = []
         try:
             for coil in rig.coils:
-                transport = open_transport(coil.url, timeout_s=rig.stream.reply_timeout_s)
+                try:
+                    transport = open_transport(coil.url, timeout_s=rig.stream.reply_timeout_s)
+                except RigError as err:  # the transport does not know which supply it is
+                    if err.device is not None:
+                        raise
+                    raise type(err)(str(err), device=coil.name) from None
                 supply = KepcoBop(
                     transport, name=coil.name, current_limit_A=coil.current_limit_A,
                     compliance_V=coil.compliance_V, timeout_s=rig.stream.reply_timeout_s,

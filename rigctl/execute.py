@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
 
@@ -32,6 +32,9 @@ from rigctl.realize import FieldProgram, realize_global_moves
 from rigctl.record import RunRecord
 from rigctl.stream import StreamLoop, StreamStats
 
+if TYPE_CHECKING:
+    from rigctl.supervisor import Supervisor, SupervisorSettings
+
 log = logging.getLogger(__name__)
 
 
@@ -40,9 +43,13 @@ class AgentResult:
     final: list[float] | None
     goal: list[float]
     error_mm: float | None
+    truth_error_mm: float | None = None  # closed loop on an emulator: ground truth's error too
 
     def as_dict(self) -> dict:
-        return {"final": self.final, "goal": self.goal, "error_mm": self.error_mm}
+        out = {"final": self.final, "goal": self.goal, "error_mm": self.error_mm}
+        if self.truth_error_mm is not None:
+            out["truth_error_mm"] = self.truth_error_mm
+        return out
 
 
 @dataclass
@@ -55,9 +62,13 @@ class RunSummary:
     tolerance_mm: float
     faults: list[dict] = field(default_factory=list)
     stream: dict | None = None
+    replans: int = 0
+    tracking: dict | None = None  # closed loop: tracked vs ground truth, lost frames
 
     def as_dict(self) -> dict:
         return {
+            "replans": self.replans,
+            "tracking": self.tracking,
             "reached": self.reached,
             "agents": [a.as_dict() for a in self.agents],
             "run": self.run,
@@ -222,6 +233,8 @@ class Run:
         progress_out: TextIO | None = None,
         on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
         on_state: Callable[[RunState, dict], None] | None = None,
+        closed_loop: bool = False,
+        supervisor_settings: SupervisorSettings | None = None,
     ) -> None:
         self.plan, self.field_program, self.currents = prepare(plan, rig)
         self.rig = rig
@@ -232,9 +245,25 @@ class Run:
         ramp = max(1, round(rig.stream.ramp_down_s * rig.stream.rate_hz))
         ends = [self.field_program.move_end_index(i) for i in range(self.field_program.n_moves)]
         self.sequencer = Sequencer(self.currents, ends, ramp)
+        self._backdoor: BackdoorClient | None = None
+        self.supervisor: Supervisor | None = None
+        if closed_loop:
+            from rigctl.supervisor import Supervisor, SupervisorSettings
+
+            self.supervisor = Supervisor(
+                self.plan, rig, self.field_program, self.currents, ramp_samples=ramp,
+                settings=supervisor_settings or SupervisorSettings(),
+                truth=self._truth if rig.emulation else None)
+            self.sequencer = self.supervisor.sequencer
         self.state = RunState.PREPARED
         self._estop = threading.Event()
+        self._estop_at: float | None = None
+        self.stream_loop: StreamLoop | None = None  # while streaming: its timing, for telemetry
         self.record: RunRecord | None = None
+
+    def _truth(self) -> np.ndarray:
+        """The emulator's true positions (n, 2) mm (the supervisor measures the tracker with it)."""
+        return _truth_of(self._backdoor)
 
     # -- control, from any thread ---------------------------------------------------------------
     def pause(self, immediate: bool = False) -> None:
@@ -248,6 +277,7 @@ class Run:
 
     def estop(self) -> None:
         """Drop every output now: the stream thread zeroes the supplies at its next cycle."""
+        self._estop_at = time.monotonic()
         self._estop.set()
 
     def _set_state(self, state: RunState, **info: object) -> None:
@@ -271,6 +301,7 @@ class Run:
         faults: list[dict] = []
         stats: StreamStats | None = None
         backdoor = BackdoorClient(rig.emulation.backdoor) if rig.emulation else None
+        self._backdoor = backdoor
         supplies: CoilSupplies | None = None
         try:
             if backdoor is not None:
@@ -282,10 +313,14 @@ class Run:
                     min_separation_mm=plan.min_separation_mm,
                 )
                 record.event("placed", agents=[list(a.start) for a in plan.agents])
+            if self.supervisor is not None:
+                self.supervisor.start(record)  # the robots are found before anything is energised
             supplies = CoilSupplies.connect(rig)
             for name, url, identity in zip(supplies.names, [c.url for c in rig.coils],
                                            supplies.identities):
                 record.event("connected", device=name, url=url, identity=identity)
+            if self._estop.is_set():  # e-stopped while connecting: never switch on
+                raise _EStopped()
             supplies.energise()
             record.event("energised", devices=supplies.names)
             self._set_state(RunState.RUNNING)
@@ -295,6 +330,8 @@ class Run:
             record.event("fault", device=err.device, reason=str(err), kind=type(err).__name__)
             log.error("run stopped: %s", err)
             self._set_state(RunState.FAULTED, device=err.device, reason=str(err))
+        except _EStopped:
+            record.event("estop", reason="before the supplies were switched on")
         except KeyboardInterrupt:
             self.sequencer.aborted = True
             record.event("abort", reason="operator interrupt")
@@ -302,9 +339,16 @@ class Run:
             if supplies is not None:
                 supplies.stop(ramp_s=0.0 if self._estop.is_set() else rig.stream.ramp_down_s)
                 record.event("safe", supplies=supplies.names)
+            if self.supervisor is not None:
+                self.supervisor.stop()
+        gave_up = self.supervisor.fault if self.supervisor is not None else None
         if self._estop.is_set():
             faults.append({"device": None, "reason": "emergency stop", "kind": "EStop"})
             self._set_state(RunState.ESTOPPED)
+        elif gave_up is not None:
+            faults.append({"device": gave_up.device, "reason": f"closed loop gave up: {gave_up}",
+                           "kind": type(gave_up).__name__})
+            self._set_state(RunState.FAULTED, device=gave_up.device, reason=str(gave_up))
         elif self.sequencer.aborted:
             faults.append({"device": None, "reason": "aborted by the operator", "kind": "Abort"})
             self._set_state(RunState.ABORTED)
@@ -313,6 +357,9 @@ class Run:
 
         duration = time.monotonic() - started
         agents, positions_from = _final_positions(plan, backdoor)
+        if self.supervisor is not None and self.supervisor.final_positions is not None:
+            agents, positions_from = _tracked_final_positions(
+                agents, self.supervisor.final_positions)
         if backdoor is not None:
             backdoor.close()
         tolerance = plan.tolerance_mm
@@ -322,6 +369,7 @@ class Run:
             reached=reached, agents=agents, run=str(record.path), duration_s=duration,
             positions_from=positions_from, tolerance_mm=tolerance, faults=faults,
             stream=None if stats is None else stats.as_dict(),
+            **(self.supervisor.summary() if self.supervisor is not None else {}),
         )
         record.finish(summary.as_dict())
         return summary
@@ -329,13 +377,20 @@ class Run:
     def _stream(self, supplies: CoilSupplies) -> StreamStats:
         record, sequencer = self.record, self.sequencer
         assert record is not None
-        record.open_stream(supplies.names)
+        record.open_stream(supplies.names, rate_hz=self.rig.stream.rate_hz)
+        loop = self.stream_loop = StreamLoop(self.rig.stream.rate_hz)
         progress = Progress(self.progress_out, len(self.plan.moves), self.field_program.duration_s)
         t_s = self.currents.t_s
 
         def cycle(_: int) -> bool:
             if self._estop.is_set():
+                seen = time.monotonic()
                 supplies.zero_now()
+                # from the request: when this thread saw it, and when every supply had been told
+                # zero and switched off
+                asked = self._estop_at or seen
+                record.event("estop_zeroed", seen_after_request_s=round(seen - asked, 6),
+                             after_request_s=round(time.monotonic() - asked, 6))
                 return False
             step = sequencer.next()
             if step is None:
@@ -343,18 +398,21 @@ class Run:
             setpoints, k, move = step
             self._set_state(RunState.PAUSED if sequencer.paused else RunState.RUNNING)
             measured = supplies.cycle(setpoints)
-            record.stream_row(k, move, setpoints, measured)
+            record.stream_row(k, move, setpoints, measured, loop.last_error_s)
             if self.on_cycle is not None:
                 self.on_cycle(k, move, setpoints, measured)
             progress.update(move, float(t_s[min(k, len(t_s) - 1)]))
             return True
 
-        loop = StreamLoop(self.rig.stream.rate_hz)
         try:
             return loop.run(cycle)
         finally:
             progress.done()
             record.event("stream_stats", **loop.stats().as_dict())
+
+
+class _EStopped(Exception):
+    """E-stop arrived before the supplies were switched on (not a fault: nothing to report)."""
 
 
 def execute_plan(
@@ -363,10 +421,16 @@ def execute_plan(
     *,
     runs_dir: str | Path = "runs",
     progress_out: TextIO | None = sys.stderr,
+    closed_loop: bool | None = None,
+    supervisor_settings: SupervisorSettings | None = None,
 ) -> RunSummary:
     """Run `plan` on `rig` and return the summary. Refusals (PlanError, LimitError) raise before
-    anything is opened; device faults during the run are caught, reported and recorded."""
-    return Run(plan, rig, runs_dir=runs_dir, progress_out=progress_out).execute()
+    anything is opened; device faults during the run are caught, reported and recorded.
+    `closed_loop` (default: whenever the rig has a camera) runs the camera supervisor."""
+    if closed_loop is None:
+        closed_loop = rig.camera is not None
+    return Run(plan, rig, runs_dir=runs_dir, progress_out=progress_out, closed_loop=closed_loop,
+               supervisor_settings=supervisor_settings).execute()
 
 
 def _portable_workspace(plan: Plan) -> dict:
@@ -391,6 +455,26 @@ def _final_positions(plan: Plan, backdoor: BackdoorClient | None) -> tuple[list[
         error = float(np.hypot(position[0] - goal[0], position[1] - goal[1]))
         results.append(AgentResult([round(p, 4) for p in position], goal, round(error, 4)))
     return results, "emulator ground truth (the camera loop does not exist yet)"
+
+
+def _tracked_final_positions(
+    truth: list[AgentResult], tracked: np.ndarray
+) -> tuple[list[AgentResult], str]:
+    """Final positions from the camera (closed loop); ground truth's error kept when emulated."""
+    results = []
+    for result, position in zip(truth, tracked):
+        error = float(np.hypot(position[0] - result.goal[0], position[1] - result.goal[1]))
+        results.append(AgentResult([round(float(p), 4) for p in position], result.goal,
+                                   round(error, 4), result.error_mm))
+    return results, "camera (closed loop)" + (
+        "; emulator ground truth in truth_error_mm" if any(
+            r.error_mm is not None for r in truth) else "")
+
+
+def _truth_of(backdoor: BackdoorClient | None) -> np.ndarray:
+    if backdoor is None:
+        raise RigError("no emulator backdoor", device="bench backdoor")
+    return np.array(backdoor.request("truth")["agents"], dtype=float)
 
 
 def format_summary(summary: RunSummary) -> str:

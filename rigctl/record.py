@@ -4,24 +4,130 @@ Layout of `runs/<UTC time>-<plan name>/`:
 - `plan.json`: the plan as executed (with `expected` filled);
 - `rig.toml`: the rig configuration snapshot;
 - `events.jsonl`: append-only event log, one JSON object per line, `{"t": s since start, "event": ...}`;
-- `stream.csv`: one line per stream cycle: t, sample index, move index, commanded and measured currents;
+- `stream.csv`: the per-cycle journal: t, sample index, move index, commanded and measured currents;
+- `stream/part-NNNNN.parquet`: the same time series (plus the period error) in Parquet, in parts;
 - `summary.json`: written last; its absence means the run did not finish.
 
-Every line is flushed when written (line-buffered files): at 1 kHz that is a few microseconds per
-cycle, a price worth paying for a record that survives a crash.
+Why Parquet: a lab opens it in one line from pandas, polars, MATLAB (`parquetread`) or R (arrow),
+with typed columns, compression and the units and coil names in the file's metadata; HDF5 would do
+as well for reading, but a single HDF5 file being appended to is not readable after a crash
+without SWMR and `h5clear`, whereas a Parquet file is immutable once written.
+
+How a crash stays readable: the text files are flushed line by line (line-buffered; at 1 kHz a few
+microseconds per cycle). The Parquet series is cut into parts of a few seconds; the stream thread
+only fills an in-memory buffer, and a writer thread writes each full part to a temporary name and
+renames it, so a part either exists whole or not at all. After a crash the parts hold everything
+but the last few seconds, and `read_stream` takes those from the journal (`stream.csv`), skipping
+a line cut in half; `recover_stream` writes them as a last part.
 """
 
 from __future__ import annotations
 
+import csv
 import json
 import logging
+import os
+import queue
 import re
+import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, TextIO
 
+import numpy as np
+
 log = logging.getLogger(__name__)
+
+PART_SECONDS = 5.0
+MIN_PART_ROWS = 250
+
+
+class StreamParquet:
+    """The per-cycle series as Parquet parts in `folder`; `append` is for the stream thread and
+    does no I/O (a full part goes to the writer thread). Currents in A, times in s."""
+
+    def __init__(self, folder: Path, coil_names: list[str], part_rows: int) -> None:
+        self.folder = folder
+        self.folder.mkdir(exist_ok=True)
+        self.coil_names = list(coil_names)
+        self.part_rows = max(1, part_rows)
+        self._parts = 0
+        self._new_buffer()
+        self._queue: queue.Queue = queue.Queue()
+        self._writer = threading.Thread(target=self._write_parts, name="record-parquet",
+                                        daemon=True)
+        self._writer.start()
+
+    def _new_buffer(self) -> None:
+        n, c = self.part_rows, len(self.coil_names)
+        self._t = np.empty(n)
+        self._sample = np.empty(n, dtype=np.int64)
+        self._move = np.empty(n, dtype=np.int32)
+        self._cmd = np.empty((n, c))
+        self._meas = np.empty((n, c))
+        self._err = np.full(n, np.nan)
+        self._rows = 0
+
+    def append(self, t: float, sample: int, move: int, commanded, measured,
+               period_error_s: float | None) -> None:
+        k = self._rows
+        self._t[k], self._sample[k], self._move[k] = t, sample, move
+        self._cmd[k] = commanded
+        self._meas[k] = measured
+        if period_error_s is not None:
+            self._err[k] = period_error_s
+        self._rows = k + 1
+        if self._rows == self.part_rows:
+            self._hand_over()
+
+    def _hand_over(self) -> None:
+        if self._rows == 0:
+            return
+        r = self._rows
+        self._queue.put((self._parts, self._t[:r], self._sample[:r], self._move[:r],
+                         self._cmd[:r], self._meas[:r], self._err[:r]))
+        self._parts += 1
+        self._new_buffer()
+
+    def _write_parts(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            try:
+                write_stream_part(self.folder, self.coil_names, *item)
+            except Exception:  # the journal still has these rows; never kill the run for it
+                log.exception("writing a Parquet part failed; the rows stay in stream.csv")
+
+    def close(self) -> None:
+        self._hand_over()
+        self._queue.put(None)
+        self._writer.join(timeout=30)
+
+
+def write_stream_part(folder: Path, coil_names: list[str], index: int, t, sample, move, cmd, meas,
+                      period_error) -> Path:
+    """Write one part atomically (temporary name, then rename); returns its path."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    columns = {"t_s": pa.array(t), "sample": pa.array(sample), "move": pa.array(move)}
+    for j, name in enumerate(coil_names):
+        columns[f"cmd_{name}_A"] = pa.array(np.ascontiguousarray(cmd[:, j]))
+    for j, name in enumerate(coil_names):
+        columns[f"meas_{name}_A"] = pa.array(np.ascontiguousarray(meas[:, j]))
+    columns["period_error_s"] = pa.array(period_error)
+    table = pa.table(columns).replace_schema_metadata({
+        "rigctl.coils": json.dumps(coil_names),
+        "rigctl.units": json.dumps({"t_s": "s since the run started", "cmd_*_A": "A",
+                                    "meas_*_A": "A", "period_error_s": "s (start - due)"}),
+    })
+    final = folder / f"part-{index:05d}.parquet"
+    tmp = folder / f".part-{index:05d}.parquet.tmp"
+    pq.write_table(table, tmp)
+    os.replace(tmp, final)
+    return final
 
 
 class RunRecord:
@@ -31,39 +137,198 @@ class RunRecord:
         self.path = Path(root) / f"{stamp}-{safe_name}"
         self.path.mkdir(parents=True, exist_ok=False)
         self._t0 = time.monotonic()
+        self._lock = threading.Lock()  # events come from the stream thread and the daemon's
         self._events: TextIO = open(self.path / "events.jsonl", "a", buffering=1)
         self._stream: TextIO | None = None
+        self._parquet: StreamParquet | None = None
 
     def write_file(self, name: str, text: str) -> None:
         (self.path / name).write_text(text)
 
     def event(self, event: str, **fields: Any) -> None:
         entry = {"t": round(time.monotonic() - self._t0, 6), "event": event, **fields}
-        self._events.write(json.dumps(entry, default=_jsonable) + "\n")
+        line = json.dumps(entry, default=_jsonable) + "\n"
+        with self._lock:
+            if not self._events.closed:
+                self._events.write(line)
 
-    def open_stream(self, coil_names: list[str]) -> None:
+    def open_stream(self, coil_names: list[str], rate_hz: float = 100.0) -> None:
         self._stream = open(self.path / "stream.csv", "a", buffering=1)
         header = ["t_s", "sample", "move"]
         header += [f"cmd_{n}_A" for n in coil_names] + [f"meas_{n}_A" for n in coil_names]
         self._stream.write(",".join(header) + "\n")
+        part_rows = max(MIN_PART_ROWS, round(PART_SECONDS * rate_hz))
+        self._parquet = StreamParquet(self.path / "stream", coil_names, part_rows)
 
-    def stream_row(self, sample: int, move: int, commanded, measured) -> None:
+    def stream_row(self, sample: int, move: int, commanded, measured,
+                   period_error_s: float | None = None) -> None:
         assert self._stream is not None, "open_stream first"
         t = time.monotonic() - self._t0
         values = ",".join(f"{x:.5f}" for x in (*commanded, *measured))
         self._stream.write(f"{t:.6f},{sample},{move},{values}\n")
+        if self._parquet is not None:
+            self._parquet.append(t, sample, move, commanded, measured, period_error_s)
 
     def finish(self, summary: dict) -> None:
-        self.write_file("summary.json", json.dumps(summary, indent=2, default=_jsonable) + "\n")
         self.close()
+        self.write_file("summary.json", json.dumps(summary, indent=2, default=_jsonable) + "\n")
 
     def close(self) -> None:
-        for f in (self._events, self._stream):
-            if f is not None and not f.closed:
-                f.close()
+        if self._parquet is not None:
+            self._parquet.close()
+            self._parquet = None
+        with self._lock:
+            for f in (self._events, self._stream):
+                if f is not None and not f.closed:
+                    f.close()
 
 
 def _jsonable(value: Any) -> Any:
     if hasattr(value, "tolist"):
         return value.tolist()
     return str(value)
+
+
+# -- reading records -----------------------------------------------------------------------------
+
+def read_events(run_dir: str | Path) -> list[dict]:
+    """Every event of the log; a last line cut off by a crash is skipped."""
+    events = []
+    path = Path(run_dir) / "events.jsonl"
+    if not path.is_file():
+        return events
+    for line in path.read_text().splitlines():
+        try:
+            events.append(json.loads(line))
+        except json.JSONDecodeError:
+            log.warning("%s: skipping a cut-off line", path)
+    return events
+
+
+def _read_journal(path: Path) -> tuple[list[str], list[list[float]]]:
+    rows: list[list[float]] = []
+    with open(path, newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, [])
+        for row in reader:
+            if len(row) != len(header):
+                continue  # cut off by a crash
+            try:
+                rows.append([float(x) for x in row])
+            except ValueError:
+                continue
+    return header, rows
+
+
+def read_stream(run_dir: str | Path) -> dict[str, Any] | None:
+    """The run's per-cycle series as numpy arrays keyed by column name, plus `coils` (names) and
+    `source`: the Parquet parts, completed from the journal when a crash cut the last part off.
+    None when the run never streamed."""
+    run_dir = Path(run_dir)
+    parts = sorted((run_dir / "stream").glob("part-*.parquet"))
+    journal = run_dir / "stream.csv"
+    columns: dict[str, np.ndarray] = {}
+    coils: list[str] = []
+    n_parquet = 0
+    if parts:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        table = pa.concat_tables([pq.read_table(p) for p in parts])
+        meta = table.schema.metadata or {}
+        coils = json.loads(meta.get(b"rigctl.coils", b"[]"))
+        columns = {name: table.column(name).to_numpy() for name in table.column_names}
+        n_parquet = table.num_rows
+    source = "parquet"
+    if journal.is_file():
+        header, rows = _read_journal(journal)
+        if not coils:
+            coils = [h[4:-2] for h in header if h.startswith("cmd_")]
+        if len(rows) > n_parquet:
+            tail = np.asarray(rows[n_parquet:], dtype=float)
+            source = "journal" if n_parquet == 0 else "parquet+journal"
+            for j, name in enumerate(header):
+                values = tail[:, j]
+                columns[name] = values if name not in columns else np.concatenate(
+                    [columns[name], values.astype(columns[name].dtype)])
+            if "period_error_s" in columns and len(columns["period_error_s"]) < len(columns["t_s"]):
+                missing = len(columns["t_s"]) - len(columns["period_error_s"])
+                columns["period_error_s"] = np.concatenate([columns["period_error_s"],
+                                                            np.full(missing, np.nan)])
+    if not columns:
+        return None
+    return {**columns, "coils": coils, "source": source}
+
+
+def recover_stream(run_dir: str | Path) -> int:
+    """After a crash: write the journal's rows that no Parquet part holds as one more part.
+    Returns the number of rows recovered."""
+    run_dir = Path(run_dir)
+    folder = run_dir / "stream"
+    parts = sorted(folder.glob("part-*.parquet"))
+    data = read_stream(run_dir)
+    if data is None:
+        return 0
+    import pyarrow.parquet as pq
+
+    n_parquet = sum(pq.read_metadata(p).num_rows for p in parts)
+    n = len(data["t_s"])
+    if n <= n_parquet:
+        return 0
+    folder.mkdir(exist_ok=True)
+    coils = data["coils"]
+    sl = slice(n_parquet, n)
+    cmd = np.column_stack([data[f"cmd_{c}_A"][sl] for c in coils])
+    meas = np.column_stack([data[f"meas_{c}_A"][sl] for c in coils])
+    error = data.get("period_error_s", np.full(n, np.nan))[sl]
+    write_stream_part(folder, coils, len(parts), data["t_s"][sl],
+                      data["sample"][sl].astype(np.int64), data["move"][sl].astype(np.int32),
+                      cmd, meas, error)
+    return n - n_parquet
+
+
+def describe_run(run_dir: str | Path, *, last_events: int = 50) -> dict:
+    """A run record in brief: id, files, summary (None if it did not finish), the last events."""
+    run_dir = Path(run_dir)
+    summary_path = run_dir / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
+    events = read_events(run_dir)
+    return {
+        "id": run_dir.name,
+        "path": str(run_dir.resolve()),
+        "files": sorted(str(p.relative_to(run_dir)) for p in run_dir.rglob("*") if p.is_file()),
+        "finished": summary is not None,
+        "summary": summary,
+        "events": events[-last_events:],
+        "n_events": len(events),
+    }
+
+
+def list_runs(root: str | Path, *, limit: int = 20) -> list[dict]:
+    """The newest `limit` run records under `root`, newest first."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    runs = []
+    for run_dir in sorted((p for p in root.iterdir() if (p / "events.jsonl").is_file()),
+                          key=lambda p: p.name, reverse=True)[:limit]:
+        summary_path = run_dir / "summary.json"
+        summary = None
+        if summary_path.is_file():
+            try:
+                summary = json.loads(summary_path.read_text())
+            except json.JSONDecodeError:
+                summary = None
+        plan = None
+        if (run_dir / "plan.json").is_file():
+            try:
+                plan = json.loads((run_dir / "plan.json").read_text()).get("name")
+            except json.JSONDecodeError:
+                plan = None
+        runs.append({
+            "id": run_dir.name, "plan": plan, "finished": summary is not None,
+            "reached": None if summary is None else summary.get("reached"),
+            "faults": None if summary is None else summary.get("faults"),
+            "duration_s": None if summary is None else summary.get("duration_s"),
+        })
+    return runs

@@ -65,6 +65,7 @@ class StreamLoop:
         self._count = 0
         self._late = 0
         self._overruns = 0
+        self.last_error_s: float | None = None  # the period error of the cycle now running
 
     def run(self, cycle: Callable[[int], bool | None], max_cycles: int | None = None) -> StreamStats:
         """Run until `cycle` returns False (or `max_cycles` cycles ran)."""
@@ -83,6 +84,7 @@ class StreamLoop:
             start = time.perf_counter()
             error = start - due
             self._errors[k] = error
+            self.last_error_s = error
             self._count = k + 1
             if error > late_after:
                 self._late += 1

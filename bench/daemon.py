@@ -1,0 +1,199 @@
+"""Benchmark: the daemon under load, as the issue asks. Prints one JSON object.
+
+The emulated six-coil bench runs in its own process, `rigctl daemon` in another (stream at
+1 kHz), and this process is the operator: it submits a plan of back-and-forth rolling moves and
+measures, while the plan streams,
+- the `status` round trip over tcp loopback (p50, p99, max, microseconds), 200 requests a second;
+- telemetry delivered to 1 and to 10 subscribers: `currents` messages per second per subscriber,
+  against the stream rate, and lost `state` / `fault` messages (sequence gaps);
+- e-stop latency: request received by the daemon -> seen by the stream thread -> every supply
+  told zero and switched off (from the run record's `estop_zeroed` event, in stream periods too),
+  request sent -> reply, and request sent -> every measured
+  current under 0.05 A on the emulated supplies (set by the coils' L/R, not by rigctl).
+
+    python bench/daemon.py               # about a minute
+    python bench/daemon.py --moves 8     # quicker
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from rigctl.client import Rig, Telemetry
+from rigctl.config import dump_rig, load_rig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
+from rigctl.record import read_events
+
+RATE_HZ = 1000.0
+
+
+def back_and_forth_plan(moves: int) -> dict:
+    """One rolling magnet going 10 mm (one turn) right and back, `moves` times."""
+    return {
+        "schema": "rigctl.plan/1", "kind": "global-moves", "rig": "six-coil", "name": "bench",
+        "workspace": {"boundary": {"rect": [-100, -100, 200, 200]}},
+        "agents": [{"start": [0.0, 0.0], "goal": [0.0, 0.0], "radius": 3.0}],
+        "moves": [[10.0, 0.0] if k % 2 == 0 else [-10.0, 0.0] for k in range(moves)],
+    }
+
+
+def start_daemon(rig_path: Path, runs: Path, log_path: Path) -> tuple[subprocess.Popen, dict]:
+    cmd = [sys.executable, "-m", "rigctl.cli_daemon", "daemon", "--rig", str(rig_path), "--runs", str(runs),
+           "--command", "tcp://127.0.0.1:0", "--telemetry", "tcp://127.0.0.1:0",
+           "--events", "tcp://127.0.0.1:0"]
+    log = open(log_path, "w")
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    for line in proc.stdout:
+        if line.startswith("READY "):
+            return proc, dict(field.split("=", 1) for field in line[6:].split())
+    raise RuntimeError(f"the daemon did not start: {log_path.read_text()[-2000:]}")
+
+
+class Subscriber(threading.Thread):
+    def __init__(self, endpoints: dict, stop: threading.Event) -> None:
+        super().__init__(daemon=True)
+        self.feed = Telemetry(endpoints["telemetry"], endpoints["events"],
+                              ["currents", "state", "fault"])
+        self.stop_event = stop
+        self.arrivals: list[tuple[float, int]] = []  # (time received, cycles in the message)
+
+    def run(self) -> None:
+        while not self.stop_event.is_set():
+            msg = self.feed.receive(timeout_s=0.2)
+            if msg is not None and msg.topic == "currents":
+                self.arrivals.append((time.monotonic(), len(msg.samples)))
+        self.feed.close()
+
+
+def delivered_rate(subscribers: list[Subscriber], window: tuple[float, float],
+                   stream: dict) -> dict:
+    """Cycles delivered per second to each subscriber, against the cycles the stream ran."""
+    span = window[1] - window[0]
+    rates = [sum(n for t, n in s.arrivals if window[0] <= t <= window[1]) / span
+             for s in subscribers]
+    lost = {topic: sum(s.feed.lost.get(topic, 0) for s in subscribers) for topic in
+            ("currents", "state", "fault")}
+    return {"subscribers": len(subscribers),
+            "stream_cycles_per_s": round(stream["cycles_per_s"], 1),
+            "stream_late_share": round(stream["late_share"], 4),
+            "delivered_cycles_per_s_min": round(min(rates), 1),
+            "delivered_cycles_per_s_mean": round(float(np.mean(rates)), 1),
+            "lost_messages": lost}
+
+
+def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
+              measure_status: bool) -> tuple[dict, dict | None]:
+    stop = threading.Event()
+    subscribers = [Subscriber(endpoints, stop) for _ in range(n_subscribers)]
+    for s in subscribers:
+        s.start()
+    time.sleep(0.5)  # let the subscriptions reach the publisher (a PUB drops before that)
+    rig.execute(plan_id)
+    rig.wait_state("running")
+    time.sleep(0.5)
+    start = time.monotonic()
+    rtts = []
+    while rig.status()["state"] in ("running", "paused"):
+        if measure_status:  # an operator script polling hard: 200 requests a second
+            t0 = time.perf_counter()
+            rig.status()
+            rtts.append(time.perf_counter() - t0)
+            time.sleep(max(0.0, 0.005 - (time.perf_counter() - t0)))
+        else:
+            time.sleep(0.05)
+    end = time.monotonic() - 0.2
+    stop.set()
+    for s in subscribers:
+        s.join()
+    while rig.status()["run"] is not None:
+        time.sleep(0.05)
+    summary = rig.run(Path(rig.status()["last_run"]["run"]).name)["summary"]
+    stream = dict(summary["stream"])
+    stream["cycles_per_s"] = stream["cycles"] / summary["duration_s"]
+    status = None
+    if rtts:
+        us = np.asarray(rtts) * 1e6
+        status = {"samples": len(us), "p50_us": round(float(np.percentile(us, 50)), 1),
+                  "p99_us": round(float(np.percentile(us, 99)), 1),
+                  "max_us": round(float(us.max()), 1)}
+    return delivered_rate(subscribers, (start, end), stream), status
+
+
+def estop_latency(rig: Rig, plan_id: str, backdoor_url: str, runs: Path) -> dict:
+    rig.execute(plan_id)
+    rig.wait_state("running")
+    time.sleep(1.0)
+    with BackdoorClient(backdoor_url) as backdoor:
+        t0 = time.perf_counter()
+        rig.estop()
+        reply_s = time.perf_counter() - t0
+        while True:
+            currents = backdoor.request("truth")["currents_A"].values()
+            if all(abs(c) < 0.05 for c in currents):
+                break
+        below_s = time.perf_counter() - t0
+    status = rig.status()
+    while status["run"] is not None:
+        status = rig.status()
+    run_dir = max((p for p in runs.iterdir() if p.is_dir()), key=lambda p: p.name)
+    zeroed = [e for e in read_events(run_dir) if e["event"] == "estop_zeroed"]
+    rig.reset()
+    result = {"request_to_reply_us": round(reply_s * 1e6, 1),
+              "request_to_measured_below_50mA_ms": round(below_s * 1e3, 1)}
+    if zeroed:
+        seen, done = zeroed[0]["seen_after_request_s"], zeroed[0]["after_request_s"]
+        result["received_to_stream_thread_us"] = round(seen * 1e6, 1)
+        result["received_to_all_drivers_zeroed_and_off_us"] = round(done * 1e6, 1)
+        result["received_to_all_drivers_zeroed_and_off_periods"] = round(done * RATE_HZ, 2)
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--moves", type=int, default=16, help="moves per plan (about 0.7 s each)")
+    args = parser.parse_args()
+    load_before = round(os.getloadavg()[0], 2)  # other work on the machine skews every figure
+    with tempfile.TemporaryDirectory(prefix="rigctl-bench-daemon-") as tmp:
+        tmp = Path(tmp)
+        with EmulatedBenchProcess("six-coil", tmp / "bench.toml") as rig_path:
+            rig = load_rig(rig_path)
+            fast = rig.model_copy(update={"stream": rig.stream.model_copy(update={"rate_hz": RATE_HZ})})
+            (tmp / "rig-1khz.toml").write_text(dump_rig(fast))
+            runs = tmp / "runs"
+            proc, endpoints = start_daemon(tmp / "rig-1khz.toml", runs, tmp / "daemon.log")
+            try:
+                with Rig(endpoints["command"], timeout_s=5.0) as client:
+                    plan_id = client.load(back_and_forth_plan(args.moves))
+                    one, status_rtt = timed_run(client, plan_id, 1, endpoints, measure_status=True)
+                    ten, _ = timed_run(client, plan_id, 10, endpoints, measure_status=False)
+                    estop = estop_latency(client, plan_id, rig.emulation.backdoor, runs)
+            finally:
+                proc.terminate()
+                proc.wait(timeout=30)
+    print(json.dumps({
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                    "load_average_1min_before": load_before,
+                    "load_average_1min_after": round(os.getloadavg()[0], 2)},
+        "stream_rate_hz": RATE_HZ,
+        "status_round_trip_while_running": status_rtt,
+        "telemetry_1_subscriber": one,
+        "telemetry_10_subscribers": ten,
+        "estop": estop,
+    }, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,334 @@
+"""The daemon's verbs of the `rigctl` command line: `daemon`, `status`, `estop`, `keys`, `runs`,
+`report`, and `execute_remote` behind `rigctl execute PLAN --connect ENDPOINT`.
+
+Client verbs find the daemon with `--connect` (default: the loopback command endpoint) and, for a
+daemon with CURVE keys, take `--server-key` / `--client-key` or the environment variables
+RIGCTL_SERVER_KEY / RIGCTL_CLIENT_KEY. Exit status as everywhere: 0 success, 1 goal not reached,
+2 bad input (refused; nothing energised), 3 a fault, an e-stop, or no daemon to talk to.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import tempfile
+import time
+from contextlib import ExitStack
+from pathlib import Path
+
+from rigctl.errors import PlanError
+
+EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
+READY_PREFIX = "READY "
+
+log = logging.getLogger(__name__)
+
+
+def _client(endpoint: str, server_key: str | None = None, client_key: str | None = None,
+            timeout_s: float = 2.0):
+    from rigctl.client import Rig
+
+    server_key = server_key or os.environ.get("RIGCTL_SERVER_KEY") or None
+    client_key = client_key or os.environ.get("RIGCTL_CLIENT_KEY") or None
+    return Rig(endpoint, server_key=server_key, client_key=client_key, timeout_s=timeout_s)
+
+
+def _refused_exit(err) -> int:
+    print(f"refused: {err}", file=sys.stderr)
+    return EXIT_BAD_INPUT if err.code in ("plan_invalid", "limit", "bad_args", "unknown_plan",
+                                          "bad_request", "too_large", "bad_json") else EXIT_FAULT
+
+
+# -- rigctl daemon -------------------------------------------------------------------------------
+def _cmd_daemon(args: argparse.Namespace) -> int:
+    from rigctl.config import load_rig
+    from rigctl.daemon import Daemon
+    from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.messages import DaemonSettings
+
+    # a thread waiting for the GIL (the command thread answering `status`, the stream thread)
+    # gets it within 0.1 ms instead of Python's default 5 ms
+    sys.setswitchinterval(1e-4)
+    with ExitStack() as stack:
+        if args.rig is not None:
+            rig = load_rig(args.rig)
+        else:
+            tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="rigctl-daemon-bench-"))
+            print("no --rig given: starting the emulated six-coil bench on loopback "
+                  "(nothing real is energised)", file=sys.stderr)
+            rig = load_rig(stack.enter_context(EmulatedBenchProcess("six-coil",
+                                                                    Path(tmp) / "bench.toml")))
+        settings = _rig_daemon_settings(rig) or DaemonSettings()
+        daemon = Daemon(
+            rig,
+            command=args.command or settings.command,
+            telemetry=args.telemetry or settings.telemetry,
+            events=args.events or settings.events,
+            runs_dir=args.runs or settings.runs_dir,
+            server_key=args.server_key or settings.server_key,
+            allowed_keys=args.allowed_keys or settings.allowed_keys,
+            realtime_priority=args.realtime,
+            currents_hz=args.currents_hz,
+        )
+        endpoints = daemon.start()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: daemon.request_shutdown())
+        print(f"{READY_PREFIX}command={endpoints.command} telemetry={endpoints.telemetry} "
+              f"events={endpoints.events}", flush=True)
+        print(f"rigctl daemon for {rig.rig.name!r} ({rig.rig.kind}"
+              f"{', emulated' if rig.emulated else ''})\n"
+              f"  commands   {endpoints.command}\n  telemetry  {endpoints.telemetry}\n"
+              f"  events     {endpoints.events}\n  run records {Path(daemon.runs_dir).resolve()}",
+              file=sys.stderr, flush=True)
+        daemon.serve_forever()
+    return EXIT_OK
+
+
+def _rig_daemon_settings(rig):
+    """The rig file's [daemon] table, once RigConfig carries one (see the integrator's note)."""
+    from rigctl.config import RigConfig
+
+    return rig.daemon if "daemon" in RigConfig.model_fields else None
+
+
+# -- client verbs --------------------------------------------------------------------------------
+def _cmd_status(args: argparse.Namespace) -> int:
+    with _client(args.connect, args.server_key, args.client_key) as rig:
+        status = rig.status()
+    if args.json:
+        print(json.dumps(status))
+        return EXIT_OK
+    print(f"state: {status['state']}" + (f" ({status['device']}: {status['reason']})"
+                                          if status.get("reason") else ""))
+    print(f"rig: {status['rig']['name']} ({status['rig']['kind']}"
+          f"{', emulated' if status['rig']['emulated'] else ''})")
+    run = status.get("run")
+    if run:
+        print(f"run: {run.get('id')} plan {run.get('plan_id')} sample {run['sample']}"
+              f"/{run.get('samples', '?')} move {run['move'] + 1}/{run.get('moves', '?')}")
+    if status.get("manual_field_mT"):
+        print(f"manual field: {status['manual_field_mT']} mT")
+    for device in status["devices"]:
+        print(f"  {device['name']:<4} {device['health']:<8} {device['url']}  {device['detail']}")
+    if status.get("last_fault"):
+        fault = status["last_fault"]
+        print(f"last fault: {fault['device']}: {fault['reason']}")
+    return EXIT_OK
+
+
+def _cmd_estop(args: argparse.Namespace) -> int:
+    with _client(args.connect, args.server_key, args.client_key, timeout_s=1.0) as rig:
+        reply = rig.estop()
+    print(f"EMERGENCY STOP: state {reply['state']}; supplies zeroed {reply['zeroing']}")
+    return EXIT_OK
+
+
+def _cmd_keys(args: argparse.Namespace) -> int:
+    from rigctl.keys import allow, load_public, new_keypair
+
+    if args.keys_command == "new":
+        public, secret = new_keypair(args.dir, args.name)
+        print(f"public key (give this file to the daemon's allow-list): {public}")
+        print(f"secret key (keep it; mode 0600): {secret}")
+        print(f"key: {load_public(public).decode()}")
+    else:
+        target = allow(args.public_key, args.dir)
+        print(f"allowed: {target}")
+    return EXIT_OK
+
+
+def _cmd_runs(args: argparse.Namespace) -> int:
+    if args.connect:
+        with _client(args.connect, args.server_key, args.client_key) as rig:
+            runs = rig.runs(limit=args.limit)
+    else:
+        from rigctl.record import list_runs
+
+        runs = list_runs(args.runs, limit=args.limit)
+    if args.json:
+        print(json.dumps(runs))
+        return EXIT_OK
+    for run in runs:
+        if not run["finished"]:
+            verdict = "UNFINISHED"
+        elif run.get("faults"):
+            verdict = "FAULT"
+        else:
+            verdict = "reached" if run.get("reached") else "missed"
+        print(f"{run['id']}  {verdict:<10} {run.get('duration_s') or '':>8}  {run.get('plan') or ''}")
+    return EXIT_OK
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from rigctl.report import find_run, render_report
+
+    out = render_report(find_run(args.run, args.runs), args.output)
+    print(out)
+    return EXIT_OK
+
+
+# -- rigctl execute PLAN --connect ENDPOINT -------------------------------------------------------
+def execute_remote(plan_path: str | Path, endpoint: str, *, json_out: bool = False,
+                   quiet: bool = False, server_key: str | None = None,
+                   client_key: str | None = None) -> int:
+    """Submit a plan to a running daemon, follow it with a progress bar, print the summary.
+
+    Returns the exit status (0 reached, 1 not reached, 2 refused, 3 fault / e-stop / no daemon).
+    """
+    from rigctl.client import CommandRefused
+
+    try:
+        plan = json.loads(Path(plan_path).read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise PlanError(f"{plan_path}: {err}") from None
+    out = None if quiet else sys.stderr
+    with _client(endpoint, server_key, client_key) as rig:
+        try:
+            loaded = rig.load(plan)
+            started = rig.execute(loaded)
+        except CommandRefused as err:
+            return _refused_exit(err)
+        if out:
+            print(f"submitted to {endpoint}: plan {loaded}, {started['moves']} moves, "
+                  f"{started['duration_s']:.1f} s", file=out)
+        status = _follow(rig, out, started)
+        last = status.get("last_run") or {}
+        run_id = Path(last["run"]).name if last.get("run") else None
+        summary = rig.run(run_id).get("summary") if run_id else None
+    if summary is None:
+        print(f"the run ended in state {status['state']} without a summary", file=sys.stderr)
+        return EXIT_FAULT
+    from rigctl.execute import AgentResult, RunSummary, format_summary, summary_json_line
+
+    result = RunSummary(**{**summary, "agents": [AgentResult(**a) for a in summary["agents"]]})
+    print(format_summary(result))
+    if json_out:
+        print(summary_json_line(result))
+    if result.faults:
+        return EXIT_FAULT
+    return EXIT_OK if result.reached else EXIT_NOT_REACHED
+
+
+def _follow(rig, out, started: dict) -> dict:
+    """Poll `status` until the run is over; draw a progress bar on a terminal."""
+    tty = bool(out is not None and out.isatty())
+    samples = max(1, int(started.get("samples") or 1))
+    last_line = ""
+    while True:
+        status = rig.status()
+        run = status.get("run")
+        if run is None and status["state"] not in ("running", "paused", "suspended"):
+            break
+        if out is not None and run is not None:
+            done = max(0, run["sample"]) / samples
+            bar = "#" * int(30 * done) + "-" * (30 - int(30 * done))
+            line = (f"[{bar}] {100 * done:5.1f} %  move {run['move'] + 1}/{run.get('moves')}"
+                    f"  {status['state']}")
+            if tty:
+                out.write("\r" + line)
+                out.flush()
+            elif line.split("%")[0] != last_line.split("%")[0] and int(100 * done) % 10 == 0:
+                out.write(line + "\n")
+            last_line = line
+        time.sleep(0.2)
+    if tty:
+        out.write("\n")
+    return status
+
+
+# -- registration --------------------------------------------------------------------------------
+def _client_options(p: argparse.ArgumentParser) -> None:
+    from rigctl.messages import DEFAULT_COMMAND_ENDPOINT
+
+    p.add_argument("--connect", default=DEFAULT_COMMAND_ENDPOINT,
+                   help=f"the daemon's command endpoint (default {DEFAULT_COMMAND_ENDPOINT})")
+    p.add_argument("--server-key", help="the daemon's public key file (CURVE)")
+    p.add_argument("--client-key", help="your secret key file (CURVE)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from rigctl.messages import (DEFAULT_COMMAND_ENDPOINT, DEFAULT_EVENTS_ENDPOINT,
+                                 DEFAULT_TELEMETRY_ENDPOINT)
+
+    p = sub.add_parser(
+        "daemon", help="run the long-lived service: ZeroMQ commands and telemetry",
+        description="Own the rig's devices and serve commands (JSON over ZeroMQ, see "
+        "docs/daemon-protocol.md) and telemetry. Without --rig it starts the emulated six-coil "
+        "bench. Binds loopback unless told otherwise; anything else needs CURVE keys. Prints "
+        "`READY command=... telemetry=... events=...` when serving. SIGTERM ramps down and exits 0.")
+    p.add_argument("--rig", help="rig file (TOML); default: the emulated six-coil bench")
+    p.add_argument("--command", help=f"command endpoint (default {DEFAULT_COMMAND_ENDPOINT})")
+    p.add_argument("--telemetry", help=f"telemetry (data) endpoint (default {DEFAULT_TELEMETRY_ENDPOINT})")
+    p.add_argument("--events", help=f"telemetry events endpoint (default {DEFAULT_EVENTS_ENDPOINT})")
+    p.add_argument("--runs", help="directory for run records (default ./runs)")
+    p.add_argument("--server-key", help="the daemon's CURVE secret key file (.key_secret)")
+    p.add_argument("--allowed-keys", help="folder of operators' public keys allowed in")
+    p.add_argument("--realtime", type=int, metavar="PRIO",
+                   help="run the stream thread at SCHED_FIFO priority PRIO where permitted")
+    p.add_argument("--currents-hz", type=float, default=0.0,
+                   help="publish `currents` at most this often (default 0: every stream cycle)")
+    p.set_defaults(func=_cmd_daemon)
+
+    p = sub.add_parser("status", help="ask a running daemon for its state, run and devices")
+    _client_options(p)
+    p.add_argument("--json", action="store_true", help="print the raw status as JSON")
+    p.set_defaults(func=_cmd_status)
+
+    p = sub.add_parser("estop", help="emergency stop: every supply to zero at once")
+    _client_options(p)
+    p.set_defaults(func=_cmd_estop)
+
+    p = sub.add_parser("keys", help="CURVE keys for the daemon and its operators")
+    keys_sub = p.add_subparsers(dest="keys_command", required=True)
+    k = keys_sub.add_parser("new", help="make a key pair NAME.key / NAME.key_secret")
+    k.add_argument("name")
+    k.add_argument("--dir", default=".", help="where to write the pair (default: here)")
+    k = keys_sub.add_parser("allow", help="add an operator's public key to an allow-list folder")
+    k.add_argument("public_key")
+    k.add_argument("--dir", required=True, help="the allow-list folder (the daemon's --allowed-keys)")
+    p.set_defaults(func=_cmd_keys)
+
+    p = sub.add_parser("runs", help="list run records (local folder, or a daemon's with --connect)")
+    p.add_argument("--runs", default="runs", help="run records folder (default ./runs)")
+    p.add_argument("--connect", help="ask this daemon instead of reading the folder")
+    p.add_argument("--server-key")
+    p.add_argument("--client-key")
+    p.add_argument("--limit", type=int, default=20)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_cmd_runs)
+
+    p = sub.add_parser("report", help="draw a run: planned vs measured paths, currents (PNG)")
+    p.add_argument("run", help="run record folder, or a run id inside --runs")
+    p.add_argument("--runs", default="runs", help="run records folder (default ./runs)")
+    p.add_argument("-o", "--output", help="PNG to write (default RUN/report.png)")
+    p.set_defaults(func=_cmd_report)
+
+
+
+def main(argv: list[str] | None = None) -> int:
+    """These verbs alone (`python -m rigctl.cli_daemon ...`), with `rigctl`'s error handling;
+    `rigctl` itself adds them through `register`."""
+    from rigctl.errors import ConfigError, LimitError, RigError
+
+    parser = argparse.ArgumentParser(prog="rigctl")
+    parser.add_argument("-v", "--verbose", action="store_true")
+    register(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"))
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except (PlanError, ConfigError, LimitError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except RigError as err:
+        print(f"fault: {err}", file=sys.stderr)
+        return EXIT_FAULT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

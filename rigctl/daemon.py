@@ -1,0 +1,955 @@
+"""`rigctl daemon`: the long-running service that owns a rig's devices and runs plans one at a time.
+
+Threads and who does what:
+- the *command thread* serves a ROUTER socket, so any number of REQ clients can talk at once and a
+  client that vanishes mid-request costs nothing (its reply is dropped by ZeroMQ). Quick commands
+  are answered on this thread; slow ones (`load` realizes and allocates a whole plan, `runs` and
+  `run` read the disk, `set_field` opens the supplies) go to a worker thread and are answered when
+  it is done, so nothing ever waits behind them. `estop` is carried out on the command thread the
+  moment it is read: it flags the active run (whose stream thread zeroes every supply at its next
+  cycle, within one period) or, with nothing active, starts zeroing the supplies directly;
+- the *run thread* (one at a time) executes a `Run` (or holds a manual field) and is the stream
+  thread, raised to SCHED_FIFO when allowed;
+- the *telemetry thread* (`rigctl.telemetry`) publishes what the stream thread hands it.
+
+States are those of `DaemonState`; every change goes through `TRANSITIONS`, an explicit table of
+(state, event) -> state, and is published on the `state` topic and logged. A repeated request
+(same id and body within `REPLAY_WINDOW_S`) gets the first reply again instead of running twice,
+which makes the client's lazy-pirate retries safe.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import threading
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import zmq
+from pydantic import ValidationError
+
+from rigctl.config import RigConfig
+from rigctl.errors import ConfigError, LimitError, PlanError, RigError
+from rigctl.keys import CurveServer
+from rigctl.messages import (
+    COMMAND_ARGS,
+    HARD_MAX_MESSAGE_BYTES,
+    MAX_REQUEST_BYTES,
+    PROTOCOL,
+    STATE_HEARTBEAT_S,
+    Command,
+    DaemonState,
+    ErrorCode,
+    Reply,
+    Request,
+    Topic,
+    error_reply,
+    is_loopback_endpoint,
+    ok_reply,
+)
+from rigctl.sdnotify import SystemdNotifier
+from rigctl.telemetry import CycleSample, TelemetryPublisher
+
+log = logging.getLogger(__name__)
+
+S = DaemonState
+ACTIVE = (S.RUNNING, S.PAUSED, S.SUSPENDED)
+
+TRANSITIONS: dict[tuple[DaemonState, str], DaemonState] = {
+    (S.IDLE, "execute"): S.RUNNING,
+    (S.RUNNING, "paused"): S.PAUSED,
+    (S.PAUSED, "running"): S.RUNNING,
+    (S.RUNNING, "suspended"): S.SUSPENDED,
+    (S.PAUSED, "suspended"): S.SUSPENDED,
+    (S.SUSPENDED, "running"): S.RUNNING,
+    (S.SUSPENDED, "paused"): S.PAUSED,
+    **{(s, "finished"): S.IDLE for s in ACTIVE},
+    **{(s, "fault"): S.FAULTED for s in (*ACTIVE, S.IDLE)},
+    **{(s, "estop"): S.ESTOPPED for s in S},
+    (S.FAULTED, "reset"): S.IDLE,
+    (S.ESTOPPED, "reset"): S.IDLE,
+}
+"""Every allowed state change. Anything else is refused (`wrong_state`) or, when a run reports
+it late (a run that ends after an e-stop), ignored."""
+
+RUN_EVENTS = {"running": "running", "paused": "paused", "suspended": "suspended",
+              "faulted": "fault", "estopped": "estop", "aborted": "finished", "done": "finished"}
+"""A `RunState` value -> the daemon event it causes (`prepared` causes none)."""
+
+REPLAY_WINDOW_S = 60.0
+REPLAY_CACHE = 256
+MAX_PLANS = 32
+AGENTS_HZ = 10.0
+
+
+class Refusal(Exception):
+    """Raised by a command handler: becomes an error reply with this code."""
+
+    def __init__(self, code: ErrorCode, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class RunLike(Protocol):
+    """What the daemon needs of a run (`rigctl.execute.Run` and the tests' stand-ins)."""
+
+    def execute(self) -> Any: ...
+    def pause(self, immediate: bool = False) -> None: ...
+    def resume(self) -> None: ...
+    def abort(self) -> None: ...
+    def estop(self) -> None: ...
+
+    plan: Any  # the plan being run (agents, moves, expected)
+    record: Any  # the run record once execute() has made it, else None
+    stream_loop: Any  # the StreamLoop while streaming (its `last_error_s`), else None
+
+
+class RunFactory(Protocol):
+    def parse_plan(self, data: dict) -> Any: ...
+
+    def prepare(self, plan: Any, rig: RigConfig, *, runs_dir: Path,
+                on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None],
+                on_state: Callable[[Any, dict], None]) -> RunLike: ...
+
+
+class PlanRuns:
+    """The real thing: plans from `rigctl.plans.schema`, runs from `rigctl.execute.Run`."""
+
+    def parse_plan(self, data: dict) -> Any:
+        from rigctl.plans.schema import parse_plan
+
+        return parse_plan(data, "plan")
+
+    def prepare(self, plan, rig, *, runs_dir, on_cycle, on_state) -> RunLike:
+        from rigctl.execute import Run
+
+        return Run(plan, rig, runs_dir=runs_dir, progress_out=None, on_cycle=on_cycle,
+                   on_state=on_state)
+
+
+@dataclass(frozen=True)
+class DaemonEndpoints:
+    command: str
+    telemetry: str
+    events: str
+
+    def as_dict(self) -> dict:
+        return {"command": self.command, "data": self.telemetry, "events": self.events}
+
+
+@dataclass
+class _LoadedPlan:
+    plan_id: str
+    plan: Any
+    info: dict
+    prepared: RunLike | None
+
+
+@dataclass
+class _ActiveRun:
+    """The run (or manual-field hold) on the run thread, and what the stream thread last did."""
+
+    kind: str  # "plan" or "field"
+    job: Any
+    plan_id: str | None
+    info: dict
+    thread: threading.Thread | None = None
+    run_id: str | None = None
+    sample: int = -1
+    move: int = -1
+    last_cycle: float = 0.0
+
+
+class _Wakeup:
+    """A pipe the command thread polls next to its socket: other threads write a byte to wake it."""
+
+    def __init__(self) -> None:
+        self.read_fd, self.write_fd = os.pipe()
+        os.set_blocking(self.read_fd, False)
+        os.set_blocking(self.write_fd, False)
+
+    def wake(self) -> None:
+        try:
+            os.write(self.write_fd, b"x")
+        except BlockingIOError:  # already full of wake-ups: the reader will run anyway
+            pass
+
+    def drain(self) -> None:
+        try:
+            while os.read(self.read_fd, 4096):
+                pass
+        except BlockingIOError:
+            pass
+
+    def close(self) -> None:
+        os.close(self.read_fd)
+        os.close(self.write_fd)
+
+
+class _TelemetryLogHandler(logging.Handler):
+    """Warnings and errors of rigctl go out on the `log` topic too."""
+
+    def __init__(self, publisher: TelemetryPublisher) -> None:
+        super().__init__(level=logging.WARNING)
+        self.publisher = publisher
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.name.startswith("rigctl.telemetry"):
+            return
+        try:
+            self.publisher.publish_event(Topic.LOG, level=record.levelname,
+                                         message=f"{record.name}: {record.getMessage()}")
+        except Exception:  # a log handler must never raise into the code that logged
+            self.handleError(record)
+
+
+class Daemon:
+    """Bind with `start()`, serve with `serve_forever()` (or `start_thread()`), stop with `stop()`.
+
+    Endpoints are ZeroMQ endpoints (`tcp://127.0.0.1:0` picks a free port; `endpoints` tells which).
+    Anything but loopback needs CURVE: `server_key` (the daemon's `.key_secret`) and `allowed_keys`
+    (a folder of operators' public `.key` files). `realtime_priority` asks SCHED_FIFO for the stream
+    thread; `currents_hz` decimates the `currents` topic (0: every cycle).
+    """
+
+    def __init__(
+        self,
+        rig: RigConfig,
+        *,
+        command: str,
+        telemetry: str,
+        events: str,
+        runs_dir: str | Path = "runs",
+        server_key: str | Path | None = None,
+        allowed_keys: str | Path | None = None,
+        run_factory: RunFactory | None = None,
+        realtime_priority: int | None = None,
+        currents_hz: float = 0.0,
+        notifier: SystemdNotifier | None = None,
+    ) -> None:
+        self.rig = rig
+        self.runs_dir = Path(runs_dir)
+        self.factory = run_factory or PlanRuns()
+        self.realtime_priority = realtime_priority
+        self.currents_hz = currents_hz
+        self.notifier = notifier or SystemdNotifier()
+        self._wanted = (command, telemetry, events)
+        if (server_key is None) != (allowed_keys is None):
+            raise ConfigError("CURVE needs both a server key and an allow-list folder")
+        if server_key is None:
+            for endpoint in self._wanted:
+                if not is_loopback_endpoint(endpoint):
+                    raise ConfigError(
+                        f"refusing to bind {endpoint} without CURVE keys: anything but loopback "
+                        "needs --server-key and --allowed-keys (make them with `rigctl keys new`)")
+        self._keys = (server_key, allowed_keys)
+        self.context = zmq.Context()
+        self.curve: CurveServer | None = None
+        self.publisher: TelemetryPublisher | None = None
+        self.endpoints: DaemonEndpoints | None = None
+        self.t0 = time.monotonic()
+        self._lock = threading.RLock()
+        self.state = DaemonState.IDLE
+        self._state_info: dict = {}
+        self.last_fault: dict | None = None
+        self._active: _ActiveRun | None = None
+        self._plans: OrderedDict[str, _LoadedPlan] = OrderedDict()
+        self._deliveries: deque[Callable[[], None]] = deque()
+        self._replay: OrderedDict[bytes, tuple[float, Reply | None, list[list[bytes]]]] = OrderedDict()
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="daemon-worker")
+        self._wakeup = _Wakeup()
+        self._stop = threading.Event()
+        self._shutdown_requested = threading.Event()
+        self._serving = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._router: zmq.Socket | None = None
+        self._log_handler: _TelemetryLogHandler | None = None
+        self._agents_stop = threading.Event()
+        self.devices = {c.name: {"name": c.name, "url": c.url, "health": "unknown", "detail": ""}
+                        for c in rig.coils}
+        self.manual_field_mT: list[float] | None = None
+        self.last_run: dict | None = None
+        self._actuation = self._actuation_matrix()
+        self._handlers: dict[Command, Callable[[Any], Any]] = {
+            Command.PING: self._cmd_ping, Command.STATUS: self._cmd_status,
+            Command.LOAD: self._cmd_load, Command.EXECUTE: self._cmd_execute,
+            Command.PAUSE: self._cmd_pause, Command.RESUME: self._cmd_resume,
+            Command.ABORT: self._cmd_abort, Command.ESTOP: self._cmd_estop,
+            Command.RESET: self._cmd_reset, Command.SET_FIELD: self._cmd_set_field,
+            Command.RUNS: self._cmd_runs, Command.RUN: self._cmd_run,
+        }
+
+    # -- life cycle -----------------------------------------------------------------------------
+    def _actuation_matrix(self) -> np.ndarray | None:
+        if not self.rig.coils:
+            return None
+        from rigctl.allocate import actuation_matrix
+
+        return actuation_matrix(self.rig)
+
+    def start(self) -> DaemonEndpoints:
+        """Bind every socket and start the telemetry thread; returns the bound endpoints."""
+        command, telemetry, events = self._wanted
+        secure = None
+        if self._keys[0] is not None:
+            self.curve = CurveServer(self.context, self._keys[0], self._keys[1])
+            secure = self.curve.secure
+        router = self.context.socket(zmq.ROUTER)
+        router.setsockopt(zmq.LINGER, 0)
+        router.setsockopt(zmq.MAXMSGSIZE, HARD_MAX_MESSAGE_BYTES)
+        router.setsockopt(zmq.SNDHWM, 10_000)
+        router.setsockopt(zmq.RCVHWM, 10_000)
+        if secure is not None:
+            secure(router)
+        try:
+            router.bind(command)
+            self.publisher = TelemetryPublisher(
+                self.context, telemetry, events, coil_names=[c.name for c in self.rig.coils],
+                actuation_matrix_T_per_A=self._actuation, currents_hz=self.currents_hz,
+                secure=secure, clock_origin=self.t0)
+        except zmq.ZMQError as err:
+            router.close(linger=0)
+            raise ConfigError(f"cannot bind the daemon's sockets: {err}") from None
+        self._router = router
+        self.publisher.start()
+        self._log_handler = _TelemetryLogHandler(self.publisher)
+        logging.getLogger("rigctl").addHandler(self._log_handler)
+        self.endpoints = DaemonEndpoints(router.getsockopt_string(zmq.LAST_ENDPOINT),
+                                         self.publisher.data_endpoint,
+                                         self.publisher.events_endpoint)
+        self._publish_state()
+        log.info("daemon up: commands %s, telemetry %s, events %s", *self.endpoints.as_dict().values())
+        return self.endpoints
+
+    def start_thread(self) -> DaemonEndpoints:
+        """`start()` and serve on a background thread (tests, embedding)."""
+        endpoints = self.start()
+        self._thread = threading.Thread(target=self.serve_forever, name="daemon-commands")
+        self._thread.start()
+        self._serving.wait(timeout=10)
+        return endpoints
+
+    def request_shutdown(self) -> None:
+        """Thread- and signal-safe: ramp down whatever runs, then stop serving."""
+        self._shutdown_requested.set()
+        self._wakeup.wake()
+
+    def stop(self) -> None:
+        self.request_shutdown()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=30)
+
+    # -- the command thread ---------------------------------------------------------------------
+    def serve_forever(self) -> None:
+        assert self._router is not None, "start() first"
+        poller = zmq.Poller()
+        poller.register(self._router, zmq.POLLIN)
+        poller.register(self._wakeup.read_fd, zmq.POLLIN)
+        watchdog = self.notifier.watchdog_s
+        next_pet = 0.0
+        next_heartbeat = time.monotonic() + STATE_HEARTBEAT_S
+        self.notifier.ready(f"serving {self.endpoints.command}")
+        self._serving.set()
+        try:
+            while True:
+                now = time.monotonic()
+                if watchdog and now >= next_pet:
+                    if self._healthy_for_watchdog(now):
+                        self.notifier.watchdog()
+                    next_pet = now + watchdog / 3
+                if now >= next_heartbeat:
+                    self._publish_state()
+                    next_heartbeat = now + STATE_HEARTBEAT_S
+                if self._shutdown_requested.is_set() and self._shut_down_step():
+                    break
+                timeout = min(next_heartbeat, next_pet if watchdog else next_heartbeat) - now
+                events = dict(poller.poll(max(1, int(1000 * min(timeout, 0.5)))))
+                if self._router in events:
+                    for _ in range(256):  # bounded batch, then look at wake-ups and timers again
+                        try:
+                            frames = self._router.recv_multipart(zmq.NOBLOCK, copy=True)
+                        except zmq.Again:
+                            break
+                        self._on_message(frames)
+                if self._wakeup.read_fd in events:
+                    self._wakeup.drain()
+                self._flush_replies()
+        finally:
+            self._close()
+
+    def _healthy_for_watchdog(self, now: float) -> bool:
+        """Withhold the watchdog when a streaming run has not cycled for 5 s: systemd restarts
+        a daemon whose stream thread hangs (the supplies' own watchdogs make them safe)."""
+        active = self._active
+        if active is None or active.last_cycle == 0.0 or self.state != S.RUNNING:
+            return True
+        if now - active.last_cycle > 5.0:
+            log.error("the stream thread has not cycled for %.1f s", now - active.last_cycle)
+            return False
+        return True
+
+    def _shut_down_step(self) -> bool:
+        """On shutdown: ask the active run to ramp down and wait for it; True when done."""
+        if not self._stop.is_set():
+            self._stop.set()
+            self.notifier.stopping()
+            active = self._active
+            if active is not None:
+                log.warning("shutting down: ramping the active %s down", active.kind)
+                active.job.abort()
+        active = self._active
+        if active is not None and active.thread is not None and active.thread.is_alive():
+            return False  # the run thread wakes us when it ends
+        return True
+
+    def _close(self) -> None:
+        self._agents_stop.set()
+        self._worker.shutdown(wait=True, cancel_futures=True)
+        self._flush_replies()
+        active = self._active  # started by the worker while shutting down: stop it too
+        if active is not None and active.thread is not None:
+            active.job.abort()
+            active.thread.join(timeout=30)
+        if self._log_handler is not None:
+            logging.getLogger("rigctl").removeHandler(self._log_handler)
+        if self.publisher is not None:
+            self.publisher.stop()
+        if self._router is not None:
+            self._router.close(linger=0)
+        if self.curve is not None:
+            self.curve.stop()
+        self.context.term()
+        self._wakeup.close()
+        self.notifier.close()
+        log.info("daemon stopped")
+
+    # -- requests -------------------------------------------------------------------------------
+    def _on_message(self, frames: list[bytes]) -> None:
+        try:
+            split = frames.index(b"", 1) + 1
+        except ValueError:  # a DEALER without the empty delimiter: identity, body
+            split = 1
+        envelope, body = frames[:split], frames[split:]
+        if len(body) != 1:
+            self._send(envelope, error_reply(None, ErrorCode.BAD_REQUEST,
+                                             f"a request is one frame, got {len(body)}"))
+            return
+        payload = body[0]
+        if len(payload) > MAX_REQUEST_BYTES:
+            self._send(envelope, error_reply(None, ErrorCode.TOO_LARGE,
+                                             f"{len(payload)} bytes; the limit is {MAX_REQUEST_BYTES}"))
+            return
+        try:
+            data = json.loads(payload)
+        except (UnicodeDecodeError, json.JSONDecodeError) as err:
+            self._send(envelope, error_reply(None, ErrorCode.BAD_JSON, f"not JSON: {err}"))
+            return
+        request_id = data.get("id") if isinstance(data, dict) else None
+        if not isinstance(request_id, (str, int)) or isinstance(request_id, bool):
+            request_id = None
+        try:
+            request = Request.model_validate(data)
+        except ValidationError as err:
+            self._send(envelope, error_reply(request_id, ErrorCode.BAD_REQUEST, _describe(err)))
+            return
+        try:
+            cmd = Command(request.cmd)
+        except ValueError:
+            known = ", ".join(c.value for c in Command)
+            self._send(envelope, error_reply(request.id, ErrorCode.UNKNOWN_COMMAND,
+                                             f"unknown command {request.cmd!r}; known: {known}"))
+            return
+        try:
+            args = COMMAND_ARGS[cmd].model_validate(request.args)
+        except ValidationError as err:
+            self._send(envelope, error_reply(request.id, ErrorCode.BAD_ARGS,
+                                             f"{cmd.value}: {_describe(err)}"))
+            return
+        replay_key = self._replay_key(request, cmd, payload)
+        if replay_key is not None and self._replayed(replay_key, envelope):
+            return
+        self._dispatch(cmd, args, request.id, envelope, replay_key)
+
+    def _replay_key(self, request: Request, cmd: Command, payload: bytes) -> bytes | None:
+        if cmd in (Command.PING, Command.STATUS, Command.ESTOP, Command.RUNS, Command.RUN):
+            return None  # read-only or always carried out
+        if not isinstance(request.id, str) or len(request.id) < 8:
+            return None  # only ids that look unique; short ids are likely reused
+        return hashlib.sha256(payload).digest()
+
+    def _replayed(self, key: bytes, envelope: list[bytes]) -> bool:
+        now = time.monotonic()
+        while self._replay and (len(self._replay) > REPLAY_CACHE
+                                or next(iter(self._replay.values()))[0] < now - REPLAY_WINDOW_S):
+            self._replay.popitem(last=False)
+        entry = self._replay.get(key)
+        if entry is None:
+            self._replay[key] = (now, None, [envelope])
+            return False
+        _, reply, waiting = entry
+        if reply is None:
+            waiting.append(envelope)  # still being worked on: answer this one too
+        else:
+            self._send(envelope, reply)
+        return True
+
+    def _dispatch(self, cmd: Command, args: Any, request_id: Any, envelope: list[bytes],
+                  replay_key: bytes | None) -> None:
+        handler = self._handlers[cmd]
+
+        def answer() -> Reply:
+            try:
+                return ok_reply(request_id, handler(args))
+            except Refusal as err:
+                return error_reply(request_id, err.code, str(err))
+            except LimitError as err:
+                return error_reply(request_id, ErrorCode.LIMIT, str(err))
+            except PlanError as err:
+                return error_reply(request_id, ErrorCode.PLAN_INVALID, str(err))
+            except RigError as err:
+                return error_reply(request_id, ErrorCode.DEVICE, str(err))
+            except Exception as err:  # a bug: keep serving, say so, log the traceback
+                log.exception("%s failed", cmd.value)
+                return error_reply(request_id, ErrorCode.INTERNAL, f"{type(err).__name__}: {err}")
+
+        def deliver(reply: Reply) -> None:
+            targets = [envelope]
+            if replay_key is not None and replay_key in self._replay:
+                t, _, waiting = self._replay[replay_key]
+                self._replay[replay_key] = (t, reply, [])
+                targets = waiting or [envelope]
+            for target in targets:
+                self._send(target, reply)
+
+        if cmd in (Command.LOAD, Command.RUNS, Command.RUN, Command.SET_FIELD):
+            def work() -> None:
+                reply = answer()
+                self._deliveries.append(lambda: deliver(reply))  # deque.append is thread-safe
+                self._wakeup.wake()
+
+            self._worker.submit(work)
+        else:
+            deliver(answer())
+
+    def _flush_replies(self) -> None:
+        """Send the replies the worker finished (on the command thread: it owns the socket)."""
+        while self._deliveries:
+            self._deliveries.popleft()()
+
+    def _send(self, envelope: list[bytes], reply: Reply) -> None:
+        assert self._router is not None
+        try:
+            self._router.send_multipart([*envelope, reply.model_dump_json().encode()], zmq.NOBLOCK)
+        except zmq.Again:
+            log.warning("a client's reply queue is full; reply dropped")
+
+    # -- state ----------------------------------------------------------------------------------
+    def _transition(self, event: str, **info: Any) -> bool:
+        """Apply `event` if TRANSITIONS allows it from the present state; publish the new state."""
+        with self._lock:
+            target = TRANSITIONS.get((self.state, event))
+            if target is None:
+                return False
+            changed = target != self.state
+            self.state = target
+            self._state_info = {k: v for k, v in info.items() if k in ("device", "reason")}
+        if changed:
+            log.info("state %s (%s)", target.value, event)
+            self._publish_state()
+            self.notifier.status(f"{target.value}")
+        return True
+
+    def _publish_state(self) -> None:
+        if self.publisher is None:
+            return
+        active = self._active
+        self.publisher.publish_event(
+            Topic.STATE, state=self.state, run=active.run_id if active else None,
+            plan_id=active.plan_id if active else None,
+            device=self._state_info.get("device"), reason=self._state_info.get("reason"))
+
+    def _require(self, *states: DaemonState, doing: str) -> None:
+        if self.state not in states:
+            hint = " (send reset first)" if self.state in (S.FAULTED, S.ESTOPPED) else ""
+            raise Refusal(ErrorCode.WRONG_STATE,
+                          f"cannot {doing} while {self.state.value}{hint}")
+
+    # -- commands -------------------------------------------------------------------------------
+    def _cmd_ping(self, _: Any) -> dict:
+        return {"protocol": PROTOCOL, "pid": os.getpid(),
+                "telemetry": self.endpoints.as_dict() if self.endpoints else None}
+
+    def _cmd_status(self, _: Any) -> dict:
+        with self._lock:
+            active = self._active
+            run = None
+            if active is not None:
+                run = {"kind": active.kind, "id": active.run_id, "plan_id": active.plan_id,
+                       "sample": active.sample, "move": active.move, **active.info}
+            return {
+                "state": self.state.value,
+                "device": self._state_info.get("device"),
+                "reason": self._state_info.get("reason"),
+                "rig": {"name": self.rig.rig.name, "kind": self.rig.rig.kind,
+                        "emulated": self.rig.emulated},
+                "run": run,
+                "last_run": self.last_run,
+                "plans": list(self._plans),
+                "devices": [dict(d) for d in self.devices.values()],
+                "last_fault": self.last_fault,
+                "manual_field_mT": self.manual_field_mT,
+                "uptime_s": round(time.monotonic() - self.t0, 3),
+            }
+
+    def _cmd_load(self, args: Any) -> dict:
+        plan = self.factory.parse_plan(args.plan)
+        plan_id = hashlib.sha256(json.dumps(args.plan, sort_keys=True).encode()).hexdigest()[:12]
+        prepared = self._prepare(plan)
+        info = _describe_run(prepared)
+        with self._lock:
+            self._plans[plan_id] = _LoadedPlan(plan_id, plan, info, prepared)
+            self._plans.move_to_end(plan_id)
+            while len(self._plans) > MAX_PLANS:
+                self._plans.popitem(last=False)
+        log.info("plan %s loaded: %s", plan_id, info)
+        return {"plan_id": plan_id, **info}
+
+    def _prepare(self, plan: Any) -> RunLike:
+        return self.factory.prepare(plan, self.rig, runs_dir=self.runs_dir,
+                                    on_cycle=self._on_cycle, on_state=self._on_run_state)
+
+    def _cmd_execute(self, args: Any) -> dict:
+        with self._lock:
+            self._require(S.IDLE, doing="execute a plan")
+            if self._active is not None:
+                raise Refusal(ErrorCode.BUSY if self._active.kind == "plan" else ErrorCode.WRONG_STATE,
+                              "a manual field is held: send set_field [0, 0, 0] first"
+                              if self._active.kind == "field" else "the last run is still stopping")
+            loaded = self._plans.get(args.plan_id)
+            if loaded is None:
+                raise Refusal(ErrorCode.UNKNOWN_PLAN,
+                              f"no plan {args.plan_id!r} loaded; load it first")
+            run, loaded.prepared = loaded.prepared, None
+        if run is None:  # executed before: prepare again (the plan was checked at load)
+            run = self._prepare(loaded.plan)
+        active = _ActiveRun("plan", run, loaded.plan_id, dict(loaded.info))
+        with self._lock:
+            self._active = active
+            self._transition("execute")
+            active.thread = threading.Thread(target=self._run_thread, args=(active,),
+                                             name="daemon-run")
+            active.thread.start()
+        if self.rig.emulated:
+            threading.Thread(target=self._sample_agents, args=(active,), name="daemon-agents",
+                             daemon=True).start()
+        return {"plan_id": loaded.plan_id, "state": self.state.value, **loaded.info}
+
+    def _cmd_pause(self, args: Any) -> dict:
+        with self._lock:
+            self._require(*ACTIVE, doing="pause")
+            self._active.job.pause(args.immediate)
+        return {"state": self.state.value, "pending": "pause now" if args.immediate
+                else "pause at the end of the current move"}
+
+    def _cmd_resume(self, _: Any) -> dict:
+        with self._lock:
+            self._require(S.PAUSED, doing="resume")
+            self._active.job.resume()
+        return {"state": self.state.value, "pending": "resume"}
+
+    def _cmd_abort(self, _: Any) -> dict:
+        with self._lock:
+            self._require(*ACTIVE, doing="abort")
+            self._active.job.abort()
+        return {"state": self.state.value, "pending": "ramp down and stop"}
+
+    def _cmd_estop(self, _: Any) -> dict:
+        with self._lock:
+            active = self._active
+            if active is not None:
+                active.job.estop()
+            self._transition("estop", reason="emergency stop")
+            self.manual_field_mT = None
+        if active is None:
+            threading.Thread(target=self._zero_supplies_directly, name="daemon-estop").start()
+        log.warning("EMERGENCY STOP")
+        return {"state": self.state.value,
+                "zeroing": "at the next stream cycle" if active else "directly (no run active)"}
+
+    def _cmd_reset(self, _: Any) -> dict:
+        with self._lock:
+            if self.state == S.IDLE:
+                return {"state": "idle"}
+            self._require(S.FAULTED, S.ESTOPPED, doing="reset")
+            if self._active is not None:
+                raise Refusal(ErrorCode.BUSY, "the run is still stopping; retry in a moment")
+            self._transition("reset")
+        return {"state": self.state.value}
+
+    def _cmd_set_field(self, args: Any) -> dict:
+        from rigctl.devices import CoilSupplies
+        from rigctl.allocate import currents_for_field
+
+        target_T = np.asarray(args.field_mT, dtype=float) * 1e-3
+        if self._actuation is None:
+            raise Refusal(ErrorCode.WRONG_STATE, "this rig has no coils")
+        currents = currents_for_field(self._actuation, target_T)
+        for coil, amps in zip(self.rig.coils, currents):
+            if abs(amps) > coil.current_limit_A + 1e-9:
+                raise LimitError(f"{list(args.field_mT)} mT needs {amps:.2f} A on coil {coil.name} "
+                                 f"(limit {coil.current_limit_A} A)")
+            if abs(amps) * coil.resistance_ohm > coil.compliance_V:
+                raise LimitError(f"{list(args.field_mT)} mT needs {abs(amps) * coil.resistance_ohm:.1f} V "
+                                 f"on coil {coil.name} (compliance {coil.compliance_V} V)")
+        zero = not np.any(target_T)
+        with self._lock:
+            self._require(S.IDLE, doing="set a manual field")
+            active = self._active
+            if active is not None and active.kind != "field":
+                raise Refusal(ErrorCode.BUSY, "the last run is still stopping")
+            if active is not None:
+                active.job.retarget(currents, args.ramp_s, release=zero)
+                self.manual_field_mT = None if zero else list(args.field_mT)
+                return {"field_mT": args.field_mT, "currents_A": currents.round(4).tolist()}
+            if zero:
+                return {"field_mT": args.field_mT, "currents_A": currents.round(4).tolist()}
+        supplies = CoilSupplies.connect(self.rig)  # on the worker: may take a while
+        supplies.energise()
+        hold = FieldHold(supplies, self.rig.stream.rate_hz, on_cycle=self._on_cycle)
+        hold.retarget(currents, args.ramp_s)
+        active = _ActiveRun("field", hold, None, {"field_mT": list(args.field_mT)})
+        with self._lock:
+            if self.state != S.IDLE or self._active is not None or self._stop.is_set():
+                supplies.stop(ramp_s=0.0)
+                raise Refusal(ErrorCode.WRONG_STATE, f"state changed to {self.state.value}")
+            self._active = active
+            self.manual_field_mT = list(args.field_mT)
+            active.thread = threading.Thread(target=self._run_thread, args=(active,),
+                                             name="daemon-field")
+            active.thread.start()
+        for name in self.devices:
+            self._device(name, "ok", "manual field")
+        return {"field_mT": args.field_mT, "currents_A": currents.round(4).tolist()}
+
+    def _cmd_runs(self, args: Any) -> list[dict]:
+        from rigctl.record import list_runs
+
+        return list_runs(self.runs_dir, limit=args.limit)
+
+    def _cmd_run(self, args: Any) -> dict:
+        if "/" in args.run or args.run.startswith(".") or not (self.runs_dir / args.run).is_dir():
+            raise Refusal(ErrorCode.UNKNOWN_RUN, f"no run {args.run!r} in {self.runs_dir}")
+        from rigctl.record import describe_run
+
+        return describe_run(self.runs_dir / args.run)
+
+    # -- the run thread and its callbacks (called on the stream thread) -------------------------
+    def _run_thread(self, active: _ActiveRun) -> None:
+        if self.realtime_priority:
+            _make_realtime(self.realtime_priority)
+        if self.publisher is not None:
+            self.publisher.reset_stream(self.rig.stream.rate_hz)
+        summary = None
+        try:
+            summary = active.job.execute()
+        except Exception as err:
+            log.exception("the %s stopped with an unexpected error", active.kind)
+            self._fault(None, f"internal error: {type(err).__name__}: {err}", "Internal", active)
+        finally:
+            with self._lock:
+                self._active = None
+                if active.kind == "field":
+                    self.manual_field_mT = None
+                if summary is not None:
+                    self.last_run = {"id": active.run_id, "plan_id": active.plan_id,
+                                     **{k: v for k, v in summary.as_dict().items()
+                                        if k in ("reached", "faults", "duration_s", "run")}}
+                self._transition("finished")
+                for name, device in self.devices.items():
+                    if device["health"] == "ok":
+                        self._device(name, "off", "safe: ramped down, output off")
+            self._agents_stop.set()
+            self._wakeup.wake()
+
+    def _on_cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray) -> None:
+        active = self._active
+        now = time.monotonic()
+        if active is not None:
+            active.sample, active.move, active.last_cycle = sample, move, now
+        if self.publisher is not None:
+            self.publisher.offer_cycle(CycleSample(now - self.t0, sample, move,
+                                                   np.array(commanded), np.array(measured),
+                                                   _period_error(active)))
+
+    def _on_run_state(self, run_state: Any, info: dict) -> None:
+        value = run_state.value
+        active = self._active
+        if active is not None and active.run_id is None and active.job.record is not None:
+            active.run_id = Path(active.job.record.path).name
+        if value == "running" and active is not None:
+            for name in self.devices:
+                self._device(name, "ok", "streaming")
+        if value == "faulted":
+            self._fault(info.get("device"), str(info.get("reason")), "DeviceFault", active)
+            return
+        event = RUN_EVENTS.get(value)
+        if event is not None and event != "finished":
+            self._transition(event, **info)
+
+    def _fault(self, device: str | None, reason: str, kind: str, active: _ActiveRun | None) -> None:
+        with self._lock:
+            self.last_fault = {"device": device, "reason": reason, "kind": kind,
+                               "run": active.run_id if active else None,
+                               "t": round(time.monotonic() - self.t0, 3)}
+            if device in self.devices:
+                self._device(device, "fault", reason)
+        if self.publisher is not None:
+            self.publisher.publish_event(Topic.FAULT, device=device, reason=reason, kind=kind,
+                                         run=active.run_id if active else None)
+        self._transition("fault", device=device, reason=reason)
+
+    def _device(self, name: str, health: str, detail: str) -> None:
+        self.devices[name] = {**self.devices[name], "health": health, "detail": detail}
+
+    def _sample_agents(self, active: _ActiveRun) -> None:
+        """Until the camera loop exists: the emulator's ground truth, published as `agents` and
+        recorded in the run's event log, AGENTS_HZ times a second while the run lasts."""
+        from rigctl.emulators.backdoor import BackdoorClient
+
+        self._agents_stop.clear()
+        expected = active.job.plan.expected
+        starts = [list(a.start) for a in active.job.plan.agents]
+        try:
+            with BackdoorClient(self.rig.emulation.backdoor, timeout_s=1.0) as backdoor:
+                while not self._agents_stop.wait(1.0 / AGENTS_HZ) and self._active is active:
+                    truth = backdoor.request("truth")["agents"]
+                    move = active.move
+                    exp = None
+                    if expected is not None:
+                        exp = [list(map(float, p)) for p in (expected[move] if move >= 0 else starts)]
+                    tracked = [[round(float(x), 4) for x in p] for p in truth]
+                    self.publisher.publish_agents(move, tracked, exp, "emulator ground truth")
+                    if active.job.record is not None:
+                        active.job.record.event("agents", move=move, tracked=tracked)
+        except (RigError, OSError, ValueError) as err:
+            log.info("agent sampling stopped: %s", err)
+
+    def _zero_supplies_directly(self) -> None:
+        """E-stop with no run active: open each supply, zero it, switch it off; best effort."""
+        from rigctl.drivers.kepco_bop import KepcoBop
+        from rigctl.transport import open_transport
+
+        for coil in self.rig.coils:
+            try:
+                transport = open_transport(coil.url, timeout_s=self.rig.stream.reply_timeout_s)
+                supply = KepcoBop(transport, name=coil.name, current_limit_A=coil.current_limit_A,
+                                  compliance_V=coil.compliance_V,
+                                  timeout_s=self.rig.stream.reply_timeout_s)
+                supply.safe_stop(ramp_s=0.0)
+                supply.close()
+                self._device(coil.name, "off", "e-stop: zeroed, output off")
+            except RigError as err:
+                log.error("e-stop: %s", err)
+                self._device(coil.name, "fault", f"e-stop could not reach it: {err}")
+
+
+class FieldHold:
+    """A manual field (calibration): hold setpoints on the supplies at the stream rate, ramping
+    between targets, until released (ramp to zero), aborted, or e-stopped (zero at once)."""
+
+    plan = None
+    record = None
+
+    def __init__(self, supplies: Any, rate_hz: float,
+                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None]) -> None:
+        self.supplies = supplies
+        self.rate_hz = rate_hz
+        self.on_cycle = on_cycle
+        self._lock = threading.Lock()
+        self._last = np.zeros(len(supplies.names))
+        self._ramp: list[np.ndarray] = []
+        self._release = False
+        self._estop = threading.Event()
+        self.ramp_down_s = 0.1
+        self.stream_loop: Any = None
+
+    def retarget(self, currents_A: np.ndarray, ramp_s: float, release: bool = False) -> None:
+        n = max(1, round(ramp_s * self.rate_hz))
+        with self._lock:
+            start = self._ramp[-1] if self._ramp else self._last
+            self._ramp = [start + (currents_A - start) * (k / n) for k in range(1, n + 1)]
+            self._release = release
+
+    def execute(self) -> None:
+        from rigctl.stream import StreamLoop
+
+        def cycle(k: int) -> bool:
+            if self._estop.is_set():
+                self.supplies.zero_now()
+                return False
+            with self._lock:
+                if self._ramp:
+                    self._last = self._ramp.pop(0)
+                elif self._release:
+                    return False
+                setpoints = self._last
+            measured = self.supplies.cycle(setpoints)
+            self.on_cycle(k, -1, setpoints, measured)
+            return True
+
+        self.stream_loop = StreamLoop(self.rate_hz)
+        try:
+            self.stream_loop.run(cycle)
+        finally:
+            self.supplies.stop(ramp_s=0.0 if self._estop.is_set() else self.ramp_down_s)
+
+    def pause(self, immediate: bool = False) -> None:
+        raise Refusal(ErrorCode.WRONG_STATE, "a manual field cannot be paused")
+
+    def resume(self) -> None:
+        raise Refusal(ErrorCode.WRONG_STATE, "a manual field cannot be resumed")
+
+    def abort(self) -> None:
+        self.retarget(np.zeros_like(self._last), self.ramp_down_s, release=True)
+
+    def estop(self) -> None:
+        self._estop.set()
+
+
+def _describe_run(run: Any) -> dict:
+    plan = run.plan
+    return {"name": plan.name, "moves": len(plan.moves),
+            "samples": int(len(run.currents.t_s)),
+            "duration_s": round(float(run.field_program.duration_s), 3)}
+
+
+def _period_error(active: _ActiveRun | None) -> float | None:
+    loop = active.job.stream_loop if active is not None else None
+    return None if loop is None else loop.last_error_s
+
+
+def _describe(err: ValidationError) -> str:
+    problems = []
+    for problem in err.errors():
+        where = ".".join(str(p) for p in problem["loc"]) or "(top level)"
+        problems.append(f"{where}: {problem['msg']}")
+    return "; ".join(problems)
+
+
+def _make_realtime(priority: int) -> None:
+    """SCHED_FIFO for the calling thread (Linux applies it per thread), if permitted."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        log.info("stream thread at SCHED_FIFO priority %d", priority)
+    except (PermissionError, OSError, AttributeError) as err:
+        log.warning("realtime scheduling not permitted (%s): streaming at normal priority; "
+                    "allow it with LimitRTPRIO= or CAP_SYS_NICE", err)

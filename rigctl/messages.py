@@ -1,0 +1,302 @@
+"""The daemon's wire protocol: requests, replies, telemetry messages, named constants, error codes.
+
+Commands are JSON objects over a ZeroMQ request socket (a plain REQ socket works):
+`{"id": ..., "cmd": NAME, "args": {...}}` is answered by `{"id": ..., "ok": true, "result": ...}`
+or `{"id": ..., "ok": false, "error": {"code": CODE, "message": TEXT}}`. Every command's arguments
+are a pydantic model here, so a request with wrong types is refused with `bad_args` naming the field.
+
+Telemetry goes out on two PUB sockets as two-frame messages `[topic, JSON]`: the *data* socket
+carries the high-rate topics (`currents`, `field`, `agents`, `stream`), which a slow subscriber may
+lose (its queue is bounded), and the *events* socket carries `state`, `fault` and `log`, which are
+rare and have a queue of their own, so a flood of currents can never push a state change out. Every
+telemetry message carries a per-topic sequence number: a subscriber sees any gap.
+
+The document for people is `docs/daemon-protocol.md`; this module is the one the code uses.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from enum import Enum
+from typing import Annotated, Any, Literal
+from urllib.parse import urlsplit
+
+from pydantic import BaseModel, ConfigDict, Field
+
+PROTOCOL = "rigctl.daemon/1"
+
+DEFAULT_COMMAND_ENDPOINT = "tcp://127.0.0.1:7810"
+DEFAULT_TELEMETRY_ENDPOINT = "tcp://127.0.0.1:7811"
+DEFAULT_EVENTS_ENDPOINT = "tcp://127.0.0.1:7812"
+
+MAX_REQUEST_BYTES = 4 * 1024 * 1024
+"""A request larger than this is answered with `too_large` (and not parsed)."""
+
+HARD_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+"""ZMQ_MAXMSGSIZE on the command socket: a peer sending more is disconnected by ZeroMQ itself."""
+
+DATA_SEND_HWM = 1000
+"""Per-subscriber queue (messages) on the data socket: about 10 s of telemetry, then drops."""
+
+TELEMETRY_BATCH_S = 0.02
+"""The publisher sends the cycles it collected every this often (currents: all of them)."""
+
+EVENTS_SEND_HWM = 100_000
+"""Per-subscriber queue on the events socket: hours of state changes; it bounds memory, not loss."""
+
+STATE_HEARTBEAT_S = 1.0
+"""The current state is re-published this often, so a subscriber that joins late learns it."""
+
+
+class Command(str, Enum):
+    PING = "ping"
+    STATUS = "status"
+    LOAD = "load"
+    EXECUTE = "execute"
+    PAUSE = "pause"
+    RESUME = "resume"
+    ABORT = "abort"
+    ESTOP = "estop"
+    RESET = "reset"
+    SET_FIELD = "set_field"
+    RUNS = "runs"
+    RUN = "run"
+
+
+class ErrorCode(str, Enum):
+    """Why a request was refused. Stable strings: scripts may branch on them."""
+
+    BAD_JSON = "bad_json"  # not UTF-8 JSON
+    BAD_REQUEST = "bad_request"  # JSON, but not {"id", "cmd", "args"} with the right types
+    TOO_LARGE = "too_large"  # over MAX_REQUEST_BYTES
+    UNKNOWN_COMMAND = "unknown_command"
+    BAD_ARGS = "bad_args"  # the command's arguments have the wrong names or types
+    PLAN_INVALID = "plan_invalid"  # the plan does not validate (schema, workspace, whole turns)
+    LIMIT = "limit"  # a current, voltage or field limit would be exceeded; nothing moved
+    UNKNOWN_PLAN = "unknown_plan"
+    UNKNOWN_RUN = "unknown_run"
+    WRONG_STATE = "wrong_state"  # the command makes no sense in the daemon's current state
+    BUSY = "busy"  # a run is still stopping; retry shortly
+    DEVICE = "device"  # a device failed while carrying the command out
+    INTERNAL = "internal"  # a bug: logged with its traceback on the daemon's side
+
+
+class DaemonState(str, Enum):
+    IDLE = "idle"
+    RUNNING = "running"
+    PAUSED = "paused"
+    SUSPENDED = "suspended"  # waiting on a condition (lost tracking); resumes by itself
+    FAULTED = "faulted"  # a device fault stopped the run; `reset` to leave
+    ESTOPPED = "estopped"  # emergency stop; `reset` to leave
+
+
+class Topic(str, Enum):
+    STATE = "state"
+    AGENTS = "agents"
+    CURRENTS = "currents"
+    FIELD = "field"
+    STREAM = "stream"
+    FAULT = "fault"
+    LOG = "log"
+
+
+EVENT_TOPICS = frozenset({Topic.STATE, Topic.FAULT, Topic.LOG})
+DATA_TOPICS = frozenset(set(Topic) - EVENT_TOPICS)
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# -- requests and replies ------------------------------------------------------------------------
+
+RequestId = str | int | None
+
+
+class Request(_Message):
+    id: RequestId = None
+    cmd: str
+    args: dict[str, Any] = {}
+
+
+class NoArgs(_Message):
+    pass
+
+
+class LoadArgs(_Message):
+    plan: dict[str, Any]
+
+
+class ExecuteArgs(_Message):
+    plan_id: str
+
+
+class PauseArgs(_Message):
+    immediate: bool = Field(
+        default=False,
+        description="false: pause at the end of the current move; true: ramp the field down now",
+    )
+
+
+class SetFieldArgs(_Message):
+    field_mT: Annotated[
+        list[float], Field(min_length=3, max_length=3, description="B at the workspace centre")
+    ]
+    ramp_s: Annotated[float, Field(ge=0, le=10)] = 0.1
+
+
+class RunsArgs(_Message):
+    limit: Annotated[int, Field(ge=1, le=1000)] = 20
+
+
+class RunArgs(_Message):
+    run: str = Field(description="a run id from `runs` (the record directory's name)")
+
+
+COMMAND_ARGS: dict[Command, type[_Message]] = {
+    Command.PING: NoArgs,
+    Command.STATUS: NoArgs,
+    Command.LOAD: LoadArgs,
+    Command.EXECUTE: ExecuteArgs,
+    Command.PAUSE: PauseArgs,
+    Command.RESUME: NoArgs,
+    Command.ABORT: NoArgs,
+    Command.ESTOP: NoArgs,
+    Command.RESET: NoArgs,
+    Command.SET_FIELD: SetFieldArgs,
+    Command.RUNS: RunsArgs,
+    Command.RUN: RunArgs,
+}
+
+
+class ErrorBody(_Message):
+    code: ErrorCode
+    message: str
+
+
+class Reply(_Message):
+    id: RequestId = None
+    ok: bool
+    result: Any = None
+    error: ErrorBody | None = None
+
+
+def ok_reply(request_id: RequestId, result: Any) -> Reply:
+    return Reply(id=request_id, ok=True, result=result)
+
+
+def error_reply(request_id: RequestId, code: ErrorCode, message: str) -> Reply:
+    return Reply(id=request_id, ok=False, error=ErrorBody(code=code, message=message))
+
+
+# -- telemetry -----------------------------------------------------------------------------------
+
+
+class _Telemetry(_Message):
+    seq: int = Field(description="per-topic sequence number from 0; a gap means lost messages")
+    t: float = Field(description="seconds since the daemon started (monotonic clock)")
+
+
+class StateMsg(_Telemetry):
+    topic: Literal["state"] = "state"
+    state: DaemonState
+    run: str | None = None
+    plan_id: str | None = None
+    device: str | None = None
+    reason: str | None = None
+
+
+class CurrentsMsg(_Telemetry):
+    """Every stream cycle since the previous message (k cycles, at the stream rate)."""
+
+    topic: Literal["currents"] = "currents"
+    coils: list[str]
+    times: list[float] = Field(description="(k,) s since the daemon started, per cycle")
+    samples: list[int] = Field(description="(k,) program sample index per cycle")
+    moves: list[int] = Field(description="(k,) plan move per cycle, -1 during ramps and holds")
+    commanded_A: list[list[float]] = Field(description="(k, n_coils) setpoints")
+    measured_A: list[list[float]] = Field(description="(k, n_coils) measured currents")
+
+
+class FieldMsg(_Telemetry):
+    topic: Literal["field"] = "field"
+    commanded_mT: list[float] = Field(description="(3,) B at the workspace centre from setpoints")
+    measured_mT: list[float] = Field(description="(3,) B from the measured currents")
+
+
+class AgentsMsg(_Telemetry):
+    topic: Literal["agents"] = "agents"
+    move: int
+    tracked_mm: list[list[float]] | None = Field(description="(n, 2), None without a tracker")
+    expected_mm: list[list[float]] | None = Field(description="(n, 2) after the current move")
+    source: str
+
+
+class StreamMsg(_Telemetry):
+    topic: Literal["stream"] = "stream"
+    rate_hz: float
+    cycles: int
+    late_cycles: int
+    period_error_p50_us: float
+    period_error_p99_us: float
+    period_error_max_us: float
+    dropped_samples: int = Field(description="telemetry samples the publisher had to drop")
+
+
+class FaultMsg(_Telemetry):
+    topic: Literal["fault"] = "fault"
+    device: str | None
+    reason: str
+    kind: str
+    run: str | None = None
+
+
+class LogMsg(_Telemetry):
+    topic: Literal["log"] = "log"
+    level: str
+    message: str
+
+
+TelemetryMessage = Annotated[
+    StateMsg | CurrentsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg,
+    Field(discriminator="topic"),
+]
+
+
+class _TelemetryEnvelope(_Message):
+    message: TelemetryMessage
+
+
+def parse_telemetry(payload: bytes) -> StateMsg | CurrentsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg:
+    """A telemetry message from its JSON frame (pydantic ValidationError if it is not one)."""
+    return _TelemetryEnvelope.model_validate_json(b'{"message":' + payload + b"}").message
+
+
+# -- daemon settings and endpoint rules ----------------------------------------------------------
+
+
+class DaemonSettings(_Message):
+    """The `[daemon]` table of a rig file (all optional; the CLI flags override it)."""
+
+    command: str = DEFAULT_COMMAND_ENDPOINT
+    telemetry: str = DEFAULT_TELEMETRY_ENDPOINT
+    events: str = DEFAULT_EVENTS_ENDPOINT
+    runs_dir: str = "runs"
+    server_key: str | None = Field(default=None, description="CURVE secret key file of the daemon")
+    allowed_keys: str | None = Field(default=None, description="folder of operators' public keys")
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """True for endpoints no other machine can reach: ipc://, inproc://, tcp on 127/8 or ::1."""
+    parts = urlsplit(endpoint)
+    if parts.scheme in ("ipc", "inproc"):
+        return True
+    if parts.scheme != "tcp":
+        return False
+    host = (parts.hostname or "").strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # an interface name or "*": reachable from elsewhere

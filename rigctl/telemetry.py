@@ -1,0 +1,260 @@
+"""Telemetry: the daemon's two PUB sockets and the thread that feeds them.
+
+The stream thread must never wait on a subscriber, nor on the publisher. `offer_cycle` appends the
+cycle's numbers to a bounded in-memory queue (a deque append: no lock, no wake-up, about a
+microsecond; when the queue is full the oldest sample goes and is counted) and returns. The
+publisher thread wakes every `TELEMETRY_BATCH_S`, takes every queued cycle, and sends them as one
+`currents` message (every cycle, at the stream rate, unless `currents_hz` decimates), the latest
+`field` (from the actuation matrix) and, at `stream_hz`, period-error statistics. Batching keeps
+the publisher's Python work (and so its hold on the GIL, which the stream thread needs back after
+every device read) to a few short bursts a second. Sends use `zmq.NOBLOCK`; a PUB socket never
+blocks anyway, it drops for a subscriber whose queue (`DATA_SEND_HWM` messages) is full.
+
+`state`, `fault` and `log` are never dropped on our side: they go into their own queue, which
+wakes the publisher at once and is emptied before any sample, and out through a second PUB
+socket (the events socket) whose per-subscriber queues hold `EVENTS_SEND_HWM` messages, so a
+subscriber drowning in currents still has room for every state change. That queue is bounded too
+(memory never grows without bound); reaching it would mean a subscriber that has read nothing
+for hours, and the sequence numbers let it see the gap and ask `status` for the present.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import zmq
+from pydantic import BaseModel
+
+from rigctl.messages import (
+    DATA_SEND_HWM,
+    EVENTS_SEND_HWM,
+    TELEMETRY_BATCH_S,
+    AgentsMsg,
+    CurrentsMsg,
+    FaultMsg,
+    FieldMsg,
+    LogMsg,
+    StateMsg,
+    StreamMsg,
+    Topic,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CycleSample:
+    """One stream cycle as the stream thread saw it. Currents in A, shape (n_coils,)."""
+
+    t: float
+    sample: int
+    move: int
+    commanded_A: np.ndarray
+    measured_A: np.ndarray
+    period_error_s: float | None = None
+
+
+@dataclass
+class PublisherStats:
+    dropped: int = 0  # samples dropped from the in-memory queue (publisher too slow)
+    sent: dict[str, int] | None = None
+
+
+class TelemetryPublisher:
+    """Owns the data and events PUB sockets (bound by `start`) and the publisher thread.
+
+    `offer_cycle` is for the stream thread; `publish_event` and `publish_agents` for any thread.
+    Rates in Hz; a rate of 0 means every sample.
+    """
+
+    def __init__(
+        self,
+        context: zmq.Context,
+        data_endpoint: str,
+        events_endpoint: str,
+        *,
+        coil_names: list[str],
+        actuation_matrix_T_per_A: np.ndarray | None = None,
+        currents_hz: float = 0.0,
+        field_hz: float = 100.0,
+        stream_hz: float = 10.0,
+        queue_samples: int = 8192,
+        batch_s: float = TELEMETRY_BATCH_S,
+        secure: Callable[[zmq.Socket], None] | None = None,
+        clock_origin: float | None = None,
+    ) -> None:
+        self.context = context
+        self.coil_names = list(coil_names)
+        self.actuation = actuation_matrix_T_per_A
+        self.currents_period = 1.0 / currents_hz if currents_hz > 0 else 0.0
+        self.field_period = 1.0 / field_hz if field_hz > 0 else 0.0
+        self.stream_period = 1.0 / stream_hz if stream_hz > 0 else 0.0
+        self.t0 = time.monotonic() if clock_origin is None else clock_origin
+        self._data = self._bind(data_endpoint, DATA_SEND_HWM, secure)
+        self._events = self._bind(events_endpoint, EVENTS_SEND_HWM, secure)
+        self.data_endpoint = self._data.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.events_endpoint = self._events.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.batch_s = batch_s
+        self._cond = threading.Condition()
+        self._samples: deque[CycleSample] = deque(maxlen=queue_samples)
+        self._offered = 0  # written by the stream thread only
+        self._consumed = 0
+        self._pending_reset: float | None = None
+        self._priority: deque[tuple[str, BaseModel]] = deque(maxlen=EVENTS_SEND_HWM)
+        self._stopping = False
+        self._seq: dict[str, int] = {t.value: 0 for t in Topic}
+        self._seq_lock = threading.Lock()
+        self.stats = PublisherStats(sent={t.value: 0 for t in Topic})
+        self._last_sent = {"currents": -1e9, "field": -1e9, "stream": -1e9}
+        self._errors: deque[float] = deque(maxlen=1000)
+        self._late = 0
+        self._cycles = 0
+        self._rate_hz = 0.0
+        self._thread = threading.Thread(target=self._serve, name="telemetry", daemon=True)
+
+    def _bind(self, endpoint: str, hwm: int,
+              secure: Callable[[zmq.Socket], None] | None) -> zmq.Socket:
+        sock = self.context.socket(zmq.PUB)
+        sock.setsockopt(zmq.SNDHWM, hwm)
+        sock.setsockopt(zmq.LINGER, 0)
+        # a vanished subscriber is noticed by heartbeats and its queue freed
+        sock.setsockopt(zmq.HEARTBEAT_IVL, 2000)
+        sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, 6000)
+        if secure is not None:
+            secure(sock)
+        sock.bind(endpoint)
+        return sock
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stopping = True
+            self._cond.notify()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5)
+        self._data.close(linger=0)
+        self._events.close(linger=0)
+
+    def now(self) -> float:
+        return time.monotonic() - self.t0
+
+    # -- producers ------------------------------------------------------------------------------
+    def reset_stream(self, rate_hz: float) -> None:
+        """A new stream starts: period-error statistics begin again (at the next batch)."""
+        self._pending_reset = rate_hz
+
+    def offer_cycle(self, sample: CycleSample) -> None:
+        """From the stream thread: an append, nothing else (the oldest goes when full)."""
+        self._samples.append(sample)
+        self._offered += 1
+
+    def publish_event(self, topic: Topic, **fields: object) -> None:
+        """state, fault or log: queued ahead of every sample, sent on the events socket."""
+        with self._cond:
+            self._priority.append((topic.value, _event_model(topic, self._next_seq(topic), self.now(),
+                                                             fields)))
+            self._cond.notify()
+
+    def publish_agents(self, move: int, tracked: list | None, expected: list | None,
+                       source: str) -> None:
+        with self._cond:
+            msg = AgentsMsg(seq=self._next_seq(Topic.AGENTS), t=self.now(), move=move,
+                            tracked_mm=tracked, expected_mm=expected, source=source)
+            self._priority.append((Topic.AGENTS.value, msg))
+            self._cond.notify()
+
+    def _next_seq(self, topic: Topic) -> int:
+        with self._seq_lock:
+            seq = self._seq[topic.value]
+            self._seq[topic.value] = seq + 1
+            return seq
+
+    # -- the publisher thread -------------------------------------------------------------------
+    def _serve(self) -> None:
+        next_batch = time.monotonic() + self.batch_s
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._priority or self._stopping,
+                                    timeout=max(0.0, next_batch - time.monotonic()))
+                events = list(self._priority)
+                self._priority.clear()
+                stopping = self._stopping
+            for topic, msg in events:
+                self._send(topic, msg)
+            if time.monotonic() >= next_batch or stopping:
+                next_batch = time.monotonic() + self.batch_s
+                batch = []
+                while self._samples:
+                    batch.append(self._samples.popleft())
+                self._consumed += len(batch)
+                self.stats.dropped = self._offered - self._consumed - len(self._samples)
+                if batch:
+                    self._publish_batch(batch)
+            if stopping:
+                return
+
+    def _send(self, topic: str, msg: BaseModel) -> None:
+        sock = self._events if topic in ("state", "fault", "log") else self._data
+        try:
+            sock.send_multipart([topic.encode(), msg.model_dump_json().encode()], flags=zmq.NOBLOCK)
+            self.stats.sent[topic] += 1
+        except zmq.Again:  # PUB drops rather than blocks; kept for completeness
+            log.debug("telemetry %s dropped", topic)
+
+    def _publish_batch(self, batch: list[CycleSample]) -> None:
+        if self._pending_reset is not None:
+            self._rate_hz, self._pending_reset = self._pending_reset, None
+            self._errors.clear()
+            self._late = self._cycles = 0
+        errors = [s.period_error_s for s in batch if s.period_error_s is not None]
+        self._errors.extend(errors)
+        self._cycles += len(batch)
+        if self._rate_hz:
+            self._late += sum(e > 0.5 / self._rate_hz for e in errors)
+        kept = batch
+        if self.currents_period > 0:
+            kept = []
+            for s in batch:
+                if s.t - self._last_sent["currents"] >= self.currents_period:
+                    self._last_sent["currents"] = s.t
+                    kept.append(s)
+        if kept:
+            commanded = np.array([s.commanded_A for s in kept]).round(5)
+            measured = np.array([s.measured_A for s in kept]).round(5)
+            self._send("currents", CurrentsMsg.model_construct(
+                seq=self._next_seq(Topic.CURRENTS), t=kept[-1].t, topic="currents",
+                coils=self.coil_names, times=[round(s.t, 6) for s in kept],
+                samples=[s.sample for s in kept], moves=[s.move for s in kept],
+                commanded_A=commanded.tolist(), measured_A=measured.tolist()))
+        last = batch[-1]
+        if self.actuation is not None and last.t - self._last_sent["field"] >= self.field_period:
+            self._last_sent["field"] = last.t
+            self._send("field", FieldMsg(
+                seq=self._next_seq(Topic.FIELD), t=last.t,
+                commanded_mT=(self.actuation @ last.commanded_A * 1e3).round(6).tolist(),
+                measured_mT=(self.actuation @ last.measured_A * 1e3).round(6).tolist()))
+        if last.t - self._last_sent["stream"] >= self.stream_period:
+            self._last_sent["stream"] = last.t
+            recent = np.asarray(self._errors) * 1e6
+            p50, p99, worst = ((np.percentile(recent, 50), np.percentile(recent, 99), recent.max())
+                               if recent.size else (0.0, 0.0, 0.0))
+            self._send("stream", StreamMsg(
+                seq=self._next_seq(Topic.STREAM), t=last.t, rate_hz=self._rate_hz,
+                cycles=self._cycles, late_cycles=self._late,
+                period_error_p50_us=round(float(p50), 1), period_error_p99_us=round(float(p99), 1),
+                period_error_max_us=round(float(worst), 1), dropped_samples=self.stats.dropped))
+
+
+def _event_model(topic: Topic, seq: int, t: float, fields: dict) -> BaseModel:
+    models = {Topic.STATE: StateMsg, Topic.FAULT: FaultMsg, Topic.LOG: LogMsg}
+    if topic not in models:
+        raise ValueError(f"{topic.value} is not an event topic")
+    return models[topic](seq=seq, t=t, **fields)

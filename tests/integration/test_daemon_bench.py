@@ -1,0 +1,204 @@
+"""The daemon driving the emulated six-coil bench (in this process, supplies on real TCP sockets)
+through the Python client: a plan to its goal with telemetry, pause/resume, abort, e-stop with the
+supplies' currents measured at zero, a supply fault leaving the daemon serving in `faulted`, and a
+manual field checked against the closed-form field of a loop on its axis."""
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rigctl.client import CommandRefused, Rig
+from rigctl.config import StreamSettings
+from rigctl.daemon import Daemon
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.bench import SixCoilBench
+from rigctl.record import read_events, read_stream
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
+
+
+@pytest.fixture
+def bench():
+    with SixCoilBench() as b:
+        yield b
+
+
+@pytest.fixture
+def daemon(bench, tmp_path):
+    rig = bench.rig.model_copy(update={"stream": StreamSettings(rate_hz=200.0)})
+    d = Daemon(rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
+               events="tcp://127.0.0.1:0", runs_dir=tmp_path / "runs")
+    d.start_thread()
+    yield d
+    d.stop()
+
+
+@pytest.fixture
+def rig(daemon):
+    with Rig(daemon.endpoints.command, timeout_s=5.0) as client:
+        yield client
+
+
+def plan(name):
+    return json.loads((EXAMPLES / name).read_text())
+
+
+def wait_streaming(rig, timeout_s=10):
+    """Until the run's stream has started (the supplies are connected and energised)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        run = rig.status()["run"]
+        if run is not None and run["sample"] > 0:
+            return
+        assert time.monotonic() < deadline, "the run did not start streaming"
+        time.sleep(0.01)
+
+
+def wait_run_over(rig, timeout_s=60):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        status = rig.status()
+        if status["run"] is None:
+            return status
+        time.sleep(0.02)
+    raise AssertionError("the run did not end")
+
+
+def test_a_plan_through_the_client_reaches_its_goal_with_telemetry(rig, daemon):
+    source = plan("fig4-quick.json")
+    with rig.telemetry() as feed:
+        assert feed.receive(timeout_s=3) is not None  # subscribed: the state heartbeat arrives
+        plan_id = rig.load(source)
+        rig.execute(plan_id)
+        seen, states = {}, []
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            msg = feed.receive(timeout_s=0.5)
+            if msg is None:
+                continue
+            seen.setdefault(msg.topic, msg)
+            if msg.topic == "state":
+                states.append(msg.state.value)
+                if msg.state.value == "idle" and "running" in states:
+                    break
+    assert {"state", "currents", "field", "stream", "agents"} <= set(seen)
+    assert seen["currents"].coils == ["x+", "x-", "y+", "y-", "z+", "z-"]
+    assert seen["agents"].source == "emulator ground truth"
+    status = wait_run_over(rig)
+    assert status["state"] == "idle"
+    summary = rig.run(Path(status["last_run"]["run"]).name)["summary"]
+    assert summary["reached"] is True
+    # the emulated world ends where the plan expects, within its tolerance
+    finals = np.array([a["final"] for a in summary["agents"]])
+    np.testing.assert_allclose(finals, np.array(source["expected"][-1]) if source.get("expected")
+                               else np.array([a["goal"] for a in source["agents"]]), atol=1.0)
+    runs = rig.runs()
+    assert runs[0]["finished"] and runs[0]["reached"]
+    run_dir = Path(status["last_run"]["run"])
+    data = read_stream(run_dir)
+    assert data["source"] == "parquet"
+    assert len(data["t_s"]) == sum(1 for _ in open(run_dir / "stream.csv")) - 1
+    assert any(e["event"] == "agents" for e in read_events(run_dir))
+
+
+def test_pause_resume_and_abort_on_the_bench(rig, bench):
+    plan_id = rig.load(plan("fig4-two-magnets.json"))
+    rig.execute(plan_id)
+    rig.wait_state("running")
+    rig.pause(immediate=True)
+    rig.wait_state("paused", timeout_s=5)
+    deadline = time.monotonic() + 3  # an immediate pause ramps the field to zero
+    while any(abs(s.model.current_A) > 0.05 for s in bench.supplies):
+        assert time.monotonic() < deadline, "the field did not ramp down on an immediate pause"
+        time.sleep(0.01)
+    assert all(s.model.output_on for s in bench.supplies)  # paused, not stopped
+    rig.resume()
+    rig.wait_state("running", timeout_s=5)
+    rig.abort()
+    status = wait_run_over(rig)
+    assert status["state"] == "idle"
+    assert all(not s.model.output_on for s in bench.supplies)
+    assert status["last_run"]["faults"][0]["kind"] == "Abort"
+
+
+def test_estop_zeroes_the_supplies_within_a_bound(rig, bench):
+    plan_id = rig.load(plan("fig4-two-magnets.json"))
+    rig.execute(plan_id)
+    rig.wait_state("running")
+    deadline = time.monotonic() + 10
+    while max(abs(s.model.current_A) for s in bench.supplies) < 1.0:  # wait for real current
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    peak = max(abs(s.model.current_A) for s in bench.supplies)
+    sent = time.monotonic()
+    assert rig.estop()["state"] == "estopped"
+    while any(s.model.output_on or s.model.current_setpoint_A for s in bench.supplies):
+        time.sleep(0.0005)
+    switched_off = time.monotonic() - sent
+    while any(abs(s.model.current_A) > 0.05 for s in bench.supplies):
+        time.sleep(0.001)
+    below = time.monotonic() - sent
+    # every supply told zero and switched off within a 5 ms stream period (plus slack for a
+    # loaded machine); then the coil current decays through R alone: tau = L/R = 0.03 / 1.5 s,
+    # so from the peak to 0.05 A takes tau ln(peak / 0.05)
+    assert switched_off < 0.005 + 0.05, f"supplies switched off after {switched_off * 1e3:.1f} ms"
+    decay = 0.03 / 1.5 * np.log(peak / 0.05)
+    assert below < switched_off + decay + 0.05, f"{below * 1e3:.0f} ms, expected {decay * 1e3:.0f}"
+    status = wait_run_over(rig)
+    assert status["state"] == "estopped"
+    assert all(not s.model.output_on for s in bench.supplies)
+    with pytest.raises(CommandRefused) as refused:
+        rig.execute(plan_id)
+    assert refused.value.code == "wrong_state"
+    assert rig.reset()["state"] == "idle"
+
+
+def test_a_supply_fault_during_a_run_leaves_the_daemon_serving_in_faulted(rig, bench):
+    plan_id = rig.load(plan("fig4-two-magnets.json"))
+    with rig.telemetry(["fault", "state"]) as feed:
+        rig.execute(plan_id)
+        wait_streaming(rig)
+        with BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
+            backdoor.request("fault", device="y+", kind="drop_link")
+        status = rig.wait_state("faulted", timeout_s=10)
+        fault = None
+        deadline = time.monotonic() + 5
+        while fault is None and time.monotonic() < deadline:
+            msg = feed.receive(timeout_s=0.5)
+            if msg is not None and msg.topic == "fault":
+                fault = msg
+    assert status["device"] == "y+" and "y+" in status["reason"]
+    assert fault is not None and fault.device == "y+"
+    status = wait_run_over(rig)
+    assert status["state"] == "faulted"
+    health = {d["name"]: d["health"] for d in status["devices"]}
+    assert health["y+"] == "fault"
+    assert all(not s.model.output_on for s in bench.supplies if s.name != "y+")
+    run_dir = Path(status["last_run"]["run"])
+    assert any(e["event"] == "fault" and e["device"] == "y+" for e in read_events(run_dir))
+    assert rig.reset()["state"] == "idle"
+
+
+def test_manual_field_matches_the_closed_form_and_limits_are_enforced(rig, bench):
+    # on the axis of a loop: b = mu0 N I a^2 / (2 (a^2 + d^2)^1.5) per coil at the centre, with
+    # N = 400, a = 0.2 m, d = 0.35 m; the two x coils share 1 mT equally (minimum norm, symmetry)
+    b_per_amp = 4e-7 * np.pi * 400 * 0.2**2 / (2 * (0.2**2 + 0.35**2) ** 1.5)
+    expected_A = 1e-3 / (2 * b_per_amp)
+    reply = rig.set_field([1.0, 0.0, 0.0], ramp_s=0.05)
+    np.testing.assert_allclose(reply["currents_A"][:2], [expected_A, expected_A], rtol=1e-3)
+    np.testing.assert_allclose(reply["currents_A"][2:], 0.0, atol=1e-6)
+    deadline = time.monotonic() + 3  # settle: L/R = 20 ms
+    while abs(bench.supplies[0].model.current_A - expected_A) > 0.01 * expected_A:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert rig.status()["manual_field_mT"] == [1.0, 0.0, 0.0]
+    with pytest.raises(CommandRefused) as refused:
+        rig.set_field([0.0, 0.0, 10.0])  # 10 mT needs 32.6 A per z coil: over the 20 A limit
+    assert refused.value.code == "limit" and "z" in refused.value.reason
+    rig.set_field([0.0, 0.0, 0.0], ramp_s=0.05)
+    status = wait_run_over(rig)
+    assert status["manual_field_mT"] is None
+    assert all(not s.model.output_on for s in bench.supplies)
