@@ -1,0 +1,194 @@
+"""Benchmark of the global-input RRT (plans/rrt.py); prints ONE JSON object on stdout.
+
+Environment 1 of seed 000 in mm: 400 x 400 with 50 mm border walls and the L of rects
+[175, 150, 100, 25] and [150, 150, 25, 100]; robots of radius 5 mm from (60, 300), (60, 250) to
+(330, 300), (330, 200); robostep 5 mm, k = 16; slide contact (the paper's model).
+
+Figures:
+- growth: nodes per second of the paper's algorithm (no goal test: tolerance 0) while one tree
+  grows to 40,000, 200,000 and 400,000 nodes; `average` = N / time to grow N nodes (what the
+  paper's 26,000 / 11,000 nodes/s compare with), `segment` = the rate between two sizes.
+  Reported for the exact nearest node and for --nn-eps (default 0.1).
+- solve: over --seeds seeds, the share solved within 2 mm and the median seconds to solve, with
+  the tuned options (goal bias 0.05, formation bias 0.1, greedy descent, final approach), 5 s
+  budget each.
+- four_robots: seconds to grow a 340,000-node tree for four robots (seed 000 Sec. IV).
+- image_maps: time per clearance query and per model move (1 mm, robots in a free square) on two
+  800 x 800 px image maps with few and with many obstacle pixels, best of five (the grid
+  backend's cost must not depend on the obstacle pixels).
+Planning uses the exact geometry (the model is as fast there as on a 0.5 mm raster, and more
+precise); the raster's construction time is reported for reference.
+
+Usage: python bench/rrt.py [--quick] [--seeds N] [--sizes 40000,200000,400000] [--four N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import platform
+import statistics
+import time
+
+import numpy as np
+
+from rigctl.plans.model import GlobalInputModel
+from rigctl.plans.rrt import RrtOptions, plan_rrt
+from rigctl.plans.workspace import ShapeWorkspace, Workspace
+
+RADIUS_MM = 5.0
+ROBOSTEP_MM = 5.0
+START = np.array([[60.0, 300.0], [60.0, 250.0]])
+GOAL = np.array([[330.0, 300.0], [330.0, 200.0]])
+FOUR_START = np.array([[60.0, 300.0], [60.0, 250.0], [60.0, 200.0], [60.0, 100.0]])
+FOUR_GOAL = np.array([[330.0, 300.0], [330.0, 200.0], [300.0, 100.0], [200.0, 300.0]])
+
+
+def environment_1() -> ShapeWorkspace:
+    walls = [(0, 0, 400, 50), (0, 350, 400, 50), (0, 0, 50, 400), (350, 0, 50, 400)]
+    ell = [(175, 150, 100, 25), (150, 150, 25, 100)]
+    return ShapeWorkspace(("rect", (0, 0, 400, 400)), [("rect", r) for r in walls + ell])
+
+
+def growth(model: GlobalInputModel, sizes: list[int], nn_eps: float, seed: int) -> dict:
+    """Grow one tree through the sizes (no goal test) and time each stretch."""
+    rng = np.random.default_rng(seed)
+    tree = None
+    elapsed = 0.0
+    previous = 1
+    rates = {}
+    for size in sizes:
+        options = RrtOptions(robostep_mm=ROBOSTEP_MM, k=16, max_nodes=size, tolerance_mm=0.0,
+                             stop_when_solved=False, nn_eps=nn_eps)
+        result = plan_rrt(model, START, GOAL, options=options, rng=rng, tree=tree)
+        tree = result.tree
+        elapsed += result.seconds
+        rates[str(size)] = {
+            "seconds": round(elapsed, 3),
+            "average_nodes_per_s": round(size / elapsed),
+            "segment_nodes_per_s": round((size - previous) / result.seconds),
+        }
+        previous = size
+    first, last = str(sizes[0]), str(sizes[-1])
+    rates["fall_first_to_last"] = round(
+        rates[first]["average_nodes_per_s"] / rates[last]["average_nodes_per_s"], 2
+    )
+    return rates
+
+
+def solve_rate(model: GlobalInputModel, seeds: int, budget_s: float) -> dict:
+    options = RrtOptions(robostep_mm=ROBOSTEP_MM, k=16, max_nodes=2_000_000, tolerance_mm=2.0,
+                         goal_bias=0.05, formation_bias=0.1, greedy=True, final_approach=True)
+    times, solved, runs = [], 0, []
+    for seed in range(seeds):
+        result = plan_rrt(model, START, GOAL, options=options, rng=np.random.default_rng(seed),
+                          time_budget_s=budget_s)
+        runs.append({"seed": seed, "solved": result.solved, "seconds": round(result.seconds, 3),
+                     "nodes": result.nodes, "distance": round(result.distance, 3),
+                     "moves": len(result.moves)})
+        if result.solved:
+            solved += 1
+            times.append(result.seconds)
+    return {
+        "tolerance_mm": 2.0,
+        "budget_s": budget_s,
+        "solved": solved,
+        "seeds": seeds,
+        "share_solved": solved / seeds,
+        "median_seconds_when_solved": round(statistics.median(times), 3) if times else None,
+        "max_seconds_when_solved": round(max(times), 3) if times else None,
+        "runs": runs,
+    }
+
+
+def four_robots(workspace: Workspace, nodes: int, nn_eps: float) -> dict:
+    model = GlobalInputModel(workspace, [RADIUS_MM] * 4)
+    options = RrtOptions(robostep_mm=ROBOSTEP_MM, k=16, max_nodes=nodes, tolerance_mm=0.0,
+                         stop_when_solved=False, nn_eps=nn_eps)
+    result = plan_rrt(model, FOUR_START, FOUR_GOAL, options=options, rng=np.random.default_rng(0))
+    return {"nodes": result.nodes, "nn_eps": nn_eps, "seconds": round(result.seconds, 2),
+            "nodes_per_s": round(result.nodes / result.seconds)}
+
+
+def image_maps(queries: int) -> dict:
+    """Clearance queries and model moves on a map with few and one with many obstacle pixels."""
+    rng = np.random.default_rng(0)
+    size = 800
+    few = np.ones((size, size), dtype=bool)
+    few[:8], few[-8:], few[:, :8], few[:, -8:] = False, False, False, False
+    many = few.copy()
+    # a dense field of 2-px specks away from a central free square where the robots are put
+    specks = rng.random((size // 4, size // 4)) < 0.5
+    many &= ~np.kron(specks, np.ones((4, 4), dtype=bool))
+    many[300:500, 300:500] = True
+    result = {}
+    for name, mask in [("few", few), ("many", many)]:
+        workspace = Workspace.from_mask(mask, mm_per_px=0.5)
+        points = rng.uniform(150.0, 250.0, size=(queries, 2))  # the free square, in mm
+        workspace.clearance(points[:1000])
+        query_s = math.inf
+        for _ in range(5):  # best of five: the machine is shared
+            started = time.perf_counter()
+            workspace.clearance(points)
+            query_s = min(query_s, time.perf_counter() - started)
+        model = GlobalInputModel(workspace, [2.0, 2.0])
+        configs = rng.uniform(160.0, 240.0, size=(8192, 2, 2))
+        configs[:, 1] = configs[:, 0] + [6.0, 0.0]
+        moves = rng.normal(size=(8192, 2))
+        moves *= 1.0 / np.linalg.norm(moves, axis=1, keepdims=True)
+        apply_s = math.inf
+        for _ in range(5):
+            started = time.perf_counter()
+            model.apply(configs, moves)
+            apply_s = min(apply_s, time.perf_counter() - started)
+        result[name] = {
+            "obstacle_pixels": int((~mask).sum()),
+            "clearance_ns_per_point": round(query_s / queries * 1e9, 1),
+            "apply_us_per_config": round(apply_s / len(configs) * 1e6, 2),
+        }
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes: a smoke run in ~20 s")
+    parser.add_argument("--seeds", type=int, help="seeds for the solve rate (default 20)")
+    parser.add_argument("--sizes", help="comma-separated tree sizes (default 40000,200000,400000)")
+    parser.add_argument("--four", type=int, help="four-robot tree size (default 340000)")
+    parser.add_argument("--nn-eps", type=float, default=0.1, help="approximate nearest node run")
+    parser.add_argument("--budget", type=float, default=5.0, help="seconds per solve attempt")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    sizes = [int(v) for v in (args.sizes or ("40000,80000" if args.quick else
+                                             "40000,200000,400000")).split(",")]
+    seeds = args.seeds if args.seeds is not None else (3 if args.quick else 20)
+    four = args.four if args.four is not None else (20_000 if args.quick else 340_000)
+
+    started = time.perf_counter()
+    exact = environment_1()
+    raster_started = time.perf_counter()
+    raster = exact.rasterize(0.5)
+    raster_s = time.perf_counter() - raster_started
+    del raster
+    model = GlobalInputModel(exact, [RADIUS_MM, RADIUS_MM])
+    report = {
+        "benchmark": "rrt",
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "environment": "seed 000 environment 1, radius 5 mm, robostep 5 mm, k 16, slide",
+        "raster_0_5mm_build_s": round(raster_s, 3),
+        "growth_exact_nn": growth(model, sizes, 0.0, seed=1),
+        f"growth_nn_eps_{args.nn_eps:g}": growth(model, sizes, args.nn_eps, seed=1),
+        "paper_cpp_ompl_nodes_per_s": {"40000": 26000, "200000": 11000},
+        "solve": solve_rate(model, seeds, args.budget),
+        "four_robots": four_robots(exact, four, args.nn_eps),
+        "image_maps": image_maps(1_000_000 if not args.quick else 200_000),
+    }
+    report["total_seconds"] = round(time.perf_counter() - started, 1)
+    print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,437 @@
+"""`rigctl plan ...`: the planners on the command line.
+
+`rigctl plan rrt` grows the global-input RRT (seed 000) from the robots' starts toward their goals
+and writes a `global-moves` plan whose `expected` states come from the exact workspace model;
+`rigctl plan coverage` measures how much of the configuration-space grid a saved tree covers.
+
+With --raster MM the RRT plans on a raster of the workspace (a clearance query then costs the same
+whatever the shapes are) and replays the moves on the exact geometry afterwards; if the replay ends
+outside the tolerance, a short final approach on the exact geometry closes the gap. By default it
+plans on the exact geometry, which the model currently handles as fast and more precisely.
+
+Exit status: 0 solved within tolerance, 1 not solved (the plan with the best path found is still
+written, and says so in its name), 2 bad input (the message names the argument).
+`register(subparsers)` adds the `plan` command to the top-level parser; `main()` runs it alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from rigctl.config import MagnetSettings, load_rig
+from rigctl.errors import ConfigError, PlanError
+
+log = logging.getLogger(__name__)
+
+EXIT_SOLVED, EXIT_NOT_SOLVED, EXIT_BAD_INPUT = 0, 1, 2
+
+DEFAULT_ROBOSTEP_MM = 5.0
+DEFAULT_RADIUS_MM = 5.0
+DEFAULT_RASTER_MM = 0.0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add `plan rrt` and `plan coverage` to the top-level subparsers; each sets func(args)->int."""
+    plan = subparsers.add_parser(
+        "plan", help="write plans with a planner (rrt) or measure a tree (coverage)",
+        description="Planners that write plans, and tools to inspect what they built.",
+    )
+    planners = plan.add_subparsers(dest="planner", required=True, metavar="PLANNER")
+
+    p = planners.add_parser(
+        "rrt", help="global-input RRT (seed 000): one move for all robots, walls break symmetry",
+        description="Grow a global-input RRT from the starts toward the goals and write a "
+        "global-moves plan. Defaults follow the paper (uniform samples, nearest node, k directions "
+        "of length robostep); --goal-bias, --formation-bias, --greedy and --final-approach (or "
+        "--tuned for all four) make it solve much faster. Exit 0 solved, 1 not solved (plan "
+        "still written), 2 bad input.",
+    )
+    p.add_argument("--workspace", required=True, metavar="WS.json",
+                   help="workspace document (shapes or an image), or a plan whose workspace to use")
+    p.add_argument("--start", action="append", required=True, metavar="X,Y",
+                   help="a robot's start in mm; once per robot")
+    p.add_argument("--goal", action="append", required=True, metavar="X,Y",
+                   help="a robot's goal in mm; once per robot, same order as --start")
+    p.add_argument("--radius", action="append", type=float, metavar="R",
+                   help=f"robot radius in mm: once for all robots or once per robot "
+                   f"(default {DEFAULT_RADIUS_MM:g})")
+    p.add_argument("--robostep", type=float, metavar="S",
+                   help=f"length of each tree move in mm (default {DEFAULT_ROBOSTEP_MM:g}; "
+                   "one magnet turn on a six-coil rig)")
+    p.add_argument("--k", type=int, metavar="K", help="number of candidate directions (default 16)")
+    p.add_argument("--axis-only", action="store_true", default=None,
+                   help="only move along +-x and +-y (the paper's hardware run)")
+    p.add_argument("--max-nodes", type=int, default=40_000, metavar="N",
+                   help="stop when the tree has this many nodes (default 40000)")
+    p.add_argument("--time", type=float, metavar="T", help="stop after T seconds")
+    p.add_argument("--tolerance", type=float, default=1.0, metavar="E",
+                   help="solved when the distance to the goal in R^2n is at most E mm (default 1)")
+    p.add_argument("--goal-bias", type=float, default=None, metavar="P",
+                   help="probability that a sample is the goal (default 0)")
+    p.add_argument("--formation-bias", type=float, default=None, metavar="P",
+                   help="probability that a sample is the goal formation moved to a random free "
+                   "place (default 0)")
+    p.add_argument("--greedy", action="store_true",
+                   help="from every new best node, step toward the goal while that helps")
+    p.add_argument("--final-approach", action="store_true",
+                   help="in that descent also try shorter moves and the best-fitting translation")
+    p.add_argument("--tuned", action="store_true",
+                   help="shorthand for --goal-bias 0.05 --formation-bias 0.1 --greedy "
+                   "--final-approach")
+    p.add_argument("--nn-eps", type=float, default=0.0, metavar="EPS",
+                   help="accept a node up to (1 + EPS) times farther than the nearest (default 0: "
+                   "exact; 0.1 is several times faster on large trees)")
+    p.add_argument("--min-separation", type=float, default=0.0, metavar="D",
+                   help="keep robot centres at least r1 + r2 + D mm apart")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
+    p.add_argument("--rig", choices=["six-coil", "coil-board"], default="six-coil",
+                   help="rig kind: six-coil (robots slide along walls, moves are whole magnet "
+                   "turns) or coil-board (robots stick to walls)")
+    p.add_argument("--rig-file", metavar="RIG.toml",
+                   help="rig file whose magnets.radius_mm sets the turn length (default 10 mm)")
+    p.add_argument("--raster", type=float, default=DEFAULT_RASTER_MM, metavar="MM",
+                   help="plan on a raster of this pitch in mm (default 0: the exact geometry); the "
+                   "written plan is always replayed on the exact geometry")
+    p.add_argument("--save-tree", metavar="FILE", help="write the tree (.npz) for later reuse")
+    p.add_argument("--tree", metavar="FILE",
+                   help="reuse a saved tree: answer the goal from it, grow it if not solved")
+    p.add_argument("-o", "--output", required=True, metavar="PLAN.json", help="plan file to write")
+    p.add_argument("--json", action="store_true", help="end the output with one JSON line")
+    p.set_defaults(func=run_rrt)
+
+    p = planners.add_parser(
+        "coverage", help="fraction of configuration-space grid cells a saved tree reaches",
+        description="Cut the configuration space (the free-space bounding box, once per robot) "
+        "into hypercubes of edge G mm and report the fraction that hold a tree node (seed 000 "
+        "Sec. II-d).",
+    )
+    p.add_argument("--workspace", required=True, metavar="WS.json",
+                   help="the workspace the tree was grown in")
+    p.add_argument("--tree", required=True, metavar="FILE",
+                   help="tree saved by `plan rrt --save-tree`")
+    p.add_argument("--grid", required=True, type=float, metavar="G", help="hypercube edge in mm")
+    p.add_argument("--json", action="store_true", help="end the output with one JSON line")
+    p.set_defaults(func=run_coverage)
+
+
+# ---------------------------------------------------------------- workspace documents
+
+
+class _WorkspaceSource:
+    """A workspace document read from disk: its spec, folder (for image paths) and hash."""
+
+    def __init__(self, path: str) -> None:
+        from rigctl.plans.schema import parse_workspace
+
+        self.path = Path(path)
+        try:
+            data = json.loads(self.path.read_text())
+        except FileNotFoundError:
+            raise PlanError(f"--workspace: {path} does not exist") from None
+        except json.JSONDecodeError as err:
+            raise PlanError(
+                f"--workspace: {path}: invalid JSON at line {err.lineno} column {err.colno}: "
+                f"{err.msg}"
+            ) from None
+        if isinstance(data, dict) and "schema" in data and "workspace" in data:
+            data = data["workspace"]  # a whole plan: use its workspace
+        self.spec = parse_workspace(data, str(path))
+        self.base_dir = self.path.resolve().parent
+        self.document = self.spec.model_dump(mode="json", exclude_none=True)
+        self.image_path = None
+        if "image" in self.document:
+            self.image_path = (self.base_dir / self.document["image"]).resolve()
+        self.hash = self._hash()
+
+    def _hash(self) -> str:
+        content = dict(self.document)
+        if self.image_path is not None:
+            try:
+                content["image"] = hashlib.sha256(self.image_path.read_bytes()).hexdigest()
+            except OSError as err:
+                raise PlanError(f"--workspace: image {self.image_path}: {err.strerror}") from None
+        canonical = json.dumps(content, sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(canonical.encode()).hexdigest()
+
+    def workspace(self):
+        from rigctl.plans.workspace import Workspace
+
+        return Workspace.from_spec(self.spec, base_dir=self.base_dir)
+
+    def document_for(self, plan_path: Path) -> dict:
+        """The workspace document as a plan written at `plan_path` must spell it (image path
+        relative to the plan's folder)."""
+        document = dict(self.document)
+        if self.image_path is not None:
+            document["image"] = os.path.relpath(self.image_path, plan_path.resolve().parent)
+        return document
+
+
+# ---------------------------------------------------------------- plan rrt
+
+
+def _points(values: list[str], flag: str) -> np.ndarray:
+    points = []
+    for number, text in enumerate(values, start=1):
+        parts = text.replace(" ", "").split(",")
+        try:
+            x, y = (float(v) for v in parts)
+        except ValueError:
+            raise PlanError(f"{flag} #{number}: expected X,Y in mm, got {text!r}") from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise PlanError(f"{flag} #{number}: coordinates must be finite, got {text!r}")
+        points.append((x, y))
+    return np.array(points, dtype=float)
+
+
+def _radii(values: list[float] | None, n: int) -> np.ndarray:
+    values = values or [DEFAULT_RADIUS_MM]
+    if len(values) == 1:
+        values = values * n
+    if len(values) != n:
+        raise PlanError(f"--radius: give one radius or one per robot ({n}), got {len(values)}")
+    radii = np.array(values, dtype=float)
+    if np.any(~(radii > 0)):
+        raise PlanError(f"--radius: radii must be > 0 mm, got {values}")
+    return radii
+
+
+def _check_configuration(ws, points: np.ndarray, radii: np.ndarray, gap: float, flag: str) -> None:
+    """Every robot in free space, no two closer than r_i + r_j + gap (PlanError naming the flag)."""
+    clearance = ws.clearance(points)
+    for number, (point, room, radius) in enumerate(zip(points, clearance, radii), start=1):
+        if room < radius - 1e-9:
+            raise PlanError(
+                f"{flag} #{number} ({point[0]:g},{point[1]:g}): a robot of radius {radius:g} mm "
+                f"does not fit there (clearance {room:.3f} mm)"
+            )
+    for i in range(len(points)):
+        for j in range(i + 1, len(points)):
+            apart = float(np.hypot(*(points[i] - points[j])))
+            if apart < radii[i] + radii[j] + gap - 1e-9:
+                raise PlanError(
+                    f"{flag} #{i + 1} and #{j + 1} are {apart:.3f} mm apart, closer than "
+                    f"r{i + 1} + r{j + 1} + separation = {radii[i] + radii[j] + gap:g} mm"
+                )
+
+
+def _turn_mm(args: argparse.Namespace) -> float | None:
+    if args.rig != "six-coil":
+        return None
+    if args.rig_file:
+        try:
+            radius = load_rig(args.rig_file).magnets.radius_mm
+        except ConfigError as err:
+            raise PlanError(f"--rig-file: {err}") from None
+    else:
+        radius = MagnetSettings().radius_mm
+    return 2.0 * math.pi * radius
+
+
+def _options(args: argparse.Namespace, tree_meta: dict | None):
+    """RrtOptions from the arguments; move-set settings a reused tree fixes come from the tree."""
+    from rigctl.plans.rrt import RrtOptions
+
+    turn = _turn_mm(args)
+    stored = tree_meta or {}
+    robostep = args.robostep
+    if robostep is None:
+        robostep = stored.get("robostep_mm", turn if turn is not None else DEFAULT_ROBOSTEP_MM)
+    k = args.k if args.k is not None else stored.get("k", 16)
+    axis_only = stored.get("axis_only", False) if args.axis_only is None else bool(args.axis_only)
+    goal_bias = args.goal_bias if args.goal_bias is not None else (0.05 if args.tuned else 0.0)
+    formation_bias = args.formation_bias
+    if formation_bias is None:
+        formation_bias = 0.1 if args.tuned else 0.0
+    if not robostep > 0:
+        raise PlanError(f"--robostep: must be > 0 mm, got {robostep:g}")
+    if turn is not None:
+        turns = robostep / turn
+        if abs(turns - round(turns)) > 1e-6 or round(turns) < 1:
+            raise PlanError(
+                f"--robostep {robostep:g}: on a six-coil rig every move is a whole number of "
+                f"magnet turns ({turn:g} mm each); use a multiple of it or --rig coil-board"
+            )
+        robostep = round(turns) * turn
+    for flag, value, ok in [
+        ("--k", k, k >= 1),
+        ("--max-nodes", args.max_nodes, args.max_nodes >= 1),
+        ("--tolerance", args.tolerance, args.tolerance >= 0),
+        ("--goal-bias", goal_bias, 0.0 <= goal_bias <= 1.0),
+        ("--formation-bias", formation_bias, 0.0 <= formation_bias <= 1.0 - goal_bias),
+        ("--min-separation", args.min_separation, args.min_separation >= 0),
+        ("--nn-eps", args.nn_eps, args.nn_eps >= 0),
+        ("--raster", args.raster, args.raster >= 0),
+    ]:
+        if not ok:
+            raise PlanError(f"{flag}: value {value:g} is out of range")
+    if args.time is not None and not args.time > 0:
+        raise PlanError(f"--time: must be > 0 s, got {args.time:g}")
+    return RrtOptions(
+        robostep_mm=robostep,
+        k=k,
+        axis_only=axis_only,
+        turn_mm=turn,
+        max_nodes=args.max_nodes,
+        tolerance_mm=args.tolerance,
+        goal_bias=goal_bias,
+        formation_bias=formation_bias,
+        greedy=args.greedy or args.tuned,
+        final_approach=args.final_approach or args.tuned,
+        nn_eps=args.nn_eps,
+    )
+
+
+def run_rrt(args: argparse.Namespace) -> int:
+    """`rigctl plan rrt`: plan, write the plan, report. Returns the exit status."""
+    from rigctl.plans.model import GlobalInputModel
+    from rigctl.plans.rrt import RrtTree, check_tree_meta, plan_rrt, polish, tree_meta
+    from rigctl.plans.schema import contact_for_rig
+
+    source = _WorkspaceSource(args.workspace)
+    starts = _points(args.start, "--start")
+    goals = _points(args.goal, "--goal")
+    if len(starts) != len(goals):
+        raise PlanError(f"--goal: {len(goals)} goals for {len(starts)} starts; give one per robot")
+    radii = _radii(args.radius, len(starts))
+    output = Path(args.output)
+    if not output.resolve().parent.is_dir():
+        raise PlanError(f"-o: folder {output.resolve().parent} does not exist")
+
+    tree = None
+    if args.tree:
+        try:
+            tree = RrtTree.load(args.tree)
+        except PlanError as err:
+            raise PlanError(f"--tree: {err}") from None
+    options = _options(args, tree.meta if tree is not None else None)
+    contact = contact_for_rig(args.rig)
+
+    exact = source.workspace()
+    _check_configuration(exact, starts, radii, args.min_separation, "--start")
+    _check_configuration(exact, goals, radii, args.min_separation, "--goal")
+    raster = None if source.image_path is not None or args.raster == 0 else args.raster
+    started = time.perf_counter()
+    planning_ws = exact.rasterize(raster) if raster is not None else exact
+    planning = GlobalInputModel(planning_ws, radii, contact, min_separation_mm=args.min_separation)
+    meta = tree_meta(
+        workspace_hash=source.hash, radii=radii, contact=contact,
+        min_separation_mm=args.min_separation, raster_mm=raster, options=options,
+    )
+    if tree is not None:
+        check_tree_meta(tree, meta, source=f"--tree {args.tree}")
+        if not np.allclose(tree.root, starts, rtol=0, atol=1e-9):
+            raise PlanError(
+                f"--tree {args.tree}: grown from start {tree.root.tolist()}, "
+                f"not {starts.tolist()}; "
+                "a tree answers new goals from its own start only"
+            )
+
+    def progress(nodes: int, distance: float, seconds: float) -> None:
+        print(f"rrt: {nodes} nodes, best distance {distance:.2f} mm, {seconds:.1f} s",
+              file=sys.stderr, flush=True)
+
+    result = plan_rrt(
+        planning, starts, goals, options=options, rng=np.random.default_rng(args.seed),
+        time_budget_s=args.time, tree=tree, progress=None if args.json else progress,
+    )
+    result.tree.meta = meta
+    if args.save_tree:
+        result.tree.save(args.save_tree)
+    exact_model = GlobalInputModel(exact, radii, contact, min_separation_mm=args.min_separation)
+    moves, states, distance = polish(exact_model, starts, goals, result.moves, options)
+    seconds = time.perf_counter() - started
+    solved = distance <= options.tolerance_mm
+
+    name = (f"rrt seed {args.seed}: solved, {distance:.3f} mm from the goal" if solved else
+            f"rrt seed {args.seed}: NOT SOLVED, best path ends {distance:.3f} mm from the goal")
+    _write_plan(output, source, args.rig, name, starts, goals, radii, moves, states,
+                options.tolerance_mm, args.min_separation)
+    verdict = "solved" if solved else "NOT solved (best path written)"
+    print(f"rrt: {verdict}: {len(moves)} moves, {distance:.3f} mm from the goal, "
+          f"{result.nodes} nodes, {seconds:.2f} s -> {output}", file=sys.stderr)
+    if args.json:
+        print(json.dumps({"solved": solved, "nodes": result.nodes, "seconds": round(seconds, 4),
+                          "distance": distance, "moves": len(moves)}))
+    return EXIT_SOLVED if solved else EXIT_NOT_SOLVED
+
+
+def _write_plan(output: Path, source: _WorkspaceSource, rig: str, name: str, starts, goals, radii,
+                moves, states, tolerance: float, min_separation: float) -> None:
+    from rigctl.plans.schema import check_plan, dump_plan, parse_plan
+
+    data = {
+        "schema": "rigctl.plan/1",
+        "kind": "global-moves",
+        "rig": rig,
+        "name": name,
+        "workspace": source.document_for(output),
+        "agents": [
+            {"start": s.tolist(), "goal": g.tolist(), "radius": float(r)}
+            for s, g, r in zip(starts, goals, radii)
+        ],
+        "moves": np.asarray(moves).tolist(),
+        "expected": np.asarray(states).tolist(),
+        "tolerance_mm": max(float(tolerance), 1e-3),
+        "min_separation_mm": float(min_separation),
+    }
+    plan = parse_plan(data, str(output))
+    check_plan(plan)  # the replay through the plan's own model reproduces `expected`
+    output.write_text(dump_plan(plan))
+
+
+# ---------------------------------------------------------------- plan coverage
+
+
+def run_coverage(args: argparse.Namespace) -> int:
+    """`rigctl plan coverage`: coverage of a saved tree. Returns the exit status."""
+    from rigctl.plans.coverage import coverage, free_bounding_box
+    from rigctl.plans.rrt import RrtTree
+
+    source = _WorkspaceSource(args.workspace)
+    if not args.grid > 0:
+        raise PlanError(f"--grid: must be > 0 mm, got {args.grid:g}")
+    try:
+        tree = RrtTree.load(args.tree)
+    except PlanError as err:
+        raise PlanError(f"--tree: {err}") from None
+    if tree.meta.get("workspace_hash") != source.hash:
+        raise PlanError(f"--tree {args.tree} was grown in another workspace than {args.workspace}")
+    box = free_bounding_box(source.workspace(), resolution_mm=min(1.0, args.grid / 4.0))
+    result = coverage(tree.nodes, box, args.grid)
+    print(f"coverage: {result.occupied} of {result.total} hypercubes of {args.grid:g} mm "
+          f"({100.0 * result.fraction:.4g} %), {len(tree)} nodes, {tree.n_agents} robots, "
+          f"box {tuple(round(v, 3) for v in result.box)} per robot", file=sys.stderr)
+    if args.json:
+        print(json.dumps({"coverage": result.fraction, "occupied": result.occupied,
+                          "total": result.total, "nodes": len(tree), "grid_mm": args.grid,
+                          "box": list(result.box),
+                          "cells_per_robot": list(result.cells_per_robot)}))
+    return EXIT_SOLVED
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run `plan ...` on its own (`python -m rigctl.cli_plan plan rrt ...`)."""
+    parser = argparse.ArgumentParser(prog="rigctl")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except (PlanError, ConfigError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())
