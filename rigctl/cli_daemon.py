@@ -306,29 +306,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--runs", default="runs", help="run records folder (default ./runs)")
     p.add_argument("-o", "--output", help="PNG to write (default RUN/report.png)")
     p.set_defaults(func=_cmd_report)
-
-
-
-def main(argv: list[str] | None = None) -> int:
-    """These verbs alone (`python -m rigctl.cli_daemon ...`), with `rigctl`'s error handling;
-    `rigctl` itself adds them through `register`."""
-    from rigctl.errors import ConfigError, LimitError, RigError
-
-    parser = argparse.ArgumentParser(prog="rigctl")
-    parser.add_argument("-v", "--verbose", action="store_true")
-    register(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"))
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
-    try:
-        return args.func(args)
-    except (PlanError, ConfigError, LimitError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except RigError as err:
-        print(f"fault: {err}", file=sys.stderr)
-        return EXIT_FAULT
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -418,20 +418,3 @@ def run_coverage(args: argparse.Namespace) -> int:
                           "box": list(result.box),
                           "cells_per_robot": list(result.cells_per_robot)}))
     return EXIT_SOLVED
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Run `plan ...` on its own (`python -m rigctl.cli_plan plan rrt ...`)."""
-    parser = argparse.ArgumentParser(prog="rigctl")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        return args.func(args)
-    except (PlanError, ConfigError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-
-
-if __name__ == "__main__":
-    sys.exit(main())

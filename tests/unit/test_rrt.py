@@ -281,7 +281,7 @@ def test_time_budget_stops_early(model):
 import json  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from rigctl.cli_plan import main as plan_main  # noqa: E402
+from rigctl.cli import main as plan_main  # noqa: E402
 from rigctl.plans.schema import check_plan, load_plan  # noqa: E402
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
