@@ -8,6 +8,10 @@
 - `stream`: through the emulated MJPEG camera at 60 fps, read by the camera driver
   (VideoCapture): latency from a frame's stamped capture time to the tracker's result, p50 / p99
   (this part uses every core: the camera is another machine on a rig).
+- `command`: closed-loop runs of the example plan on the emulated bench (slip 0.85, spread, noise):
+  latency from the capture time of the frame a supervisor decision used to the first command
+  after it leaving the stream loop, p50 / p99, for decisions to go on and for re-plans (these
+  include the RRT's time). `bench/closed_loop.py` runs 20 seeds and reports the success share.
 
 Run: `.venv/bin/python bench/tracker.py [--seconds S]`.
 """
@@ -131,9 +135,29 @@ def stream_latency(seconds: float) -> dict:
     }
 
 
+def command_latency(runs: int) -> dict:
+    """Frame capture -> corrected command through the whole closed loop (see the docstring)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from closed_loop import ROOT, one_seed, percentiles_ms  # the closed-loop bench, same folder
+
+    mismatch = ["--slip", "0.85", "--speed-spread", "0.01", "--noise", "0.05", "--drift", "0.005"]
+    plan = ROOT / "plans" / "examples" / "fig4-quick.json"
+    results = [one_seed(plan, 200 + i, mismatch) for i in range(runs)]
+    return {
+        "runs": runs,
+        "continue_ms": percentiles_ms([t for r in results for t in r["latency_s"]["continue"]]),
+        "replan_ms": percentiles_ms([t for r in results for t in r["latency_s"]["replan"]]),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=0.5, help="timing per configuration")
+    parser.add_argument("--closed-loop-runs", type=int, default=2,
+                        help="closed-loop runs for the frame-to-command latency (0: skip)")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     every_cpu = os.sched_getaffinity(0)
@@ -144,6 +168,7 @@ def main() -> None:
     finally:
         os.sched_setaffinity(0, every_cpu)
     stream = stream_latency(max(2.0, 4 * args.seconds))
+    command = command_latency(args.closed_loop_runs) if args.closed_loop_runs else None
     print(json.dumps({
         "machine": {"cpu": platform.processor() or platform.machine(), "cpus": len(every_cpu),
                     "opencv": cv2.__version__},
@@ -152,6 +177,7 @@ def main() -> None:
         "tracker": tracker,
         "jpeg_decode_ms": decode,
         "stream": stream,
+        "command": command,
     }, indent=2))
 
 

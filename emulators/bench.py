@@ -19,7 +19,14 @@ Backdoor (JSON lines over TCP, one request per line, one reply per line):
   "restore"}`: inject a fault into one supply;
 - `{"cmd": "camera", "kind": "drop_frames" | "freeze" | "black_out" | "occlude" | "drop_link" |
   "restore", "n": frames, "robot": index}`: camera faults (also as `fault` with device "camera");
-- `{"cmd": "speed", "factor": f}`: simulated seconds per real second.
+- `{"cmd": "speed", "factor": f}`: simulated seconds per real second;
+- `{"cmd": "mismatch", "slip": 0.85, "speed_spread": 0.05, "drift_mm_per_s": 0.0, "noise_mm": 0.2,
+  "seed": 3, "field_at_robots": true}`: how the world departs from the model from the next `place`
+  on (keys left out keep their value); replies with the settings in force.
+
+Model mismatch (`Mismatch`, set at construction, by `rigctl emulate --slip ...`, or through the
+backdoor) is applied when the robots are placed; with `field_at_robots` each robot feels the coils'
+field at its own position on the floor (the workspace's centre is the coils' centre).
 Replies are `{"ok": true, ...}` or `{"ok": false, "error": "..."}`.
 """
 
@@ -39,7 +46,7 @@ from rigctl.emulators.camera.render import PAPER_RESOLUTION, CameraModel, Render
 from rigctl.emulators.kepco_bop.model import BopCoilModel
 from rigctl.emulators.kepco_bop.protocol import BopScpi
 from rigctl.emulators.server import Endpoint, EmulatorServer
-from rigctl.emulators.world.rolling import RollingMagnetWorld
+from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
 from rigctl.magnetics import loop_field
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.schema import parse_workspace
@@ -50,6 +57,7 @@ log = logging.getLogger(__name__)
 PHYSICS_STEP_S = 1e-3  # simulated time per sub-step: the field turns < 3 degrees per step at 8 turns/s
 TICK_S = 5e-3  # how often the server advances the simulation when no command arrives
 CAMERA_FIELD_MM = (0.0, 0.0, 400.0, 400.0)  # what the emulated camera's picture covers
+FIELD_REFRESH_MM = 1.0  # recompute the per-robot field maps when a robot moved this far
 
 
 @dataclass
@@ -63,7 +71,8 @@ class _Supply:
 class SixCoilBench:
     """Start with `start()`, read `rig` for the rig file that points at it, `stop()` when done."""
 
-    def __init__(self, template: RigConfig | None = None, *, host: str = "127.0.0.1") -> None:
+    def __init__(self, template: RigConfig | None = None, *, host: str = "127.0.0.1",
+                 mismatch: Mismatch | None = None) -> None:
         self.template = template or RigConfig(
             rig=RigInfo(kind="six-coil", name="emulated six-coil bench"),
             coils=default_six_coil_coils(),
@@ -79,6 +88,10 @@ class SixCoilBench:
         self._last_real = time.monotonic()
         self.backdoor: Endpoint | None = None
         self.rig: RigConfig | None = None
+        self.mismatch = mismatch or Mismatch()
+        # per-robot field per amp (n, 3, n_coils) T/A and where it was computed (n, 2) mm
+        self._robot_maps: tuple[np.ndarray, np.ndarray] | None = None
+        self._floor_centre_mm = np.array([200.0, 200.0])
 
     # -- life cycle ---------------------------------------------------------------------------
     def start(self) -> RigConfig:
@@ -115,7 +128,7 @@ class SixCoilBench:
                                 resolution=PAPER_RESOLUTION, calibration=camera_model.calibration())
         self.rig = self.template.model_copy(
             update={"coils": coils, "camera": camera,
-                    "emulation": Emulation(backdoor=self.backdoor.url)}
+                    "emulation": self._emulation_settings()}
         )
         log.info("six-coil bench up: backdoor %s", self.backdoor.url)
         return self.rig
@@ -144,7 +157,11 @@ class SixCoilBench:
                     supply.model.step(dt)
                 self._stepped += dt
                 if self.world is not None:
-                    self.world.feel(self.field_T())
+                    if self.world.mismatch.field_at_robots:
+                        self.world.feel(self._fields_at_robots())
+                    else:
+                        self.world.feel(self.field_T())
+                    self.world.drift(dt)
 
     def field_T(self) -> np.ndarray:
         """The field at the workspace centre from the supplies' actual currents, (3,) in tesla."""
@@ -152,6 +169,27 @@ class SixCoilBench:
         for supply in self.supplies:
             total += supply.field_per_amp_T * supply.model.current_A
         return total
+
+    def _fields_at_robots(self) -> np.ndarray:
+        """The field each robot feels at its own floor position, (n, 3) T (caller holds the lock)."""
+        positions = self.world.settled_positions_mm  # type: ignore[union-attr]
+        if self._robot_maps is None or len(self._robot_maps[1]) != len(positions) or np.max(
+                np.hypot(*(positions - self._robot_maps[1]).T)) > FIELD_REFRESH_MM:
+            points = np.zeros((len(positions), 3))
+            points[:, :2] = (positions - self._floor_centre_mm) * 1e-3
+            maps = np.stack([
+                loop_field(points, np.asarray(c.centre_mm) * 1e-3, np.asarray(c.axis),
+                           c.loop_radius_mm * 1e-3, c.turns, 1.0)
+                for c in self.template.coils], axis=-1)
+            self._robot_maps = (maps, positions.copy())
+        currents = np.array([s.model.current_A for s in self.supplies])
+        return self._robot_maps[0] @ currents
+
+    def _emulation_settings(self) -> Emulation:
+        m = self.mismatch
+        return Emulation(backdoor=self.backdoor.url, slip=m.slip,  # type: ignore[union-attr]
+                         speed_spread=m.speed_spread, drift_mm_per_s=m.drift_mm_per_s,
+                         noise_mm=m.noise_mm, seed=m.seed, field_at_robots=m.field_at_robots)
 
     def _scene(self) -> Scene | None:
         """What the camera sees now (None: nothing placed yet, a black frame)."""
@@ -187,6 +225,8 @@ class SixCoilBench:
                     "field_T": self.field_T().tolist(),
                     "currents_A": {s.name: s.model.current_A for s in self.supplies},
                     "sim_time_s": self._stepped,
+                    "distance_scale": None if self.world is None
+                    else self.world.distance_scale.tolist(),
                 }
         if cmd == "place":
             spec = parse_workspace(request["workspace"], "place: workspace")
@@ -200,13 +240,19 @@ class SixCoilBench:
             if not bool(np.all(model.is_free(positions))):
                 raise ValueError("the agents do not fit there (overlap or outside free space)")
             magnets = self.template.magnets
+            mismatch = self.mismatch
+            if "slip" in request:
+                mismatch = Mismatch(**{**mismatch.__dict__, "slip": float(request["slip"])})
+            bounds = np.array(model.workspace.bounds, dtype=float)
             with self._lock:
+                self._floor_centre_mm = 0.5 * (bounds[:2] + bounds[2:])
+                self._robot_maps = None
                 self.world = RollingMagnetWorld(
                     model,
                     positions,
                     rolling_radius_mm=magnets.radius_mm,
                     min_field_T=magnets.min_field_mT * 1e-3,
-                    slip=float(request.get("slip", 1.0)),
+                    mismatch=mismatch,
                 )
             return {"agents": positions.tolist()}
         if cmd == "fault" and request.get("device") == "camera":
@@ -248,6 +294,15 @@ class SixCoilBench:
                 raise ValueError(f"unknown camera fault {kind!r}; use drop_frames, freeze, "
                                  "black_out, occlude, drop_link, restore")
             return {"device": "camera", "kind": kind}
+        if cmd == "mismatch":
+            settings = {**self.mismatch.__dict__}
+            for key in settings:
+                if key in request:
+                    settings[key] = type(settings[key])(request[key])
+            if settings["slip"] <= 0 or settings["speed_spread"] < 0 or settings["noise_mm"] < 0:
+                raise ValueError("slip must be > 0, speed_spread and noise_mm >= 0")
+            self.mismatch = Mismatch(**settings)
+            return {"mismatch": settings}
         if cmd == "speed":
             factor = float(request["factor"])
             if not factor > 0:
@@ -255,10 +310,12 @@ class SixCoilBench:
             self.advance()
             self.speed = factor
             return {"factor": factor}
-        raise ValueError(f"unknown command {cmd!r}; use ping, place, truth, fault, camera, speed")
+        raise ValueError(f"unknown command {cmd!r}; use ping, place, truth, fault, camera, speed, "
+                         "mismatch")
 
     def _supply(self, name: object) -> _Supply:
         for supply in self.supplies:
             if supply.name == name:
                 return supply
         raise ValueError(f"no supply {name!r}; the bench has {[s.name for s in self.supplies]}")
+

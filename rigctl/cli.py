@@ -95,6 +95,39 @@ def _add_mismatch_flags(p: argparse.ArgumentParser) -> None:
                    help="each robot feels the coils' field at its own position (not uniform)")
 
 
+def _cmd_calibrate_camera(args: argparse.Namespace) -> int:
+    """Calibrate the rig's camera and write the rig file back with the calibration in it."""
+    from rigctl.calibration import boundary_corners_mm, calibrate_camera
+    from rigctl.config import dump_rig
+
+    rig = load_rig(args.rig)
+    if rig.camera is None:
+        raise ConfigError(f"{args.rig}: the rig has no [camera] table to calibrate")
+    options: dict = {}
+    if args.plan is not None:
+        from rigctl.plans.schema import load_plan
+
+        plan = load_plan(args.plan)
+        if not hasattr(plan.workspace, "boundary"):
+            raise ConfigError("an image workspace has no boundary corners: use --markers")
+        options["corners_mm"] = boundary_corners_mm(plan.workspace.boundary)
+    elif args.markers is not None:
+        if args.marker_radius is None:
+            raise ConfigError("--markers needs --marker-radius")
+        points = [[float(v) for v in p.split(",")] for p in args.markers.split(";") if p.strip()]
+        options["markers_mm"] = points
+        options["marker_radius_mm"] = args.marker_radius
+    else:
+        raise ConfigError("give --plan (workspace corners) or --markers 'x,y;x,y;...'")
+    calibration = calibrate_camera(rig.camera.url, stamped=rig.camera.stamped,
+                                   timeout_s=rig.camera.timeout_s, **options)
+    camera = rig.camera.model_copy(update={"calibration": calibration})
+    out = Path(args.output or args.rig)
+    out.write_text(dump_rig(rig.model_copy(update={"camera": camera})))
+    print(f"camera calibrated; written to {out}")
+    return EXIT_OK
+
+
 def _cmd_validate(args: argparse.Namespace) -> int:
     from rigctl.plans.schema import check_plan, dump_plan, load_plan, simulate
 
@@ -216,6 +249,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
     _add_mismatch_flags(p)
     p.set_defaults(func=_cmd_emulate)
+
+    p = sub.add_parser("calibrate", help="calibrate a device of a rig (the camera)",
+                       description="Map the camera's pixels to workspace mm from the workspace's "
+                       "corners (a plan names them) or from dark round markers at known places, "
+                       "and store the calibration in the rig file.")
+    p.add_argument("what", choices=["camera"])
+    p.add_argument("--rig", required=True, help="rig file with a [camera] table")
+    p.add_argument("--plan", help="a plan whose workspace boundary the camera sees (corners)")
+    p.add_argument("--markers", help="known marker centres, 'x,y;x,y;...' in mm")
+    p.add_argument("--marker-radius", type=float, help="the markers' radius in mm")
+    p.add_argument("-o", "--output", help="write the calibrated rig file here (default: --rig)")
+    p.set_defaults(func=_cmd_calibrate_camera)
 
     register_planners(sub)
     register_daemon(sub)

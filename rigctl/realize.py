@@ -14,8 +14,12 @@ A move d (in the xy plane) is realized as
    R alpha (u x z_hat) = R alpha d_hat, so N = |d| / (2 pi R) must be a whole number of turns;
 3. a hold of `field.hold_s` at B0 e0, so the coils settle before the next move.
 
-Rolling starts and ends with B = B0 e0, horizontal, so the field is continuous from one move to the
-next. The program starts with a ramp of |B| from 0 to B0 along `field.initial_heading_deg` and ends,
+With whole turns (`field.whole_turns`, the default and the paper's hardware) rolling starts and
+ends with B = B0 e0, horizontal, so the field is continuous from one move to the next. Without it a
+move of N + f turns (the closed loop's corrections) ends with B tilted out of the floor plane by the
+roll: B = B0 (cos(theta) h + sin(theta) z) with h horizontal. The next steering turns h about z and
+keeps theta (the magnet keeps lying on the floor and turns about z), and the next roll starts at the
+angle theta in its own rolling plane, so the field stays continuous; a move is then any length. The program starts with a ramp of |B| from 0 to B0 along `field.initial_heading_deg` and ends,
 after the last move's hold, with a ramp back to 0 (and one final sample at exactly 0).
 
 Every phase lasts a whole number of sample periods at `stream.rate_hz`, rounded up, so phase
@@ -159,7 +163,9 @@ def _check_moves(moves: np.ndarray, radius_mm: float) -> np.ndarray:
     return whole.astype(int)
 
 
-def realize_global_moves(moves_mm: ArrayLike, rig: RigConfig) -> FieldProgram:
+def realize_global_moves(
+    moves_mm: ArrayLike, rig: RigConfig, *, start_field_T: ArrayLike | None = None
+) -> FieldProgram:
     """Turn global moves into the six-coil rig's field program.
 
     Parameters
@@ -169,8 +175,11 @@ def realize_global_moves(moves_mm: ArrayLike, rig: RigConfig) -> FieldProgram:
         Each must be a whole number of turns of the magnets (2 pi `magnets.radius_mm` mm per
         turn, tolerance 1e-3 turn); a zero move is realized as a hold only.
     rig : RigConfig
-        Uses `field` (b0_mT, speeds, ramp_s, hold_s, initial_heading_deg), `magnets.radius_mm`
-        and `stream.rate_hz`.
+        Uses `field` (b0_mT, speeds, ramp_s, hold_s, initial_heading_deg, whole_turns),
+        `magnets.radius_mm` and `stream.rate_hz`.
+    start_field_T : (3,) array, optional
+        The field the coils hold now (magnitude b0): the program starts there, without the start
+        ramp (a re-planned program spliced into a running one).
 
     Returns
     -------
@@ -198,7 +207,10 @@ def realize_global_moves(moves_mm: ArrayLike, rig: RigConfig) -> FieldProgram:
             f"field.b0_mT {fs.b0_mT} is below magnets.min_field_mT {rig.magnets.min_field_mT}: "
             "the magnets would not follow the field"
         )
-    turns = _check_moves(moves, rig.magnets.radius_mm)
+    if fs.whole_turns:
+        turns = _check_moves(moves, rig.magnets.radius_mm).astype(float)
+    else:
+        turns = np.linalg.norm(moves, axis=1) / (2.0 * math.pi * rig.magnets.radius_mm)
 
     rate = rig.stream.rate_hz
     b0 = fs.b0_mT * 1e-3
@@ -221,9 +233,20 @@ def realize_global_moves(moves_mm: ArrayLike, rig: RigConfig) -> FieldProgram:
 
     heading = math.radians(fs.initial_heading_deg)
     h = np.array([math.cos(heading), math.sin(heading), 0.0])
+    tilt = 0.0  # B = b0 (cos(tilt) h + sin(tilt) z), h horizontal
 
     ramp = np.arange(n_ramp) / max(n_ramp, 1)
-    emit(b0 * ramp[:, None] * h, NO_MOVE, HOLD)
+    if start_field_T is None:
+        emit(b0 * ramp[:, None] * h, NO_MOVE, HOLD)
+    else:
+        b_start = np.asarray(start_field_T, dtype=float).reshape(3)
+        horizontal = math.hypot(b_start[0], b_start[1])
+        if horizontal > 1e-12 * max(float(np.linalg.norm(b_start)), 1e-300):
+            h = np.array([b_start[0] / horizontal, b_start[1] / horizontal, 0.0])
+        tilt = math.atan2(float(b_start[2]), horizontal)
+
+    def field_now() -> np.ndarray:
+        return b0 * (math.cos(tilt) * h + math.sin(tilt) * _Z_HAT)
 
     for i, (d, n_turns) in enumerate(zip(moves, turns)):
         move_start = count
@@ -232,31 +255,42 @@ def realize_global_moves(moves_mm: ArrayLike, rig: RigConfig) -> FieldProgram:
             u = np.cross(_Z_HAT, d_hat)
             e0 = d_hat if h @ d_hat >= 0.0 else -d_hat
 
-            # steering: turn h into e0 the short way about z
+            # steering: turn h into e0 the short way about z, keeping the vertical part
             phi = math.atan2(h[0] * e0[1] - h[1] * e0[0], h @ e0)
             n_steer = _samples(abs(phi) / steer_rad_per_s, rate)
             start = math.atan2(h[1], h[0])
             angles = start + phi * np.arange(n_steer) / max(n_steer, 1)
-            steer = np.stack([np.cos(angles), np.sin(angles), np.zeros(n_steer)], axis=1)
+            steer = np.stack([np.cos(tilt) * np.cos(angles), np.cos(tilt) * np.sin(angles),
+                              np.full(n_steer, math.sin(tilt))], axis=1)
             emit(b0 * steer, i, STEERING)
 
-            # rolling: N whole turns about u, starting and ending at e0
-            n_roll = _samples(n_turns / fs.rolling_turns_per_s, rate)
-            alpha = 2.0 * math.pi * n_turns * np.arange(n_roll) / n_roll
-            w = np.cross(u, e0)
+            # rolling: n_turns about u, from the angle alpha0 at which B now stands in the
+            # rolling plane (0 when B is horizontal, e.g. after whole turns)
+            w = np.cross(u, e0)  # +-z
+            alpha0 = math.atan2(math.sin(tilt) * float(w @ _Z_HAT), math.cos(tilt))
+            n_roll = max(1, _samples(n_turns / fs.rolling_turns_per_s, rate))
+            alpha = alpha0 + 2.0 * math.pi * n_turns * np.arange(n_roll) / n_roll
             roll = np.cos(alpha)[:, None] * e0 + np.sin(alpha)[:, None] * w
             emit(b0 * roll, i, ROLLING)
-            h = e0
-            logger.debug("move %d: %d turns along %s, steering %.1f deg", i, n_turns, d_hat[:2],
+            end = alpha0 + 2.0 * math.pi * n_turns
+            end_b = math.cos(end) * e0 + math.sin(end) * w
+            if fs.whole_turns or abs(math.cos(end)) < 1e-12:
+                h = e0
+            else:
+                h = e0 if math.cos(end) > 0 else -e0
+            tilt = math.atan2(float(end_b[2]), abs(math.cos(end)))
+            if fs.whole_turns:
+                tilt = 0.0
+            logger.debug("move %d: %.3f turns along %s, steering %.1f deg", i, n_turns, d_hat[:2],
                          math.degrees(phi))
         else:
             logger.debug("move %d is zero: hold only", i)
-        emit(np.repeat(b0 * h[None, :], n_hold, axis=0), NO_MOVE, HOLD)
+        emit(np.repeat(field_now()[None, :], n_hold, axis=0), NO_MOVE, HOLD)
         move_spans.append((move_start, count))
 
     if len(moves) == 0:
-        emit(np.repeat(b0 * h[None, :], n_hold, axis=0), NO_MOVE, HOLD)
-    emit(b0 * (1.0 - ramp)[:, None] * h, NO_MOVE, HOLD)
+        emit(np.repeat(field_now()[None, :], n_hold, axis=0), NO_MOVE, HOLD)
+    emit((1.0 - ramp)[:, None] * field_now(), NO_MOVE, HOLD)
     emit(np.zeros((1, 3)), NO_MOVE, HOLD)
 
     field = np.concatenate(fields)

@@ -1,0 +1,661 @@
+"""The closed loop: the camera watches the robots, and after every move the supervisor compares where
+they are with where the plan expected them, re-plans from the measured state when they are off, and
+holds the field while it cannot see them.
+
+Three threads cooperate:
+
+- the tracking thread (`TrackingLoop`) reads the rig's camera (`CameraDriver`), tracks every fresh
+  frame (`Tracker`, the rig file's calibration) and publishes the latest positions. Tracking is
+  *lost* when no fresh frame came for `camera.timeout_s` (a frozen, dropped or stalled stream) or a
+  robot was not found in `LOST_AFTER_FRAMES` frames in a row (black-out, occlusion);
+- the stream thread asks the sequencer (`SupervisedSequencer`) for each cycle's currents. The
+  sequencer stops at the end of every move with the field held (the magnets lie still, aligned) and
+  waits there until the supervisor releases it or splices a new program in; it also holds at once,
+  mid-move, while tracking is lost (the field stops turning, so the magnets stop);
+- the decision thread (`Supervisor`) judges each move end from a frame captured after the move
+  settled: within `threshold_mm` of the expected state, go on; otherwise re-plan from the measured
+  state to the goals with the RRT (`plan_rrt`, a time budget, fractional turns allowed), realize the
+  new moves from the field the coils hold now, allocate them (limits checked again: a refusal is a
+  fault, never a clip) and splice them in place of the rest of the program. At the end of the
+  program the goals themselves are checked, with a bounded number of further re-plans before it
+  gives up with a fault.
+
+The distance a turn rolls is estimated from what the camera saw (measured over expected
+displacement of the robots that moved freely), and re-planned moves are scaled by its inverse, so a
+rig that slips 15 % is corrected in one or two re-plans instead of many. Every decision is a
+run-record event: `check`, `replan`, `suspend`, `resume`, `give_up`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import pickle
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rigctl.allocate import CurrentProgram, allocate
+from rigctl.config import CameraSettings, RigConfig
+from rigctl.drivers.camera import CameraDriver
+from rigctl.execute import Sequencer
+from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, PlanError, RigError
+from rigctl.plans.model import GlobalInputModel
+from rigctl.plans.rrt import RrtOptions, plan_rrt, replay
+from rigctl.plans.schema import GlobalMovesPlan, dump_plan, parse_plan, plan_model
+from rigctl.realize import FieldProgram, realize_global_moves
+from rigctl.record import RunRecord
+from rigctl.tracker import Tracker
+
+log = logging.getLogger(__name__)
+
+_SHORTEST_MOVE_MM = 0.05  # re-planned moves shorter than this are left out (each costs a hold)
+LOST_AFTER_FRAMES = 3  # a robot unseen this many fresh frames in a row: tracking lost
+_GAIN_LIMITS = (0.5, 1.5)  # plausible range of the rolled distance per commanded distance
+
+
+# -- tracking ------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TrackedState:
+    """The robots after one fresh frame. positions_mm (n, 2); lost (n,) robot not seen for
+    LOST_AFTER_FRAMES frames; t_source: monotonic s the picture was taken (stamp) or received;
+    t_tracked: monotonic s the tracker finished; frame: fresh frames tracked before this one."""
+
+    positions_mm: np.ndarray
+    lost: np.ndarray
+    t_source: float
+    t_tracked: float
+    frame: int
+
+
+class TrackingLoop:
+    """The camera and the tracker in their own thread, publishing the latest `TrackedState`.
+
+    camera: the rig's camera settings (url, stamped, timeout_s, calibration); radii_mm (n,),
+    initial_mm (n, 2) where the robots were put; roi_mm: the workspace's bounds.
+    """
+
+    def __init__(self, camera: CameraSettings, radii_mm: np.ndarray, initial_mm: np.ndarray, *,
+                 roi_mm: tuple[float, float, float, float] | None = None) -> None:
+        if camera.calibration is None:
+            raise ConfigError("the rig's camera has no calibration: run `rigctl calibrate camera`")
+        self.camera = camera
+        self.tracker = Tracker(camera.calibration, radii_mm, initial_mm, roi_mm=roi_mm)
+        self.timeout_s = camera.timeout_s
+        self.frames = 0  # fresh frames tracked
+        self.lost_frames = 0  # frames missed (dropped, repeated) or with a robot not found
+        self.failure: RigError | None = None
+        self._cond = threading.Condition()
+        self._latest: TrackedState | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._driver: CameraDriver | None = None
+
+    def start(self, acquire_timeout_s: float = 5.0) -> TrackedState:
+        """Open the camera, start tracking, and return the first state with every robot seen;
+        DeviceTimeout if that does not come within `acquire_timeout_s`."""
+        self._driver = CameraDriver(self.camera.url, stamped=self.camera.stamped,
+                                    timeout_s=self.camera.timeout_s,
+                                    reconnect_attempts=self.camera.reconnect_attempts).open()
+        self._thread = threading.Thread(target=self._run, name="tracking", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + acquire_timeout_s
+        with self._cond:
+            while True:
+                state = self._latest
+                if state is not None and not state.lost.any() and not (
+                        self.tracker.frames_unseen > 0).any():
+                    return state
+                if self.failure is not None:
+                    raise self.failure
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceTimeout(f"the robots were not found within {acquire_timeout_s:g} s",
+                                        device="camera")
+                self._cond.wait(remaining)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(self.timeout_s + 2.0)
+        if self._driver is not None:
+            self._driver.close()
+
+    def latest(self) -> TrackedState | None:
+        with self._cond:
+            return self._latest
+
+    def ok(self, now: float | None = None) -> bool:
+        """Tracking holds: a fresh frame within `timeout_s` and every robot found."""
+        state = self.latest()
+        now = time.monotonic() if now is None else now
+        return (self.failure is None and state is not None and not state.lost.any()
+                and now - state.t_tracked <= self.timeout_s)
+
+    def wait(self, timeout_s: float) -> None:
+        """Block until the next fresh frame is tracked or `timeout_s` passes."""
+        with self._cond:
+            self._cond.wait(timeout_s)
+
+    def captured_after(self, t_s: float, timeout_s: float) -> TrackedState | None:
+        """The first state from a picture taken after monotonic `t_s`, waiting up to `timeout_s`;
+        None if none comes or tracking is lost meanwhile."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                state = self._latest
+                if state is not None and state.t_source > t_s and not state.lost.any():
+                    return state
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self.failure is not None:
+                    return None
+                self._cond.wait(remaining)
+
+    def _run(self) -> None:
+        driver = self._driver
+        assert driver is not None
+        last_t: float | None = None
+        last_number: int | None = None
+        while not self._stop.is_set():
+            try:
+                frame = driver.read(timeout_s=min(0.1, self.timeout_s))
+            except DeviceTimeout:
+                with self._cond:
+                    self._cond.notify_all()  # waiters re-check staleness
+                continue
+            except (Disconnected, RigError) as err:
+                log.error("tracking: %s", err)
+                with self._cond:
+                    self.failure = err
+                    self._cond.notify_all()
+                return
+            t = frame.t_source if frame.t_source is not None else frame.t_capture
+            if frame.repeated or (last_t is not None and t <= last_t):
+                self.lost_frames += 1
+                continue
+            if frame.source_number is not None and last_number is not None:
+                self.lost_frames += max(0, frame.source_number - last_number - 1)
+            last_t, last_number = t, frame.source_number
+            robots = self.tracker.update(frame.image, t)
+            unseen = np.array([r.frames_unseen for r in robots])
+            if (unseen > 0).any():
+                self.lost_frames += 1
+            state = TrackedState(
+                positions_mm=np.array([r.position_mm for r in robots]),
+                lost=unseen >= LOST_AFTER_FRAMES,
+                t_source=t, t_tracked=time.monotonic(), frame=self.frames)
+            with self._cond:
+                self.frames += 1
+                self._latest = state
+                self._cond.notify_all()
+
+
+# -- sequencing ----------------------------------------------------------------------------------
+
+class SupervisedSequencer(Sequencer):
+    """A `Sequencer` that waits at the end of every move (`gates`) until released, holds the field
+    at once while tracking is lost, and takes a new program spliced in place of the rest.
+
+    currents: the program; move_ends: samples where moves end; ramp_samples: abort/pause ramps.
+    """
+
+    def __init__(self, currents: CurrentProgram, move_ends: list[int], ramp_samples: int) -> None:
+        super().__init__(currents, move_ends, ramp_samples)
+        self.gates = set(move_ends)  # samples where the supervisor judges the move
+        self.waiting_at: int | None = None
+        self.arrived = threading.Event()
+        self._released: int | None = None
+        self._held = False
+        self._mark: int | None = None  # decision awaiting its first command
+        self.command_times: dict[int, float] = {}
+
+    def next(self) -> tuple[np.ndarray, int, int] | None:
+        with self._lock:
+            if not (self._abort_requested or self.aborted or self._queue):
+                if self._held:
+                    return self._last, self.index, -1
+                if self.index in self.gates and self.index != self._released:
+                    if self.waiting_at != self.index:
+                        self.waiting_at = self.index
+                        self.arrived.set()
+                    return self._last, self.index, -1
+        step = super().next()
+        if step is not None and self._mark is not None and not self.paused:
+            self.command_times[self._mark] = time.monotonic()
+            self._mark = None
+        return step
+
+    def release(self, decision: int | None = None) -> None:
+        """Go on from the move end it waits at; `decision` is timed to its first command."""
+        with self._lock:
+            self._released = self.waiting_at
+            self.waiting_at = None
+            self.arrived.clear()
+            self._mark = decision
+
+    def splice(self, new: CurrentProgram, new_move_ends: list[int], decision: int | None = None
+               ) -> int:
+        """Replace everything from the current sample on by `new` (its move ends relative to its
+        own start); returns the absolute sample where `new` starts."""
+        with self._lock:
+            k = self.index
+            first_move = int(self.segments.max(initial=-1)) + 1
+            segment = np.where(new.segment >= 0, new.segment + first_move, -1)
+            self.program = np.concatenate([self.program[:k], new.currents_A])
+            self.segments = np.concatenate([self.segments[:k], segment])
+            self.gates = {k + e for e in new_move_ends}
+            self.boundaries = self.boundaries | self.gates
+            self._released = None
+            self.waiting_at = None
+            self.arrived.clear()
+            self._mark = decision
+            return k
+
+    def hold(self) -> None:
+        """Hold the present setpoints now, mid-move if need be (the field stops turning)."""
+        with self._lock:
+            self._held = True
+            self.paused = True
+
+    def unhold(self) -> None:
+        with self._lock:
+            self._held = False
+            self.paused = False
+
+
+# -- the supervisor ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SupervisorSettings:
+    """threshold_mm: after a move, a robot farther than this from the expected state re-plans;
+    goal_threshold_mm: at the end, every robot must be this close to its goal (None: 3/4 of the
+    plan's tolerance, leaving room for the tracker's error); max_replans:
+    re-plans in a run before giving up; final_replans: of which at most this many after the program
+    ended; replan_budget_s: RRT time budget; settle_s: wait after a move end before judging;
+    rrt_tolerance_mm: what the re-plan aims for (distance in R^2n); seed: the RRT's randomness;
+    estimate_gain: scale re-planned moves by the rolled distance per commanded distance seen."""
+
+    threshold_mm: float = 1.0
+    goal_threshold_mm: float | None = None
+    max_replans: int = 12
+    final_replans: int = 6
+    replan_budget_s: float = 2.0
+    settle_s: float = 0.05
+    rrt_tolerance_mm: float = 0.3
+    seed: int = 0
+    estimate_gain: bool = True
+
+
+@dataclass
+class Decision:
+    """One judgement at a move end (for the record and the latency figures)."""
+
+    number: int
+    sample: int
+    kind: str  # "continue", "replan", "done", "give_up"
+    t_source: float
+    t_decided: float
+    error_mm: list[float] = field(default_factory=list)
+
+
+class Supervisor:
+    """Runs the closed loop for one run: see the module docstring.
+
+    plan: the plan (expected filled); rig: must have a camera with a calibration; program, currents:
+    what `rigctl.execute.prepare` made; ramp_samples: the sequencer's ramp; truth: optional callable
+    returning the emulator's true positions (n, 2) mm, to measure the tracker against.
+    """
+
+    def __init__(self, plan: GlobalMovesPlan, rig: RigConfig, program: FieldProgram,
+                 currents: CurrentProgram, *, ramp_samples: int,
+                 settings: SupervisorSettings = SupervisorSettings(),
+                 truth: Callable[[], np.ndarray] | None = None) -> None:
+        if rig.camera is None:
+            raise ConfigError("the closed loop needs a [camera] in the rig file")
+        self.plan, self.rig, self.settings, self.truth = plan, rig, settings, truth
+        self.model: GlobalInputModel = plan_model(plan)
+        self.goals = np.array([a.goal for a in plan.agents], dtype=float)
+        self.goal_threshold_mm = settings.goal_threshold_mm or 0.75 * plan.tolerance_mm
+        starts = np.array([a.start for a in plan.agents], dtype=float)
+        ends = [program.move_end_index(i) for i in range(program.n_moves)]
+        self.sequencer = SupervisedSequencer(currents, ends, ramp_samples)
+        expected = np.array(plan.expected, dtype=float).reshape(-1, len(starts), 2)
+        self._expected = {e: expected[i] for i, e in enumerate(ends)}
+        self._previous = {e: (expected[i - 1] if i else starts) for i, e in enumerate(ends)}
+        self._fields = program.field_T.copy()
+        # fractional turns for corrections (the paper's whole turns stay for the plan itself)
+        self._fractional_rig = rig.model_copy(
+            update={"field": rig.field.model_copy(update={"whole_turns": False})})
+        # The RRT runs in a worker process: in this one it would hold the GIL for its whole time
+        # budget and starve the stream loop.
+        self._planner: ReplanWorker | None = None
+        self._plan_text = dump_plan(plan)
+        bounds = self.model.workspace.bounds
+        self.tracking = TrackingLoop(rig.camera, self.model.radii, starts, roi_mm=bounds)
+        self.gain = 1.0
+        self.replans = 0
+        self.final_replans = 0
+        self.decisions: list[Decision] = []
+        self.tracking_errors_mm: list[float] = []
+        self.fault: RigError | None = None
+        self.final_positions: np.ndarray | None = None
+        self.record: RunRecord | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._measured_at: dict[int, np.ndarray] = {}
+        self._scale_at = {e: 1.0 for e in ends}  # commanded / planned distance of each move
+
+    # -- life cycle -----------------------------------------------------------------------------
+    def start(self, record: RunRecord | None) -> None:
+        """Acquire the robots with the camera and start judging (before the stream starts)."""
+        self.record = record
+        self._planner = ReplanWorker()  # imports numpy, scipy and the planner while we go on
+        first = self.tracking.start(acquire_timeout_s=max(5.0, 2 * self.rig.camera.timeout_s))
+        self._measured_at[0] = first.positions_mm
+        self._event("tracking", frame=first.frame, positions=first.positions_mm.round(3).tolist())
+        self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(self.settings.replan_budget_s + 5.0)
+        state = self.tracking.latest()
+        if state is not None:
+            self.final_positions = state.positions_mm
+        self._measure_tracking()
+        self.tracking.stop()
+        if self._planner is not None:
+            self._planner.close()
+
+    def summary(self) -> dict:
+        """`replans` and `tracking` for the run summary."""
+        errors = np.array(self.tracking_errors_mm)
+        return {
+            "replans": self.replans,
+            "tracking": {
+                "mean_error_mm": round(float(errors.mean()), 4) if errors.size else None,
+                "max_error_mm": round(float(errors.max()), 4) if errors.size else None,
+                "lost_frames": self.tracking.lost_frames,
+                "frames": self.tracking.frames,
+            },
+        }
+
+    def latencies_s(self) -> list[float]:
+        """Capture time of the frame a decision used -> the first command after it left the loop."""
+        times = self.sequencer.command_times
+        return [times[d.number] - d.t_source for d in self.decisions if d.number in times]
+
+    # -- the decision thread --------------------------------------------------------------------
+    def _event(self, name: str, **info: object) -> None:
+        if self.record is not None:
+            self.record.event(name, **info)
+        log.info("supervisor: %s %s", name, info)
+
+    def _run(self) -> None:
+        seq = self.sequencer
+        held = False
+        while not self._stop.is_set():
+            if not self.tracking.ok():
+                if not held:
+                    seq.hold()
+                    held = True
+                    state = self.tracking.latest()
+                    why = ("camera: " + str(self.tracking.failure)) if self.tracking.failure else (
+                        "robot(s) %s not found" % np.flatnonzero(state.lost).tolist()
+                        if state is not None and state.lost.any()
+                        else f"no fresh frame for {self.tracking.timeout_s:g} s")
+                    self._event("suspend", reason=why, sample=seq.index)
+                self.tracking.wait(0.05)
+                continue
+            if held:
+                seq.unhold()
+                held = False
+                self._event("resume", sample=seq.index)
+            if not seq.arrived.wait(0.02):
+                continue
+            try:
+                self._judge(seq.waiting_at)
+            except RigError as err:
+                self._give_up(err)
+                return
+            except Exception as err:  # a bug must not leave the run waiting at a move end forever
+                log.exception("supervisor failed")
+                self._give_up(RigError(f"supervisor failed: {type(err).__name__}: {err}"))
+                return
+
+    def _give_up(self, err: RigError) -> None:
+        self.fault = err
+        self._event("give_up", reason=str(err), kind=type(err).__name__, device=err.device)
+        self.sequencer.request_abort()
+        self.sequencer.release()
+
+    def _judge(self, sample: int | None) -> None:
+        seq = self.sequencer
+        if sample is None:
+            return
+        arrived = time.monotonic()
+        state = self.tracking.captured_after(arrived + self.settings.settle_s,
+                                             timeout_s=self.tracking.timeout_s)
+        if state is None:
+            return  # tracking lost meanwhile: the loop suspends, and judges again after
+        measured = state.positions_mm
+        expected = self._expected[sample]
+        last = sample == max(seq.gates)
+        self._measure_tracking(measured)
+        self._update_gain(sample, measured)
+        error = np.hypot(*(measured - expected).T)
+        goal_error = np.hypot(*(measured - self.goals).T)
+        number = len(self.decisions)
+        decision = Decision(number, sample, "continue", state.t_source, time.monotonic(),
+                            error.round(4).tolist())
+        self.decisions.append(decision)
+        self._event("check", sample=sample, error_mm=error.round(4).tolist(),
+                    goal_error_mm=goal_error.round(4).tolist(), last=last, gain=round(self.gain, 4))
+        if last and goal_error.max() <= self.goal_threshold_mm:
+            decision.kind = "done"
+            seq.release(number)
+            return
+        if not last and error.max() <= self.settings.threshold_mm:
+            seq.release(number)
+            return
+        if self.replans >= self.settings.max_replans or (
+                last and self.final_replans >= self.settings.final_replans):
+            raise PlanError(
+                f"goals not reached after {self.replans} re-plans: agents "
+                f"{np.flatnonzero(goal_error > self.goal_threshold_mm).tolist()} are "
+                f"{goal_error.max():.2f} mm from their goals at worst (threshold "
+                f"{self.goal_threshold_mm:g} mm)")
+        decision.kind = "replan"
+        self._replan(sample, measured, error, last, number)
+
+    def _replan(self, sample: int, measured: np.ndarray, error: np.ndarray, last: bool,
+                number: int) -> None:
+        s = self.settings
+        start = self._free_start(measured)
+        assert self._planner is not None
+        result = self._planner.replan(
+            self._plan_text, str(self.plan.base_dir or "."), start, self.goals,
+            2.0 * math.pi * self.rig.magnets.radius_mm, s.rrt_tolerance_mm,
+            s.seed + self.replans, s.replan_budget_s)
+        if len(result.moves) == 0:
+            raise PlanError(f"re-plan from the measured state found no move that brings the robots "
+                            f"closer to their goals (best {result.distance:.2f} mm)")
+        self.replans += 1
+        if last:
+            self.final_replans += 1
+        commanded = result.moves / self.gain
+        program = realize_global_moves(commanded, self._fractional_rig,
+                                       start_field_T=self._fields[max(sample - 1, 0)])
+        currents = allocate(program, self.rig)  # a LimitError here is a fault, never a clip
+        ends = [program.move_end_index(i) for i in range(program.n_moves)]
+        begin = self.sequencer.splice(currents, ends, number)
+        self._fields = np.concatenate([self._fields[:begin], program.field_T])
+        previous = start
+        for i, e in enumerate(ends):
+            self._scale_at[begin + e] = 1.0 / self.gain
+            self._expected[begin + e] = result.states[i]
+            self._previous[begin + e] = previous
+            previous = result.states[i]
+        self._measured_at[begin] = measured
+        self._event("replan", sample=sample, reason="end of program" if last else "off the plan",
+                    error_mm=error.round(4).tolist(), moves=len(result.moves),
+                    commanded_mm=np.round(commanded, 3).tolist(), planned_distance_mm=round(
+                        result.distance, 4), solved=result.solved, nodes=result.nodes,
+                    seconds=round(result.seconds, 3), gain=round(self.gain, 4))
+
+    def _free_start(self, measured: np.ndarray) -> np.ndarray:
+        """The measured state nudged into free space (a tracked robot may sit a hair inside a wall
+        or another robot), so the model and the planner accept it."""
+        p = measured.astype(float).copy()
+        radii = self.model.radii
+        for _ in range(8):
+            if bool(self.model.is_free(p)):
+                break
+            clearance, normal, _ = self.model.workspace.surface(p)
+            inside = clearance < radii + 1e-6
+            p[inside] += ((radii - clearance + 1e-5)[:, None] * normal)[inside]
+            for i in range(len(p)):
+                for j in range(i + 1, len(p)):
+                    gap = p[j] - p[i]
+                    dist = float(np.hypot(*gap))
+                    need = radii[i] + radii[j] + self.model.min_separation_mm + 1e-5
+                    if dist < need:
+                        push = (need - dist) / 2 * gap / max(dist, 1e-9)
+                        p[i] -= push
+                        p[j] += push
+        return p
+
+    def _update_gain(self, sample: int, measured: np.ndarray) -> None:
+        """Distance rolled per distance commanded, from the robots that moved freely in the move
+        that ended at `sample` (expected displacement as long as the move)."""
+        before = self._measured_at.get(self._start_of(sample))
+        self._measured_at[sample] = measured
+        if not self.settings.estimate_gain or before is None:
+            return
+        expected = self._expected[sample] - self._previous[sample]
+        actual = measured - before
+        lengths = np.hypot(*expected.T)
+        longest = lengths.max()
+        free = (lengths > 5.0) & (lengths >= 0.98 * longest)
+        if not free.any():
+            return
+        # actual = gain * commanded = gain * scale * planned
+        ratio = np.sum(actual[free] * expected[free], axis=1) / lengths[free] ** 2
+        self.gain = float(np.clip(np.mean(ratio) / self._scale_at[sample], *_GAIN_LIMITS))
+
+    def _start_of(self, sample: int) -> int:
+        """The sample where the move ending at `sample` began (the previous gate or splice)."""
+        earlier = [s for s in self._measured_at if s < sample]
+        return max(earlier) if earlier else 0
+
+    def _measure_tracking(self, measured: np.ndarray | None = None) -> None:
+        """Tracked against the emulator's ground truth, robots at rest."""
+        if self.truth is None:
+            return
+        if measured is None:
+            state = self.tracking.latest()
+            if state is None:
+                return
+            measured = state.positions_mm
+        try:
+            truth = np.asarray(self.truth(), dtype=float).reshape(measured.shape)
+        except RigError as err:
+            log.warning("could not read ground truth: %s", err)
+            return
+        self.tracking_errors_mm.extend(np.hypot(*(measured - truth).T).tolist())
+
+
+# -- the re-planner (a worker process) ---------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Replanned:
+    """moves (m, 2) mm, states (m, n, 2) mm after each, distance to the goals (mm, R^2n), solved,
+    nodes grown, seconds spent."""
+
+    moves: np.ndarray
+    states: np.ndarray
+    distance: float
+    solved: bool
+    nodes: int
+    seconds: float
+
+
+def replan_worker(plan_text: str, base_dir: str, start: np.ndarray, goals: np.ndarray,
+                  robostep_mm: float, tolerance_mm: float, seed: int, budget_s: float) -> Replanned:
+    """Re-plan from `start` (n, 2) mm to `goals` (n, 2) mm with the RRT under the plan's model:
+    one turn per tree move, fractional final approach, `budget_s` seconds at most. Moves shorter
+    than _SHORTEST_MOVE_MM are dropped (the states replayed without them)."""
+    plan = parse_plan(json.loads(plan_text), "re-plan", base_dir=base_dir)
+    model = plan_model(plan)
+    options = RrtOptions(robostep_mm=robostep_mm, k=16, tolerance_mm=tolerance_mm, greedy=True,
+                         final_approach=True, goal_bias=0.05, max_nodes=20_000, nn_eps=0.5)
+    result = plan_rrt(model, start, goals, options=options, rng=np.random.default_rng(seed),
+                      time_budget_s=budget_s)
+    moves = result.moves[np.hypot(*result.moves.T) >= _SHORTEST_MOVE_MM] if len(result.moves) \
+        else result.moves
+    states = replay(model, start, moves)
+    end = states[-1] if len(states) else start
+    distance = float(np.linalg.norm(end - goals))
+    return Replanned(moves, states, distance, distance <= tolerance_mm, result.nodes, result.seconds)
+
+
+class ReplanWorker:
+    """`replan` in a child process (`python -m rigctl.supervisor`): pickled calls over its stdin
+    and stdout, one at a time. Started ahead so its imports are done by the first re-plan."""
+
+    def __init__(self) -> None:
+        self._proc = subprocess.Popen([sys.executable, "-m", "rigctl.supervisor"],
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        self._lock = threading.Lock()
+
+    def replan(self, *args: object) -> Replanned:
+        """`replan_worker(*args)` in the child; PlanError if the child failed."""
+        with self._lock:
+            assert self._proc.stdin is not None and self._proc.stdout is not None
+            pickle.dump(args, self._proc.stdin)
+            self._proc.stdin.flush()
+            try:
+                ok, value = pickle.load(self._proc.stdout)
+            except EOFError:
+                raise PlanError("the re-planning process ended unexpectedly") from None
+        if not ok:
+            raise PlanError(f"re-plan failed: {value}")
+        return Replanned(**value)
+
+    def close(self) -> None:
+        if self._proc.poll() is None:
+            assert self._proc.stdin is not None
+            self._proc.stdin.close()
+            try:
+                self._proc.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+
+
+def _serve_replans() -> None:
+    """The child's loop: read a pickled argument tuple, answer (ok, Replanned or message)."""
+    stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
+    while True:
+        try:
+            args = pickle.load(stdin)
+        except EOFError:
+            return
+        try:
+            answer: tuple = (True, dict(replan_worker(*args).__dict__))
+        except Exception as err:  # reported to the parent, which turns it into a fault
+            answer = (False, f"{type(err).__name__}: {err}")
+        pickle.dump(answer, stdout)
+        stdout.flush()
+
+
+if __name__ == "__main__":
+    _serve_replans()

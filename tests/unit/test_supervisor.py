@@ -1,0 +1,174 @@
+"""The pieces of the closed loop that need no camera: fractional turns realized and rolled by the
+emulated world, the world's model mismatch against hand-worked distances, and the supervised
+sequencer's gates, splices and holds."""
+
+import math
+
+import numpy as np
+import pytest
+
+from rigctl.allocate import CurrentProgram
+from rigctl.config import FieldSettings, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
+from rigctl.errors import PlanError
+from rigctl.plans.model import GlobalInputModel
+from rigctl.plans.schema import parse_workspace
+from rigctl.plans.workspace import Workspace
+from rigctl.realize import realize_global_moves
+from rigctl.supervisor import SupervisedSequencer
+
+TURN_MM = 10.0
+R = TURN_MM / (2 * math.pi)
+
+
+def rig(whole_turns: bool) -> RigConfig:
+    return RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils(),
+                     field=FieldSettings(whole_turns=whole_turns))
+
+
+def world(positions, mismatch=None, radius=5.0):
+    spec = parse_workspace({"boundary": {"rect": [0, 0, 400, 400]}})
+    model = GlobalInputModel(Workspace.from_spec(spec), np.full(len(positions), radius))
+    return RollingMagnetWorld(model, np.array(positions, float), rolling_radius_mm=R,
+                              min_field_T=0.5e-3, mismatch=mismatch)
+
+
+def roll_program(w, field_T):
+    for b in field_T:
+        w.feel(b)
+
+
+# -- fractional turns ----------------------------------------------------------------------------
+
+def test_whole_turns_by_default_refuse_a_fractional_move():
+    with pytest.raises(PlanError, match="whole turns"):
+        realize_global_moves([[3.0, 0.0]], rig(True))
+
+
+def test_fractional_moves_end_tilted_and_the_world_rolls_exactly_the_sum():
+    moves = np.array([[3.3, 0.0], [0.0, 7.25], [-12.6, 4.1], [2.5, 2.5]])
+    program = realize_global_moves(moves, rig(False))
+    w = world([[200.0, 200.0]])
+    roll_program(w, program.field_T)
+    # free space, no slip: the centre moves by the sum of the moves (hand sum: -6.8, 13.85)
+    np.testing.assert_allclose(w.positions_mm, [[200.0 - 6.8, 200.0 + 13.85]], atol=1e-6)
+    # 3.3 mm is 0.33 turn: B ends 0.33 * 360 = 118.8 degrees round from horizontal, so its
+    # vertical part is b0 sin(118.8 deg) in size
+    end = program.move_end_index(0) - 1
+    b0 = 3e-3
+    assert abs(abs(program.field_T[end, 2]) - b0 * math.sin(math.radians(118.8))) < 1e-9
+    # the next steering keeps that vertical part while it turns the horizontal part about z
+    start = program.move_spans[1, 0]
+    steering = program.field_T[start:start + 5]
+    np.testing.assert_allclose(steering[:, 2], program.field_T[end, 2], atol=1e-12)
+    # the field never jumps: consecutive samples differ by less than one rolling step
+    step = np.linalg.norm(np.diff(program.field_T, axis=0), axis=1)
+    assert step.max() < b0 * 2 * math.pi * 2.0 / 100.0 * 1.01
+
+
+def test_a_program_can_start_from_a_tilted_field_without_a_ramp():
+    b0 = 3e-3
+    tilted = b0 * np.array([0.0, math.cos(0.7), math.sin(0.7)])
+    program = realize_global_moves([[0.0, 5.0]], rig(False), start_field_T=tilted)
+    np.testing.assert_allclose(program.field_T[0], tilted, atol=1e-12)
+    w = world([[100.0, 100.0]])
+    w.feel(tilted)  # the magnets lie aligned with the field the coils hold
+    roll_program(w, program.field_T)
+    np.testing.assert_allclose(w.positions_mm, [[100.0, 105.0]], atol=1e-6)
+
+
+# -- mismatch ------------------------------------------------------------------------------------
+
+def one_turn_along_x(w, steps=400):
+    """The field turns once about -y, from +x down through -z: a roll about u = -y, which moves
+    a centre along u x z = +x by one circumference."""
+    for a in np.linspace(0.0, 2 * math.pi, steps):
+        w.feel(3e-3 * np.array([math.cos(a), 0.0, -math.sin(a)]))
+
+
+def test_slip_shortens_every_turn_by_its_factor():
+    w = world([[100.0, 100.0]], Mismatch(slip=0.85))
+    one_turn_along_x(w)
+    moved = np.linalg.norm(w.positions_mm[0] - [100.0, 100.0])
+    assert moved == pytest.approx(0.85 * TURN_MM, abs=1e-6)
+
+
+def test_speed_spread_gives_each_robot_its_own_distance_per_turn():
+    w = world([[100.0, 100.0], [100.0, 300.0], [300.0, 200.0]],
+              Mismatch(slip=0.9, speed_spread=0.05, seed=4))
+    one_turn_along_x(w)
+    moved = np.linalg.norm(w.positions_mm - [[100.0, 100.0], [100.0, 300.0], [300.0, 200.0]], axis=1)
+    assert len(set(np.round(moved, 6))) == 3  # all different
+    assert np.all(np.abs(moved / (0.9 * TURN_MM) - 1.0) < 0.25)  # within 5 sigma of the spread
+    again = world([[100.0, 100.0], [100.0, 300.0], [300.0, 200.0]],
+                  Mismatch(slip=0.9, speed_spread=0.05, seed=4))
+    one_turn_along_x(again)
+    np.testing.assert_allclose(again.positions_mm, w.positions_mm)  # the seed decides
+
+
+def test_drift_moves_everyone_at_its_speed():
+    start = np.array([[200.0, 200.0], [150.0, 250.0]])
+    w = world(start, Mismatch(drift_mm_per_s=0.1, seed=2))
+    for _ in range(10_000):
+        w.drift(1e-3)  # 10 s
+    moved = w.positions_mm - start
+    np.testing.assert_allclose(np.linalg.norm(moved, axis=1), [1.0, 1.0], atol=0.051)
+    np.testing.assert_allclose(moved[0], moved[1], atol=1e-9)
+
+
+def test_noise_jitters_only_robots_touching_a_wall():
+    # robot 0 rolls along the floor's lower wall (touching it), robot 1 in the open
+    start = np.array([[100.0, 5.0], [100.0, 200.0]])
+    finals = []
+    for seed in range(12):
+        w = world(start, Mismatch(noise_mm=0.3, seed=seed))
+        one_turn_along_x(w)
+        finals.append(w.positions_mm.copy())
+    finals = np.array(finals)
+    np.testing.assert_allclose(finals[:, 1], np.tile([110.0, 200.0], (12, 1)), atol=1e-6)
+    spread_x = finals[:, 0, 0].std()
+    assert 0.05 < spread_x < 1.0  # a random walk of 0.3 mm per turn along the wall
+    assert np.all(finals[:, 0, 1] >= 5.0 - 1e-6)  # never into the wall
+
+
+# -- the supervised sequencer --------------------------------------------------------------------
+
+def program(n: int, value: float = 1.0, segment: int = 0) -> CurrentProgram:
+    currents = np.full((n, 1), value) * np.arange(1, n + 1)[:, None]
+    return CurrentProgram(t_s=np.arange(n) / 100.0, currents_A=currents,
+                          segment=np.full(n, segment), coil_names=("x+",))
+
+
+def drain(seq, n):
+    return [seq.next() for _ in range(n)]
+
+
+def test_the_sequencer_waits_at_each_move_end_until_released():
+    seq = SupervisedSequencer(program(6), move_ends=[3, 6], ramp_samples=2)
+    out = drain(seq, 5)
+    assert [float(o[0][0]) for o in out] == [1.0, 2.0, 3.0, 3.0, 3.0]  # holds sample 3's current
+    assert seq.waiting_at == 3 and seq.arrived.is_set()
+    seq.release()
+    assert float(seq.next()[0][0]) == 4.0
+
+
+def test_a_splice_replaces_the_rest_of_the_program():
+    seq = SupervisedSequencer(program(6), move_ends=[3, 6], ramp_samples=2)
+    drain(seq, 4)
+    begin = seq.splice(program(2, value=10.0), [2])
+    assert begin == 3
+    values = [float(o[0][0]) for o in drain(seq, 4)]
+    assert values == [10.0, 20.0, 20.0, 20.0]  # new program, then waits at its move end (5)
+    assert seq.waiting_at == 5
+    seq.release()
+    assert seq.next() is None  # nothing of the old program is left
+
+
+def test_hold_freezes_the_setpoints_mid_move_and_unhold_goes_on():
+    seq = SupervisedSequencer(program(6), move_ends=[6], ramp_samples=2)
+    drain(seq, 2)
+    seq.hold()
+    assert [float(o[0][0]) for o in drain(seq, 3)] == [2.0, 2.0, 2.0]
+    assert seq.paused
+    seq.unhold()
+    assert float(seq.next()[0][0]) == 3.0
