@@ -8,10 +8,11 @@ Figures:
 - growth: nodes per second of the paper's algorithm (no goal test: tolerance 0) while one tree
   grows to 40,000, 200,000 and 400,000 nodes; `average` = N / time to grow N nodes (what the
   paper's 26,000 / 11,000 nodes/s compare with), `segment` = the rate between two sizes.
-  Reported for the exact nearest node and for --nn-eps (default 0.1).
+  Reported for the exact nearest node and for --nn-eps (default 0.1). Default batches: up to
+  4,096 samples per model call (tree / 8 early on).
 - solve: over --seeds seeds, the share solved within 2 mm and the median seconds to solve, with
-  the tuned options (goal bias 0.05, formation bias 0.1, greedy descent, final approach), 5 s
-  budget each.
+  the tuned options (goal bias 0.05, formation bias 0.1, greedy descent, final approach; batches
+  up to 512), 5 s budget each.
 - four_robots: seconds to grow a 340,000-node tree for four robots (seed 000 Sec. IV).
 - image_maps: time per clearance query and per model move (1 mm, robots in a free square) on two
   800 x 800 px image maps with few and with many obstacle pixels, best of five (the grid

@@ -30,7 +30,10 @@ Agent-agent contact is resolved after each sub-step (at most `substep_mm` of inp
 agents are far apart) by projecting overlapping pairs apart: an agent the walls hold stays, else
 the one behind gives way. Sliding of one agent round another is therefore first order in the
 sub-step. Configurations whose agents cannot reach a wall or each other during a move are
-translated in one step.
+translated in one step, and so is every agent of the others that no wall can reach in a sub-step.
+When several moves start from the same configuration (a planner's k directions from one node)
+the walls are looked up once for it, not once per move. A slide round a corner that runs onto
+the straight side continuing it is solved in closed form (`_arc_meets_line`), not by bisection.
 
 All work is vectorised over the batch; the Python loops run over event rounds and agent pairs,
 never over configurations.
@@ -115,7 +118,12 @@ class GlobalInputModel:
         batch = np.broadcast_shapes(positions.shape[:-2], moves.shape[:-1])
         flat_p = np.broadcast_to(positions, batch + (self.n, 2)).reshape(-1, self.n, 2).copy()
         flat_d = np.broadcast_to(moves, batch + (2,)).reshape(-1, 2)
-        return self._apply_flat(flat_p, flat_d).reshape(batch + (self.n, 2))
+        shared = None
+        if int(np.prod(positions.shape[:-2])) < int(np.prod(batch)):
+            # Several moves from each configuration (a planner trying k directions from a node):
+            # look the walls up once per configuration, not once per move.
+            shared = _SharedLookup(self.workspace, positions, batch)
+        return self._apply_flat(flat_p, flat_d, shared).reshape(batch + (self.n, 2))
 
     def rollout(self, start: ArrayLike, moves: ArrayLike) -> np.ndarray:
         """Positions after each move: start (n, 2), moves (m, 2) -> (m, n, 2), mm."""
@@ -142,12 +150,18 @@ class GlobalInputModel:
 
     # Whole moves
 
-    def _apply_flat(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
+    def _apply_flat(
+        self, p: np.ndarray, d: np.ndarray, shared: "_SharedLookup | None" = None
+    ) -> np.ndarray:
+        """p (B, n, 2) mm, moved in place by d (B, 2) mm; `shared`: the walls seen from p."""
         length = np.hypot(d[:, 0], d[:, 1])
         moving = np.flatnonzero(length > 0)
         if moving.size == 0:
             return p
-        clearance = self.workspace.clearance_lower_bound(p[moving])
+        if shared is None:
+            clearance = self.workspace.clearance_lower_bound(p[moving])
+        else:
+            clearance = shared.lower_bound[moving]
         # Agents that cannot reach a wall during the move translate rigidly; since they all move
         # alike, no pair can come closer either.
         far = np.all(clearance - self.radii >= length[moving, None] + _CONTACT_TOL, axis=1)
@@ -162,6 +176,7 @@ class GlobalInputModel:
         # together cannot make any two meet: take that, or a sub-step once they are close.
         direction = d[hard] / length[hard, None]
         left = length[hard].copy()
+        first = shared is not None  # the first sub-step starts where `shared` looked
         while True:
             going = np.flatnonzero(left > 0)
             if going.size == 0:
@@ -171,18 +186,30 @@ class GlobalInputModel:
             if self.n > 1:
                 gap = p[live][:, self._pair_second] - p[live][:, self._pair_first]
                 slack = np.hypot(gap[..., 0], gap[..., 1]) - self._reach  # (B, pairs)
-                room = self.workspace.clearance_lower_bound(p[live]) - self.radii
+                if first:
+                    room = shared.lower_bound[live] - self.radii
+                else:
+                    room = self.workspace.clearance_lower_bound(p[live]) - self.radii
                 walled = room < step[:, None]  # (B, n): a wall may stop or turn it
                 may_close = walled[:, self._pair_first] | walled[:, self._pair_second]
                 slack = np.min(np.where(may_close, slack, np.inf), axis=1)
                 step = np.minimum(step, np.maximum(self.substep_mm, 0.5 * slack))
             piece = direction[going] * step[:, None]
             before = p[live]
-            moved = self._wall_phase(
-                before.reshape(-1, 2),
-                np.repeat(piece, self.n, axis=0),
-                np.tile(self.radii, live.size),
-            ).reshape(-1, self.n, 2)
+            # Only agents a wall could reach in this piece need the events; the others translate.
+            moved = before + piece[:, None, :]
+            if self.n > 1:
+                rows, agents = np.nonzero(room < step[:, None] + _CONTACT_TOL)
+            else:
+                rows, agents = np.arange(live.size), np.zeros(live.size, dtype=np.intp)
+            if rows.size:
+                moved[rows, agents] = self._wall_phase(
+                    before[rows, agents],
+                    piece[rows],
+                    self.radii[agents],
+                    shared.surface_of(live[rows], agents) if first else None,
+                )
+            first = False
             if self.n > 1:
                 moved = self._pair_phase(moved, before, piece)
             p[live] = moved
@@ -191,8 +218,15 @@ class GlobalInputModel:
 
     # Walls: exact events
 
-    def _wall_phase(self, p: np.ndarray, d: np.ndarray, r: np.ndarray) -> np.ndarray:
-        """Move single agents p (M, 2) by d (M, 2) against the walls only; radii r (M,).
+    def _wall_phase(
+        self,
+        p: np.ndarray,
+        d: np.ndarray,
+        r: np.ndarray,
+        surface: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
+        """Move single agents p (M, 2) by d (M, 2) against the walls only; radii r (M,);
+        `surface`: the workspace's (clearance, normal, curvature) at p if already known.
 
         Each round, every agent with input left takes one step of its current mode (free flight,
         straight slide, slide round a circle) up to the next event, which is solved exactly and
@@ -211,7 +245,11 @@ class GlobalInputModel:
             if live.size == 0:
                 break
             pp, ss, uu, rr = p[live], progress[live], u[live], r[live]
-            phi, nrm, kap = ws.surface(pp)
+            if surface is not None:
+                phi, nrm, kap = (value[live] for value in surface)
+                surface = None
+            else:
+                phi, nrm, kap = ws.surface(pp)
             phi, nrm, kap, wedge = memory.recall(live, pp, phi, nrm, kap, rr)
             deep = phi < rr - _CONTACT_TOL
             if deep.any():  # started inside a wall (bad input or a grid's rounding): step out
@@ -340,7 +378,7 @@ class GlobalInputModel:
         step = np.where(head_on, s, step)
         end = _arc_point(centre, rho, alpha, half, step)
         end[head_on] = a[head_on]
-        end_phi, end_n, _ = ws.surface(end)
+        end_phi, end_n, end_k = ws.surface(end)
         used = step.copy()
         into = (end_phi < r - _CONTACT_TOL) & ~head_on
         if not ws.exact_geometry:
@@ -348,20 +386,45 @@ class GlobalInputModel:
             gentle = into & (np.sum(end_n * arc_n, axis=1) > _GRID_CORNER_COS)
             end[gentle] += (r[gentle] - end_phi[gentle])[:, None] * end_n[gentle]
             into &= ~gentle
-        if into.any():  # reached another surface on the way round: find where, by bisection
+        if into.any():  # reached another surface on the way round: find where
             sub = np.flatnonzero(into)
-            low, high = np.zeros(sub.size), step[sub].copy()
             args = (centre[sub], rho[sub], alpha[sub], half[sub])
-            for _ in range(30):
-                mid = 0.5 * (low + high)
-                ok = ws.clearance(_arc_point(*args, mid)) >= r[sub] - 1e-3 * _CONTACT_TOL
-                low = np.where(ok, mid, low)
-                high = np.where(ok, high, mid)
+            low, high = np.zeros(sub.size), step[sub].copy()
+            beyond = end[sub].copy()
+            beyond_n, beyond_k = end_n[sub].copy(), np.zeros(sub.size)
+            solved = np.zeros(sub.size, dtype=bool)
+            if ws.exact_geometry:
+                # Mostly the straight side that continues the corner's circle (a tangent): where
+                # the arc meets that line's level set is closed form; the result is checked.
+                line = np.flatnonzero(np.abs(end_k[sub]) < _FLAT_CURVATURE)
+                meet, found, short = _arc_meets_line(
+                    *(value[line] for value in args), step[sub[line]], end[sub[line]],
+                    end_phi[sub[line]], end_n[sub[line]], r[sub[line]],
+                )
+                line, meet, short = line[found], meet[found], short[found]
+                if line.size:
+                    at = _arc_point(*(value[line] for value in args), meet)
+                    # An arc that runs a hair (< the contact tolerance) inside the level r meets
+                    # its tangent line that much inside too: that is still a meeting.
+                    clear = ws.clearance(at) >= r[sub[line]] - 1e-3 * _CONTACT_TOL - short
+                    low[line[clear]] = meet[clear]
+                    solved[line[clear]] = True
+            rest = np.flatnonzero(~solved)
+            if rest.size:  # anything else: bisection on the arc
+                rest_args = tuple(value[rest] for value in args)
+                lo, hi = low[rest], high[rest]
+                for _ in range(30):
+                    mid = 0.5 * (lo + hi)
+                    at = _arc_point(*rest_args, mid)
+                    ok = ws.clearance(at) >= r[sub[rest]] - 1e-3 * _CONTACT_TOL
+                    lo = np.where(ok, mid, lo)
+                    hi = np.where(ok, hi, mid)
+                low[rest] = lo
+                beyond[rest] = _arc_point(*rest_args, hi)
+                _, beyond_n[rest], beyond_k[rest] = ws.surface(beyond[rest])
             used[sub] = low
             end[sub] = _arc_point(*args, low)
             memory.wedge(marks[sub], (end[sub] - centre[sub]) / rho[sub, None], k[sub])
-            beyond = _arc_point(*args, high)
-            _, beyond_n, beyond_k = ws.surface(beyond)
             memory.touch(marks[sub], beyond, beyond_n, beyond_k)
         return end, used
 
@@ -506,6 +569,32 @@ class GlobalInputModel:
         return p
 
 
+class _SharedLookup:
+    """The walls seen from configurations that several moves start from.
+
+    positions (P..., n, 2) mm broadcast against the batch shape `batch`: the clearance lower
+    bound and the surface (clearance, normal, curvature) are evaluated once per configuration
+    and spread over the batch, flattened to (B, n) (normal (B, n, 2)) like `_apply_flat`'s rows.
+    """
+
+    def __init__(self, workspace: Workspace, positions: np.ndarray, batch: tuple[int, ...]) -> None:
+        n = positions.shape[-2]
+
+        def spread(value: np.ndarray, tail: tuple[int, ...]) -> np.ndarray:
+            return np.broadcast_to(value, batch + (n,) + tail).reshape((-1, n) + tail)
+
+        self.lower_bound = spread(workspace.clearance_lower_bound(positions), ())
+        phi, normal, curvature = workspace.surface(positions)
+        self._phi, self._normal = spread(phi, ()), spread(normal, (2,))
+        self._curvature = spread(curvature, ())
+
+    def surface_of(
+        self, rows: np.ndarray, agents: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Clearance (M,), normal (M, 2), curvature (M,) of agent `agents` (M,) of row `rows` (M,)."""
+        return self._phi[rows, agents], self._normal[rows, agents], self._curvature[rows, agents]
+
+
 class _EventMemory:
     """What each agent (M of them) learned at its last event, used at its next look-up.
 
@@ -589,6 +678,47 @@ def _arc_point(
     lag = 2.0 * np.arctan(half * np.exp(-progress / rho))
     theta = alpha - lag
     return centre + rho[:, None] * np.stack([np.cos(theta), np.sin(theta)], axis=1)
+
+
+def _arc_meets_line(
+    centre: np.ndarray,
+    rho: np.ndarray,
+    alpha: np.ndarray,
+    half: np.ndarray,
+    step: np.ndarray,
+    ref: np.ndarray,
+    ref_phi: np.ndarray,
+    ref_n: np.ndarray,
+    r: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Input progress (M,) at which an agent sliding on a circle (see `_arc_point`) first reaches
+    clearance r on a straight surface seen at ref (M, 2) (clearance ref_phi, normal ref_n),
+    whether it does within [0, step], and by how much (mm, (M,), < `_CONTACT_TOL`) a circle that
+    stays just inside the level r misses it (it then meets the line where the two are tangent).
+
+    On the arc x = centre + rho e(theta) the line's clearance is
+    ref_phi + n . (centre - ref) + rho cos(theta - theta_n), so the crossing angles are
+    theta_n +- acos(q); a tangent line (q = 1 up to rounding) is met where the normals agree.
+    The angle gives the progress through lag = alpha - theta: s = -rho log(tan(lag / 2) / half).
+    """
+    offset = ref_phi + np.sum(ref_n * (centre - ref), axis=1)
+    q = (r - offset) / rho
+    short = np.where(q > 1.0, np.abs(r - offset - rho), 0.0)
+    found_level = short < _CONTACT_TOL
+    q = np.clip(q, -1.0, 1.0)
+    theta_n = np.arctan2(ref_n[:, 1], ref_n[:, 0])
+    spread = np.arccos(q)
+    best = np.full(len(centre), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for theta in (theta_n - spread, theta_n + spread):
+            lag = _wrap(alpha - theta)
+            ratio = np.tan(lag / 2.0) / half
+            s = -rho * np.log(ratio)
+            s = np.where(np.abs(s) < 1e-12 * np.maximum(step, 1.0), 0.0, s)
+            fits = (ratio > 0) & np.isfinite(s) & (s >= 0.0) & (s <= step)
+            best = np.where(fits & (s < best), s, best)
+    found = np.isfinite(best) & found_level
+    return np.where(found, best, 0.0), found, short
 
 
 def _clips_circle(

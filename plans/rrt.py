@@ -89,7 +89,10 @@ class RrtOptions:
         translation that best fits the remaining error (multiples of turn_mm when set); and from
         each node that sets the robots' relative positions better than any before (`offset_error`)
         descend first on that error, then on the distance.
-    batch_size: largest number of samples expanded per model call.
+    batch_size: largest number of samples expanded per model call; None: 4,096 for the plain
+        algorithm (larger batches cost less per node), 512 with `greedy` or `final_approach`,
+        whose descents react to new nodes between batches (with 4,096 they react too late:
+        18 / 20 instead of 20 / 20 seeds solved on environment 1).
     formation_bias: probability that a sample is the goal formation translated to a random place
         where every robot fits (the goal's relative positions anywhere: from there one
         translation reaches the goal).
@@ -107,7 +110,7 @@ class RrtOptions:
     goal_bias: float = 0.0
     greedy: bool = False
     final_approach: bool = False
-    batch_size: int = 512
+    batch_size: int | None = None
     nn_eps: float = 0.0
     formation_bias: float = 0.0
 
@@ -128,7 +131,7 @@ class RrtOptions:
             )
         if not self.nn_eps >= 0.0:
             raise PlanError(f"nn_eps must be >= 0, got {self.nn_eps}")
-        if self.batch_size < 1:
+        if self.batch_size is not None and self.batch_size < 1:
             raise PlanError(f"batch size must be >= 1, got {self.batch_size}")
         if self.turn_mm is not None:
             if not self.turn_mm > 0:
@@ -460,6 +463,9 @@ def plan_rrt(
     deadline = None if time_budget_s is None else started + time_budget_s
     search = _GoalSearch(model, tree, goal, options, deadline)
     tree_moves = options.tree_moves()
+    batch_cap = options.batch_size
+    if batch_cap is None:
+        batch_cap = 512 if options.greedy or options.final_approach else 4096
     next_report = started + progress_every_s
     search.consider(np.arange(len(tree)))
 
@@ -472,7 +478,7 @@ def plan_rrt(
             next_report = now + progress_every_s
         # Samples in a batch see the tree as it was when the batch began; the batch is at most
         # an eighth of the tree so that departs little from one-sample-at-a-time Alg. 1.
-        batch = min(options.batch_size, max(1, len(tree) // 8), options.max_nodes - len(tree))
+        batch = min(batch_cap, max(1, len(tree) // 8), options.max_nodes - len(tree))
         samples = _sample_configurations(model, radii, rng, batch)
         if options.goal_bias > 0.0 or options.formation_bias > 0.0:
             draw = rng.random(batch)

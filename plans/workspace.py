@@ -216,6 +216,7 @@ class ShapeWorkspace(Workspace):
         (outline,) = _families([boundary])
         self._terms: list[tuple[_Family, float]] = [(outline, -1.0)]
         self._terms += [(f, 1.0) for f in _families(list(obstacles))]
+        self._count = sum(family.count for family, _ in self._terms)
         low, high = outline.bounds()
         self._bounds = (float(low[0]), float(low[1]), float(high[0]), float(high[1]))
 
@@ -225,7 +226,12 @@ class ShapeWorkspace(Workspace):
 
     def _distances(self, flat: np.ndarray) -> np.ndarray:
         """(N, terms) clearance contributed by each shape: -distance for the boundary."""
-        return np.concatenate([sign * f.distance(flat) for f, sign in self._terms], axis=1)
+        result = np.empty((len(flat), self._count))
+        start = 0
+        for family, sign in self._terms:
+            np.multiply(family.distance(flat), sign, out=result[:, start : start + family.count])
+            start += family.count
+        return result
 
     def clearance(self, points: ArrayLike) -> np.ndarray:
         p = np.asarray(points, dtype=float)
@@ -324,23 +330,42 @@ class _Rects(_Family):
         return (self.centre - self.half).min(axis=0), (self.centre + self.half).max(axis=0)
 
     def distance(self, p: np.ndarray) -> np.ndarray:
-        qx = np.abs(p[:, :1] - self.centre[:, 0]) - self.half[:, 0]
-        qy = np.abs(p[:, 1:] - self.centre[:, 1]) - self.half[:, 1]
-        out = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))
-        return out + np.minimum(np.maximum(qx, qy), 0.0)
+        # In place where possible: the model calls this for every event round.
+        qx = np.subtract(p[:, :1], self.centre[:, 0])
+        np.abs(qx, out=qx)
+        qx -= self.half[:, 0]
+        qy = np.subtract(p[:, 1:], self.centre[:, 1])
+        np.abs(qy, out=qy)
+        qy -= self.half[:, 1]
+        inside = np.maximum(qx, qy)
+        np.minimum(inside, 0.0, out=inside)
+        np.maximum(qx, 0.0, out=qx)
+        np.maximum(qy, 0.0, out=qy)
+        # sqrt(x^2 + y^2) rather than hypot (several times slower): no overflow at these sizes,
+        # and sqrt(x^2) == |x| exactly, so distances to a side stay exact.
+        np.multiply(qx, qx, out=qx)
+        np.multiply(qy, qy, out=qy)
+        qx += qy
+        out = np.sqrt(qx, out=qx)
+        out += inside
+        return out
 
     def feature(self, p: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rel = p - self.centre[which]
         sign = np.where(rel >= 0, 1.0, -1.0)
         q = np.abs(rel) - self.half[which]
         qx, qy = q[:, 0], q[:, 1]
-        corner = (qx > 0) & (qy > 0)
-        out = np.where(corner, np.hypot(qx, qy), 1.0)
         x_side = qx >= qy
-        gx = np.where(corner, sign[:, 0] * qx / out, np.where(x_side, sign[:, 0], 0.0))
-        gy = np.where(corner, sign[:, 1] * qy / out, np.where(x_side, 0.0, sign[:, 1]))
-        kappa = np.where(corner, np.minimum(1.0 / out, _MAX_CURVATURE), 0.0)
-        return np.stack([gx, gy], axis=1), kappa
+        normal = np.zeros_like(rel)
+        normal[:, 0] = np.where(x_side, sign[:, 0], 0.0)
+        normal[:, 1] = np.where(x_side, 0.0, sign[:, 1])
+        kappa = np.zeros(len(p))
+        corner = np.flatnonzero((qx > 0) & (qy > 0))
+        if corner.size:  # outside a corner: the level set is a circle round it
+            out = np.hypot(qx[corner], qy[corner])
+            normal[corner] = sign[corner] * q[corner] / out[:, None]
+            kappa[corner] = np.minimum(1.0 / out, _MAX_CURVATURE)
+        return normal, kappa
 
     def primitive(self, p: np.ndarray, which: np.ndarray) -> np.ndarray:
         centre, half = self.centre[which], self.half[which]

@@ -132,8 +132,9 @@ class PlanRuns:
     def prepare(self, plan, rig, *, runs_dir, on_cycle, on_state) -> RunLike:
         from rigctl.execute import Run
 
+        # closed loop whenever the rig has a camera, as `rigctl execute` does
         return Run(plan, rig, runs_dir=runs_dir, progress_out=None, on_cycle=on_cycle,
-                   on_state=on_state)
+                   on_state=on_state, closed_loop=rig.camera is not None)
 
 
 @dataclass(frozen=True)

@@ -274,3 +274,58 @@ def test_crowds_never_overlap_or_enter_walls(contact):
         angle = rng.uniform(0, 2 * np.pi, len(states))
         states = model.apply(states, 100.0 * np.stack([np.cos(angle), np.sin(angle)], axis=1))
         assert np.all(model.is_free(states))
+
+
+def test_sliding_round_a_corner_onto_its_side_matches_brute_force():
+    # The agent meets the circle round the L's corner (150, 250), slides round it and goes on
+    # down the L's left side: it must end on that side (x = 150 - 8) where brute force puts it.
+    model = GlobalInputModel(env1(), [8.0])
+    start = np.array([136.0, 262.0])
+    move = 30.0 * np.array([math.sin(math.radians(22.5)), -math.cos(math.radians(22.5))])
+    end = model.apply(start[None], move)[0]
+    reference = brute_force_slide(nearest_on_box(150, 150, 175, 250), start, move, 8.0)
+    np.testing.assert_allclose(end, reference, atol=1e-5)
+    assert end[0] == pytest.approx(142.0, abs=1e-9)
+
+
+def test_agents_a_hair_inside_contact_compose_round_corners():
+    # Agents left up to 5e-8 mm inside their contact level (as event solving leaves them) that
+    # slide round the L's corners onto the straight sides: the closed-form meeting of an arc
+    # with the side must give the same end as the same move applied in 20 pieces.
+    model = GlobalInputModel(env1(), [5.0])
+    rng = np.random.default_rng(11)
+    corners = np.array([[150.0, 150.0], [150.0, 250.0], [175.0, 250.0], [275.0, 175.0], [275.0, 150.0]])
+    count = 600
+    which = rng.integers(0, len(corners), count)
+    theta = rng.uniform(0, 2 * np.pi, count)
+    radius = 5.0 - rng.uniform(0.0, 5e-8, count)
+    start = corners[which] + radius[:, None] * np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    start = start[env1().clearance(start) > 5.0 - 1e-7][:, None, :]
+    angle = rng.integers(0, 16, len(start)) * (2 * np.pi / 16)
+    moves = 5.0 * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    whole = model.apply(start, moves)
+    pieces = start
+    for _ in range(20):
+        pieces = model.apply(pieces, moves / 20)
+    np.testing.assert_allclose(pieces, whole, atol=1e-6)
+    assert np.all(env1().clearance(whole) >= 5.0 - 1e-7)
+
+
+def test_k_moves_from_each_node_match_single_calls():
+    # The planner's call shape, (b, 1, n, 2) against (1, k, 2), looks the walls up once per node
+    # and sends only the agents a wall can reach through the events; the second method applies
+    # each (configuration, move) on its own.
+    model = GlobalInputModel(env1(), [5.0, 5.0])
+    rng = np.random.default_rng(7)
+    first = env1().sample_free(rng, 400, 5.0)
+    near = first[env1().clearance(first) < 12.0][:40]  # mostly within reach of a wall
+    second = near + rng.choice([-1.0, 1.0], (len(near), 2)) * rng.uniform(10.5, 20.0, (len(near), 2))
+    nodes = np.stack([near, second], axis=1)
+    nodes = nodes[model.is_free(nodes)]
+    angle = np.arange(16) * (2 * np.pi / 16)
+    moves = 5.0 * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    together = model.apply(nodes[:, None], moves[None, :])
+    assert together.shape == (len(nodes), 16, 2, 2)
+    for i, node in enumerate(nodes):
+        for j, move in enumerate(moves):
+            np.testing.assert_allclose(together[i, j], model.apply(node, move), atol=1e-12)

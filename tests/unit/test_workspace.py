@@ -181,3 +181,25 @@ def test_grid_query_cost_does_not_grow_with_obstacle_pixels():
             ws.surface(points)
         costs.append(time.perf_counter() - start)
     assert costs[1] < 3 * costs[0]
+
+
+def test_rect_clearance_in_free_space_matches_dense_boundary_samples():
+    # Second method: the distance to the nearest of points laid 0.01 mm apart along every side
+    # of every rect (the boundary included); it overestimates by at most 0.005 mm.
+    ws = env1()
+    rects = [(0, 0, 400, 400), (0, 0, 400, 50), (0, 350, 400, 50), (0, 0, 50, 400),
+             (350, 0, 50, 400), (175, 150, 100, 25), (150, 150, 25, 100)]
+    samples = []
+    for x, y, w, h in rects:
+        for (ax, ay), (bx, by) in [((x, y), (x + w, y)), ((x + w, y), (x + w, y + h)),
+                                   ((x + w, y + h), (x, y + h)), ((x, y + h), (x, y))]:
+            t = np.linspace(0.0, 1.0, int(math.hypot(bx - ax, by - ay) / 0.01) + 1)
+            samples.append(np.stack([ax + t * (bx - ax), ay + t * (by - ay)], axis=1))
+    samples = np.concatenate(samples)
+    rng = np.random.default_rng(3)
+    points = rng.uniform(50, 350, (300, 2))
+    points = points[ws.clearance(points) > 0][:60]
+    nearest = np.array([np.min(np.hypot(*(samples - p).T)) for p in points])
+    clearance = ws.clearance(points)
+    assert np.all(clearance <= nearest + 1e-12)
+    assert np.all(clearance >= nearest - 0.005)
