@@ -50,7 +50,7 @@ def back_and_forth_plan(moves: int) -> dict:
 
 
 def start_daemon(rig_path: Path, runs: Path, log_path: Path) -> tuple[subprocess.Popen, dict]:
-    cmd = [sys.executable, "-m", "rigctl.cli_daemon", "daemon", "--rig", str(rig_path), "--runs", str(runs),
+    cmd = [sys.executable, "-m", "rigctl", "daemon", "--rig", str(rig_path), "--runs", str(runs),
            "--command", "tcp://127.0.0.1:0", "--telemetry", "tcp://127.0.0.1:0",
            "--events", "tcp://127.0.0.1:0"]
     log = open(log_path, "w")
@@ -170,7 +170,10 @@ def main() -> None:
         tmp = Path(tmp)
         with EmulatedBenchProcess("six-coil", tmp / "bench.toml") as rig_path:
             rig = load_rig(rig_path)
-            fast = rig.model_copy(update={"stream": rig.stream.model_copy(update={"rate_hz": RATE_HZ})})
+            # open loop (no camera): this measures the daemon itself; the camera loop's own
+            # latency is bench/tracker.py's
+            fast = rig.model_copy(update={
+                "stream": rig.stream.model_copy(update={"rate_hz": RATE_HZ}), "camera": None})
             (tmp / "rig-1khz.toml").write_text(dump_rig(fast))
             runs = tmp / "runs"
             proc, endpoints = start_daemon(tmp / "rig-1khz.toml", runs, tmp / "daemon.log")

@@ -162,6 +162,9 @@ class Sequencer:
         self._last = np.zeros(self.program.shape[1])
         self.paused = False
         self.aborted = False
+        # Called after a hold is released so the next sample leaves at once (the stream loop's
+        # `wake`); a no-op until a loop is attached.
+        self.wake: Callable[[], None] = lambda: None
 
     def request_pause(self, immediate: bool = False) -> None:
         with self._lock:
@@ -379,6 +382,7 @@ class Run:
         assert record is not None
         record.open_stream(supplies.names, rate_hz=self.rig.stream.rate_hz)
         loop = self.stream_loop = StreamLoop(self.rig.stream.rate_hz)
+        sequencer.wake = loop.wake
         progress = Progress(self.progress_out, len(self.plan.moves), self.field_program.duration_s)
         t_s = self.currents.t_s
 

@@ -12,6 +12,7 @@ The loop owns timing only; what a cycle does (send currents, read them back) is 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -62,10 +63,19 @@ class StreamLoop:
         self.period_s = 1.0 / self.rate_hz
         self.late_fraction = late_fraction
         self._errors: np.ndarray = np.zeros(0)
+        self._wake = threading.Event()
         self._count = 0
         self._late = 0
         self._overruns = 0
         self.last_error_s: float | None = None  # the period error of the cycle now running
+
+    def wake(self) -> None:
+        """Run the next cycle now instead of at its due time, and keep the schedule from there.
+
+        For a caller that was holding the outputs constant (a run waiting at the end of a move for
+        the camera's verdict): moving the phase of a constant hold changes nothing physical, and
+        the next command leaves up to a period sooner. Thread-safe."""
+        self._wake.set()
 
     def run(self, cycle: Callable[[int], bool | None], max_cycles: int | None = None) -> StreamStats:
         """Run until `cycle` returns False (or `max_cycles` cycles ran)."""
@@ -79,8 +89,12 @@ class StreamLoop:
                 self._errors = np.resize(self._errors, 2 * len(self._errors))
             due = t0 + k * self.period_s
             wait = due - time.perf_counter()
-            if wait > 0:
-                time.sleep(wait)
+            if wait > 0 and self._wake.wait(wait):
+                # woken early: this cycle is due now, and the schedule moves with it
+                now = time.perf_counter()
+                t0 -= due - now
+                due = now
+            self._wake.clear()
             start = time.perf_counter()
             error = start - due
             self._errors[k] = error

@@ -239,6 +239,7 @@ class SupervisedSequencer(Sequencer):
             self.waiting_at = None
             self.arrived.clear()
             self._mark = decision
+        self.wake()
 
     def splice(self, new: CurrentProgram, new_move_ends: list[int], decision: int | None = None
                ) -> int:
@@ -256,7 +257,8 @@ class SupervisedSequencer(Sequencer):
             self.waiting_at = None
             self.arrived.clear()
             self._mark = decision
-            return k
+        self.wake()
+        return k
 
     def hold(self) -> None:
         """Hold the present setpoints now, mid-move if need be (the field stops turning)."""

@@ -24,13 +24,8 @@ EXAMPLES = ROOT / "plans" / "examples"
 
 
 def rigctl_cmd() -> list[str]:
-    """`rigctl` itself once the integrator registers the daemon verbs, else the same verbs alone."""
-    from rigctl.cli import build_parser
-
-    sub = next(a for a in build_parser()._actions if a.dest == "command")
-    if "daemon" in sub.choices:
-        return [sys.executable, "-m", "rigctl"]
-    return [sys.executable, "-m", "rigctl.cli_daemon"]
+    """The `rigctl` command, as a user runs it."""
+    return [sys.executable, "-m", "rigctl"]
 
 
 class DaemonProcess:
