@@ -279,9 +279,13 @@ class Run:
         self.sequencer.request_abort()
 
     def estop(self) -> None:
-        """Drop every output now: the stream thread zeroes the supplies at its next cycle."""
+        """Drop every output now: the stream thread is woken (it does not wait for the next due
+        time) and zeroes the supplies; a cycle already under way finishes first."""
         self._estop_at = time.monotonic()
         self._estop.set()
+        loop = self.stream_loop
+        if loop is not None:
+            loop.wake()
 
     def _set_state(self, state: RunState, **info: object) -> None:
         if state == self.state:

@@ -18,7 +18,9 @@ would, so watchdog paths can be tested without waiting.
 
 from __future__ import annotations
 
+import time
 from collections import deque
+from collections.abc import Callable
 
 from rigctl.errors import DeviceTimeout, Disconnected, ProtocolError
 
@@ -127,3 +129,15 @@ class ScriptedTransport:
             raise AssertionError(f"reply bytes never read: {bytes(self._readable)!r}")
         if self._pending_error is not None:
             raise AssertionError(f"scripted error never raised: {self._pending_error!r}")
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float = 20.0, what: str = "condition") -> None:
+    """Wait until `condition()` is true, checking every 10 ms; AssertionError naming `what` after
+    `timeout_s`. For tests that wait on a state (a record growing, a current decaying), never on
+    a fixed sleep."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"timed out waiting for {what}")

@@ -23,6 +23,7 @@ from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.execute import Run, execute_plan
 from rigctl.plans.schema import load_plan
 from rigctl.supervisor import SupervisorSettings
+from rigctl.testing import wait_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 QUICK = EXAMPLES / "fig4-quick.json"
@@ -79,15 +80,6 @@ def test_closed_loop_reaches_the_goals_that_open_loop_misses(mismatched_bench, t
     assert replans[0]["reason"] == "off the plan" and max(replans[0]["error_mm"]) > 5.0
     summary = json.loads((Path(closed.run) / "summary.json").read_text())
     assert summary["replans"] == closed.replans and "lost_frames" in summary["tracking"]
-
-
-def wait_for(condition, timeout_s=20.0, what="condition"):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return
-        time.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def test_a_frozen_camera_suspends_the_run_with_the_field_held_and_it_resumes(tmp_path):

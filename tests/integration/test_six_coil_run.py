@@ -3,7 +3,6 @@ the safety paths (limit refusal before anything opens, a supply's link pulled mi
 
 import json
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ from rigctl.emulators.bench import SixCoilBench
 from rigctl.errors import LimitError
 from rigctl.execute import execute_plan, prepare
 from rigctl.plans.schema import load_plan
+from rigctl.testing import wait_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 QUICK = EXAMPLES / "fig4-quick.json"
@@ -25,15 +25,6 @@ LONG = EXAMPLES / "fig4-two-magnets.json"
 def bench():
     with SixCoilBench() as b:
         yield b
-
-
-def wait_for(condition, timeout_s=20.0, what="condition"):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return
-        time.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def test_a_plan_needing_25_A_is_refused_before_anything_is_energised(bench):
