@@ -99,8 +99,13 @@ class Progress:
             return
         new_move = move != self._last_move
         self._last_move, self._last_draw = move, now
-        what = f"move {move + 1}/{self.n_moves}" if move >= 0 else "ramp/hold"
-        line = f"  {what:<14} {t_s:6.1f} s / {self.duration_s:.1f} s"
+        if move < 0:
+            what = "ramp/hold"
+        elif move < self.n_moves:
+            what = f"move {move + 1}/{self.n_moves}"
+        else:  # moves the closed loop spliced in after re-planning
+            what = f"correction {move + 1 - self.n_moves}"
+        line = f"  {what:<14} {t_s:6.1f} s / {self.duration_s:.1f} s planned"
         if self.tty:
             self.out.write("\r" + line.ljust(50))
             self.out.flush()
