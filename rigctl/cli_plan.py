@@ -2,7 +2,9 @@
 
 `rigctl plan rrt` grows the global-input RRT (seed 000) from the robots' starts toward their goals
 and writes a `global-moves` plan whose `expected` states come from the exact workspace model;
-`rigctl plan coverage` measures how much of the configuration-space grid a saved tree covers.
+`rigctl plan coverage` measures how much of the configuration-space grid a saved tree covers;
+`rigctl plan wall-contact` places two particles on a coil board with seed 004's planner and
+`rigctl plan reachable` measures how much of its Delta configuration space M moves reach.
 
 With --raster MM the RRT plans on a raster of the workspace (a clearance query then costs the same
 whatever the shapes are) and replays the moves on the exact geometry afterwards; if the replay ends
@@ -38,10 +40,13 @@ EXIT_SOLVED, EXIT_NOT_SOLVED, EXIT_BAD_INPUT = 0, 1, 2
 DEFAULT_ROBOSTEP_MM = 5.0
 DEFAULT_RADIUS_MM = 5.0
 DEFAULT_RASTER_MM = 0.0
+DEFAULT_PARTICLE_RADIUS_MM = 0.5
+DEFAULT_EPSILON_MM = 0.01
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add `plan rrt` and `plan coverage` to the top-level subparsers; each sets func(args)->int."""
+    """Add `plan rrt`, `plan coverage`, `plan wall-contact` and `plan reachable` to the top-level
+    subparsers; each sets func(args)->int."""
     plan = subparsers.add_parser(
         "plan", help="write plans with a planner (rrt) or measure a tree (coverage)",
         description="Planners that write plans, and tools to inspect what they built.",
@@ -122,6 +127,57 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--grid", required=True, type=float, metavar="G", help="hypercube edge in mm")
     p.add_argument("--json", action="store_true", help="end the output with one JSON line")
     p.set_defaults(func=run_coverage)
+
+    p = planners.add_parser(
+        "wall-contact",
+        help="two particles, one shared input, non-slip walls (seed 004 Alg. 1-3)",
+        description="Place two particles with the same pulling input by pinning one against a "
+        "non-slip wall while the other moves (seed 004). The workspace boundary must be a convex "
+        "polygon, a rect or a disk, without obstacles. Writes a coil-board global-moves plan whose "
+        "expected states come from the non-slip model. Exit 0 solved, 1 not solved (plan still "
+        "written), 2 bad input.",
+    )
+    p.add_argument("--workspace", required=True, metavar="WS.json",
+                   help="workspace document with a convex boundary, or a plan whose workspace to use")
+    p.add_argument("--start", action="append", required=True, metavar="X,Y",
+                   help="a particle's start in mm; twice")
+    p.add_argument("--goal", action="append", required=True, metavar="X,Y",
+                   help="a particle's goal in mm; twice, same order as --start")
+    p.add_argument("--radius", type=float, default=DEFAULT_PARTICLE_RADIUS_MM, metavar="R",
+                   help=f"particle radius in mm (default {DEFAULT_PARTICLE_RADIUS_MM:g}: the paper's "
+                   "1 mm spheres)")
+    p.add_argument("--epsilon", type=float, default=DEFAULT_EPSILON_MM, metavar="E",
+                   help=f"both particles must end within E mm of their goals (default "
+                   f"{DEFAULT_EPSILON_MM:g})")
+    p.add_argument("--interchangeable", action="store_true",
+                   help="the particles are alike: also try the swapped goals, keep the shorter path")
+    p.add_argument("-o", "--output", required=True, metavar="PLAN.json", help="plan file to write")
+    p.add_argument("--json", action="store_true",
+                   help='end the output with {"solved", "moves", "length", "seconds"}')
+    p.set_defaults(func=run_wall_contact)
+
+    p = planners.add_parser(
+        "reachable",
+        help="fraction of the Delta configuration space reachable in M moves (seed 004 Fig. 8-9)",
+        description="Point particles a distance D apart (D in units of the workspace diameter, "
+        "as in the paper): the share of all relative positions reachable within M moves (even), "
+        "on a grid of the Delta configuration space (the paper's numeric method likewise "
+        "underestimates). Exit 0, 2 bad input.",
+    )
+    shape = p.add_mutually_exclusive_group(required=True)
+    shape.add_argument("--disk", action="store_true", help="a disk workspace")
+    shape.add_argument("--polygon", metavar="X,Y;X,Y;...",
+                       help="a convex polygon workspace given by its vertices")
+    shape.add_argument("--workspace", metavar="WS.json", help="a workspace document (convex)")
+    p.add_argument("--d12", type=float, required=True, metavar="D",
+                   help="initial particle distance in units of the workspace diameter")
+    p.add_argument("--angle", type=float, default=0.0, metavar="DEG",
+                   help="direction of p2 - p1 in degrees (default 0; a disk does not care)")
+    p.add_argument("--moves", type=int, required=True, metavar="M", help="number of moves (even)")
+    p.add_argument("--cells", type=int, default=121, metavar="N",
+                   help="grid points per axis of the Delta space (default 121)")
+    p.add_argument("--json", action="store_true", help='end the output with {"fraction": f}')
+    p.set_defaults(func=run_reachable)
 
 
 # ---------------------------------------------------------------- workspace documents
@@ -417,4 +473,94 @@ def run_coverage(args: argparse.Namespace) -> int:
                           "total": result.total, "nodes": len(tree), "grid_mm": args.grid,
                           "box": list(result.box),
                           "cells_per_robot": list(result.cells_per_robot)}))
+    return EXIT_SOLVED
+
+
+# ---------------------------------------------------------------- plan wall-contact
+
+
+def run_wall_contact(args: argparse.Namespace) -> int:
+    """`rigctl plan wall-contact`: Alg. 1 of seed 004, the plan written. Returns the exit status."""
+    from rigctl.plans.model import GlobalInputModel
+    from rigctl.plans.wall_contact import centre_region, plan_with_model
+
+    source = _WorkspaceSource(args.workspace)
+    document = source.document
+    if "boundary" not in document:
+        raise PlanError("--workspace: the wall-contact planner needs a shape boundary, not an image")
+    if document.get("obstacles"):
+        raise PlanError("--workspace: the wall-contact planner works in convex workspaces without "
+                        "obstacles")
+    starts = _points(args.start, "--start")
+    goals = _points(args.goal, "--goal")
+    if len(starts) != 2 or len(goals) != 2:
+        raise PlanError(f"--start/--goal: the planner places exactly two particles, got "
+                        f"{len(starts)} starts and {len(goals)} goals")
+    if not args.radius > 0:
+        raise PlanError(f"--radius: must be > 0 mm, got {args.radius:g}")
+    if not args.epsilon > 0:
+        raise PlanError(f"--epsilon: must be > 0 mm, got {args.epsilon:g}")
+    output = Path(args.output)
+    if not output.resolve().parent.is_dir():
+        raise PlanError(f"-o: folder {output.resolve().parent} does not exist")
+    radii = np.full(2, args.radius)
+    region = centre_region(document["boundary"], args.radius)
+    exact = source.workspace()
+    _check_configuration(exact, starts, radii, 0.0, "--start")
+    _check_configuration(exact, goals, radii, 0.0, "--goal")
+
+    started = time.perf_counter()
+    model = GlobalInputModel(exact, radii, "non-slip")
+    result, chosen, _ = plan_with_model(
+        model, region, starts, goals, args.epsilon, interchangeable=args.interchangeable
+    )
+    seconds = time.perf_counter() - started
+    swapped = args.interchangeable and not np.array_equal(chosen, goals)
+    verdict = "solved" if result.solved else "NOT SOLVED"
+    name = (f"wall-contact: {verdict}, {len(result.moves)} moves, {result.length:.3f} mm, "
+            f"ends {result.error:.3g} mm from the goal" + (", goals swapped" if swapped else ""))
+    _write_plan(output, source, "coil-board", name, starts, chosen, radii, result.moves,
+                result.states, args.epsilon, 0.0)
+    print(f"wall-contact: {verdict}: {len(result.moves)} moves, path {result.length:.3f} mm, "
+          f"{result.error:.3g} mm from the goal, {seconds * 1e3:.1f} ms -> {output}",
+          file=sys.stderr)
+    if args.json:
+        print(json.dumps({"solved": result.solved, "moves": len(result.moves),
+                          "length": round(result.length, 6), "seconds": round(seconds, 6)}))
+    return EXIT_SOLVED if result.solved else EXIT_NOT_SOLVED
+
+
+# ---------------------------------------------------------------- plan reachable
+
+
+def run_reachable(args: argparse.Namespace) -> int:
+    """`rigctl plan reachable`: reachable fractions of the Delta space. Returns the exit status."""
+    from rigctl.plans.wall_contact import DiskRegion, PolygonRegion, centre_region, reachable_fraction
+
+    if args.disk:
+        region = DiskRegion(np.zeros(2), 0.5)
+    elif args.polygon:
+        vertices = _points([v for v in args.polygon.split(";") if v.strip()], "--polygon")
+        if len(vertices) < 3:
+            raise PlanError("--polygon: give at least three vertices X,Y;X,Y;X,Y")
+        region = PolygonRegion(vertices)
+    else:
+        source = _WorkspaceSource(args.workspace)
+        if "boundary" not in source.document or source.document.get("obstacles"):
+            raise PlanError("--workspace: needs a convex shape boundary without obstacles")
+        region = centre_region(source.document["boundary"], 0.0)
+    if not 0.0 < args.d12 <= 1.0:
+        raise PlanError(f"--d12: must be in (0, 1] (units of the workspace diameter), got {args.d12:g}")
+    if not args.cells >= 11:
+        raise PlanError(f"--cells: must be >= 11, got {args.cells}")
+    angle = math.radians(args.angle)
+    start = args.d12 * region.size * np.array([math.cos(angle), math.sin(angle)])
+    started = time.perf_counter()
+    fractions = reachable_fraction(region, start, args.moves, cells=args.cells)
+    seconds = time.perf_counter() - started
+    table = ", ".join(f"{2 * (i + 1)}: {100 * f:.1f} %" for i, f in enumerate(fractions))
+    print(f"reachable: d12 {args.d12:g}: {table} ({args.cells} x {args.cells} grid, "
+          f"{seconds:.2f} s)", file=sys.stderr)
+    if args.json:
+        print(json.dumps({"fraction": round(fractions[-1], 6)}))
     return EXIT_SOLVED
