@@ -104,7 +104,7 @@ def test_sigterm_mid_run_ramps_down_and_exits_0(daemon, bench):
         rig.wait_state("running")
         deadline = time.monotonic() + 10
         while max(abs(a) for a in bench_currents(bench).values()) < 1.0:
-            assert time.monotonic() < deadline
+            assert time.monotonic() < deadline, "no Parquet part within 60 s"
     daemon.proc.send_signal(signal.SIGTERM)
     assert daemon.proc.wait(timeout=20) == 0
     # ramped to zero before the outputs went off: at most the last step of the ramp is left to
@@ -120,12 +120,12 @@ def test_a_crash_mid_run_leaves_a_readable_record_and_a_report(daemon, bench, tm
     with Rig(daemon.endpoints["command"]) as rig:
         rig.execute(rig.load(json.loads((EXAMPLES / "fig4-two-magnets.json").read_text())))
         rig.wait_state("running")
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + 60  # generous: CI shares 2 cores
         while True:  # past the first Parquet part (5 s of cycles), then crash
             run = rig.status()["run"]
             if run and run["sample"] > 0 and list((tmp_path / "runs").glob("*/stream/part-*")):
                 break
-            assert time.monotonic() < deadline
+            assert time.monotonic() < deadline, "no Parquet part within 60 s"
             time.sleep(0.05)
     daemon.proc.kill()  # no ramp, no summary: a crash
     daemon.proc.wait()
