@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import select
 import subprocess
 import sys
 import time
@@ -44,7 +45,11 @@ class EmulatedBenchProcess:
         )
         deadline = time.monotonic() + self.start_timeout_s
         assert self.proc.stdout is not None
-        while time.monotonic() < deadline:
+        while True:
+            # wait for a line with a deadline: a child that hangs silently must not hang us
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([self.proc.stdout], [], [], remaining)[0]:
+                break
             line = self.proc.stdout.readline()
             if not line:
                 break  # the child exited
