@@ -41,7 +41,7 @@ from rigctl.errors import PlanError
 log = logging.getLogger(__name__)
 
 SCHEMA_ID = "rigctl.plan/1"
-RigName = Literal["six-coil", "coil-board"]
+RigName = Literal["six-coil", "coil-board"]  # rigs that run global-moves plans
 Contact = Literal["slide", "non-slip"]
 
 Point = tuple[float, float]
@@ -155,25 +155,11 @@ class Agent(_Document):
     radius: PositiveLength
 
 
-class GlobalMovesPlan(_Document):
-    """Every agent receives the same displacements `moves` in turn (seed 000, seed 004)."""
+class _PlanDocument(_Document):
+    """What every plan kind shares: the format id, a name, and where the document came from."""
 
     schema_: Literal["rigctl.plan/1"] = Field(alias="schema")
-    kind: Literal["global-moves"]
-    rig: RigName
     name: str | None = None
-    workspace: WorkspaceSpec
-    agents: list[Agent] = Field(min_length=1)
-    moves: list[Point] = Field(description="shared displacements [dx, dy] (mm), applied in order")
-    expected: list[list[Point]] | None = Field(
-        default=None, description="expected[i][j]: agent j's position after move i (mm)"
-    )
-    tolerance_mm: PositiveLength = Field(
-        default=1.0, description="how far a measured agent may be from expected before correcting"
-    )
-    min_separation_mm: Annotated[float, Field(ge=0)] = Field(
-        default=0.0, description="agents keep centre distance >= r_i + r_j + this (planner option)"
-    )
 
     model_config = ConfigDict(populate_by_name=True)
 
@@ -190,15 +176,61 @@ class GlobalMovesPlan(_Document):
         return self._base_dir
 
 
+class GlobalMovesPlan(_PlanDocument):
+    """Every agent receives the same displacements `moves` in turn (seed 000, seed 004)."""
+
+    kind: Literal["global-moves"]
+    rig: RigName
+    name: str | None = None
+    workspace: WorkspaceSpec
+    agents: list[Agent] = Field(min_length=1)
+    moves: list[Point] = Field(description="shared displacements [dx, dy] (mm), applied in order")
+    expected: list[list[Point]] | None = Field(
+        default=None, description="expected[i][j]: agent j's position after move i (mm)"
+    )
+    tolerance_mm: PositiveLength = Field(
+        default=1.0, description="how far a measured agent may be from expected before correcting"
+    )
+    min_separation_mm: Annotated[float, Field(ge=0)] = Field(
+        default=0.0, description="agents keep centre distance >= r_i + r_j + this (planner option)"
+    )
+
+
+# Kind: field-sequence (seed 003, rig depm). Its fields and their checks belong to the DEPM planner
+# (rigctl.plans.depm); `check_plan` calls that module's `check(plan)`.
+
+
+class FieldSequencePlan(_PlanDocument):
+    """A sequence of requested field/gradient 8-vectors U and the arm trajectories that make them."""
+
+    kind: Literal["field-sequence"]
+    rig: Literal["depm"]
+
+
+# Kind: pair-formation (seed 002, rig six-coil). Its fields and their checks belong to the pair
+# planner (rigctl.plans.pair); `check_plan` calls that module's `check(plan)`.
+
+
+class PairFormationPlan(_PlanDocument):
+    """Two interacting agents steered by the field angle psi and a pulling gradient."""
+
+    kind: Literal["pair-formation"]
+    rig: Literal["six-coil"]
+
+
 def _plan_tag(value: Any) -> str | None:
     kind = value.get("kind") if isinstance(value, dict) else getattr(value, "kind", None)
     return f"plan:{kind}" if isinstance(kind, str) else None
 
 
-PLAN_KINDS = ("global-moves",)
+PLAN_KINDS = ("global-moves", "field-sequence", "pair-formation")
 
 Plan = Annotated[
-    Union[Annotated[GlobalMovesPlan, Tag("plan:global-moves")]],
+    Union[
+        Annotated[GlobalMovesPlan, Tag("plan:global-moves")],
+        Annotated[FieldSequencePlan, Tag("plan:field-sequence")],
+        Annotated[PairFormationPlan, Tag("plan:pair-formation")],
+    ],
     Discriminator(
         _plan_tag,
         custom_error_type="plan_kind",
@@ -425,7 +457,10 @@ def plan_model(plan: GlobalMovesPlan, workspace=None):
 
 
 def simulate(plan: GlobalMovesPlan) -> GlobalMovesPlan:
-    """A copy of the plan with `expected` filled in by the global-input model."""
+    """A copy of the plan with `expected` filled in by the global-input model (other kinds: by
+    their own planner's model)."""
+    if plan.kind != "global-moves":
+        return _kind_module(plan).simulate(plan)
     model = plan_model(plan)
     start = np.array([agent.start for agent in plan.agents], dtype=float)
     states = model.rollout(start, np.array(plan.moves, dtype=float).reshape(-1, 2))
@@ -440,8 +475,11 @@ def check_plan(plan: GlobalMovesPlan) -> None:
 
     Starts and goals lie in free space (at least the agent's radius from every surface), agents do
     not overlap at start or at goal, `expected` has one entry per move with one position per agent,
-    and replaying the moves through the model reproduces `expected` within 1e-6 mm.
+    and replaying the moves through the model reproduces `expected` within 1e-6 mm. Other kinds
+    are checked by their own planner's module (`_kind_module(plan).check`).
     """
+    if plan.kind != "global-moves":
+        return _kind_module(plan).check(plan)
     source = plan.source
     workspace = plan_workspace(plan)
     model = plan_model(plan, workspace)
@@ -491,3 +529,10 @@ def check_plan(plan: GlobalMovesPlan) -> None:
             f"({got[0]:.6f}, {got[1]:.6f}) after move {move}, {error[move, agent]:.3g} mm from "
             "expected"
         )
+
+
+def _kind_module(plan):
+    """The planner module that owns a plan kind's semantics (`check`, `simulate`)."""
+    import importlib
+
+    return importlib.import_module({"field-sequence": "rigctl.plans.depm", "pair-formation": "rigctl.plans.pair"}[plan.kind])

@@ -80,9 +80,12 @@ def test_obstacles_are_optional_and_the_disk_can_be_the_boundary():
 
 
 def test_kind_selects_the_document_type():
-    assert problem(plan_data(kind="pair-formation")) == (
-        'plan.json: kind: expected one of global-moves, got "pair-formation"'
+    assert problem(plan_data(kind="pair-wise")) == (
+        'plan.json: kind: expected one of global-moves, field-sequence, pair-formation, '
+        'got "pair-wise"'
     )
+    # A known kind validates its own fields: a global-moves document is not a pair-formation one.
+    assert "workspace: Extra inputs are not permitted" in problem(plan_data(kind="pair-formation"))
     assert "kind" in problem({k: v for k, v in plan_data().items() if k != "kind"})
 
 
