@@ -1,0 +1,1 @@
+"""Emulated Hall-sensor board of the dual-permanent-magnet rig (seed 003)."""

@@ -1,0 +1,1 @@
+"""Emulated KUKA LBR arm: the robot side of the KUKA Sunrise Toolbox TCP protocol (seed 003 rig)."""
