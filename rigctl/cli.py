@@ -8,6 +8,7 @@ a limit the plan would break; nothing was energised), 3 a device fault stopped t
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import logging
 import os
@@ -37,6 +38,10 @@ def _cmd_execute(args: argparse.Namespace) -> int:
     from rigctl.plans.schema import load_plan
 
     plan = load_plan(args.plan)
+    runner = _RUNNERS.get((plan.kind, plan.rig))
+    if runner is not None:
+        # Rigs and plan kinds with their own execution: same flags, summary and exit codes.
+        return importlib.import_module(runner).execute_cli(plan, args)
     out = sys.stderr if not args.quiet else None
     closed_loop = False if args.open_loop else None  # None: whenever the rig has a camera
     if args.rig is not None:
@@ -64,6 +69,19 @@ def _cmd_execute(args: argparse.Namespace) -> int:
         return EXIT_FAULT
     return EXIT_OK if summary.reached else EXIT_NOT_REACHED
 
+
+# (plan kind, rig kind) -> the module whose `execute_cli(plan, args) -> exit code` runs it; the
+# six-coil global-moves run is the one above.
+_RUNNERS = {
+    ("global-moves", "coil-board"): "rigctl.coilboard_run",
+    ("field-sequence", "depm"): "rigctl.depm_run",
+    ("pair-formation", "six-coil"): "rigctl.pair_run",
+}
+# rig kind -> the module whose `emulate_cli(args) -> exit code` serves its emulated bench.
+_BENCHES = {
+    "coil-board": "rigctl.emulators.coilboard.bench",
+    "depm": "rigctl.emulators.depm",
+}
 
 _MISMATCH_FLAGS = (("slip", "--slip"), ("speed_spread", "--speed-spread"), ("drift", "--drift"),
                    ("noise", "--noise"), ("seed", "--seed"))
@@ -93,6 +111,16 @@ def _add_mismatch_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--seed", type=int, help="seed of the spread, drift direction and jitter")
     g.add_argument("--field-at-robots", action="store_true",
                    help="each robot feels the coils' field at its own position (not uniform)")
+
+
+def _add_bench_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("emulated bench")
+    g.add_argument("--world", choices=["rolling", "pair"], default=None,
+                   help="six-coil: rolling magnets (seed 000, default) or two interacting agents "
+                   "at a liquid surface (seed 002; pair-formation plans pick it themselves)")
+    g.add_argument("--firmware", choices=["python", "simavr"], default=None,
+                   help="coil-board: emulate the board's firmware in Python (default) or run the "
+                   "real AVR firmware in simavr")
 
 
 def _cmd_calibrate_camera(args: argparse.Namespace) -> int:
@@ -164,8 +192,8 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
     from rigctl.emulators.bench import SixCoilBench
     from rigctl.emulators.process import READY_PREFIX
 
-    if args.kind != "six-coil":
-        raise ConfigError(f"no emulated bench for {args.kind!r} yet; available: six-coil")
+    if args.kind in _BENCHES:
+        return importlib.import_module(_BENCHES[args.kind]).emulate_cli(args)
     rig_out = Path(args.rig_out)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -225,7 +253,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--open-loop", action="store_true",
                    help="do not close the loop with the rig's camera (default: closed loop "
                    "whenever the rig has a camera)")
+    p.add_argument("--agnostic", action="store_true",
+                   help="depm rig: run the magnetic-agnostic baseline (straight joint-space moves)")
     _add_mismatch_flags(p)
+    _add_bench_flags(p)
     p.set_defaults(func=_cmd_execute)
 
     p = sub.add_parser("validate", help="check a plan file; name what is wrong",
@@ -244,10 +275,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("emulate", help="start an emulated bench and write the rig file for it",
                        description="Serve every device of the rig kind on its real protocol on "
                        "loopback, write a rig file pointing at them, run until interrupted.")
-    p.add_argument("kind", choices=["six-coil"], help="rig kind")
+    p.add_argument("kind", choices=["six-coil", "coil-board", "depm"], help="rig kind")
     p.add_argument("--rig-out", default="bench.toml", help="where to write the rig file")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
     _add_mismatch_flags(p)
+    _add_bench_flags(p)
     p.set_defaults(func=_cmd_emulate)
 
     p = sub.add_parser("calibrate", help="calibrate a device of a rig (the camera)",
