@@ -17,6 +17,11 @@ later) implements only "cut every connection and refuse new ones" and "accept ag
 
 Every fault method returns once the fault is in force, so tests never sleep to wait for it.
 Time is taken from `time.monotonic()`.
+
+Byte protocols without lines (the coil board's binary frames) are served on a pty with
+`serve_bytes_pty`: the handler gets every chunk as it arrives and returns bytes to send back. Its
+`PtyEndpoint` adds `inject(data)` (bytes to the host, unasked); `drop_link()` is an unplug (the pty
+is closed and its stable path removed) and `restore()` a replug (a new pty behind the same path).
 """
 
 from __future__ import annotations
@@ -24,10 +29,14 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+import os
+import pty
 import socket
 import struct
+import tempfile
 import threading
 import time
+import tty
 from collections.abc import Awaitable, Callable
 from typing import Any, Protocol, TypeVar
 
@@ -36,6 +45,7 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 LineHandler = Callable[[str], "str | None"]
+ByteHandler = Callable[[bytes], "bytes | None"]
 
 GARBAGE = b"\xfe\x81#%!\x00\xff\x9c"  # not ASCII, no terminator inside
 MAX_LINE_BYTES = 65536
@@ -390,6 +400,22 @@ class EmulatorServer:
 
     # -- serving --------------------------------------------------------------------------------
 
+    def serve_bytes_pty(self, handler: ByteHandler, *, name: str, link_path: str | None = None
+                        ) -> "PtyEndpoint":
+        """Serve a byte protocol on a pty in raw mode; ready when this returns.
+
+        `handler(data)` gets each received chunk (any split: the handler frames) and returns bytes
+        to send, or None. The endpoint's URL is `link_path`, a symlink kept pointing at the current
+        pty the way udev keeps /dev/serial/by-id/... for a USB board (default: a fresh path in a
+        temporary directory), so a driver reopens the same URL after an unplug and replug.
+        """
+        faults = LinkFaults()
+        link = _PtyByteLink(handler, name=name, faults=faults, link_path=link_path)
+        self._run(link.open())
+        self._links.append(link)  # type: ignore[arg-type]
+        log.info("%s: serving on %s (%s)", name, link.link_path, link.pty_path)
+        return PtyEndpoint(name=name, url=link.link_path, faults=faults, link=link, server=self)
+
     def serve_lines_tcp(
         self,
         handler: LineHandler,
@@ -415,3 +441,124 @@ class EmulatorServer:
         url = f"tcp://{shown_host}:{link.port}"
         log.info("%s: serving on %s", name, url)
         return Endpoint(name=name, url=url, faults=faults, link=link, server=self)
+
+
+class _PtyByteLink:
+    """A pty whose master end the loop reads; the slave end is what the driver opens.
+
+    The link keeps its own slave descriptor open while it is up, so the master never sees a hangup
+    between two clients and the raw settings stay. An unplug closes both ends (the client's reads
+    and writes then fail, as on a vanished /dev/ttyACM0) and removes the stable symlink.
+    """
+
+    def __init__(self, handler: ByteHandler, *, name: str, faults: LinkFaults,
+                 link_path: str | None) -> None:
+        self.handler = handler
+        self.name = name
+        self.faults = faults
+        self._own_dir: str | None = None
+        if link_path is None:
+            self._own_dir = tempfile.mkdtemp(prefix="rigctl-pty-")
+            link_path = os.path.join(self._own_dir, name.replace("/", "_") or "device")
+        self.link_path = link_path
+        self.pty_path: str | None = None
+        self._master = -1
+        self._slave = -1
+        self._pending = bytearray()  # replies the pty could not take yet
+
+    async def open(self) -> None:
+        master, slave = pty.openpty()
+        tty.setraw(slave)
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self.pty_path = os.ttyname(slave)
+        temporary = f"{self.link_path}.{os.getpid()}.tmp"
+        if os.path.lexists(temporary):
+            os.unlink(temporary)
+        os.symlink(self.pty_path, temporary)
+        os.replace(temporary, self.link_path)  # atomic: a client never sees a missing path
+        asyncio.get_running_loop().add_reader(master, self._readable)
+
+    def _readable(self) -> None:
+        try:
+            data = os.read(self._master, 4096)
+        except BlockingIOError:
+            return
+        except OSError as err:
+            log.warning("%s: pty read failed (%s)", self.name, err)
+            return
+        if not data or not self.faults.handles_input():
+            return
+        try:
+            reply = self.handler(data)
+        except Exception:
+            log.exception("%s: emulator failed on %r; input dropped", self.name, data[:64])
+            return
+        if reply:
+            out = self.faults.outgoing(reply, b"")
+            if out:
+                self.send(out)
+
+    def send(self, data: bytes) -> None:
+        """Write to the client now (loop thread); what the pty cannot take waits for it."""
+        if self._master < 0:
+            return
+        self._pending += data
+        self._flush()
+
+    def _flush(self) -> None:
+        loop = asyncio.get_running_loop()
+        try:
+            written = os.write(self._master, self._pending)
+        except BlockingIOError:
+            written = 0
+        except OSError as err:
+            log.warning("%s: pty write failed (%s); %d bytes lost", self.name, err, len(self._pending))
+            self._pending.clear()
+            return
+        del self._pending[:written]
+        loop.remove_writer(self._master)
+        if self._pending:
+            loop.add_writer(self._master, self._flush)
+
+    def connection_count(self) -> int:
+        return 1 if self._master >= 0 else 0
+
+    async def cut(self) -> None:
+        if self._master >= 0:
+            loop = asyncio.get_running_loop()
+            loop.remove_reader(self._master)
+            loop.remove_writer(self._master)
+            os.close(self._master)
+            os.close(self._slave)
+            self._master = self._slave = -1
+            self._pending.clear()
+        if os.path.lexists(self.link_path):
+            os.unlink(self.link_path)
+
+    async def reopen(self) -> None:
+        if self._master < 0:
+            await self.open()
+
+    async def close(self) -> None:
+        await self.cut()
+        if self._own_dir is not None:
+            try:
+                os.rmdir(self._own_dir)
+            except OSError:
+                pass
+
+
+class PtyEndpoint(Endpoint):
+    """A served pty: the `Endpoint` faults, plus raw bytes to the host and the current pty path."""
+
+    _link: _PtyByteLink
+
+    def inject(self, data: bytes) -> None:
+        """Send `data` to the host now, unasked (garbage on the line); returns once written."""
+        self._server.call(self._link.send, bytes(data))
+
+    @property
+    def pty_path(self) -> str | None:
+        """The /dev/pts/N behind the URL now (None while unplugged)."""
+        return self._server.call(lambda: self._link.pty_path if self._link._master >= 0 else None)

@@ -118,6 +118,70 @@ class CameraSettings(_Strict):
     )
 
 
+class CoilBoardSettings(_Strict):
+    """The coil board's host link (docs/coilboard-protocol.md, docs/coilboard-driver.md)."""
+
+    url: str = Field(description="pty path, serial:///dev/ttyACM0?baud=115200 or tcp://host:port")
+    baud: Annotated[int, Field(gt=0, description="for a bare device path")] = 115200
+    rate_hz: Annotated[
+        float, Field(gt=0, le=500, description="SET rate while streaming (the SyRen bus updates ~60/s)")
+    ] = 50.0
+    reply_timeout_s: Annotated[float, Field(gt=0, le=1.0, description="per request attempt")] = 0.1
+    retries: Annotated[int, Field(ge=0, le=10, description="re-sends after a lost reply")] = 2
+    reconnect_s: Annotated[
+        float, Field(ge=0, description="how long to try re-opening the board after an unplug")
+    ] = 3.0
+    max_command: Annotated[int, Field(ge=1, le=127, description="largest |coil command| allowed")] = 127
+    coil_names: tuple[str, str, str, str] = ("+x", "-x", "+y", "-y")
+    coil_directions: tuple[int, int, int, int] = Field(
+        default=(1, 1, 1, 1), description="+1, or -1 for a coil wired reversed"
+    )
+
+    @field_validator("coil_directions")
+    @classmethod
+    def _unit_directions(cls, directions: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+        if any(d not in (1, -1) for d in directions):
+            raise ValueError(f"each coil direction is +1 or -1, got {list(directions)}")
+        return directions
+
+
+class DepmSettings(_Strict):
+    """The dual-EPM rig (seed 003): two KUKA LBR arms carrying EPMs (KST servers) and the Hall board.
+
+    Arms are listed in the same order in every `arm_*` key; base poses are in the world frame whose
+    origin is the workspace centre (z up), as in `rigctl.kinematics`. docs/depm.md, docs/hall-board.md.
+    """
+
+    arm_names: list[str] = ["left", "right"]
+    arm_urls: list[str] = Field(description="KST servers, e.g. tcp://172.31.1.147:30001")
+    arm_positions_mm: list[Vector3] = Field(description="arm bases in the world frame")
+    arm_rpy_deg: list[Vector3] = Field(description="arm bases: fixed-axis roll, pitch, yaw")
+    epm_moment_Am2: Annotated[float, Field(gt=0, description="each EPM's dipole moment")]
+    tool_offset_mm: Annotated[float, Field(gt=0, description="EPM centre on the flange z axis")] = 85.0
+    hall_url: str = Field(description="the Hall board's sample stream, tcp://host:port")
+    sensor_offsets_mm: list[Vector3] = Field(
+        default=[(0.0, 0.0, 0.0), (4.0, 0.0, 0.0), (0.0, 4.0, 0.0)],
+        description="sensor positions from the workspace centre; the first is the reference")
+    keep_out_radius_mm: Annotated[float, Field(gt=0)] = 150.0
+    epm_radius_mm: Annotated[float, Field(gt=0)] = 72.0
+    epm_min_distance_mm: Annotated[float, Field(gt=0)] = 300.0
+    speed_fraction: Annotated[float, Field(gt=0, le=1, description="of each joint's max speed")] = 0.3
+    servo_rate_hz: Annotated[float, Field(gt=0, le=1000, description="joint targets per second")] = 50.0
+    reply_timeout_s: Annotated[float, Field(gt=0, description="watchdog on every arm/board reply")] = 0.5
+    tracking_tolerance_deg: Annotated[
+        float, Field(gt=0, description="measured joints this far from the commanded ones: fault")] = 5.0
+
+    @model_validator(mode="after")
+    def _same_lengths(self) -> "DepmSettings":
+        n = len(self.arm_names)
+        if n != 2 or any(len(v) != n for v in (self.arm_urls, self.arm_positions_mm, self.arm_rpy_deg)):
+            raise ValueError("a depm rig has two arms: arm_names, arm_urls, arm_positions_mm and "
+                             "arm_rpy_deg need two entries each")
+        if len(self.sensor_offsets_mm) < 3:
+            raise ValueError("sensor_offsets_mm needs three sensors (eq. 24)")
+        return self
+
+
 class Emulation(_Strict):
     """Present only in rig files written by `rigctl emulate`: where the bench's backdoor is."""
 
@@ -149,6 +213,8 @@ class RigConfig(_Strict):
     camera: CameraSettings | None = None
     daemon: DaemonSettings | None = None
     emulation: Emulation | None = None
+    depm: DepmSettings | None = None
+    board: CoilBoardSettings | None = None
 
     @model_validator(mode="after")
     def _check_kind(self) -> "RigConfig":
@@ -158,6 +224,8 @@ class RigConfig(_Strict):
             names = [c.name for c in self.coils]
             if len(set(names)) != len(names):
                 raise ValueError(f"coil names must be unique, got {names}")
+        if self.rig.kind == "coil-board" and self.board is None:
+            raise ValueError("a coil-board rig needs a [board] table (at least its url)")
         if self.actuation_matrix_T_per_A is not None:
             rows = self.actuation_matrix_T_per_A
             if len(rows) != 3 or any(len(r) != len(self.coils) for r in rows):

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import select
 import socket
+import termios
 import time
 from typing import Protocol, runtime_checkable
 from urllib.parse import parse_qs, urlsplit
@@ -288,7 +289,7 @@ class SerialTransport(_BufferedReads):
         self._buffer.clear()
         try:
             self._serial().reset_input_buffer()
-        except (serial.SerialException, OSError):
+        except (serial.SerialException, OSError, termios.error):  # tcflush on a pty whose peer is gone
             pass  # a dead link is reported by the next read or write
 
     def close(self) -> None:
