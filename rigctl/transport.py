@@ -122,6 +122,7 @@ class _BufferedReads:
         self._buffer = bytearray()
 
     def _receive(self, deadline: float) -> bytes:  # pragma: no cover - implemented by subclasses
+        """Bytes that arrive before `deadline`; past it, only those already waiting (no wait)."""
         raise NotImplementedError
 
     def _deadline(self, timeout_s: float | None) -> tuple[float, float]:
@@ -134,7 +135,7 @@ class _BufferedReads:
         if not terminator:
             raise ValueError("terminator must not be empty")
         timeout, deadline = self._deadline(timeout_s)
-        searched = 0
+        searched, expired = 0, False
         while True:
             index = self._buffer.find(terminator, searched)
             if index >= 0:
@@ -150,19 +151,24 @@ class _BufferedReads:
                     f"{terminator!r} (starts {head!r})"
                 )
             searched = max(0, len(self._buffer) - len(terminator) + 1)
-            if time.monotonic() >= deadline:
+            if expired:
                 raise DeviceTimeout(f"no reply within {timeout:g} s from {self.url}")
+            # Past the deadline, one last look at what has already arrived: a reply that waited
+            # while this thread was descheduled is not a timeout.
+            expired = time.monotonic() >= deadline
             self._buffer += self._receive(deadline)
 
     def read_exact(self, n: int, *, timeout_s: float | None = None) -> bytes:
         if n < 0:
             raise ValueError("n must be >= 0")
         timeout, deadline = self._deadline(timeout_s)
+        expired = False
         while len(self._buffer) < n:
-            if time.monotonic() >= deadline:
+            if expired:
                 raise DeviceTimeout(
                     f"only {len(self._buffer)} of {n} bytes within {timeout:g} s from {self.url}"
                 )
+            expired = time.monotonic() >= deadline
             self._buffer += self._receive(deadline)
         message = bytes(self._buffer[:n])
         del self._buffer[:n]
@@ -207,10 +213,10 @@ class TcpTransport(_BufferedReads):
     def _receive(self, deadline: float) -> bytes:
         sock = self._socket()
         remaining = deadline - time.monotonic()
-        if remaining <= 0:
+        if remaining <= 0 and not select.select([sock], [], [], 0)[0]:
             return b""
         try:
-            sock.settimeout(remaining)
+            sock.settimeout(max(remaining, 1e-3))
             chunk = sock.recv(_RECV_CHUNK)
         except TimeoutError:
             return b""
@@ -273,9 +279,10 @@ class SerialTransport(_BufferedReads):
     def _receive(self, deadline: float) -> bytes:
         port = self._serial()
         remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            return b""
         try:
+            if remaining <= 0:
+                waiting = port.in_waiting
+                return port.read(waiting) if waiting else b""
             # Changing pyserial's timeout reconfigures the port: do it only when the deadline
             # is nearer than the current setting (never overshoot) or much farther.
             if self._timeout_set > remaining or remaining - self._timeout_set > 0.05:

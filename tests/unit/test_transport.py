@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import select
 import socket
 import time
 
@@ -112,6 +113,17 @@ def test_tcp_silence_times_out_after_the_deadline(tcp_pair) -> None:
         transport.read_exact(3, timeout_s=0.05)
 
 
+def test_tcp_reply_already_waiting_at_the_deadline_is_read_not_a_timeout(tcp_pair) -> None:
+    # A reader descheduled past its deadline must still take a reply that arrived in time.
+    transport, peer, _ = tcp_pair
+    peer.sendall(b"1.0\n\x01\x02")
+    select.select([transport._sock], [], [], 1.0)  # the bytes are in the socket buffer
+    assert transport.read_until(b"\n", timeout_s=0.0) == b"1.0\n"
+    assert transport.read_exact(2, timeout_s=0.0) == b"\x01\x02"
+    with pytest.raises(DeviceTimeout):
+        transport.read_until(b"\n", timeout_s=0.0)
+
+
 def test_tcp_overlong_reply_is_a_protocol_error_quoting_it(tcp_pair) -> None:
     transport, peer, _ = tcp_pair
     peer.sendall(b"X" * 300)
@@ -173,6 +185,9 @@ def test_serial_over_a_pty(pty_pair, form: str) -> None:
         with pytest.raises(DeviceTimeout):
             transport.read_exact(1, timeout_s=0.05)
         assert time.monotonic() - start < 0.2
+        os.write(master, b"late\n")  # waiting before the read starts: taken even with no time left
+        select.select([transport._port.fd], [], [], 1.0)  # the bytes are in the port buffer
+        assert transport.read_until(b"\n", timeout_s=0.0) == b"late\n"
     finally:
         transport.close()
 
