@@ -121,6 +121,8 @@ def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
     while rig.status()["run"] is not None:
         time.sleep(0.05)
     summary = rig.run(Path(rig.status()["last_run"]["run"]).name)["summary"]
+    if summary["stream"] is None or summary["faults"]:
+        raise RuntimeError(f"the benchmark's run did not stream cleanly: {summary['faults']}")
     stream = dict(summary["stream"])
     stream["cycles_per_s"] = stream["cycles"] / summary["duration_s"]
     status = None
@@ -172,8 +174,12 @@ def main() -> None:
             rig = load_rig(rig_path)
             # open loop (no camera): this measures the daemon itself; the camera loop's own
             # latency is bench/tracker.py's
+            # a watchdog that tolerates a loaded machine, as bench/closed_loop.py: this measures
+            # latency, and a run faulted by a 0.25 s scheduling gap would measure nothing
             fast = rig.model_copy(update={
-                "stream": rig.stream.model_copy(update={"rate_hz": RATE_HZ}), "camera": None})
+                "stream": rig.stream.model_copy(update={"rate_hz": RATE_HZ,
+                                                        "reply_timeout_s": 1.0}),
+                "camera": None})
             (tmp / "rig-1khz.toml").write_text(dump_rig(fast))
             runs = tmp / "runs"
             proc, endpoints = start_daemon(tmp / "rig-1khz.toml", runs, tmp / "daemon.log")

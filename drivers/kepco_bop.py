@@ -13,6 +13,12 @@ loop sends to all six supplies first and then reads all six, so the round trips 
 Every error names the device (`x+: ...`). After a timeout or a garbled reply the next command
 first discards whatever is pending, so a late reply cannot be taken for the answer to a newer
 question.
+
+E-stop does not wait for the stream thread: `emergency_zero` may be called from any thread, even
+while the stream thread waits for a reply. It writes `CURR 0.0000;:OUTP OFF` (no query, so no
+reply that could be taken for a measurement) and latches: from then on every setpoint leaves as
+0 A and the output cannot be switched on again, until `configure` starts afresh. A lock keeps the
+two threads' messages from interleaving on the wire.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import threading
 import time
 
 from rigctl.errors import (
@@ -93,6 +100,8 @@ class KepcoBop:
         self._stale = False  # a reply may still be in flight: discard input before the next command
         self._awaiting_measurement = False
         self._last_setpoint_A = 0.0
+        self._wire = threading.Lock()  # one message at a time on the wire (e-stop comes from afar)
+        self._estopped = False  # latched by emergency_zero: every setpoint leaves as 0 A
 
     @property
     def last_setpoint_A(self) -> float:
@@ -102,6 +111,10 @@ class KepcoBop:
     # -- wire ------------------------------------------------------------------------------------
 
     def _write(self, command: str) -> None:
+        with self._wire:
+            self._write_unlocked(command)
+
+    def _write_unlocked(self, command: str) -> None:
         if self._stale:
             self._transport.discard_input()
             self._stale = False
@@ -169,6 +182,7 @@ class KepcoBop:
         reported any error (the errors are drained and named)."""
         self._transport.discard_input()
         self._stale = False
+        self._estopped = False
         self._write("*CLS")
         self._write("FUNC:MODE CURR")
         self._write(f"VOLT {self.compliance_V:.2f}")
@@ -183,6 +197,9 @@ class KepcoBop:
         if not on:
             self._write("OUTP OFF")
             return
+        if self._estopped:
+            raise DeviceError("e-stop latched: the output stays off (configure the supply again)",
+                              device=self.name)
         answer = self._query("OUTP ON;:OUTP?")
         if answer == "1":
             return
@@ -196,8 +213,11 @@ class KepcoBop:
     def set_current(self, amps: float) -> None:
         """Program the current setpoint (A); LimitError before any I/O when |amps| > limit."""
         self._check_setpoint(amps)
-        self._write(f"CURR {_format_amps(amps)}")
-        self._last_setpoint_A = float(amps)
+        with self._wire:
+            if self._estopped:
+                amps = 0.0
+            self._write_unlocked(f"CURR {_format_amps(amps)}")
+            self._last_setpoint_A = float(amps)
 
     def measure_current(self) -> float:
         """The output current the supply measures (A)."""
@@ -241,8 +261,11 @@ class KepcoBop:
         self._check_setpoint(amps)
         if self._awaiting_measurement:
             raise RuntimeError(f"{self.name}: read_measured() must follow each send_setpoint()")
-        self._write(f"CURR {_format_amps(amps)};:MEAS:CURR?")
-        self._last_setpoint_A = float(amps)
+        with self._wire:
+            if self._estopped:
+                amps = 0.0
+            self._write_unlocked(f"CURR {_format_amps(amps)};:MEAS:CURR?")
+            self._last_setpoint_A = float(amps)
         self._awaiting_measurement = True
 
     def read_measured(self) -> float:
@@ -255,6 +278,18 @@ class KepcoBop:
             self._awaiting_measurement = False
 
     # -- stopping --------------------------------------------------------------------------------
+
+    def emergency_zero(self) -> None:
+        """E-stop, from any thread: 0 A and output off in one message, now, and latch (every later
+        setpoint leaves as 0 A). Never raises; a dead link is logged (the supply's own watchdog is
+        what makes it safe then)."""
+        with self._wire:
+            self._estopped = True
+            self._last_setpoint_A = 0.0
+            try:
+                self._transport.write(b"CURR 0.0000;:OUTP OFF" + TERMINATOR)
+            except (RigError, OSError) as err:
+                log.error("%s: e-stop could not be sent (%s)", self.name, err)
 
     def safe_stop(self, ramp_s: float = 0.1, steps: int = 10) -> None:
         """Ramp from the last setpoint to 0 A in `steps` over `ramp_s`, then output off.
@@ -270,8 +305,11 @@ class KepcoBop:
             t0 = time.monotonic()
             for k in range(1, steps + 1):
                 amps = start * (1.0 - k / steps)
-                self._write(f"CURR {_format_amps(amps)}")
-                self._last_setpoint_A = amps
+                with self._wire:
+                    if self._estopped:  # an e-stop overtook the ramp: nothing but zero now
+                        amps = 0.0
+                    self._write_unlocked(f"CURR {_format_amps(amps)}")
+                    self._last_setpoint_A = amps
                 if k < steps:
                     time.sleep(max(0.0, t0 + k * ramp_s / steps - time.monotonic()))
             self._write("OUTP OFF")

@@ -6,8 +6,9 @@ Threads and who does what:
   are answered on this thread; slow ones (`load` realizes and allocates a whole plan, `runs` and
   `run` read the disk, `set_field` opens the supplies) go to a worker thread and are answered when
   it is done, so nothing ever waits behind them. `estop` is carried out on the command thread the
-  moment it is read: it flags the active run (whose stream thread zeroes every supply at its next
-  cycle, within one period) or, with nothing active, starts zeroing the supplies directly;
+  moment it is read: it writes 0 A and output off to every supply of the active run itself (the
+  drivers latch at zero, so the stream thread can send nothing else after it) and flags the run,
+  whose stream thread then stops; with nothing active it starts zeroing the supplies directly;
 - the *run thread* (one at a time) executes a `Run` (or holds a manual field) and is the stream
   thread, raised to SCHED_FIFO when allowed;
 - the *telemetry thread* (`rigctl.telemetry`) publishes what the stream thread hands it.
@@ -674,9 +675,12 @@ class Daemon:
         return {"state": self.state.value, "pending": "ramp down and stop"}
 
     def _cmd_estop(self, _: Any) -> dict:
+        active = self._active
+        if active is not None:  # first, before any lock: the supplies are zeroed from this thread
+            active.job.estop()
         with self._lock:
-            active = self._active
-            if active is not None:
+            if self._active is not None and self._active is not active:  # started meanwhile
+                active = self._active
                 active.job.estop()
             self._transition("estop", reason="emergency stop")
             self.manual_field_mT = None
@@ -684,7 +688,8 @@ class Daemon:
             threading.Thread(target=self._zero_supplies_directly, name="daemon-estop").start()
         log.warning("EMERGENCY STOP")
         return {"state": self.state.value,
-                "zeroing": "at the next stream cycle" if active else "directly (no run active)"}
+                "zeroing": "done: every supply told 0 A and output off" if active
+                else "directly (no run active)"}
 
     def _cmd_reset(self, _: Any) -> dict:
         with self._lock:
@@ -924,6 +929,10 @@ class FieldHold:
 
     def estop(self) -> None:
         self._estop.set()
+        self.supplies.emergency_zero()
+        loop = self.stream_loop
+        if loop is not None:
+            loop.wake()
 
 
 def _describe_run(run: Any) -> dict:

@@ -5,7 +5,8 @@ trips overlap instead of adding up. Health is checked between cycles, one supply
 turn, by draining its SCPI error queue: that is how a trip the supply reports on its own (an
 over-temperature) surfaces within about a second even though the replies keep coming. Stopping
 ramps all supplies down together, then switches each off; a supply whose link is dead is skipped
-(its own watchdog is what makes the hardware safe then) and named in the log.
+(its own watchdog is what makes the hardware safe then) and named in the log. An e-stop
+(`emergency_zero`) is written to every supply straight from the thread that received it.
 """
 
 from __future__ import annotations
@@ -78,6 +79,13 @@ class CoilSupplies:
             turn = (self._cycles // self._health_every) % len(self.supplies)
             self.supplies[turn].check_errors()
         return self.measured_A
+
+    def emergency_zero(self) -> None:
+        """E-stop from any thread, without waiting for the stream thread: every supply gets 0 A
+        and output off in one message each, and latches at zero (see `KepcoBop.emergency_zero`).
+        Never raises."""
+        for supply in self.supplies:
+            supply.emergency_zero()
 
     def zero_now(self) -> None:
         """E-stop: every setpoint to zero at once, then every output off; best effort per supply."""

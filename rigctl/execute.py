@@ -266,6 +266,8 @@ class Run:
         self.state = RunState.PREPARED
         self._estop = threading.Event()
         self._estop_at: float | None = None
+        self._estop_zeroed_at: float | None = None  # every supply told 0 A and off (any thread)
+        self._supplies: CoilSupplies | None = None  # once connected: e-stop writes to them directly
         self.stream_loop: StreamLoop | None = None  # while streaming: its timing, for telemetry
         self.record: RunRecord | None = None
 
@@ -284,10 +286,15 @@ class Run:
         self.sequencer.request_abort()
 
     def estop(self) -> None:
-        """Drop every output now: the stream thread is woken (it does not wait for the next due
-        time) and zeroes the supplies; a cycle already under way finishes first."""
+        """Drop every output now: the calling thread itself tells every connected supply 0 A and
+        output off (latched: the stream thread can send nothing but zero after it), then wakes the
+        stream thread, which stops the stream and closes the supplies."""
         self._estop_at = time.monotonic()
         self._estop.set()
+        supplies = self._supplies
+        if supplies is not None:
+            supplies.emergency_zero()
+            self._estop_zeroed_at = time.monotonic()
         loop = self.stream_loop
         if loop is not None:
             loop.wake()
@@ -327,7 +334,7 @@ class Run:
                 record.event("placed", agents=[list(a.start) for a in plan.agents])
             if self.supervisor is not None:
                 self.supervisor.start(record)  # the robots are found before anything is energised
-            supplies = CoilSupplies.connect(rig)
+            supplies = self._supplies = CoilSupplies.connect(rig)
             for name, url, identity in zip(supplies.names, [c.url for c in rig.coils],
                                            supplies.identities):
                 record.event("connected", device=name, url=url, identity=identity)
@@ -338,10 +345,14 @@ class Run:
             self._set_state(RunState.RUNNING)
             stats = self._stream(supplies)
         except RigError as err:
-            faults.append({"device": err.device, "reason": str(err), "kind": type(err).__name__})
-            record.event("fault", device=err.device, reason=str(err), kind=type(err).__name__)
-            log.error("run stopped: %s", err)
-            self._set_state(RunState.FAULTED, device=err.device, reason=str(err))
+            if self._estop.is_set():  # e.g. switching on after the e-stop latched: not a fault
+                record.event("estop", reason=f"while starting or stopping: {err}")
+            else:
+                faults.append({"device": err.device, "reason": str(err),
+                               "kind": type(err).__name__})
+                record.event("fault", device=err.device, reason=str(err), kind=type(err).__name__)
+                log.error("run stopped: %s", err)
+                self._set_state(RunState.FAULTED, device=err.device, reason=str(err))
         except _EStopped:
             record.event("estop", reason="before the supplies were switched on")
         except KeyboardInterrupt:
@@ -349,7 +360,9 @@ class Run:
             record.event("abort", reason="operator interrupt")
         finally:
             if supplies is not None:
+                # an e-stop during this ramp cuts it short (the drivers latch at zero)
                 supplies.stop(ramp_s=0.0 if self._estop.is_set() else rig.stream.ramp_down_s)
+                self._supplies = None  # off and closed: nothing left for an e-stop to write to
                 record.event("safe", supplies=supplies.names)
             if self.supervisor is not None:
                 self.supervisor.stop()
@@ -398,12 +411,17 @@ class Run:
         def cycle(_: int) -> bool:
             if self._estop.is_set():
                 seen = time.monotonic()
-                supplies.zero_now()
-                # from the request: when this thread saw it, and when every supply had been told
-                # zero and switched off
+                supplies.zero_now()  # again, from this thread: belt and braces
+                done = time.monotonic()
+                # from the request: when every supply had been told zero and switched off (by the
+                # thread that took the e-stop, or else by this one), and when this thread saw it
                 asked = self._estop_at or seen
-                record.event("estop_zeroed", seen_after_request_s=round(seen - asked, 6),
-                             after_request_s=round(time.monotonic() - asked, 6))
+                direct = self._estop_zeroed_at
+                record.event("estop_zeroed",
+                             after_request_s=round(min(done, direct or done) - asked, 6),
+                             seen_after_request_s=round(seen - asked, 6),
+                             stream_zeroed_after_request_s=round(done - asked, 6),
+                             direct=direct is not None)
                 return False
             step = sequencer.next()
             if step is None:

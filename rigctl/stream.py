@@ -7,11 +7,20 @@ once, so the loop catches up. A cycle counts as late when it starts more than `l
 period after its due time.
 
 The loop owns timing only; what a cycle does (send currents, read them back) is the caller's.
+
+While any loop runs, the interpreter is tuned for it (`_StreamingInterpreter`): the GIL is handed
+over every `SWITCH_INTERVAL_S` instead of every 5 ms, so a thread doing seconds of Python (a
+re-plan's realize and allocate, the tracker, a telemetry batch) delays a cycle by at most that
+much each time the stream thread comes back from a socket; and the objects that exist when the
+stream starts are frozen out of the garbage collector, whose full collections of a big heap
+(scipy, OpenCV, pydantic, a planner's tree) otherwise stop every thread for 15-240 ms.
 """
 
 from __future__ import annotations
 
+import gc
 import logging
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -20,6 +29,38 @@ from dataclasses import dataclass
 import numpy as np
 
 log = logging.getLogger(__name__)
+
+SWITCH_INTERVAL_S = 2e-4  # GIL hand-over while streaming; CPython's default is 5e-3
+
+
+class _StreamingInterpreter:
+    """Context manager: short GIL switch interval and a frozen heap while at least one stream
+    loop runs (nested and concurrent loops count; the first in sets, the last out restores).
+    One per process, because what it tunes (the interpreter) is one per process."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._users = 0
+        self._saved_interval = sys.getswitchinterval()
+
+    def __enter__(self) -> None:
+        with self._lock:
+            self._users += 1
+            if self._users == 1:
+                self._saved_interval = sys.getswitchinterval()
+                sys.setswitchinterval(min(SWITCH_INTERVAL_S, self._saved_interval))
+                gc.collect(1)  # young garbage goes now, not into the frozen generation
+                gc.freeze()
+
+    def __exit__(self, *exc: object) -> None:
+        with self._lock:
+            self._users -= 1
+            if self._users == 0:
+                gc.unfreeze()
+                sys.setswitchinterval(self._saved_interval)
+
+
+_STREAMING = _StreamingInterpreter()
 
 
 @dataclass(frozen=True)
@@ -79,6 +120,10 @@ class StreamLoop:
 
     def run(self, cycle: Callable[[int], bool | None], max_cycles: int | None = None) -> StreamStats:
         """Run until `cycle` returns False (or `max_cycles` cycles ran)."""
+        with _STREAMING:
+            return self._run(cycle, max_cycles)
+
+    def _run(self, cycle: Callable[[int], bool | None], max_cycles: int | None) -> StreamStats:
         self._errors = np.empty(max_cycles if max_cycles is not None else 4096)
         self._count = self._late = self._overruns = 0
         late_after = self.late_fraction * self.period_s

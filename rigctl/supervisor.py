@@ -32,11 +32,13 @@ import json
 import logging
 import math
 import pickle
+import select
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,6 +58,7 @@ from rigctl.tracker import Tracker
 log = logging.getLogger(__name__)
 
 _SHORTEST_MOVE_MM = 0.05  # re-planned moves shorter than this are left out (each costs a hold)
+REPLAN_ATTEMPTS = 3  # RRT runs (other seeds, longer budgets) before a re-plan that found no move fails
 LOST_AFTER_FRAMES = 3  # a robot unseen this many fresh frames in a row: tracking lost
 _GAIN_LIMITS = (0.5, 1.5)  # plausible range of the rolled distance per commanded distance
 
@@ -352,6 +355,7 @@ class Supervisor:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._measured_at: dict[int, np.ndarray] = {}
+        self._truth_pool: ThreadPoolExecutor | None = None  # ground truth, off the decision path
         self._scale_at = {e: 1.0 for e in ends}  # commanded / planned distance of each move
 
     # -- life cycle -----------------------------------------------------------------------------
@@ -359,16 +363,25 @@ class Supervisor:
         """Acquire the robots with the camera and start judging (before the stream starts)."""
         self.record = record
         self._planner = ReplanWorker()  # imports numpy, scipy and the planner while we go on
+        if self.truth is not None:
+            self._truth_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="truth")
         first = self.tracking.start(acquire_timeout_s=max(5.0, 2 * self.rig.camera.timeout_s))
         self._measured_at[0] = first.positions_mm
         self._event("tracking", frame=first.frame, positions=first.positions_mm.round(3).tolist())
         self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
         self._thread.start()
+        # the re-planner's imports run on the other core while the camera acquired the robots;
+        # they finish before anything is energised, not during the stream's first seconds
+        if not self._planner.wait_ready(timeout_s=10.0):
+            log.warning("the re-planning process is still starting; streaming anyway")
 
     def stop(self) -> None:
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(self.settings.replan_budget_s + 5.0)
+            every_attempt = REPLAN_ATTEMPTS * (REPLAN_ATTEMPTS + 1) / 2  # budgets 1x, 2x, 3x
+            self._thread.join(self.settings.replan_budget_s * every_attempt + 5.0)
+        if self._truth_pool is not None:
+            self._truth_pool.shutdown(wait=True)
         state = self.tracking.latest()
         if state is not None:
             self.final_positions = state.positions_mm
@@ -451,7 +464,11 @@ class Supervisor:
         measured = state.positions_mm
         expected = self._expected[sample]
         last = sample == max(seq.gates)
-        self._measure_tracking(measured)
+        if self.truth is not None and self._truth_pool is not None:
+            # asked now, while the robots are at rest, and answered off the decision's path: a
+            # backdoor round trip to a busy emulator took milliseconds of the frame-to-command time
+            self._truth_pool.submit(self._measure_tracking, measured).add_done_callback(
+                _log_failure)
         self._update_gain(sample, measured)
         error = np.hypot(*(measured - expected).T)
         goal_error = np.hypot(*(measured - self.goals).T)
@@ -459,14 +476,14 @@ class Supervisor:
         decision = Decision(number, sample, "continue", state.t_source, time.monotonic(),
                             error.round(4).tolist())
         self.decisions.append(decision)
+        go_on = (goal_error.max() <= self.goal_threshold_mm if last
+                 else error.max() <= self.settings.threshold_mm)
+        if go_on:  # release first, write the record after: the command leaves sooner
+            decision.kind = "done" if last else "continue"
+            seq.release(number)
         self._event("check", sample=sample, error_mm=error.round(4).tolist(),
                     goal_error_mm=goal_error.round(4).tolist(), last=last, gain=round(self.gain, 4))
-        if last and goal_error.max() <= self.goal_threshold_mm:
-            decision.kind = "done"
-            seq.release(number)
-            return
-        if not last and error.max() <= self.settings.threshold_mm:
-            seq.release(number)
+        if go_on:
             return
         if self.replans >= self.settings.max_replans or (
                 last and self.final_replans >= self.settings.final_replans):
@@ -483,13 +500,21 @@ class Supervisor:
         s = self.settings
         start = self._free_start(measured)
         assert self._planner is not None
-        result = self._planner.replan(
-            self._plan_text, str(self.plan.base_dir or "."), start, self.goals,
-            2.0 * math.pi * self.rig.magnets.radius_mm, s.rrt_tolerance_mm,
-            s.seed + self.replans, s.replan_budget_s)
+        for attempt in range(REPLAN_ATTEMPTS):
+            # an RRT that found nothing in its budget (a loaded machine grows fewer nodes) tries
+            # again with other random draws and a longer budget before the run gives up
+            result = self._planner.replan(
+                self._plan_text, str(self.plan.base_dir or "."), start, self.goals,
+                2.0 * math.pi * self.rig.magnets.radius_mm, s.rrt_tolerance_mm,
+                s.seed + self.replans + 1000 * attempt, s.replan_budget_s * (1 + attempt))
+            if len(result.moves):
+                break
+            self._event("replan_empty", sample=sample, attempt=attempt + 1,
+                        planned_distance_mm=round(result.distance, 4), nodes=result.nodes)
         if len(result.moves) == 0:
             raise PlanError(f"re-plan from the measured state found no move that brings the robots "
-                            f"closer to their goals (best {result.distance:.2f} mm)")
+                            f"closer to their goals in {REPLAN_ATTEMPTS} attempts (best "
+                            f"{result.distance:.2f} mm)")
         self.replans += 1
         if last:
             self.final_replans += 1
@@ -575,6 +600,11 @@ class Supervisor:
         self.tracking_errors_mm.extend(np.hypot(*(measured - truth).T).tolist())
 
 
+def _log_failure(future) -> None:
+    if future.exception() is not None:
+        log.error("measuring the tracker against ground truth failed: %r", future.exception())
+
+
 # -- the re-planner (a worker process) ---------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -617,11 +647,33 @@ class ReplanWorker:
         self._proc = subprocess.Popen([sys.executable, "-m", "rigctl.supervisor"],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         self._lock = threading.Lock()
+        self._ready = False  # the child's "ready" (imports done) has been read
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Wait until the child has imported everything (a second of CPU on its core, which
+        would otherwise compete with the stream's first seconds); False if it did not say so in
+        time (it is then awaited by the first `replan`)."""
+        with self._lock:
+            if not self._ready:
+                assert self._proc.stdout is not None
+                if not select.select([self._proc.stdout], [], [], timeout_s)[0]:
+                    return False
+                self._read_ready()
+        return True
+
+    def _read_ready(self) -> None:
+        try:
+            pickle.load(self._proc.stdout)
+        except EOFError:
+            raise PlanError("the re-planning process ended unexpectedly") from None
+        self._ready = True
 
     def replan(self, *args: object) -> Replanned:
         """`replan_worker(*args)` in the child; PlanError if the child failed."""
         with self._lock:
             assert self._proc.stdin is not None and self._proc.stdout is not None
+            if not self._ready:
+                self._read_ready()
             pickle.dump(args, self._proc.stdin)
             self._proc.stdin.flush()
             try:
@@ -646,6 +698,8 @@ class ReplanWorker:
 def _serve_replans() -> None:
     """The child's loop: read a pickled argument tuple, answer (ok, Replanned or message)."""
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
+    pickle.dump((True, "ready"), stdout)  # every import is done
+    stdout.flush()
     while True:
         try:
             args = pickle.load(stdin)

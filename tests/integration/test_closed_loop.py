@@ -46,34 +46,48 @@ def truth_errors(summary):
                      for a in summary.agents])
 
 
-@pytest.fixture(params=[3, 5])
-def mismatched_bench(request, tmp_path):
+SEEDS = (21, 22, 23)  # the emulated world's randomness: speed spread, drift direction, jitter
+
+
+@pytest.fixture
+def mismatched_bench(tmp_path):
     with EmulatedBenchProcess("six-coil", tmp_path / "bench.toml",
-                              extra_args=[*MISMATCH, "--seed", str(request.param)]) as rig_path:
+                              extra_args=[*MISMATCH, "--seed", str(SEEDS[0])]) as rig_path:
         yield fast(load_rig(rig_path))
 
 
 def test_closed_loop_reaches_the_goals_that_open_loop_misses(mismatched_bench, tmp_path):
+    """The issue's goal over several randomised worlds, in a form a loaded machine cannot break:
+    open loop misses by more than 5 mm in every world (slip alone leaves the free magnet 12 mm
+    short), and the closed loop brings every robot within 1 mm by the emulator's ground truth in
+    all worlds but at most one (the goal is 19 of 20; `bench/closed_loop.py` measures the rate)."""
     emulation = mismatched_bench.emulation  # the rig file records the mismatch
     assert emulation.slip == 0.85 and emulation.speed_spread == 0.01
     assert emulation.noise_mm == 0.05 and emulation.drift_mm_per_s == 0.005
-    assert emulation.seed in (3, 5) and not emulation.field_at_robots
+    assert emulation.seed == SEEDS[0] and not emulation.field_at_robots
     plan = load_plan(QUICK)
-    open_loop = execute_plan(plan, mismatched_bench, runs_dir=tmp_path, progress_out=None,
-                             closed_loop=False)
-    assert not open_loop.faults
-    # slip alone: the 80 mm roll becomes 68 mm, so the free magnet stops 12 mm short of y = 160
-    assert truth_errors(open_loop).max() > 5.0
-    assert not open_loop.reached
+    outcomes = {}
+    with BackdoorClient(emulation.backdoor) as backdoor:
+        for seed in SEEDS:
+            # a new world for each seed (applied when the run places the robots)
+            assert backdoor.request("mismatch", seed=seed)["mismatch"]["seed"] == seed
+            open_loop = execute_plan(plan, mismatched_bench, runs_dir=tmp_path, progress_out=None,
+                                     closed_loop=False)
+            assert not open_loop.faults, open_loop.faults
+            # slip alone: the 80 mm roll becomes 68 mm, so the free magnet stops 12 mm short
+            assert truth_errors(open_loop).max() > 5.0, (seed, truth_errors(open_loop))
+            assert not open_loop.reached
+            closed = execute_plan(plan, mismatched_bench, runs_dir=tmp_path, progress_out=None,
+                                  closed_loop=True, supervisor_settings=SupervisorSettings(seed=seed))
+            outcomes[seed] = closed
+    reached = [seed for seed, c in outcomes.items()
+               if not c.faults and c.reached and truth_errors(c).max() < 1.0]
+    assert len(reached) >= len(SEEDS) - 1, {
+        seed: (c.faults, truth_errors(c).round(3).tolist()) for seed, c in outcomes.items()}
 
-    closed = execute_plan(plan, mismatched_bench, runs_dir=tmp_path, progress_out=None,
-                          closed_loop=True, supervisor_settings=SupervisorSettings(seed=1))
-    assert not closed.faults, closed.faults
-    assert closed.reached
-    assert truth_errors(closed).max() < 1.0  # the emulator's ground truth, not the camera's word
+    closed = outcomes[reached[0]]  # what a successful closed-loop run leaves behind
     assert closed.replans >= 1
-    tracking = closed.tracking
-    assert tracking["max_error_mm"] < 0.2 * 8.0  # the tracker against ground truth, at rest
+    assert closed.tracking["max_error_mm"] < 0.2 * 8.0  # the tracker against ground truth, at rest
     events = [json.loads(line) for line in (Path(closed.run) / "events.jsonl").read_text().splitlines()]
     replans = [e for e in events if e["event"] == "replan"]
     assert len(replans) == closed.replans

@@ -11,7 +11,7 @@ import pytest
 from rigctl.config import FieldSettings
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
-from rigctl.errors import LimitError
+from rigctl.errors import DeviceError, LimitError
 from rigctl.execute import execute_plan, prepare
 from rigctl.plans.schema import load_plan
 from rigctl.testing import wait_for
@@ -87,3 +87,42 @@ def test_a_supply_that_stops_answering_is_a_timeout_fault(bench, tmp_path):
     summary = execute_plan(plan, bench.rig, runs_dir=tmp_path, progress_out=None)
     assert summary.faults and summary.faults[0]["device"] == "z-"
     assert summary.faults[0]["kind"] == "DeviceTimeout"
+
+
+def test_an_estop_from_another_thread_latches_every_supply_at_zero_mid_stream(bench):
+    """E-stop does not wait for the stream thread: written from another thread while the stream
+    thread keeps cycling nonzero setpoints, every supply ends at 0 A with its output off, and
+    stays there, because the drivers send nothing but 0 A once the e-stop is written."""
+    from rigctl.devices import CoilSupplies
+
+    supplies = CoilSupplies.connect(bench.rig)
+    try:
+        supplies.energise()
+        setpoints = np.full(len(supplies.names), 2.0)
+        for _ in range(20):
+            supplies.cycle(setpoints)
+        assert all(s.model.current_setpoint_A == 2.0 and s.model.output_on
+                   for s in bench.supplies)
+        stop = threading.Event()
+
+        def stream():  # the stream thread, still asking for 2 A after the e-stop
+            while not stop.is_set():
+                supplies.cycle(setpoints)
+
+        streamer = threading.Thread(target=stream)
+        streamer.start()
+        try:
+            supplies.emergency_zero()
+            wait_for(lambda: all(not s.model.output_on and s.model.current_setpoint_A == 0.0
+                                 for s in bench.supplies), what="every supply zeroed and off")
+        finally:
+            stop.set()
+            streamer.join()
+        for _ in range(20):  # the stream thread's later setpoints leave as 0 A
+            supplies.cycle(setpoints)
+        assert all(s.model.current_setpoint_A == 0.0 and not s.model.output_on
+                   for s in bench.supplies)
+        with pytest.raises(DeviceError, match="e-stop latched"):
+            supplies.energise()
+    finally:
+        supplies.stop(ramp_s=0.0)

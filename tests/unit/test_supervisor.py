@@ -172,3 +172,27 @@ def test_hold_freezes_the_setpoints_mid_move_and_unhold_goes_on():
     assert seq.paused
     seq.unhold()
     assert float(seq.next()[0][0]) == 3.0
+
+
+def test_the_replanner_process_says_when_it_is_ready_and_then_plans():
+    """The re-planning child reports its imports done (so they do not compete with the stream's
+    first seconds) and then answers a re-plan: one free robot 20 mm (two turns) from its goal."""
+    import json
+
+    from rigctl.supervisor import ReplanWorker
+
+    plan = {"schema": "rigctl.plan/1", "kind": "global-moves", "rig": "six-coil", "name": "one",
+            "workspace": {"boundary": {"rect": [0, 0, 200, 200]}},
+            "agents": [{"start": [50.0, 100.0], "goal": [70.0, 100.0], "radius": 3.0}],
+            "moves": []}
+    worker = ReplanWorker()
+    try:
+        assert worker.wait_ready(timeout_s=60.0)
+        assert worker.wait_ready(timeout_s=0.0)  # said once, remembered
+        result = worker.replan(json.dumps(plan), ".", np.array([[50.0, 100.0]]),
+                               np.array([[70.0, 100.0]]), TURN_MM, 0.3, 0, 2.0)
+    finally:
+        worker.close()
+    assert result.distance <= 0.3
+    np.testing.assert_allclose(result.states[-1], [[70.0, 100.0]], atol=0.3)
+    np.testing.assert_allclose(result.moves.sum(axis=0), [20.0, 0.0], atol=0.3)
