@@ -18,6 +18,12 @@ later) implements only "cut every connection and refuse new ones" and "accept ag
 Every fault method returns once the fault is in force, so tests never sleep to wait for it.
 Time is taken from `time.monotonic()`.
 
+A device that may speak unasked (a robot server that acknowledges a move and reports its end
+later, a board that streams samples) is served with `serve_sessions_tcp`: its `SessionHandler` is
+told of each client (`connected`, `received(session, line)`, `disconnected`) and may call
+`session.send(line)` at any time from the loop thread; `serve_lines_tcp` is the special case of
+one reply per line. Both share the framing, the faults and `Endpoint.close()`.
+
 Byte protocols without lines (the coil board's binary frames) are served on a pty with
 `serve_bytes_pty`: the handler gets every chunk as it arrives and returns bytes to send back. Its
 `PtyEndpoint` adds `inject(data)` (bytes to the host, unasked); `drop_link()` is an unplug (the pty
@@ -49,6 +55,8 @@ ByteHandler = Callable[[bytes], "bytes | None"]
 
 GARBAGE = b"\xfe\x81#%!\x00\xff\x9c"  # not ASCII, no terminator inside
 MAX_LINE_BYTES = 65536
+MAX_BACKLOG_BYTES = 1 << 20  # a client that leaves this much unread is cut, not queued for
+MAX_CLIENTS = 64
 CALL_TIMEOUT_S = 5.0
 
 
@@ -87,6 +95,8 @@ class _Link(Protocol):
     async def reopen(self) -> None: ...
 
     def connection_count(self) -> int: ...
+
+    async def close(self) -> None: ...
 
 
 class Endpoint:
@@ -134,46 +144,109 @@ class Endpoint:
         self._server._run(restore())
         log.info("%s: link restored", self.name)
 
+    def close(self) -> None:
+        """Stop serving this link: stop listening and close every client."""
+        self._server._run(self._link.close())
+        log.info("%s: link closed", self.name)
+
     @property
     def connection_count(self) -> int:
         """Clients connected now."""
         return self._server.call(self._link.connection_count)
 
 
-class _LineConnection(asyncio.Protocol):
-    """One client of a line link: frames lines, asks the handler, applies the link's faults."""
+class SessionHandler(Protocol):
+    """A device that may write to its clients at any time, not only in reply to a line (a robot
+    server that acknowledges a move and reports its end later, a board that streams samples).
+    Every call runs in the loop thread; `session.send(line)` may be called from it at any time."""
+
+    def connected(self, session: "Session") -> None: ...
+
+    def received(self, session: "Session", line: str) -> None: ...
+
+    def disconnected(self, session: "Session") -> None: ...
+
+
+class _ReplyHandler:
+    """A `LineHandler` as a `SessionHandler`: each line's reply (if any) goes back at once."""
+
+    def __init__(self, handler: LineHandler) -> None:
+        self.handler = handler
+
+    def connected(self, session: "Session") -> None:
+        pass
+
+    def received(self, session: "Session", line: str) -> None:
+        reply = self.handler(line)
+        if reply is not None:
+            session.send(reply)
+
+    def disconnected(self, session: "Session") -> None:
+        pass
+
+
+class Session(asyncio.Protocol):
+    """One client of a line link: frames incoming lines for the device and sends its lines,
+    both through the link's faults."""
 
     def __init__(self, link: "_TcpLineLink") -> None:
         self.link = link
         self.transport: asyncio.Transport | None = None
         self._buffer = bytearray()
 
+    @property
+    def open(self) -> bool:
+        return self.transport is not None and not self.transport.is_closing()
+
+    def send(self, line: str) -> None:
+        """Send `line` (no terminator) unless the link drops or stalls or the client is gone; a
+        client that has stopped reading (MAX_BACKLOG_BYTES queued) is disconnected."""
+        if not self.open:
+            return
+        assert self.transport is not None
+        out = self.link.faults.outgoing(line.encode("ascii", errors="replace"), self.link.terminator)
+        if out is None:
+            return
+        if self.transport.get_write_buffer_size() > MAX_BACKLOG_BYTES:
+            log.warning("%s: client does not read; closing it", self.link.name)
+            self.transport.close()
+            return
+        self.transport.write(out)
+
+    def close(self) -> None:
+        if self.transport is not None:
+            self.transport.close()
+
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
-        if self.link.faults.dropped:
+        link = self.link
+        if link.faults.dropped or len(link.connections) >= link.max_clients:
             _reset(transport)
             return
         sock = transport.get_extra_info("socket")
         if sock is not None:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.transport = transport
-        self.link.connections.add(self)
+        link.connections.add(self)
+        self._notify("connected")
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self.link.connections.discard(self)
+        if self in self.link.connections:  # once per client, whoever noticed first
+            self.link.connections.discard(self)
+            self._notify("disconnected")
 
     def data_received(self, data: bytes) -> None:
-        link, transport = self.link, self.transport
-        if transport is None:
+        link = self.link
+        if self.transport is None:
             return
         self._buffer += data
         terminator = link.terminator
-        while not transport.is_closing():
+        while self.open:
             index = self._buffer.find(terminator)
             if index < 0:
                 if len(self._buffer) > MAX_LINE_BYTES:
                     log.warning("%s: line longer than %d bytes; closing", link.name, MAX_LINE_BYTES)
-                    transport.close()
+                    self.close()
                 return
             raw = bytes(self._buffer[:index])
             del self._buffer[: index + len(terminator)]
@@ -181,36 +254,39 @@ class _LineConnection(asyncio.Protocol):
                 continue
             line = raw.decode("ascii", errors="replace").rstrip("\r")
             try:
-                reply = link.handler(line)
+                link.handler.received(self, line)
             except Exception:
                 log.exception("%s: emulator failed on %r; closing the connection", link.name, line)
-                transport.close()
+                self.close()
                 return
-            if reply is None:
-                continue
-            out = link.faults.outgoing(reply.encode("ascii", errors="replace"), terminator)
-            if out is not None:
-                transport.write(out)
+
+    def _notify(self, what: str) -> None:
+        try:
+            getattr(self.link.handler, what)(self)
+        except Exception:
+            log.exception("%s: emulator failed in %s; closing the connection", self.link.name, what)
+            self.close()
 
 
 class _TcpLineLink:
     """A TCP listener whose connections carry terminator-framed text lines."""
 
-    def __init__(self, handler: LineHandler, *, name: str, host: str, port: int,
-                 terminator: bytes, faults: LinkFaults) -> None:
+    def __init__(self, handler: SessionHandler, *, name: str, host: str, port: int,
+                 terminator: bytes, faults: LinkFaults, max_clients: int = MAX_CLIENTS) -> None:
         self.handler = handler
         self.name = name
         self.host = host
         self.port = port
         self.terminator = terminator
         self.faults = faults
-        self.connections: set[_LineConnection] = set()
+        self.max_clients = max_clients
+        self.connections: set[Session] = set()
         self._server: asyncio.AbstractServer | None = None
 
     async def open(self) -> None:
         loop = asyncio.get_running_loop()
         self._server = await loop.create_server(
-            lambda: _LineConnection(self), self.host, self.port, reuse_address=True
+            lambda: Session(self), self.host, self.port, reuse_address=True
         )
         self.port = self._server.sockets[0].getsockname()[1]
 
@@ -228,7 +304,7 @@ class _TcpLineLink:
         for connection in list(self.connections):
             if connection.transport is not None:
                 _reset(connection.transport)
-        self.connections.clear()
+            connection.connection_lost(None)  # the device hears of it now, not a loop turn later
 
     async def reopen(self) -> None:
         if self._server is None:
@@ -430,11 +506,30 @@ class EmulatorServer:
         `handler(line)` gets each line without its terminator (and without a trailing CR) and
         returns the reply without terminator, or None for no reply. Listening when this returns.
         """
+        return self.serve_sessions_tcp(_ReplyHandler(handler), name=name, host=host, port=port,
+                                       terminator=terminator)
+
+    def serve_sessions_tcp(
+        self,
+        handler: SessionHandler,
+        *,
+        name: str,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        terminator: bytes = b"\n",
+        max_clients: int = MAX_CLIENTS,
+    ) -> Endpoint:
+        """Serve a line protocol whose device may also speak unasked (see `SessionHandler`): each
+        client is a `Session` the device may `send` to at any time from the loop thread. Clients
+        beyond `max_clients` are refused (reset). Same framing, faults and URL as
+        `serve_lines_tcp`; listening when this returns."""
         if not terminator:
             raise ValueError("terminator must not be empty")
+        if max_clients < 1:
+            raise ValueError("max_clients must be >= 1")
         faults = LinkFaults()
         link = _TcpLineLink(handler, name=name, host=host, port=port, terminator=terminator,
-                            faults=faults)
+                            faults=faults, max_clients=max_clients)
         self._run(link.open())
         self._links.append(link)
         shown_host = f"[{host}]" if ":" in host else host

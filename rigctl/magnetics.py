@@ -164,3 +164,239 @@ def dipole_field(points_m: ArrayLike, centre_m: ArrayLike, moment_Am2: ArrayLike
         m_dot = np.sum(moment * r_hat, axis=-1, keepdims=True)
         field = MU0 / (4.0 * np.pi) * (3.0 * m_dot * r_hat - moment) / r**3
     return np.where(at_source, np.nan, field)
+
+
+# ---------------------------------------------------------------- dipole gradients and the 8-vector U
+#
+# Seed 003 (the dual-EPM rig) describes each external permanent magnet (EPM) as a point dipole and
+# works with U = [B; dB], the field and the five independent terms of its gradient at the workspace
+# centre. Everything below is in SI: positions in m, moments in A m^2, fields in T, gradients in T/m.
+
+U_COMPONENTS = ("Bx", "By", "Bz", "dBx/dx", "dBx/dy", "dBx/dz", "dBy/dy", "dBy/dz")
+"""The eight entries of U (seed 003 eq. 6), in this order: field (T) then gradient terms (T/m)."""
+
+GRADIENT_TERMS = U_COMPONENTS[3:]
+"""The five independent gradient terms of seed 003 eq. 5. The other four follow from Maxwell
+(gradient symmetric: dBy/dx = dBx/dy, dBz/dx = dBx/dz, dBz/dy = dBy/dz; traceless:
+dBz/dz = -dBx/dx - dBy/dy)."""
+
+_TERM_INDEX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2))  # (row i, column j) of G[i, j] = dB_i/dx_j
+
+
+def _dipole_kernel(rel: np.ndarray, moment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Field (..., 3) and gradient (..., 3, 3) of dipoles `moment` at offsets `rel` = point - dipole.
+
+    Written component by component, without numpy reductions: a reduction's last bit can depend
+    on memory alignment, and the planners built on these kernels must repeat exactly run to run.
+    NaN where rel = 0.
+    """
+    x, y, z = rel[..., 0], rel[..., 1], rel[..., 2]
+    mx, my, mz = moment[..., 0], moment[..., 1], moment[..., 2]
+    r2 = x * x + y * y + z * z
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv_r2 = np.where(r2 > 0, 1.0 / r2, np.nan)
+        inv_r = np.sqrt(inv_r2)
+        inv_r3 = inv_r * inv_r2
+        inv_r5 = inv_r3 * inv_r2
+    c = MU0 / (4.0 * np.pi)
+    m_dot = mx * x + my * y + mz * z
+    rel_c = (x, y, z)
+    mom_c = (mx, my, mz)
+    field = np.stack([c * (3.0 * m_dot * rel_c[i] * inv_r5 - mom_c[i] * inv_r3) for i in range(3)],
+                     axis=-1)
+    g = 3.0 * c * inv_r5
+    rows = []
+    for i in range(3):
+        row = []
+        for j in range(3):
+            value = (rel_c[i] * mom_c[j] + mom_c[i] * rel_c[j]
+                     - 5.0 * m_dot * rel_c[i] * rel_c[j] * inv_r2)
+            if i == j:
+                value = value + m_dot
+            row.append(g * value)
+        rows.append(np.stack(row, axis=-1))
+    return field, np.stack(rows, axis=-2)
+
+
+def dipole_gradient(
+    points_m: ArrayLike, centre_m: ArrayLike, moment_Am2: ArrayLike
+) -> np.ndarray:
+    """Spatial gradient of a point dipole's field (seed 003 eq. 3).
+
+    G[..., i, j] = dB_i / dx_j = 3 mu0 / (4 pi r^4) ((I - 5 r_hat r_hat^T)(r_hat . m)
+    + m r_hat^T + r_hat m^T)_ij, symmetric and traceless away from the dipole.
+
+    Parameters
+    ----------
+    points_m : array, shape (..., 3)
+        Observation points in metres.
+    centre_m, moment_Am2 : arrays broadcastable to (..., 3)
+        Dipole position (m) and moment (A m^2).
+
+    Returns
+    -------
+    np.ndarray, shape (..., 3, 3)
+        The gradient in T/m; NaN at the dipole's own position.
+    """
+    points = np.asarray(points_m, dtype=float)
+    if points.shape[-1:] != (3,):
+        raise ValueError(f"points_m must have shape (..., 3), got {points.shape}")
+    rel = points - np.asarray(centre_m, dtype=float)
+    moment = np.broadcast_to(np.asarray(moment_Am2, dtype=float), rel.shape)
+    return _dipole_kernel(rel, moment)[1]
+
+
+def gradient_terms(gradient: ArrayLike) -> np.ndarray:
+    """The five independent terms (dBx/dx, dBx/dy, dBx/dz, dBy/dy, dBy/dz) of gradients (..., 3, 3)
+    -> (..., 5), same unit as the input."""
+    gradient = np.asarray(gradient, dtype=float)
+    if gradient.shape[-2:] != (3, 3):
+        raise ValueError(f"gradient must have shape (..., 3, 3), got {gradient.shape}")
+    return np.stack([gradient[..., i, j] for i, j in _TERM_INDEX], axis=-1)
+
+
+def gradient_from_terms(terms: ArrayLike) -> np.ndarray:
+    """The full symmetric, traceless gradient (..., 3, 3) from its five terms (..., 5) (eq. 4)."""
+    t = np.asarray(terms, dtype=float)
+    if t.shape[-1:] != (5,):
+        raise ValueError(f"terms must have shape (..., 5), got {t.shape}")
+    xx, xy, xz, yy, yz = (t[..., k] for k in range(5))
+    rows = [
+        np.stack([xx, xy, xz], axis=-1),
+        np.stack([xy, yy, yz], axis=-1),
+        np.stack([xz, yz, -xx - yy], axis=-1),
+    ]
+    return np.stack(rows, axis=-2)
+
+
+def _magnets(centres_m: ArrayLike, moments_Am2: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    centres = np.asarray(centres_m, dtype=float)
+    moments = np.asarray(moments_Am2, dtype=float)
+    if centres.ndim == 1:
+        centres = centres[None, :]
+    if moments.ndim == 1:
+        moments = moments[None, :]
+    if centres.shape[-1:] != (3,) or moments.shape[-1:] != (3,):
+        raise ValueError(
+            f"centres_m and moments_Am2 must have shape (K, 3), got {centres.shape} and "
+            f"{moments.shape}"
+        )
+    if centres.shape[-2] != moments.shape[-2]:
+        raise ValueError(
+            f"one moment per magnet: {centres.shape[-2]} centres, {moments.shape[-2]} moments"
+        )
+    return centres, moments
+
+
+def field_and_gradient(
+    points_m: ArrayLike, centres_m: ArrayLike, moments_Am2: ArrayLike
+) -> tuple[np.ndarray, np.ndarray]:
+    """Field and gradient of any number of dipoles by superposition (seed 003 eq. 8).
+
+    Parameters
+    ----------
+    points_m : array, shape (..., 3)
+        Observation points (m).
+    centres_m, moments_Am2 : arrays, shape (K, 3)
+        The magnets' positions (m) and moments (A m^2); a single (3,) vector means one magnet.
+        Leading batch axes are allowed as (..., K, 3) when they match the points' batch axes.
+
+    Returns
+    -------
+    B : (..., 3) in T, G : (..., 3, 3) in T/m (G[..., i, j] = dB_i/dx_j).
+    """
+    centres, moments = _magnets(centres_m, moments_Am2)
+    points = np.asarray(points_m, dtype=float)
+    if points.shape[-1:] != (3,):
+        raise ValueError(f"points_m must have shape (..., 3), got {points.shape}")
+    rel = points[..., None, :] - centres  # (..., K, 3)
+    fields, gradients = _dipole_kernel(rel, np.broadcast_to(moments, rel.shape))
+    field, gradient = fields[..., 0, :], gradients[..., 0, :, :]
+    for k in range(1, rel.shape[-2]):  # superposition, added in a fixed order
+        field = field + fields[..., k, :]
+        gradient = gradient + gradients[..., k, :, :]
+    return field, gradient
+
+
+def field_vector(points_m: ArrayLike, centres_m: ArrayLike, moments_Am2: ArrayLike) -> np.ndarray:
+    """U = [Bx, By, Bz, dBx/dx, dBx/dy, dBx/dz, dBy/dy, dBy/dz] of K dipoles at the points
+    (seed 003 eq. 6 and 8): points (..., 3) in m, magnets (K, 3) in m and A m^2 -> (..., 8) in
+    T and T/m."""
+    field, gradient = field_and_gradient(points_m, centres_m, moments_Am2)
+    return np.concatenate([field, gradient_terms(gradient)], axis=-1)
+
+
+def field_matrix(point_m: ArrayLike, centres_m: ArrayLike) -> np.ndarray:
+    """L of seed 003 eq. 17: B at `point_m` (3,) = L @ [m_1; ...; m_K] for magnets at
+    `centres_m` (K, 3). Shape (3, 3K), in T per A m^2. Batch: point (..., 3), centres (..., K, 3)
+    -> (..., 3, 3K)."""
+    return actuation_matrix(point_m, centres_m)[..., :3, :]
+
+
+def gradient_matrix(point_m: ArrayLike, centres_m: ArrayLike) -> np.ndarray:
+    """M of seed 003 eq. 18-19: the five gradient terms at `point_m` = M @ [m_1; ...; m_K].
+    Shape (5, 3K), in T/m per A m^2 (batch as in `field_matrix`)."""
+    return actuation_matrix(point_m, centres_m)[..., 3:, :]
+
+
+def actuation_matrix(point_m: ArrayLike, centres_m: ArrayLike) -> np.ndarray:
+    """[L; M] of seed 003 eq. 20: U at `point_m` = A @ [m_1; ...; m_K] for fixed magnet positions.
+
+    Built in closed form per column (the unit moments e_j of eq. 19): column 3k + j holds U of
+    magnet k with moment e_j. Shapes: point (..., 3), centres (..., K, 3) -> (..., 8, 3K); rows in
+    the order of `U_COMPONENTS`, units T (rows 0-2) and T/m (rows 3-7) per A m^2.
+    """
+    point = np.asarray(point_m, dtype=float)
+    centres = np.asarray(centres_m, dtype=float)
+    if centres.ndim == 1:
+        centres = centres[None, :]
+    rel = point[..., None, :] - centres  # (..., K, 3) from each magnet to the point
+    r = np.sqrt(rel[..., 0] ** 2 + rel[..., 1] ** 2 + rel[..., 2] ** 2)  # (..., K), no reduction
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_hat = rel / r[..., None]
+        # Field per unit moment: B = mu0/(4 pi r^3) (3 r r^T - I) m   -> (..., K, 3, 3)
+        eye = np.eye(3)
+        outer_rr = r_hat[..., :, None] * r_hat[..., None, :]
+        field_block = MU0 / (4.0 * np.pi) * (3.0 * outer_rr - eye) / (r**3)[..., None, None]
+        # Gradient term (i, j) per unit moment along e_l:
+        # 3 mu0/(4 pi r^4) ((delta_ij - 5 ri rj) r_l + delta_il r_j + r_i delta_jl)
+        c = 3.0 * MU0 / (4.0 * np.pi) / r**4  # (..., K)
+        rows = []
+        for i, j in _TERM_INDEX:
+            term = (float(i == j) - 5.0 * r_hat[..., i] * r_hat[..., j])[..., None] * r_hat
+            term = term + eye[i] * r_hat[..., j, None] + r_hat[..., i, None] * eye[j]
+            rows.append(c[..., None] * term)  # (..., K, 3)
+        grad_block = np.stack(rows, axis=-2)  # (..., K, 5, 3)
+    blocks = np.concatenate([field_block, grad_block], axis=-2)  # (..., K, 8, 3)
+    # (..., K, 8, 3) -> (..., 8, K, 3) -> (..., 8, 3K): magnet-major columns as in eq. 17
+    blocks = np.moveaxis(blocks, -3, -2)
+    return blocks.reshape(blocks.shape[:-2] + (3 * centres.shape[-2],))
+
+
+def wrench_map(moment_Am2: ArrayLike) -> np.ndarray:
+    """S of seed 003 eq. 7: the wrench [f; tau] (N, N m) on a dipole of moment `moment_Am2`
+    (..., 3) in A m^2 is S @ U with U in T and T/m. Shape (..., 6, 8).
+
+    f = (m . grad) B = G m (G symmetric), tau = m x B, written in the five independent terms."""
+    m = np.asarray(moment_Am2, dtype=float)
+    if m.shape[-1:] != (3,):
+        raise ValueError(f"moment_Am2 must have shape (..., 3), got {m.shape}")
+    mx, my, mz = m[..., 0], m[..., 1], m[..., 2]
+    zero = np.zeros_like(mx)
+    rows = [
+        [zero, zero, zero, mx, my, mz, zero, zero],
+        [zero, zero, zero, zero, mx, zero, my, mz],
+        [zero, zero, zero, -mz, zero, mx, -mz, my],
+        [zero, -mz, my, zero, zero, zero, zero, zero],
+        [mz, zero, -mx, zero, zero, zero, zero, zero],
+        [-my, mx, zero, zero, zero, zero, zero, zero],
+    ]
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def cylinder_moment(diameter_m: float, length_m: float, remanence_T: float) -> float:
+    """|m| (A m^2) of a uniformly, axially magnetised cylinder: Br V / mu0."""
+    if not (diameter_m > 0 and length_m > 0 and remanence_T > 0):
+        raise ValueError("diameter_m, length_m and remanence_T must be > 0")
+    volume = np.pi * (0.5 * diameter_m) ** 2 * length_m
+    return float(remanence_T * volume / MU0)

@@ -1,0 +1,1259 @@
+"""The hybrid trajectory planner of seed 003 for the dual-EPM rig, and its magnetic-agnostic baseline.
+
+A sequence of requested 8-vectors U (field and five gradient terms at the workspace centre) becomes
+joint trajectories of the two arms that carry the magnets:
+
+1. inverse magnetics: EPM positions and moment directions (moment magnitude fixed to the magnets'
+   real strength) that make each requested U, by Levenberg-Marquardt with the rig's constraints as
+   one-sided penalties (`inverse_magnetics`);
+2. operational space (eq. 11-12): per EPM a path from the current to the new position, linear in
+   the cylindrical coordinates (theta, rho, z) about the centre, plus k radial alternatives that
+   bulge away from the centre (distance + Delta_k sin(pi s)), none inside the keep-out sphere;
+3. magnetic space (eq. 13-14): the desired U along the path, a falling sigmoid of U_s then a rising
+   sigmoid of U_e (how we read eq. 14: `magnetic_path`);
+4. at every waypoint and alternative, the moments by pseudo-inverse of [L; M] (eq. 21), given the
+   real |m| and refined so that constraint costs as little as possible; the alternative whose U
+   is nearest the desired one in absolute terms (eq. 22) is kept;
+5. joints by inverse kinematics along the path, each solve seeded with the previous knot and steps
+   the arms cannot take smoothly subdivided (if the arms must change configuration anyway, other
+   end poses are tried); PCHIP through the knots with shared knot times (both arms finish
+   together), timed so no joint exceeds 30 % of its maximum speed.
+
+The baseline ("magnetic-agnostic", `baseline_of`) sends the arms to the same EPM end poses by
+straight joint-space moves, each arm solving its own joints as its controller would, also at 30 %
+speed. `check(plan)` runs every safety constraint of `rigctl.depm_safety` on a plan, densely in
+time. Figures and the reading of the paper: docs/depm.md.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.interpolate import PchipInterpolator
+
+from rigctl.depm_safety import SafetyLimits, check_samples, violations
+from rigctl.errors import PlanError
+from rigctl.kinematics import (
+    DEFAULT_BASES,
+    LBR_IIWA_14_R820,
+    ArmKinematics,
+    ArmModel,
+    base_transform,
+)
+from rigctl.magnetics import actuation_matrix, cylinder_moment, field_vector
+from rigctl.plans.schema import (
+    SCHEMA_ID,
+    ArmPlan,
+    DepmLimits,
+    ExpectedField,
+    FieldSequencePlan,
+    Segment,
+    SequenceComponent,
+)
+
+log = logging.getLogger(__name__)
+
+# The seed's magnets: axially magnetised N52 cylinders, 101.6 mm diameter and length (Sec. 3.3).
+# Br = 1.48 T is the top of the N52 grade's range (1.43-1.48 T); it gives |m| = 970.1 A m^2.
+EPM_DIAMETER_M = 0.1016
+EPM_LENGTH_M = 0.1016
+EPM_REMANENCE_T = 1.48
+EPM_MOMENT_AM2 = cylinder_moment(EPM_DIAMETER_M, EPM_LENGTH_M, EPM_REMANENCE_T)
+
+# U in plans and sequence files is mT and mT/m; inside, T and T/m.
+U_TO_SI = np.array([1e-3] * 8)
+# Weights that make 1 mT of field count like 10 mT/m of gradient (a 10 cm lever) in residuals.
+U_SCALE_SI = np.array([1e-3] * 3 + [1e-2] * 5)
+
+SIGMOID_SLOPE = 2.1
+"""Steepness of eq. 14 per waypoint, as tuned in the seed for its 10-waypoint paths."""
+SIGMOID_REFERENCE_WAYPOINTS = 10
+
+HOME_DISTANCE_M = 0.52
+START_HOLD_S = 1.0
+SPEED_MARGIN = 0.97  # plan at 97 % of the allowed speed so the dense check has room
+IM_MARGIN_M = 0.02  # planned EPM positions keep this far inside each positional constraint
+SIDE_MARGIN_M = 0.0  # each EPM stays on its own arm's side of the plane through the centre
+MAX_DISTANCE_M = 0.55  # end poses farther than this from the centre strain the arms' reach
+EXPECTED_RATE_HZ = 10.0
+DEFAULT_WAYPOINTS = 20
+DEFAULT_K = 4
+DEFAULT_BULGE_M = 0.20  # the farthest alternative bulges 20 cm out mid-path
+HOP_COST_PER_M = 20.0  # selection cost of moving between alternatives: 5 cm ~ 1 mT of error
+IK_KEEP_OUT_MARGIN_M = 0.03  # IK keeps link sample points this much beyond the keep-out sphere
+
+Planner = Literal["hybrid", "agnostic"]
+
+
+# ---------------------------------------------------------------- the rig a plan is made for
+
+
+@dataclass
+class DepmRig:
+    """The two arms (with their bases), the magnets' strength and the safety limits."""
+
+    arms: list[ArmKinematics]
+    moment_Am2: float = EPM_MOMENT_AM2
+    limits: SafetyLimits = field(default_factory=SafetyLimits)
+
+    @property
+    def centre(self) -> np.ndarray:
+        return np.asarray(self.limits.centre_m, dtype=float)
+
+    def side(self, index: int) -> np.ndarray:
+        """Horizontal unit vector from the centre toward arm `index`'s base."""
+        toward = self.arms[index].base[:3, 3] - self.centre
+        toward[2] = 0.0
+        return toward / np.linalg.norm(toward)
+
+    def epm_poses(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """EPM centres and moment directions (A, ..., 3) for joints q (A, ..., 7)."""
+        poses = [arm.epm_pose(q[a]) for a, arm in enumerate(self.arms)]
+        return np.stack([p for p, _ in poses]), np.stack([d for _, d in poses])
+
+    def field_at_centre(self, q: np.ndarray) -> np.ndarray:
+        """U (..., 8) in T and T/m at the centre for joints q (A, ..., 7)."""
+        positions, directions = self.epm_poses(q)
+        centres = np.moveaxis(positions, 0, -2)  # (..., A, 3)
+        moments = np.moveaxis(directions, 0, -2) * self.moment_Am2
+        return field_vector(np.broadcast_to(self.centre, centres.shape[:-2] + (3,)), centres, moments)
+
+
+def default_rig(limits: SafetyLimits | None = None) -> DepmRig:
+    arms = [
+        ArmKinematics(base=base_transform(pos, rpy), model=LBR_IIWA_14_R820, name=name)
+        for name, pos, rpy in DEFAULT_BASES
+    ]
+    return DepmRig(arms=arms, limits=limits or SafetyLimits())
+
+
+def _model_for(plan: FieldSequencePlan) -> ArmModel:
+    from dataclasses import replace
+
+    return replace(LBR_IIWA_14_R820, tool_offset_m=plan.tool_offset_mm * 1e-3)
+
+
+def limits_from_plan(limits: DepmLimits) -> SafetyLimits:
+    return SafetyLimits(
+        keep_out_radius_m=limits.keep_out_radius_mm * 1e-3,
+        epm_radius_m=limits.epm_radius_mm * 1e-3,
+        epm_min_distance_m=limits.epm_min_distance_mm * 1e-3,
+        speed_fraction=limits.speed_fraction,
+        accel_fraction=limits.accel_fraction,
+        check_step_s=limits.check_step_s,
+    )
+
+
+def limits_to_plan(limits: SafetyLimits) -> DepmLimits:
+    return DepmLimits(
+        keep_out_radius_mm=limits.keep_out_radius_m * 1e3,
+        epm_radius_mm=limits.epm_radius_m * 1e3,
+        epm_min_distance_mm=limits.epm_min_distance_m * 1e3,
+        speed_fraction=limits.speed_fraction,
+        accel_fraction=limits.accel_fraction,
+        check_step_s=limits.check_step_s,
+    )
+
+
+def rig_from_settings(settings) -> DepmRig:
+    """The rig a rig file's `[depm]` table describes (`rigctl.config.DepmSettings`): its arms'
+    bases and EPM tool, the magnets' moment and the safety limits."""
+    from dataclasses import replace
+
+    model = replace(LBR_IIWA_14_R820, tool_offset_m=settings.tool_offset_mm * 1e-3)
+    arms = [
+        ArmKinematics(base=base_transform(np.asarray(position) * 1e-3, rpy), model=model, name=name)
+        for name, position, rpy in zip(settings.arm_names, settings.arm_positions_mm,
+                                       settings.arm_rpy_deg)
+    ]
+    limits = SafetyLimits(
+        keep_out_radius_m=settings.keep_out_radius_mm * 1e-3,
+        epm_radius_m=settings.epm_radius_mm * 1e-3,
+        epm_min_distance_m=settings.epm_min_distance_mm * 1e-3,
+        speed_fraction=settings.speed_fraction,
+    )
+    return DepmRig(arms=arms, moment_Am2=settings.epm_moment_Am2, limits=limits)
+
+
+def rig_for_plan(plan: FieldSequencePlan) -> DepmRig:
+    """The arms, magnet strength and limits a plan was made for (as the plan states them)."""
+    model = _model_for(plan)
+    arms = [
+        ArmKinematics(
+            base=base_transform(np.asarray(arm.position_mm) * 1e-3, arm.rpy_deg),
+            model=model, name=arm.name,
+        )
+        for arm in plan.arms
+    ]
+    return DepmRig(arms=arms, moment_Am2=plan.epm_moment_Am2, limits=limits_from_plan(plan.limits))
+
+
+# ---------------------------------------------------------------- sequences
+
+
+def load_sequence(path: str | Path) -> list[SequenceComponent]:
+    """Read a sequence file: a JSON list of {"name", "U" (8 numbers, mT and mT/m), "hold_s"}."""
+    from rigctl.plans.schema import _read_json  # the one JSON reader of plan-like files
+
+    path = Path(path)
+    data = _read_json(path)
+    if not isinstance(data, list) or not data:
+        raise PlanError(f"--sequence: {path}: expected a non-empty JSON list of components")
+    components = []
+    for index, item in enumerate(data):
+        try:
+            components.append(SequenceComponent.model_validate(item))
+        except Exception as err:  # pydantic.ValidationError: name the entry
+            detail = "; ".join(
+                f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors()
+            ) if hasattr(err, "errors") else str(err)
+            raise PlanError(f"--sequence: {path}: entry {index}: {detail}") from None
+    return components
+
+
+# ---------------------------------------------------------------- inverse magnetics
+
+
+@dataclass(frozen=True)
+class EpmPoses:
+    """EPM centres (A, 3) in m, unit moment directions (A, 3), the U they make (8,) in T and T/m,
+    and the residual U - requested (8,)."""
+
+    positions: np.ndarray
+    directions: np.ndarray
+    U: np.ndarray
+    residual: np.ndarray
+
+    def relative_error(self, requested: np.ndarray) -> float:
+        return relative_error(self.residual, requested)
+
+
+def relative_error(residual: np.ndarray, requested: np.ndarray) -> float:
+    """Largest |residual| relative to the largest requested entry of its kind (field, gradient)."""
+    residual, requested = np.asarray(residual, float), np.asarray(requested, float)
+    worst = 0.0
+    for part in (slice(0, 3), slice(3, 8)):
+        scale = np.max(np.abs(requested[part]))
+        if scale > 0:
+            worst = max(worst, float(np.max(np.abs(residual[part])) / scale))
+    return worst
+
+
+# Numbers that feed decisions (which solution, which alternative, subdivide or not) are rounded
+# far below any physical scale: numpy's vectorised sums can differ in the last bit with memory
+# alignment, and the planner must give the same plan for the same input on every run.
+
+
+def _norm3(v: np.ndarray) -> np.ndarray:
+    """|v| over the last axis (3), without a numpy reduction (see above)."""
+    return np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
+
+
+def _unit_rows(v: np.ndarray) -> np.ndarray:
+    return v / _norm3(v)[..., None]
+
+
+def _matvec(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
+    """matrix @ vector as a fixed-order sum of columns."""
+    total = matrix[:, 0] * vector[0]
+    for j in range(1, len(vector)):
+        total = total + matrix[:, j] * vector[j]
+    return total
+
+
+def _pose_penalties(positions: np.ndarray, rig: DepmRig) -> np.ndarray:
+    """One-sided penalties (m) of EPM positions (..., A, 3) against the inverse-magnetics
+    constraints -> (..., P): keep-out, reach, own side per EPM, then the EPM-EPM distance."""
+    limits = rig.limits
+    rel = positions - rig.centre
+    distance = _norm3(rel)  # (..., A)
+    sides = np.array([rig.side(a) for a in range(len(rig.arms))])
+    along = rel[..., 0] * sides[:, 0] + rel[..., 1] * sides[:, 1] + rel[..., 2] * sides[:, 2]
+    terms = [
+        np.maximum(0.0, limits.epm_keep_out_m + IM_MARGIN_M - distance),
+        np.maximum(0.0, distance - MAX_DISTANCE_M),
+        np.maximum(0.0, SIDE_MARGIN_M - along),
+    ]
+    count = positions.shape[-2]
+    for a in range(count):
+        for b in range(a + 1, count):
+            gap = _norm3(positions[..., a, :] - positions[..., b, :])
+            terms.append(np.maximum(0.0, limits.epm_min_distance_m + IM_MARGIN_M - gap)[..., None])
+    return np.concatenate(terms, axis=-1)
+
+
+def _im_seeds(rig: DepmRig) -> list[np.ndarray]:
+    """Structured starting positions (A, 3): the magnets on their sides, level, raised, lowered,
+    turned toward +-y."""
+    seeds = []
+    for elevation in (0.0, 0.6, -0.6):
+        for azimuth in (0.0, 0.6, -0.6):
+            rows = []
+            for a in range(len(rig.arms)):
+                side = rig.side(a)
+                lateral = np.cross([0.0, 0.0, 1.0], side)
+                direction = (np.cos(elevation) * (np.cos(azimuth) * side + np.sin(azimuth) * lateral)
+                             + np.sin(elevation) * np.array([0.0, 0.0, 1.0]))
+                rows.append(rig.centre + 0.30 * direction)
+            seeds.append(np.array(rows))
+    return seeds
+
+
+@dataclass(frozen=True)
+class _Fit:
+    x: np.ndarray
+    cost: float
+
+
+def levenberg_marquardt(
+    fun, jac, x0: np.ndarray, *, max_iterations: int = 200, tolerance: float = 1e-12,
+) -> _Fit:
+    """Minimise |fun(x)|^2 by Levenberg-Marquardt (Marquardt's diagonal scaling).
+
+    Our own rather than scipy's MINPACK: its results can differ in the last bits with the memory
+    layout of the Jacobian, and from a far start that picks a different solution from run to run.
+    Stops when a step improves the cost by less than `tolerance` relative or moves x by < 1e-13.
+    """
+    x = np.asarray(x0, dtype=float).copy()
+    r = fun(x)
+    cost = float(r @ r)
+    damping = 1e-3
+    floor = 1e-12 * np.eye(len(x))
+    for _ in range(max_iterations):
+        J = jac(x)
+        normal = J.T @ J
+        gradient = J.T @ r
+        scale = np.diag(np.diag(normal)) + floor
+        while True:
+            step = np.linalg.solve(normal + damping * scale, -gradient)
+            trial = x + step
+            r_trial = fun(trial)
+            cost_trial = float(r_trial @ r_trial)
+            if cost_trial < cost:
+                break
+            damping *= 4.0
+            if damping > 1e12:
+                return _Fit(x, cost)
+        improvement = cost - cost_trial
+        x, r, cost = trial, r_trial, cost_trial
+        damping = max(damping / 3.0, 1e-12)
+        if improvement <= tolerance * cost or np.max(np.abs(step)) < 1e-13 or cost < 1e-30:
+            break
+    return _Fit(x, cost)
+
+
+def moments_for(U_target: np.ndarray, positions: np.ndarray, rig: DepmRig,
+                previous: np.ndarray | None = None, refine: bool = True) -> np.ndarray:
+    """Unit moment directions (A, 3) at fixed EPM positions (A, 3) for a desired U (8,) in SI.
+
+    Eq. 21: the least-squares moments pinv([L; M]) U; each is then given the magnets' real |m|
+    (its direction kept) and, with `refine`, the directions are adjusted by Levenberg-Marquardt so
+    the U the real magnets make is as close as possible to the desired one (weighted by
+    U_SCALE_SI), with a pull toward `previous` directions so the path does not flip; the
+    refinement starts from the pseudo-inverse directions and from `previous`, the better kept.
+    """
+    A = actuation_matrix(rig.centre, positions)  # (8, 3A)
+    weights = 1.0 / U_SCALE_SI
+    Aw = A * weights[:, None]
+    moments = np.linalg.lstsq(Aw, U_target * weights, rcond=None)[0].reshape(-1, 3)
+    norms = _norm3(moments)
+    fallback = previous if previous is not None else np.tile([0.0, 0.0, 1.0], (len(positions), 1))
+    directions = np.where(norms[:, None] > 1e-12, moments / np.maximum(norms, 1e-300)[:, None],
+                          fallback)
+    directions = np.round(directions, 9)  # LAPACK's last bits must not steer what follows
+    if not refine:
+        return directions
+    pull = 0.3  # turning a magnet right round costs like 0.6 mT of error: the path does not flip
+    count = len(positions)
+    target = U_target * weights
+
+    def parts(x):
+        dirs = x.reshape(count, 3)
+        norms = _norm3(dirs)
+        unit = dirs / norms[:, None]
+        # d unit / d dirs = (I - u u^T) / |dirs|, per magnet
+        d_unit = (np.eye(3)[None] - unit[:, :, None] * unit[:, None, :]) / norms[:, None, None]
+        return norms, unit, d_unit
+
+    def residual(x):
+        norms, unit, _ = parts(x)
+        res = [_matvec(Aw, (unit * rig.moment_Am2).reshape(-1)) - target, norms - 1.0]
+        if previous is not None:
+            res.append(pull * (unit - previous).reshape(-1))
+        return np.concatenate(res)
+
+    def jacobian(x):
+        norms, unit, d_unit = parts(x)
+        blocks = np.zeros((3 * count, 3 * count))
+        for a in range(count):
+            blocks[3 * a: 3 * a + 3, 3 * a: 3 * a + 3] = d_unit[a]
+        rows = [rig.moment_Am2 * Aw @ blocks]
+        norm_rows = np.zeros((count, 3 * count))
+        for a in range(count):
+            norm_rows[a, 3 * a: 3 * a + 3] = unit[a]
+        rows.append(norm_rows)
+        if previous is not None:
+            rows.append(pull * blocks)
+        return np.vstack(rows)
+
+    start = directions
+    if previous is not None:
+        # Refine from whichever is better already: the pseudo-inverse directions or the previous
+        # waypoint's (the latter keeps the path from flipping when the two are close in cost).
+        from_pinv, from_previous = residual(directions.reshape(-1)), residual(previous.reshape(-1))
+        if from_previous @ from_previous <= from_pinv @ from_pinv:
+            start = previous
+    fit = levenberg_marquardt(residual, jacobian, start.reshape(-1), max_iterations=60,
+                              tolerance=1e-8)
+    return np.round(_unit_rows(fit.x.reshape(-1, 3)), 12)  # run-to-run identical (see above)
+
+
+def inverse_magnetics(U_target: ArrayLike, rig: DepmRig, **options) -> list[EpmPoses]:
+    """EPM poses that make U_target (8,) in T and T/m at the centre: every distinct solution found
+    from the starting poses (see `inverse_magnetics_solutions`), in the order found (the current
+    poses' neighbourhood first)."""
+    return list(inverse_magnetics_solutions(U_target, rig, **options))
+
+
+def inverse_magnetics_solutions(
+    U_target: ArrayLike,
+    rig: DepmRig,
+    *,
+    start_positions: np.ndarray | None = None,
+    start_directions: np.ndarray | None = None,
+    tolerance: float = 1e-4,
+    max_starts: int = 10,
+) -> Iterator[EpmPoses]:
+    """EPM poses that make U_target (8,) in T and T/m at the centre, yielded as found.
+
+    Unknowns: each EPM's centre and moment direction (|m| fixed to `rig.moment_Am2`); residuals:
+    the weighted U error plus one-sided penalties that keep every EPM outside the keep-out sphere
+    (with its radius and a margin), within reach (<= MAX_DISTANCE_M), on its own arm's side, and
+    the EPMs apart. Solved by Levenberg-Marquardt (`levenberg_marquardt`) from the current poses and
+    from structured starting poses, directions from eq. 21. Yields every distinct solution that
+    meets all constraints and makes U within `tolerance` (relative to the largest requested entry
+    of its kind), the current poses' neighbourhood first; the caller takes the first the arms
+    reach, so later starts are only tried when needed.
+    """
+    target = np.asarray(U_target, dtype=float)
+    weights = 1.0 / U_SCALE_SI
+    count = len(rig.arms)
+    penalty_weight = 1e3  # 1 mm of constraint violation weighs like 1 mT of field error
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        """Residual vectors for parameter rows x (B, 6A) -> (B, R), all in one numpy pass."""
+        positions = x[:, : 3 * count].reshape(-1, count, 3)
+        dirs = x[:, 3 * count:].reshape(-1, count, 3)
+        norms = _norm3(dirs)
+        moments = dirs / norms[..., None] * rig.moment_Am2
+        U = field_vector(np.broadcast_to(rig.centre, (len(x), 3)), positions, moments)
+        return np.concatenate([
+            (U - target) * weights,
+            penalty_weight * _pose_penalties(positions, rig),
+            norms - 1.0,
+        ], axis=-1)
+
+    step = 1e-7
+
+    def fun(x):
+        return residuals(x[None, :])[0]
+
+    def jac(x):
+        rows = residuals(np.vstack([x, x + step * np.eye(len(x))]))
+        return ((rows[1:] - rows[0]) / step).T
+
+    def starts():  # lazily: most sequences need only the first one or two
+        if start_positions is not None:
+            dirs = start_directions if start_directions is not None else moments_for(
+                target, start_positions, rig)
+            yield np.asarray(start_positions, float), np.asarray(dirs, float)
+        for seed in _im_seeds(rig):
+            yield seed, moments_for(target, seed, rig)
+
+    found: list[EpmPoses] = []
+    for positions, dirs in itertools.islice(starts(), max_starts):
+        x0 = np.round(np.concatenate([positions.reshape(-1), dirs.reshape(-1)]), 10)
+        x = levenberg_marquardt(fun, jac, x0, max_iterations=150).x
+        positions = np.round(x[: 3 * count].reshape(count, 3), 10)
+        unit = np.round(_unit_rows(x[3 * count:].reshape(count, 3)), 12)
+        if np.any(_pose_penalties(positions, rig) > 1e-9):
+            continue
+        U = field_vector(rig.centre, positions, unit * rig.moment_Am2)
+        pose = EpmPoses(positions, unit, U, U - target)
+        if pose.relative_error(target) > tolerance:
+            continue
+        if any(np.allclose(pose.positions, s.positions, atol=1e-4) for s in found):
+            continue
+        found.append(pose)
+        yield pose
+
+
+# ---------------------------------------------------------------- operational and magnetic paths
+
+
+def operational_paths(
+    start_m: np.ndarray,
+    end_m: np.ndarray,
+    rig: DepmRig,
+    arm: int,
+    waypoints: int,
+    k: int,
+    bulge_m: float = DEFAULT_BULGE_M,
+) -> np.ndarray:
+    """k candidate EPM paths (k, N + 1, 3) from `start_m` to `end_m` for arm `arm` (eq. 11-12).
+
+    The base path is linear in cylindrical coordinates (theta, rho, z) about the vertical axis
+    through the centre, theta measured from the arm's own side so the path never crosses to the
+    other arm's half. Alternative j moves every waypoint away from the centre by
+    Delta_j sin(pi s), Delta_j = j bulge_m / (k - 1): the end points stay, the middle moves out,
+    where the field is weaker. Any point closer to the centre than the EPM keep-out distance
+    (+ margin) is pushed out radially to it.
+    """
+    centre = rig.centre
+    side = rig.side(arm)
+    lateral = np.cross([0.0, 0.0, 1.0], side)
+    s = np.linspace(0.0, 1.0, waypoints + 1)
+
+    def cylindrical(point):
+        rel = point - centre
+        u, v = rel @ side, rel @ lateral
+        return np.arctan2(v, u), np.hypot(u, v), rel[2]
+
+    theta0, rho0, z0 = cylindrical(np.asarray(start_m, float))
+    theta1, rho1, z1 = cylindrical(np.asarray(end_m, float))
+    theta = theta0 + (theta1 - theta0) * s
+    rho = rho0 + (rho1 - rho0) * s
+    z = z0 + (z1 - z0) * s
+    base = (rho * np.cos(theta))[:, None] * side + (rho * np.sin(theta))[:, None] * lateral
+    base = base + z[:, None] * np.array([0.0, 0.0, 1.0])
+    distance = np.linalg.norm(base, axis=1)
+    direction = base / np.maximum(distance, 1e-12)[:, None]
+    floor = rig.limits.epm_keep_out_m + IM_MARGIN_M
+    deltas = np.linspace(0.0, bulge_m, k) if k > 1 else np.zeros(1)
+    paths = []
+    for delta in deltas:
+        radius = np.maximum(distance + delta * np.sin(np.pi * s), floor)
+        paths.append(centre + radius[:, None] * direction)
+    paths = np.array(paths)
+    paths[:, 0], paths[:, -1] = start_m, end_m
+    return paths
+
+
+def magnetic_path(U_start: np.ndarray, U_end: np.ndarray, waypoints: int) -> np.ndarray:
+    """The desired U at each waypoint (N + 1, 8): eq. 13-14 as read here.
+
+    Eq. 14 prints U_s / (1 + e^{2.1 (s - n/2)}) for n <= N/2 and U_e / (1 + e^{-2.1 (s - n/2)})
+    for n > N/2, with U_s at n = 0 and U_e at n = N. Taken literally (s = n) the centre n/2 would
+    move with the point itself, and with centre N/2 for both halves the path would jump from
+    0.5 U_s to 0.89 U_e at the middle. The text says what is meant: |U| "reduces, then increases,
+    both sigmoidally", so U_s fades out over the first half and U_e fades in over the second.
+    We therefore centre each sigmoid on its own half (N/4 and 3N/4), keep the seed's steepness of
+    2.1 per waypoint for its 10-waypoint paths (scaled by 10/N so the shape along the path does
+    not depend on N), and keep the exact end values. Only the start and end components ever
+    appear in the path, so by construction it asks for no cross-activation at all.
+    """
+    n = np.arange(waypoints + 1, dtype=float)
+    slope = SIGMOID_SLOPE * SIGMOID_REFERENCE_WAYPOINTS / waypoints
+    fall = 1.0 / (1.0 + np.exp(slope * (n - waypoints / 4.0)))
+    rise = 1.0 / (1.0 + np.exp(-slope * (n - 3.0 * waypoints / 4.0)))
+    first = n <= waypoints / 2.0
+    path = np.where(first[:, None], fall[:, None] * U_start, rise[:, None] * U_end)
+    path[0], path[-1] = U_start, U_end
+    return path
+
+
+# ---------------------------------------------------------------- the planner
+
+
+@dataclass
+class PlanStats:
+    """Timing of one planning run (s): per transition, and the inverse-magnetics part of it."""
+
+    transition_s: list[float] = field(default_factory=list)
+    inverse_magnetics_s: list[float] = field(default_factory=list)
+    transition_cpu_s: list[float] = field(default_factory=list)
+    """Process CPU time per transition: what a machine busy with other work inflates least."""
+
+
+def _keep_out(rig: DepmRig) -> tuple[np.ndarray, float]:
+    return rig.centre, rig.limits.keep_out_radius_m + IK_KEEP_OUT_MARGIN_M
+
+
+def home_joints(rig: DepmRig) -> np.ndarray:
+    """A parked start (A, 7): each EPM HOME_DISTANCE_M out on its own side, the moments turned
+    so U at the centre is as small as those positions allow (eq. 21 with U = 0 at |m|)."""
+    positions = np.array([rig.centre + HOME_DISTANCE_M * rig.side(a) for a in range(len(rig.arms))])
+    directions = moments_for(np.zeros(8), positions, rig,
+                             previous=np.tile([0.0, 0.0, 1.0], (len(rig.arms), 1)))
+    seed = np.array([0.0, 0.8, 0.0, -1.5, 0.0, 0.8, 0.0])
+    return np.array([
+        arm.solve_or_raise(positions[a], directions[a], seed, keep_out=_keep_out(rig))
+        for a, arm in enumerate(rig.arms)
+    ])
+
+
+def _reachable_ends(
+    target: np.ndarray, rig: DepmRig, q_now: np.ndarray, positions: np.ndarray,
+    directions: np.ndarray, name: str,
+) -> Iterator[tuple[EpmPoses, np.ndarray]]:
+    """Inverse-magnetics solutions both arms reach from q_now (with their joints), as found."""
+    tried = reached = 0
+    for pose in inverse_magnetics_solutions(
+        target, rig, start_positions=positions, start_directions=directions
+    ):
+        tried += 1
+        joints = []
+        for a, arm in enumerate(rig.arms):
+            result = arm.solve(pose.positions[a], pose.directions[a], q_now[a], keep_out=_keep_out(rig))
+            if not result.ok:
+                break
+            joints.append(result.q)
+        else:
+            reached += 1
+            yield pose, np.array(joints)
+    if reached:
+        return
+    if not tried:
+        raise PlanError(
+            f"sequence component {name!r}: no EPM poses make the requested U within the rig's "
+            "constraints (keep-out sphere, EPM-EPM distance, reach); lower the request"
+        )
+    raise PlanError(
+        f"sequence component {name!r}: the {tried} EPM pose(s) that make it are out of "
+        "the arms' reach; move the arms' bases or lower the request"
+    )
+
+
+END_POSE_TRIALS = 3
+MAX_JOINT_STEP_RAD = np.radians(20.0)
+"""Largest joint change allowed between consecutive knots; bigger steps are subdivided."""
+MAX_SUBDIVISIONS = 4
+
+
+def _blend(poses_a, poses_b, fraction):
+    """EPM poses (positions, directions) part-way from a to b (directions renormalised)."""
+    positions = (1 - fraction) * poses_a[0] + fraction * poses_b[0]
+    directions = _unit_rows((1 - fraction) * poses_a[1] + fraction * poses_b[1] + 1e-12)
+    return positions, directions
+
+
+def _reach(rig: DepmRig, previous, target, q_previous: np.ndarray, depth: int = 0):
+    """Joint knots that carry both EPMs from `previous` to `target` poses ((A, 3), (A, 3)):
+    [(positions, directions, q (A, 7)), ...] ending at `target`, or None.
+
+    Each solve starts from the previous knot's joints. If an arm cannot follow (no solution, or
+    a joint would have to turn more than MAX_JOINT_STEP_RAD), the step is split at the blended
+    pose, up to MAX_SUBDIVISIONS times: the arm then follows the path between waypoints too,
+    instead of taking a different elbow or wrist branch.
+    """
+    solved = []
+    for a, arm in enumerate(rig.arms):
+        result = arm.solve(target[0][a], target[1][a], q_previous[a], keep_out=_keep_out(rig))
+        if not result.ok or np.max(np.abs(result.q - q_previous[a])) > MAX_JOINT_STEP_RAD:
+            break
+        solved.append(result.q)
+    else:
+        return [(target[0], target[1], np.array(solved))]
+    if depth >= MAX_SUBDIVISIONS:
+        return None
+    middle = _blend(previous, target, 0.5)
+    first = _reach(rig, previous, middle, q_previous, depth + 1)
+    if first is None:
+        return None
+    second = _reach(rig, middle, target, first[-1][2], depth + 1)
+    return None if second is None else first + second
+
+
+def _enough(jumps: int, max_jumps: int | None) -> None:
+    if max_jumps is not None and jumps >= max_jumps:
+        raise PlanError(f"{jumps} configuration change(s): no better than an end pose tried before")
+
+
+def _hybrid_transition(
+    rig: DepmRig, q_now: np.ndarray, U_start: np.ndarray, end: EpmPoses, q_end: np.ndarray,
+    waypoints: int, k: int, bulge_m: float, max_jumps: int | None = None,
+) -> tuple[list, int]:
+    """The knots of one planned transition (Sec. 3.1-3.2), [(EPM positions (A, 3), moment
+    directions (A, 3), joints (A, 7)), ...], at least N + 1 of them (steps that the arms cannot
+    take in one go are subdivided, see `_reach`), and how many times the arms had to change
+    configuration on the way (0 when they follow the path throughout). PlanError as soon as that
+    reaches `max_jumps` (another end pose already did as well)."""
+    count = len(rig.arms)
+    start_positions, start_directions = rig.epm_poses(q_now)
+    paths = np.array([
+        operational_paths(start_positions[a], end.positions[a], rig, a, waypoints, k, bulge_m)
+        for a in range(count)
+    ])  # (A, k, N + 1, 3)
+    desired = magnetic_path(U_start, end.U, waypoints)
+    weights = 1.0 / U_SCALE_SI
+    knots = [(start_positions, start_directions, q_now)]
+    jumps = 0
+    min_gap = rig.limits.epm_min_distance_m + IM_MARGIN_M
+    for n in range(1, waypoints):
+        previous_positions, previous_dirs, q_previous = knots[-1]
+        candidates = []
+        for j in range(paths.shape[1]):
+            positions = paths[:, j, n]
+            gaps = [np.linalg.norm(positions[a] - positions[b])
+                    for a in range(count) for b in range(a + 1, count)]
+            if min(gaps) < min_gap:
+                continue
+            dirs = moments_for(desired[n], positions, rig, previous=previous_dirs)
+            U = field_vector(rig.centre, positions, dirs * rig.moment_Am2)
+            # Eq. 22, plus (ours) a small cost for hopping between alternatives, so consecutive
+            # waypoints do not jump radially for a negligible magnetic gain.
+            hop = float(np.sum(np.linalg.norm(positions - previous_positions, axis=1)))
+            cost = float(np.sum(np.abs((desired[n] - U) * weights))) + HOP_COST_PER_M * hop
+            candidates.append((cost, j, positions, dirs))
+        if not candidates:
+            raise PlanError(
+                f"waypoint {n}: every alternative path brings the EPMs closer than "
+                f"{rig.limits.epm_min_distance_m * 1e3:.0f} mm; raise --k or the bulge"
+            )
+        candidates.sort(key=lambda c: c[0])  # eq. 22: the alternative nearest the magnetic path
+        for _, j, positions, dirs in candidates:
+            added = _reach(rig, knots[-1][:2], (positions, dirs), q_previous)
+            if added is not None:
+                knots.extend(added)
+                break
+        else:
+            # No alternative can be followed continuously: the arms must change branch (elbow,
+            # wrist). Take the best alternative any arm configuration reaches. Either way this
+            # counts as one change: give up first if that is already too many.
+            _enough(jumps + 1, max_jumps)
+            fraction = n / waypoints
+            for _, j, positions, dirs in candidates:
+                solved = []
+                for a, arm in enumerate(rig.arms):
+                    seeds = (q_previous[a], (1 - fraction) * q_now[a] + fraction * q_end[a], q_end[a])
+                    for seed in seeds:
+                        result = arm.solve(positions[a], dirs[a], seed, keep_out=_keep_out(rig))
+                        if result.ok:
+                            solved.append(result.q)
+                            break
+                    else:
+                        break
+                if len(solved) == count:
+                    log.debug("waypoint %d: the arms change configuration", n)
+                    jumps += 1
+                    _enough(jumps, max_jumps)
+                    knots.append((positions, dirs, np.array(solved)))
+                    break
+            else:
+                # Nothing here is reachable (the path passes beyond the arms' reach): leave the
+                # waypoint out; the next reachable one is approached from the last knot.
+                log.debug("waypoint %d: no alternative is reachable by both arms; skipped", n)
+                jumps += 1
+                _enough(jumps, max_jumps)
+    added = _reach(rig, knots[-1][:2], (end.positions, end.directions), knots[-1][2])
+    if added is None:
+        # The end pose is reachable (checked by `_reachable_ends`), only not smoothly from here:
+        # go there directly; the dense safety check of the whole plan has the last word.
+        added = [(end.positions, end.directions, q_end)]
+        jumps += 1
+    knots.extend(added)
+    return knots, jumps
+
+
+def _padded_curves(q: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, list[PchipInterpolator]]:
+    """A transition's knot times (M,) from 0 and its PCHIP per arm, as the whole plan has them:
+    the arms rest before and after every transition (a hold, `MIN_REST_S` at least, or the
+    start), so padding with a rest segment on each side gives exactly the plan's curves there."""
+    times = np.concatenate([[0.0], np.cumsum(h)])
+    knots = np.concatenate([[-1.0], times, [times[-1] + 1.0]])
+    values = np.concatenate([q[:, :1], q, q[:, -1:]], axis=1)
+    return times, [PchipInterpolator(knots, values[a], axis=0) for a in range(len(q))]
+
+
+def _peaks(curve: PchipInterpolator) -> tuple[np.ndarray, np.ndarray]:
+    """Exact peak |speed| and |acceleration| (pieces, 7) of every piece of a PCHIP: on a piece
+    c0 s^3 + c1 s^2 + c2 s + c3 the speed is quadratic (peak at an end or at s = -c1 / 3 c0) and
+    the acceleration linear (peak at an end)."""
+    c = curve.c  # (4, pieces, 7)
+    h = np.diff(curve.x)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_star = np.where(c[0] != 0, -c[1] / (3.0 * c[0]), 0.0)
+    s_star = np.clip(s_star, 0.0, h)
+
+    def speed(s):
+        return np.abs(3.0 * c[0] * s * s + 2.0 * c[1] * s + c[2])
+
+    speeds = np.maximum(np.maximum(speed(0.0), speed(h)), speed(s_star))
+    accels = np.maximum(np.abs(2.0 * c[1]), np.abs(6.0 * c[0] * h + 2.0 * c[1]))
+    return speeds, accels
+
+
+def _segment_times(q: np.ndarray, rig: DepmRig) -> np.ndarray:
+    """Durations (N,) of the segments of a transition q (A, N + 1, 7), at rest at both ends, so
+    that the PCHIP through them stays within SPEED_MARGIN x the allowed joint speeds and
+    accelerations (stretching a piece's time by c divides its speeds by c and its accelerations
+    by c^2): first each piece is stretched by what it alone needs (TIMING_PASSES times, as the
+    pieces' neighbours change the slopes at the knots), then the whole transition by what is
+    still missing, so the result respects both limits exactly."""
+    speed_caps = np.array([rig.limits.speed_fraction * arm.model.max_speed for arm in rig.arms])
+    accel_caps = np.array([rig.limits.accel_fraction * arm.model.max_accel for arm in rig.arms])
+    steps = np.abs(np.diff(q, axis=1))  # (A, N, 7)
+    h = np.max(steps / speed_caps[:, None, :], axis=(0, 2))
+    h = np.maximum(h, 1e-3)
+
+    def need(h: np.ndarray) -> np.ndarray:
+        """Per piece (N,): the stretch that brings it within both limits (<= 1: within)."""
+        _, curves = _padded_curves(q, h)
+        worst = np.zeros(len(h))
+        for a, curve in enumerate(curves):
+            speeds, accels = _peaks(curve)
+            speeds, accels = speeds[1:-1], accels[1:-1]  # the rest pieces do not move
+            worst = np.maximum(worst, np.maximum(
+                np.max(speeds / speed_caps[a], axis=1) / SPEED_MARGIN,
+                np.sqrt(np.max(accels / accel_caps[a], axis=1) / SPEED_MARGIN)))
+        return worst
+
+    for _ in range(TIMING_PASSES):
+        stretch = need(h)
+        if np.all(stretch <= 1.0):
+            break
+        h = h * np.maximum(stretch, 1.0)
+    scale = float(np.max(need(h)))
+    return h * scale if scale > 0 else h
+
+
+TIMING_PASSES = 6
+
+
+MIN_REST_S = 0.2
+"""The arms rest this long at an end pose whose hold is 0, so every transition starts and ends at
+rest: it is then timed and checked on its own, exactly as the whole plan will run it."""
+CHECK_MARGIN_M = 0.002
+"""The planner checks its transitions against the keep-out sphere and the EPM-EPM distance
+enlarged by this, sampled four times as densely as `check`, so `check` never refuses its plans."""
+MAX_REPAIRS = 16
+
+
+def _first_breach(rig: DepmRig, q: np.ndarray, h: np.ndarray) -> float | None:
+    """The first time (s from the transition's start) its curves come closer than CHECK_MARGIN_M
+    to a positional constraint, or None."""
+    from dataclasses import replace
+
+    limits = replace(rig.limits, keep_out_radius_m=rig.limits.keep_out_radius_m + CHECK_MARGIN_M,
+                     epm_min_distance_m=rig.limits.epm_min_distance_m + CHECK_MARGIN_M)
+    times, curves = _padded_curves(q, h)
+    t = np.union1d(np.arange(0.0, times[-1], rig.limits.check_step_s / 4.0), times)
+    found = violations(t, np.array([curve(t) for curve in curves]), None, rig.arms, limits)
+    return found[0].time_s if found else None
+
+
+LIFTS_M = (0.0, 0.05, 0.10, 0.15)
+
+
+def _solve_both(rig: DepmRig, positions: np.ndarray, directions: np.ndarray,
+                seed: np.ndarray) -> np.ndarray | None:
+    solved = [arm.solve(positions[a], directions[a], seed[a], keep_out=_keep_out(rig))
+              for a, arm in enumerate(rig.arms)]
+    return np.array([r.q for r in solved]) if all(r.ok for r in solved) else None
+
+
+def _middle_knot(rig: DepmRig, first: tuple, second: tuple) -> tuple | None:
+    """A knot between two knots (positions, directions, joints): along a small joint step, the
+    blended EPM pose solved from the first knot's joints (or from the joints' midpoint); across a
+    configuration change (a step over MAX_JOINT_STEP_RAD, which blending would only push ahead),
+    the joints' midpoint with its EPMs lifted away from the centre by LIFTS_M, the first lift whose
+    two halves clear the constraints, else the first that solves. None if nothing solves."""
+    q_a, q_b = first[2], second[2]
+    q_mid = 0.5 * (q_a + q_b)
+    if np.max(np.abs(q_b - q_a)) <= MAX_JOINT_STEP_RAD:
+        positions, directions = _blend(first[:2], second[:2], 0.5)
+        for seed in (q_a, q_mid):
+            q = _solve_both(rig, positions, directions, seed)
+            if q is not None:
+                return positions, directions, q
+        return None
+    positions, directions = rig.epm_poses(q_mid[:, None, :])
+    positions, directions = positions[:, 0], directions[:, 0]
+    outward = _unit_rows(positions - rig.centre)
+    fallback = None
+    for lift in LIFTS_M:
+        lifted = positions + lift * outward
+        q = _solve_both(rig, lifted, directions, q_mid)
+        if q is None:
+            continue
+        knot = (lifted, directions, q)
+        local = np.stack([q_a, q, q_b], axis=1)
+        if _first_breach(rig, local, _segment_times(local, rig)) is None:
+            return knot
+        fallback = fallback or knot
+    return fallback
+
+
+def _made_safe(rig: DepmRig, knots: list) -> tuple[np.ndarray, np.ndarray]:
+    """Joints (A, M, 7) and segment durations (M - 1,) of a transition whose curves keep every
+    positional constraint with a margin: PCHIP between two safe knots can still swing a link or
+    an EPM inward (the more, the larger the joint step), so where the curves come too close a
+    knot is added halfway, at the blended EPM pose solved by inverse kinematics with the keep-out
+    penalty, until none do. PlanError if a knot itself is too close or MAX_REPAIRS do not do."""
+    knots = list(knots)
+    for _ in range(MAX_REPAIRS + 1):
+        q = np.stack([k[2] for k in knots], axis=1)
+        h = _segment_times(q, rig)
+        breach = _first_breach(rig, q, h)
+        if breach is None:
+            return q, h
+        times = np.concatenate([[0.0], np.cumsum(h)])
+        i = int(np.clip(np.searchsorted(times, breach, side="right") - 1, 0, len(h) - 1))
+        if np.min(np.abs(times - breach)) < 1e-9:
+            raise PlanError(f"a knot of the transition is too close to a constraint at "
+                            f"t = {breach:.3f} s of the transition")
+        middle = _middle_knot(rig, knots[i], knots[i + 1])
+        if middle is None:
+            raise PlanError(f"the transition comes too close to a constraint at t = {breach:.3f} s "
+                            "and no knot can be added there")
+        knots.insert(i + 1, middle)
+    raise PlanError(f"the transition still comes too close to a constraint after {MAX_REPAIRS} "
+                    "added knots")
+
+
+def plan_sequence(
+    sequence: Sequence[SequenceComponent],
+    rig: DepmRig | None = None,
+    *,
+    waypoints: int = DEFAULT_WAYPOINTS,
+    k: int = DEFAULT_K,
+    planner: Planner = "hybrid",
+    q_start: np.ndarray | None = None,
+    bulge_m: float = DEFAULT_BULGE_M,
+    name: str | None = None,
+    stats: PlanStats | None = None,
+    end_poses: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+) -> FieldSequencePlan:
+    """Plan a whole sequence and return the `field-sequence` plan (with `expected` filled).
+
+    The arms start from `q_start` (A, 7) rad, or parked (`home_joints`). The end poses of every
+    component come from inverse magnetics. "hybrid" joins them with the planned transitions;
+    "agnostic" plans the hybrid first and then moves to the very same EPM end poses by straight
+    joint-space moves (the baseline, `baseline_of`). `end_poses` (per component: EPM positions
+    (A, 3) and moment directions (A, 3)) replaces inverse magnetics for the agnostic planner.
+    Timing goes into `stats` if given.
+    """
+    if planner not in ("hybrid", "agnostic"):
+        raise PlanError(f"planner must be 'hybrid' or 'agnostic', got {planner!r}")
+    if waypoints < 2:
+        raise PlanError(f"--waypoints: need at least 2, got {waypoints}")
+    if k < 1:
+        raise PlanError(f"--k: need at least 1, got {k}")
+    if planner == "agnostic" and end_poses is None:
+        hybrid = plan_sequence(sequence, rig, waypoints=waypoints, k=k, q_start=q_start,
+                               bulge_m=bulge_m, name=name, stats=stats)
+        return baseline_of(hybrid, name=name)
+    rig = rig or default_rig()
+    stats = stats if stats is not None else PlanStats()
+    q_now = home_joints(rig) if q_start is None else np.asarray(q_start, dtype=float)
+    times = [0.0, START_HOLD_S]
+    knots = [q_now, q_now]
+    segments = []
+    U_now = rig.field_at_centre(q_now[:, None, :])[0]
+    for component in sequence:
+        started, started_cpu = time.perf_counter(), time.process_time()
+        target = np.asarray(component.U, dtype=float) * U_TO_SI
+        if end_poses is not None:
+            # The arm's own controller: joints for the commanded EPM pose from where it stands,
+            # knowing nothing of the keep-out sphere or the magnets.
+            positions, directions = end_poses[len(segments)]
+            q_end = np.array([
+                arm.solve_or_raise(positions[a], directions[a], q_now[a])
+                for a, arm in enumerate(rig.arms)
+            ])
+        else:
+            positions, directions = rig.epm_poses(q_now)
+            ends = _reachable_ends(target, rig, q_now, positions, directions, component.name)
+            end, q_end = next(ends)
+        im_done = time.perf_counter()
+        if planner == "hybrid":
+            # The first end pose whose path the arms follow without changing configuration
+            # (a configuration change swings the magnets off the planned path); failing that,
+            # among END_POSE_TRIALS end poses the one with the fewest changes.
+            best = None
+            for trial in range(END_POSE_TRIALS):
+                if trial:
+                    try:
+                        end, q_end = next(ends)
+                    except StopIteration:
+                        break
+                try:
+                    path, jumps = _hybrid_transition(rig, q_now, U_now, end, q_end, waypoints, k,
+                                                     bulge_m, None if best is None else best[0])
+                    q, h = _made_safe(rig, path)
+                except PlanError as err:
+                    log.debug("%s: end pose %d: %s", component.name, trial, err)
+                    continue
+                if best is None or jumps < best[0]:
+                    best = (jumps, end, q, h)
+                if jumps == 0:
+                    break
+            if best is None:
+                raise PlanError(
+                    f"sequence component {component.name!r}: no path to any of its end poses "
+                    "keeps the EPMs apart and clear of the keep-out sphere; raise --k or change "
+                    "the sequence"
+                )
+            _, end, q, h = best
+            q_end = q[:, -1]
+        else:
+            q = np.stack([q_now, q_end], axis=1)  # (A, 2, 7)
+            h = _segment_times(q, rig)
+        stats.inverse_magnetics_s.append(im_done - started)
+        stats.transition_s.append(time.perf_counter() - started)
+        stats.transition_cpu_s.append(time.process_time() - started_cpu)
+        start_s = times[-1]
+        for n in range(1, q.shape[1]):
+            times.append(times[-1] + float(h[n - 1]))
+            knots.append(q[:, n])
+        reached_s = times[-1]
+        times.append(reached_s + (component.hold_s if component.hold_s > 0 else MIN_REST_S))
+        knots.append(q_end)
+        U_reached = rig.field_at_centre(q_end[:, None, :])[0]
+        segments.append(Segment(
+            name=component.name, U=component.U, start_s=start_s, reached_s=reached_s,
+            end_s=times[-1], residual=tuple(float(v) for v in (U_reached - target) / U_TO_SI),
+        ))
+        q_now, U_now = q_end, U_reached
+    knots = np.array(knots)  # (K, A, 7)
+    arms = [
+        ArmPlan(
+            name=arm.name,
+            position_mm=tuple(round(float(v) * 1e3, 9) + 0.0 for v in arm.base[:3, 3]),
+            rpy_deg=_rpy_deg(arm.base[:3, :3]),
+            joints_rad=[tuple(float(v) for v in row) for row in knots[:, a]],
+        )
+        for a, arm in enumerate(rig.arms)
+    ]
+    plan = FieldSequencePlan(
+        schema=SCHEMA_ID, kind="field-sequence", rig="depm", name=name, planner=planner,
+        epm_moment_Am2=rig.moment_Am2, tool_offset_mm=rig.arms[0].model.tool_offset_m * 1e3,
+        waypoints=waypoints, k=k, limits=limits_to_plan(rig.limits), sequence=list(sequence),
+        t_s=[float(t) for t in times], arms=arms, segments=segments,
+    )
+    plan = simulate(plan)
+    if planner == "hybrid":
+        found = plan_violations(plan)
+        if found:  # cannot happen if `_made_safe` did its job: never hand out a refused plan
+            raise PlanError(f"the planned trajectories break {len(found)} safety constraint(s), "
+                            f"first {found[0]}; report this planner fault with the sequence")
+    return plan
+
+
+def baseline_of(plan: FieldSequencePlan, name: str | None = None) -> FieldSequencePlan:
+    """The magnetic-agnostic baseline of a plan (seed 003 Sec. 4.2): from the same start joints
+    to the same EPM end pose of every component (so the same U), each arm solving its own joints
+    for the commanded pose from where it stands, by a straight joint-space move at the same speed
+    limit, as an arm's point-to-point controller does; the holds are kept."""
+    rig = rig_for_plan(plan)
+    knots = np.asarray(plan.t_s)
+    joints = np.array([arm.joints_rad for arm in plan.arms], dtype=float)  # (A, K, 7)
+    ends = [rig.epm_poses(joints[:, int(np.argmin(np.abs(knots - s.reached_s)))])
+            for s in plan.segments]
+    return plan_sequence(
+        plan.sequence, rig, waypoints=plan.waypoints, k=plan.k,
+        planner="agnostic", q_start=joints[:, 0], end_poses=ends,
+        name=name or (f"{plan.name} (agnostic baseline)" if plan.name else None),
+    )
+
+
+def _rpy_deg(rotation: np.ndarray) -> tuple[float, float, float]:
+    """Fixed-axis roll, pitch, yaw (deg) of R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    pitch = np.arcsin(-np.clip(rotation[2, 0], -1.0, 1.0))
+    roll = np.arctan2(rotation[2, 1], rotation[2, 2])
+    yaw = np.arctan2(rotation[1, 0], rotation[0, 0])
+    return tuple(float(np.round(np.degrees(v), 9)) + 0.0 for v in (roll, pitch, yaw))
+
+
+# ---------------------------------------------------------------- evaluating and checking plans
+
+
+def joint_trajectory(plan: FieldSequencePlan) -> list[PchipInterpolator]:
+    """One PCHIP interpolant per arm through the plan's knots: call with times (s) -> (..., 7) rad;
+    `.derivative()` gives rad/s. Outside [t_s[0], t_s[-1]] the arms rest at the end knots."""
+    times = np.asarray(plan.t_s, dtype=float)
+    return [
+        PchipInterpolator(times, np.asarray(arm.joints_rad, dtype=float), axis=0, extrapolate=True)
+        for arm in plan.arms
+    ]
+
+
+def _clamped(times: np.ndarray, plan: FieldSequencePlan) -> np.ndarray:
+    return np.clip(np.asarray(times, dtype=float), plan.t_s[0], plan.t_s[-1])
+
+
+def joints_at(plan: FieldSequencePlan, times_s: ArrayLike) -> np.ndarray:
+    """Joint angles (A, T, 7) rad of both arms at times (T,) s (held at the ends)."""
+    t = _clamped(np.atleast_1d(times_s), plan)
+    return np.array([curve(t) for curve in joint_trajectory(plan)])
+
+
+def sample_joints(plan: FieldSequencePlan, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """Both arms sampled at `rate_hz` from the first to the last knot: t (T,), q (A, T, 7)."""
+    if not rate_hz > 0:
+        raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+    t = np.arange(plan.t_s[0], plan.t_s[-1], 1.0 / rate_hz)
+    t = np.append(t, plan.t_s[-1]) if t[-1] < plan.t_s[-1] else t
+    return t, joints_at(plan, t)
+
+
+def expected_U(plan: FieldSequencePlan, times_s: ArrayLike) -> np.ndarray:
+    """U (T, 8) in mT and mT/m at the centre from the planned joints (dipole model)."""
+    rig = rig_for_plan(plan)
+    return rig.field_at_centre(joints_at(plan, times_s)) / U_TO_SI
+
+
+def simulate(plan: FieldSequencePlan) -> FieldSequencePlan:
+    """A copy of the plan with `expected` (U at the centre at EXPECTED_RATE_HZ) filled in."""
+    t = np.arange(plan.t_s[0], plan.t_s[-1] + 1e-9, 1.0 / EXPECTED_RATE_HZ)
+    U = expected_U(plan, t)
+    expected = ExpectedField(
+        rate_hz=EXPECTED_RATE_HZ, t_s=[round(float(v), 6) for v in t],
+        U=[tuple(round(float(v), 6) for v in row) for row in U],
+    )
+    copy = plan.model_copy(update={"expected": expected})
+    copy._source, copy._base_dir = plan._source, plan._base_dir
+    return copy
+
+
+def _dense(plan: FieldSequencePlan, step: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Times (T,), joints, speeds and accelerations (A, T, 7) every `step` and at every knot."""
+    t = np.union1d(np.arange(plan.t_s[0], plan.t_s[-1], step), np.asarray(plan.t_s))
+    curves = joint_trajectory(plan)
+    q = np.array([curve(t) for curve in curves])
+    qdot = np.array([curve.derivative()(t) for curve in curves])
+    qddot = np.array([curve.derivative(2)(t) for curve in curves])
+    return t, q, qdot, qddot
+
+
+def plan_violations(plan: FieldSequencePlan, arms: Sequence[ArmKinematics] | None = None,
+                    limits: SafetyLimits | None = None) -> list:
+    """Every safety constraint the plan's trajectories break (rigctl.depm_safety.Violation),
+    sampled every `check_step_s` and at every knot; against the plan's own arms and limits, or
+    the given ones (a rig file's)."""
+    rig = rig_for_plan(plan)
+    arms = rig.arms if arms is None else list(arms)
+    limits = rig.limits if limits is None else limits
+    t, q, qdot, qddot = _dense(plan, limits.check_step_s)
+    return violations(t, q, qdot, arms, limits, qddot)
+
+
+STEADY_STATE_TOLERANCE = 0.02
+
+
+def check(plan: FieldSequencePlan) -> None:
+    """Every safety constraint, densely in time (LimitError naming the time, arm, part and
+    constraint), then the end poses against the requested U (PlanError if a component is off by
+    more than 2 % of its largest requested field / gradient entry)."""
+    rig = rig_for_plan(plan)
+    t, q, qdot, qddot = _dense(plan, rig.limits.check_step_s)
+    check_samples(t, q, qdot, rig.arms, rig.limits, source=plan.source, qddot=qddot)
+    for index, segment in enumerate(plan.segments):
+        requested = np.asarray(segment.U, dtype=float)
+        got = expected_U(plan, [segment.reached_s])[0]
+        for part, unit in ((slice(0, 3), "mT"), (slice(3, 8), "mT/m")):
+            scale = np.max(np.abs(requested[part]))
+            error = np.max(np.abs(got[part] - requested[part]))
+            if error > STEADY_STATE_TOLERANCE * max(scale, 1.0 if unit == "mT" else 10.0):
+                raise PlanError(
+                    f"{plan.source}: segments.{index} ({segment.name}): the end poses make U off "
+                    f"by {error:.3g} {unit} from the request; re-plan"
+                )
+
+
+# ---------------------------------------------------------------- figures for bench/depm.py
+
+
+def eight_components(field_mT: float = 10.0, gradient_mT_per_m: float = 100.0,
+                     hold_s: float = 5.0) -> list[SequenceComponent]:
+    """The sequence of seed 003 Sec. 4: each U component alone, in the order of eq. 23."""
+    from rigctl.magnetics import U_COMPONENTS
+
+    components = []
+    for index, label in enumerate(U_COMPONENTS):
+        U = [0.0] * 8
+        U[index] = field_mT if index < 3 else gradient_mT_per_m
+        components.append(SequenceComponent(name=label, U=tuple(U), hold_s=hold_s))
+    return components
+
+
+def plan_timing(waypoints: int = DEFAULT_WAYPOINTS, k: int = DEFAULT_K,
+                sequence: Sequence[SequenceComponent] | None = None) -> dict:
+    """Planner time per transition and inverse-magnetics time for a sequence (default: the
+    eight-component one), wall clock (s) and process CPU time (s; what a busy machine inflates
+    least): {"transition_s": {"mean", "max"}, "inverse_magnetics_s": {"mean", "max"}, ...}."""
+    stats = PlanStats()
+    started, cpu = time.perf_counter(), time.process_time()
+    plan_sequence(sequence or eight_components(), waypoints=waypoints, k=k, stats=stats)
+    total, cpu = time.perf_counter() - started, time.process_time() - cpu
+    return {
+        "waypoints": waypoints, "k": k, "transitions": len(stats.transition_s),
+        "transition_s": {"mean": float(np.mean(stats.transition_s)),
+                         "max": float(np.max(stats.transition_s))},
+        "transition_cpu_s": {"mean": float(np.mean(stats.transition_cpu_s)),
+                             "max": float(np.max(stats.transition_cpu_s))},
+        "inverse_magnetics_s": {"mean": float(np.mean(stats.inverse_magnetics_s)),
+                                "max": float(np.max(stats.inverse_magnetics_s))},
+        "whole_plan_s": total,
+        "whole_plan_cpu_s": cpu,
+    }
+
+
+# ---------------------------------------------------------------- `rigctl plan depm`
+
+
+def cli(args) -> int:
+    """`rigctl plan depm`: plan a sequence file, write the plan, check it. Exit 0 planned and
+    safe, 1 written but refused by the safety check, 2 bad input (raised as PlanError)."""
+    import sys
+
+    from rigctl.plans.schema import dump_plan
+
+    sequence = load_sequence(args.sequence)
+    output = Path(args.output)
+    if not output.resolve().parent.is_dir():
+        raise PlanError(f"-o: folder {output.resolve().parent} does not exist")
+    planner: Planner = "agnostic" if args.agnostic else "hybrid"
+    rig = None
+    if getattr(args, "rig", None):
+        from rigctl.config import load_rig
+        from rigctl.errors import ConfigError
+
+        config = load_rig(args.rig)
+        if config.depm is None:
+            raise ConfigError(f"--rig: {args.rig} has no [depm] table (rig kind {config.rig.kind!r})")
+        rig = rig_from_settings(config.depm)
+    stats = PlanStats()
+    started = time.perf_counter()
+    plan = plan_sequence(sequence, rig, waypoints=args.waypoints, k=args.k, planner=planner,
+                         name=f"{planner} plan of {Path(args.sequence).name}", stats=stats)
+    seconds = time.perf_counter() - started
+    output.write_text(dump_plan(plan))
+    found = plan_violations(plan)
+    worst = max(relative_error(s.residual, s.U) for s in plan.segments)
+    print(f"depm ({planner}): {len(sequence)} components, {plan.t_s[-1]:.1f} s of motion, "
+          f"{len(plan.t_s)} knots, planned in {seconds:.2f} s "
+          f"(max {max(stats.transition_s):.2f} s per transition), worst end-pose error "
+          f"{worst:.2e} relative, {len(found)} safety violation(s) -> {output}", file=sys.stderr)
+    for violation in found:
+        print(f"  refused: {violation}", file=sys.stderr)
+    if args.json:
+        print(json.dumps({
+            "planner": planner, "components": len(sequence), "duration_s": round(plan.t_s[-1], 3),
+            "seconds": round(seconds, 4),
+            "transition_s_max": round(max(stats.transition_s), 4),
+            "transition_cpu_s_max": round(max(stats.transition_cpu_s), 4),
+            "inverse_magnetics_s_max": round(max(stats.inverse_magnetics_s), 4),
+            "violations": len(found),
+        }))
+    return 1 if found else 0
