@@ -46,9 +46,11 @@ from rigctl.emulators.camera.render import PAPER_RESOLUTION, CameraModel, Render
 from rigctl.emulators.kepco_bop.model import BopCoilModel
 from rigctl.emulators.kepco_bop.protocol import BopScpi
 from rigctl.emulators.server import Endpoint, EmulatorServer
+from rigctl.emulators.world.pair import PairWorld
 from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
 from rigctl.magnetics import loop_field
 from rigctl.plans.model import GlobalInputModel
+from rigctl.plans.pair import PairPhysics
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
 
@@ -57,6 +59,7 @@ log = logging.getLogger(__name__)
 PHYSICS_STEP_S = 1e-3  # simulated time per sub-step: the field turns < 3 degrees per step at 8 turns/s
 TICK_S = 5e-3  # how often the server advances the simulation when no command arrives
 CAMERA_FIELD_MM = (0.0, 0.0, 400.0, 400.0)  # what the emulated camera's picture covers
+PAIR_CAMERA_FIELD_MM = (0.0, 0.0, 20.0, 15.0)  # world "pair": a microscope over the coils' centre
 FIELD_REFRESH_MM = 1.0  # recompute the per-robot field maps when a robot moved this far
 
 
@@ -72,7 +75,12 @@ class SixCoilBench:
     """Start with `start()`, read `rig` for the rig file that points at it, `stop()` when done."""
 
     def __init__(self, template: RigConfig | None = None, *, host: str = "127.0.0.1",
-                 mismatch: Mismatch | None = None) -> None:
+                 mismatch: Mismatch | None = None, world: str = "rolling") -> None:
+        if world not in ("rolling", "pair"):
+            raise ValueError(f"unknown world {world!r}; use rolling or pair")
+        # "rolling": the rolling magnets of seed 000; "pair": two interacting agents (seed 002,
+        # emulators/world/pair.py), placed with {"cmd": "place", ..., "pair": {physics}}
+        self.world_kind = world
         self.template = template or RigConfig(
             rig=RigInfo(kind="six-coil", name="emulated six-coil bench"),
             coils=default_six_coil_coils(),
@@ -80,11 +88,12 @@ class SixCoilBench:
         self.host = host
         self.server = EmulatorServer()
         self.supplies: list[_Supply] = []
-        self.world: RollingMagnetWorld | None = None
+        self.world: RollingMagnetWorld | PairWorld | None = None
         self.speed = 1.0
         self._lock = threading.Lock()
         self._sim_time = 0.0  # simulated time that should have elapsed
         self._stepped = 0.0  # simulated time the models have been stepped to
+        self._world_at = 0.0  # simulated time the world has been stepped to
         self._last_real = time.monotonic()
         self.backdoor: Endpoint | None = None
         self.rig: RigConfig | None = None
@@ -119,7 +128,8 @@ class SixCoilBench:
         self.backdoor = self.server.serve_lines_tcp(self._backdoor, name="backdoor", host=self.host)
         # The camera looks down on a fixed 400 x 400 mm field from 600 mm, slightly tilted, as a
         # real one would be mounted; it is not re-aimed when robots are placed.
-        camera_model = CameraModel.overhead(CAMERA_FIELD_MM, tilt_deg=5.0)
+        camera_model = CameraModel.overhead(
+            PAIR_CAMERA_FIELD_MM if self.world_kind == "pair" else CAMERA_FIELD_MM, tilt_deg=5.0)
         self.camera = serve_camera(self.server, self._scene, Renderer(camera_model, seed=1),
                                    fps=60.0, host=self.host)
         self._last_real = time.monotonic()
@@ -156,12 +166,21 @@ class SixCoilBench:
                 for supply in self.supplies:
                     supply.model.step(dt)
                 self._stepped += dt
-                if self.world is not None:
+                # The world moves in whole PHYSICS_STEP_S steps only: SCPI lines arrive every
+                # ~0.2 ms at 1 kHz, and feeling the field at each would cost the replies ~80 us
+                # apiece (the stream loop fell behind); the supplies stay exact to the instant.
+                if self.world is not None and self._stepped - self._world_at >= PHYSICS_STEP_S - 1e-12:
+                    if isinstance(self.world, PairWorld):  # seed 002's agents feel the currents
+                        self.world.step(self._stepped - self._world_at,
+                                        [s.model.current_A for s in self.supplies])
+                        self._world_at = self._stepped
+                        continue
                     if self.world.mismatch.field_at_robots:
                         self.world.feel(self._fields_at_robots())
                     else:
                         self.world.feel(self.field_T())
-                    self.world.drift(dt)
+                    self.world.drift(self._stepped - self._world_at)
+                    self._world_at = self._stepped
 
     def field_T(self) -> np.ndarray:
         """The field at the workspace centre from the supplies' actual currents, (3,) in tesla."""
@@ -197,6 +216,8 @@ class SixCoilBench:
         with self._lock:
             if self.world is None:
                 return None
+            if isinstance(self.world, PairWorld):
+                return Scene(self.world.workspace, self.world.positions_mm, self.world.radii.copy())
             return Scene(self.world.model.workspace, self.world.positions_mm.copy(),
                          np.asarray(self.world.model.radii, dtype=float).copy())
 
@@ -215,6 +236,17 @@ class SixCoilBench:
         cmd = request.get("cmd")
         if cmd == "ping":
             return {}
+        if cmd == "truth" and isinstance(self.world, PairWorld):
+            self.advance()
+            with self._lock:
+                return {"agents": self.world.positions_mm.tolist(),
+                        "moments_Am2": self.world.moments.tolist(),
+                        "min_separation_mm": self.world.min_separation_mm,
+                        "field_T": self.field_T().tolist(),
+                        "currents_A": {s.name: s.model.current_A for s in self.supplies},
+                        "sim_time_s": self._stepped}
+        if cmd == "place" and self.world_kind == "pair":
+            return self._place_pair(request)
         if cmd == "truth":
             self.advance()
             with self._lock:
@@ -247,6 +279,7 @@ class SixCoilBench:
             with self._lock:
                 self._floor_centre_mm = 0.5 * (bounds[:2] + bounds[2:])
                 self._robot_maps = None
+                self._world_at = self._stepped
                 self.world = RollingMagnetWorld(
                     model,
                     positions,
@@ -312,6 +345,27 @@ class SixCoilBench:
             return {"factor": factor}
         raise ValueError(f"unknown command {cmd!r}; use ping, place, truth, fault, camera, speed, "
                          "mismatch")
+
+    def _place_pair(self, request: dict) -> dict:
+        """Put the two agents down: {"workspace", "agents": [{"position"}, {"position"}],
+        "pair": {"body_diameter_mm", "moment_Am2", "viscosity_Pa_s"}}."""
+        spec = parse_workspace(request["workspace"], "place: workspace")
+        workspace = Workspace.from_spec(spec)
+        positions = np.array([a["position"] for a in request["agents"]], dtype=float)
+        if positions.shape != (2, 2):
+            raise ValueError("the pair world takes exactly two agents")
+        physics = PairPhysics(**request.get("pair", {}))
+        radius = 0.5 * physics.body_diameter_mm
+        if (workspace.clearance(positions) < radius).any() or \
+                float(np.hypot(*(positions[1] - positions[0]))) < 2 * radius:
+            raise ValueError("the agents do not fit there (overlap or outside free space)")
+        bounds = np.array(workspace.bounds, dtype=float)
+        with self._lock:
+            self._floor_centre_mm = 0.5 * (bounds[:2] + bounds[2:])
+            self._world_at = self._stepped
+            self.world = PairWorld(workspace, positions, physics, self.template,
+                                   self._floor_centre_mm, self.mismatch)
+        return {"agents": positions.tolist()}
 
     def _supply(self, name: object) -> _Supply:
         for supply in self.supplies:

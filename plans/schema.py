@@ -34,6 +34,7 @@ from pydantic import (
     TypeAdapter,
     ValidationError,
     field_validator,
+    model_validator,
 )
 
 from rigctl.errors import PlanError
@@ -200,22 +201,161 @@ class GlobalMovesPlan(_PlanDocument):
 # (rigctl.plans.depm); `check_plan` calls that module's `check(plan)`.
 
 
+Vector8 = tuple[float, float, float, float, float, float, float, float]
+Joints7 = tuple[float, float, float, float, float, float, float]
+NonNegative = Annotated[float, Field(ge=0)]
+
+
+class SequenceComponent(_Document):
+    """One requested actuation: U in mT (Bx, By, Bz) and mT/m (dBx/dx, dBx/dy, dBx/dz, dBy/dy,
+    dBy/dz), held for `hold_s` once the arms arrive."""
+
+    name: str
+    U: Vector8 = Field(description="[Bx, By, Bz] mT, [dBx/dx, dBx/dy, dBx/dz, dBy/dy, dBy/dz] mT/m")
+    hold_s: NonNegative = Field(default=5.0, description="hold after the arms arrive (s)")
+
+
+class ArmPlan(_Document):
+    """One arm: where its base stands and its joint knots (one row of 7 angles per `t_s`)."""
+
+    name: str
+    position_mm: tuple[float, float, float] = Field(description="base position, world frame (mm)")
+    rpy_deg: tuple[float, float, float] = Field(
+        default=(0.0, 0.0, 0.0), description="base orientation, fixed-axis roll, pitch, yaw (deg)"
+    )
+    joints_rad: list[Joints7] = Field(description="joint knots (rad), one row per entry of t_s")
+
+
+class Segment(_Document):
+    """When a requested component is approached and held (times on the plan's clock, s)."""
+
+    name: str
+    U: Vector8 = Field(description="requested U (mT, mT/m)")
+    start_s: NonNegative = Field(description="the transition toward this component starts")
+    reached_s: NonNegative = Field(description="the arms arrive: the hold starts")
+    end_s: NonNegative = Field(description="the hold ends (the next transition starts)")
+    residual: Vector8 = Field(
+        description="U the planned end poses make minus U requested (mT, mT/m), dipole model"
+    )
+
+
+class ExpectedField(_Document):
+    """U at the workspace centre the planned poses make (dipole model), sampled at `rate_hz`."""
+
+    rate_hz: Annotated[float, Field(gt=0)]
+    t_s: list[float]
+    U: list[Vector8] = Field(description="one row per t_s (mT, mT/m)")
+
+
+class DepmLimits(_Document):
+    """The safety constraints every trajectory is checked against (rigctl.depm_safety)."""
+
+    keep_out_radius_mm: Annotated[float, Field(gt=0)] = 150.0
+    epm_radius_mm: Annotated[float, Field(gt=0)] = 72.0
+    epm_min_distance_mm: Annotated[float, Field(gt=0)] = 300.0
+    speed_fraction: Annotated[float, Field(gt=0, le=1)] = 0.3
+    accel_fraction: Annotated[float, Field(gt=0, le=1)] = 0.5
+    check_step_s: Annotated[float, Field(gt=0)] = 0.01
+
+
 class FieldSequencePlan(_PlanDocument):
-    """A sequence of requested field/gradient 8-vectors U and the arm trajectories that make them."""
+    """A sequence of requested field/gradient 8-vectors U and the arm trajectories that make them
+    (seed 003). Joint trajectories are PCHIP curves through the knots (`t_s`, `arms[i].joints_rad`):
+    `rigctl.plans.depm.joint_trajectory(plan)` evaluates them; both arms share the knot times."""
 
     kind: Literal["field-sequence"]
     rig: Literal["depm"]
+    planner: Literal["hybrid", "agnostic"] = "hybrid"
+    arm_model: Literal["lbr-iiwa-14-r820"] = "lbr-iiwa-14-r820"
+    epm_moment_Am2: Annotated[float, Field(gt=0)] = Field(
+        description="|m| of each EPM (A m^2); the moment points along the flange x axis"
+    )
+    tool_offset_mm: Annotated[float, Field(gt=0)] = Field(
+        default=85.0, description="EPM centre along the flange z axis (mm)"
+    )
+    waypoints: Annotated[int, Field(ge=2)] = 20
+    k: Annotated[int, Field(ge=1)] = 4
+    limits: DepmLimits = DepmLimits()
+    sequence: list[SequenceComponent] = Field(min_length=1)
+    interpolation: Literal["pchip"] = "pchip"
+    t_s: list[float] = Field(min_length=2, description="knot times (s), strictly increasing")
+    arms: list[ArmPlan] = Field(min_length=2, max_length=2)
+    segments: list[Segment] = Field(description="one per sequence component, in order")
+    expected: ExpectedField | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "FieldSequencePlan":
+        times = np.asarray(self.t_s, dtype=float)
+        if np.any(np.diff(times) <= 0):
+            raise ValueError("t_s: knot times must be strictly increasing")
+        for index, arm in enumerate(self.arms):
+            if len(arm.joints_rad) != len(self.t_s):
+                raise ValueError(
+                    f"arms.{index}.joints_rad: has {len(arm.joints_rad)} rows for "
+                    f"{len(self.t_s)} knot times (one per t_s)"
+                )
+        if len(self.segments) != len(self.sequence):
+            raise ValueError(
+                f"segments: has {len(self.segments)} entries for {len(self.sequence)} sequence "
+                "components (one per component)"
+            )
+        if self.expected is not None and len(self.expected.U) != len(self.expected.t_s):
+            raise ValueError("expected: U needs one row per t_s")
+        return self
 
 
 # Kind: pair-formation (seed 002, rig six-coil). Its fields and their checks belong to the pair
 # planner (rigctl.plans.pair); `check_plan` calls that module's `check(plan)`.
 
 
+class PairAgents(_Document):
+    """The two agents (spheres, moments along the field) and the liquid they move in."""
+
+    body_diameter_mm: PositiveLength = Field(default=1.0, description="D, the body length BL")
+    moment_Am2: Annotated[float, Field(gt=0)] = Field(default=5.6e-7, description="|m| of each agent")
+    viscosity_Pa_s: Annotated[float, Field(gt=0)] = Field(default=2.0e-3, description="liquid eta")
+
+
+class PairState(_Document):
+    """A formation: centroid (mm), separation r (body diameters), heading of agent 1 -> 2 (deg)."""
+
+    x_mm: float
+    y_mm: float
+    r_bl: Annotated[float, Field(gt=0)]
+    phi_deg: float
+
+
+class PairSegment(_Document):
+    """One control held for dt_s: global field angle psi (deg from +x) and the pull as the
+    centroid speed it gives, f = F / (sigma D) in body lengths per second."""
+
+    psi_deg: float
+    f_x: float = Field(description="pull along x, BL/s")
+    f_y: float = Field(description="pull along y, BL/s")
+    dt_s: Annotated[float, Field(gt=0)]
+
+
 class PairFormationPlan(_PlanDocument):
-    """Two interacting agents steered by the field angle psi and a pulling gradient."""
+    """Two interacting agents steered by the field angle psi and a pulling gradient (seed 002)."""
 
     kind: Literal["pair-formation"]
     rig: Literal["six-coil"]
+    workspace: WorkspaceSpec
+    agents: PairAgents = PairAgents()
+    field_mT: Annotated[float, Field(gt=0)] = Field(default=2.0, description="uniform field magnitude")
+    max_pull_bl_s: Annotated[float, Field(gt=0)] = Field(
+        description="the planner's pull bound p: |f_x| <= p |cos psi|, |f_y| <= p |sin psi|")
+    r_min_bl: Annotated[float, Field(gt=0)] = 1.5
+    r_max_bl: Annotated[float, Field(gt=0)] = 3.5
+    start: PairState
+    goal: PairState
+    segments: list[PairSegment]
+    expected: list[PairState] | None = Field(
+        default=None, description="expected[k]: the formation after segment k")
+    tolerance_bl: PositiveLength = Field(
+        default=0.2, description="each agent within this of its goal position counts as reached")
+    hold_s: Annotated[float, Field(ge=0)] = Field(
+        default=3.0, description="how long execution holds the goal formation")
 
 
 def _plan_tag(value: Any) -> str | None:

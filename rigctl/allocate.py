@@ -21,6 +21,7 @@ A program that breaks a limit raises LimitError naming the move and the coil; no
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,7 +29,7 @@ from numpy.typing import ArrayLike
 
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, LimitError, PlanError
-from rigctl.magnetics import loop_field
+from rigctl.magnetics import U_COMPONENTS, gradient_terms, loop_field
 from rigctl.realize import FieldProgram
 
 logger = logging.getLogger(__name__)
@@ -140,6 +141,42 @@ class CurrentProgram:
             )
 
 
+def check_current_limits(currents: np.ndarray, rig: RigConfig, rate_hz: float | None,
+                         describe: Callable[[int], str], *, current_advice: str,
+                         voltage_advice: str = "") -> np.ndarray | None:
+    """Check a current program (T, n) A against every coil's current limit and, with dI/dt by a
+    backward difference at `rate_hz` from 0 A, its supply's compliance voltage R I + L dI/dt
+    (not with `rate_hz` None: samples that are not a time series). Returns the voltages (T, n);
+    raises LimitError naming the sample (`describe(k)`) and the coil."""
+    names = [c.name for c in rig.coils]
+    limits = np.array([c.current_limit_A for c in rig.coils])
+    over = np.abs(currents) / limits
+    if over.size and over.max() > 1.0:
+        k, j = np.unravel_index(np.argmax(over), over.shape)
+        raise LimitError(
+            f"{describe(k)} needs {abs(currents[k, j]):.1f} A on coil {names[j]} "
+            f"(limit {limits[j]:.1f} A); {current_advice}"
+        )
+    if rate_hz is None:
+        return None
+    resistance = np.array([c.resistance_ohm for c in rig.coils])
+    inductance = np.array([c.inductance_H for c in rig.coils])
+    compliance = np.array([c.compliance_V for c in rig.coils])
+    slope = np.diff(currents, axis=0, prepend=np.zeros((1, len(names)))) * rate_hz
+    resistive = resistance * currents
+    inductive = inductance * slope
+    volts = resistive + inductive
+    over_v = np.abs(volts) / compliance
+    if over_v.size and over_v.max() > 1.0:
+        k, j = np.unravel_index(np.argmax(over_v), over_v.shape)
+        raise LimitError(
+            f"{describe(k)} needs {abs(volts[k, j]):.1f} V on coil {names[j]} "
+            f"(limit {compliance[j]:.1f} V; R*I = {resistive[k, j]:.1f} V, "
+            f"L*dI/dt = {inductive[k, j]:.1f} V); {voltage_advice}"
+        )
+    return volts
+
+
 def allocate(program: FieldProgram, rig: RigConfig) -> CurrentProgram:
     """Currents for every sample of `program` on `rig`, after checking every limit.
 
@@ -170,32 +207,12 @@ def allocate(program: FieldProgram, rig: RigConfig) -> CurrentProgram:
             f"{np.linalg.matrix_rank(A)}); check the coil axes or actuation_matrix_T_per_A"
         )
 
-    limits = np.array([c.current_limit_A for c in rig.coils])
-    over = np.abs(currents) / limits
-    if over.size and over.max() > 1.0:
-        k, j = np.unravel_index(np.argmax(over), over.shape)
-        raise LimitError(
-            f"{program.describe_sample(k)} needs {abs(currents[k, j]):.1f} A on coil {names[j]} "
-            f"(limit {limits[j]:.1f} A); lower field.b0_mT or raise the coil's current_limit_A"
-        )
-
-    resistance = np.array([c.resistance_ohm for c in rig.coils])
-    inductance = np.array([c.inductance_H for c in rig.coils])
-    compliance = np.array([c.compliance_V for c in rig.coils])
-    slope = np.diff(currents, axis=0, prepend=np.zeros((1, len(names)))) * program.rate_hz
-    resistive = resistance * currents
-    inductive = inductance * slope
-    volts = resistive + inductive
-    over_v = np.abs(volts) / compliance
-    if over_v.size and over_v.max() > 1.0:
-        k, j = np.unravel_index(np.argmax(over_v), over_v.shape)
-        raise LimitError(
-            f"{program.describe_sample(k)} needs {abs(volts[k, j]):.1f} V on coil {names[j]} "
-            f"(limit {compliance[j]:.1f} V; R*I = {resistive[k, j]:.1f} V, "
-            f"L*dI/dt = {inductive[k, j]:.1f} V); lower field.rolling_turns_per_s, "
-            f"field.steering_deg_per_s or field.b0_mT, lengthen field.ramp_s, "
-            f"or raise the coil's compliance_V"
-        )
+    volts = check_current_limits(
+        currents, rig, program.rate_hz, program.describe_sample,
+        current_advice="lower field.b0_mT or raise the coil's current_limit_A",
+        voltage_advice="lower field.rolling_turns_per_s, field.steering_deg_per_s or field.b0_mT, "
+        "lengthen field.ramp_s, or raise the coil's compliance_V",
+    )
 
     if currents.size:
         logger.info(
@@ -208,3 +225,135 @@ def allocate(program: FieldProgram, rig: RigConfig) -> CurrentProgram:
         segment=np.asarray(program.segment, dtype=int),
         coil_names=tuple(names),
     )
+
+
+# -- field and gradient: the 8-vector U (seed 002 pulling, seed 003 eq. 6) ------------------------
+#
+# U = [Bx, By, Bz, dBx/dx, dBx/dy, dBx/dz, dBy/dy, dBy/dz] at a point: the field and the five
+# independent terms of its gradient (div B = 0 and curl B = 0 give the other four). A dipole m
+# there feels F = grad(m . B) = G m with G the symmetric gradient matrix. The coils' gradients come
+# from `loop_field` by central differences; `tests/unit/test_pair_allocate.py` checks them against
+# the closed-form on-axis gradient of a loop (to 1e-6 relative).
+
+GRADIENT_STEP_MM = 0.05
+"""Central-difference step: truncation ~ (step / distance to the winding)^2 / 6, about 3e-8
+relative for the cube's coils; round-off ~1e-10 relative."""
+
+
+def coil_field_and_gradient(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Field (3, n) T/A and gradient (3, 3, n) T/m/A of every coil per ampere at `point_mm`
+    (central differences of `loop_field`, step `GRADIENT_STEP_MM`); returns (B, G) stacked as
+    a (3, 4, n) array: [..., 0, :] the field, [:, 1 + j, :] dB/dx_j."""
+    if not rig.coils:
+        raise ConfigError(f"rig '{rig.rig.name}' has no [[coils]]: there is nothing to allocate to")
+    if rig.actuation_matrix_T_per_A is not None:
+        raise ConfigError("a measured actuation_matrix_T_per_A has no gradients: remove it to "
+                          "compute fields and gradients from the coils' geometry")
+    point = np.asarray(point_mm, dtype=float).reshape(3) * 1e-3
+    h = GRADIENT_STEP_MM * 1e-3
+    offsets = np.concatenate([np.zeros((1, 3)), h * np.eye(3), -h * np.eye(3)])  # (7, 3)
+    out = np.zeros((3, 4, len(rig.coils)))
+    for j, coil in enumerate(rig.coils):
+        b = loop_field(point + offsets, np.asarray(coil.centre_mm) * 1e-3, coil.axis,
+                       coil.loop_radius_mm * 1e-3, coil.turns, 1.0)  # (7, 3)
+        out[:, 0, j] = b[0]
+        out[:, 1:, j] = ((b[1:4] - b[4:7]) / (2.0 * h)).T
+    if not np.isfinite(out).all():
+        raise ConfigError(f"point {point_mm} mm lies on a coil's winding")
+    return out
+
+
+def u_actuation_matrix(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """The 8 x n actuation matrix of U (rows `U_COMPONENTS`) at `point_mm`, per ampere."""
+    fg = coil_field_and_gradient(rig, point_mm)
+    gradient = np.moveaxis(fg[:, 1:, :], -1, 0)  # (n, 3, 3)
+    return np.concatenate([fg[:, 0, :], gradient_terms(gradient).T])
+
+
+PULL_FLOOR_N = 1e-15
+"""A pull component below this (a femtonewton) is taken as none (round-off of cos 90 deg)."""
+
+
+def field_and_pull_u(psi_rad: ArrayLike, force_N: ArrayLike, moment_Am2: float,
+                     b0_T: float) -> np.ndarray:
+    """U (..., 8) for an in-plane field of `b0_T` at angle psi (rad from +x) that pulls a dipole of
+    `moment_Am2` aligned with it by `force_N` (..., 2) in the plane.
+
+    With m = |m| (cos psi, sin psi, 0) and the off-diagonal in-plane gradient left at zero (a
+    six-coil cube cannot make it at its centre), F = |m| (cos psi dBx/dx, sin psi dBy/dy), so
+    dBx/dx = Fx / (|m| cos psi), dBy/dy = Fy / (|m| sin psi). A pull along an axis the moment is
+    perpendicular to cannot be made: LimitError."""
+    psi = np.asarray(psi_rad, dtype=float)
+    force = np.asarray(force_N, dtype=float)
+    c, s = np.cos(psi), np.sin(psi)
+    shape = np.broadcast_shapes(psi.shape, force.shape[:-1])
+    u = np.zeros(shape + (8,))
+    u[..., 0] = b0_T * c
+    u[..., 1] = b0_T * s
+    fx, fy = np.broadcast_to(force[..., 0], shape), np.broadcast_to(force[..., 1], shape)
+    for axis, (f, proj, row) in enumerate(((fx, c, 3), (fy, s, 6))):
+        want = np.abs(f) > PULL_FLOOR_N
+        blind = want & (np.abs(proj) < 1e-9)
+        if blind.any():
+            raise LimitError(
+                f"a pull along {'xy'[axis]} needs the field to have a component along {'xy'[axis]}; "
+                f"at psi = {np.degrees(np.broadcast_to(psi, shape)[blind][0]):.1f} deg it has none")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u[..., row] = np.where(want, f / (moment_Am2 * proj), 0.0)
+    return u
+
+
+def currents_for_u(A8: ArrayLike, U: ArrayLike, rig: RigConfig | None = None) -> np.ndarray:
+    """Minimum-norm currents (..., n) for 8-vectors U (..., 8) through the 8 x n matrix `A8`.
+
+    The six coils span fewer than eight terms (at the centre of a cube: the field and two
+    diagonal gradients). A U outside their span raises LimitError naming the term that cannot be
+    made, with `rig` (if given) also every coil's current limit is checked, naming the coil."""
+    A8 = np.asarray(A8, dtype=float)
+    U = np.asarray(U, dtype=float)
+    currents = U @ np.linalg.pinv(A8).T
+    made = currents @ A8.T
+    scale = np.maximum(np.abs(U[..., :3]).max(axis=-1, keepdims=True), 1e-12)  # field terms
+    gscale = np.maximum(np.abs(U[..., 3:]).max(axis=-1, keepdims=True), 1e-6)  # T/m
+    residual = np.abs(made - U) / np.concatenate(
+        [np.broadcast_to(scale, U.shape[:-1] + (3,)), np.broadcast_to(gscale, U.shape[:-1] + (5,))],
+        axis=-1)
+    if residual.size and residual.max() > 1e-6:
+        flat = residual.reshape(-1, 8)
+        k, t = np.unravel_index(np.argmax(flat), flat.shape)
+        raise LimitError(
+            f"the coils cannot make {U_COMPONENTS[t]} = {U.reshape(-1, 8)[k, t]:.4g} together with the "
+            f"rest of U (they make {made.reshape(-1, 8)[k, t]:.4g}); at the centre of a six-coil "
+            "cube only the field and the diagonal gradients can be set")
+    if rig is not None:
+        check_current_limits(
+            currents.reshape(-1, currents.shape[-1]), rig, None, lambda k: f"U sample {k}",
+            current_advice="ask for a weaker pull or field, or raise the coil's current_limit_A")
+    return currents
+
+
+def max_planar_gradient(rig: RigConfig, b0_T: float, *, angles: int = 360) -> float:
+    """The largest g (T/m) such that an in-plane field of `b0_T` at any angle together with any
+    diagonal gradient |dBx/dx|, |dBy/dy| <= g stays within every coil's current limit (box corners
+    suffice: the currents are linear in U). Raises LimitError if the field alone is too strong."""
+    A8 = u_actuation_matrix(rig)
+    pinv = np.linalg.pinv(A8)
+    limits = np.array([c.current_limit_A for c in rig.coils])
+    psi = np.linspace(0.0, 2.0 * np.pi, angles, endpoint=False)
+    u_field = np.zeros((angles, 8))
+    u_field[:, 0], u_field[:, 1] = b0_T * np.cos(psi), b0_T * np.sin(psi)
+    i_field = np.abs(u_field @ pinv.T)  # (angles, n)
+    room = limits - i_field.max(axis=0)
+    if (room <= 0).any():
+        j = int(np.argmin(room))
+        raise LimitError(f"a {b0_T * 1e3:g} mT field needs {i_field.max(axis=0)[j]:.1f} A on coil "
+                         f"{rig.coils[j].name} (limit {limits[j]:.1f} A)")
+    worst = np.zeros(len(limits))
+    for sx in (-1.0, 1.0):
+        for sy in (-1.0, 1.0):
+            u = np.zeros(8)
+            u[3], u[6] = sx, sy
+            worst = np.maximum(worst, np.abs(pinv @ u))
+    # |I_field + g I_unit| <= |I_field| + g |I_unit|: conservative, per coil
+    per_coil = np.where(worst > 0, room / np.maximum(worst, 1e-300), np.inf)
+    return float(per_coil.min())

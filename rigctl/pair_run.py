@@ -1,0 +1,602 @@
+"""Run a pair-formation plan (seed 002) on the six-coil rig: field angle + pull streamed as currents,
+the loop closed through the camera with pure pursuit and the proximity controller.
+
+Before anything is opened: the plan is checked (its own model, every constraint), its pull bound is
+compared with what this rig's coils make, and the open-loop program (every segment as the 8-vector
+U -> six currents at the stream rate, then the hold) is allocated with every current and voltage
+limit checked. Then the agents are placed (emulated bench), found by the camera, and the supplies
+switched on.
+
+Closed loop (default whenever the rig has a camera): on every fresh frame the measured formation is
+carried forward over the camera's latency and `PairPursuit` picks the control; its currents go out
+on the next stream cycle, rate-limited so no supply needs more than 90 % of its compliance
+voltage. While tracking is lost the agents are held unseen (no pull, the field flipped about the
+zero-radial angle of their last heading); lost for `lost_after_s` is a fault. When the agents stay
+off the path (proximity mode) longer than `replan_after_s`, the path
+is re-planned from the measured state onto the rest of the path in a worker thread and spliced in.
+At the last node the goal formation is held for the plan's `hold_s`. `--open-loop` plays the plan's
+controls back (the paper's open-loop mode); the camera, if any, still measures.
+
+The summary adds `rms_tracking_error_bl` (each measured agent's distance to its planned path, RMS
+over frames and agents, in body lengths), `min_separation_bl` (smallest measured centre distance)
+and `hold_max_error_bl` (largest agent distance from its goal while holding).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from rigctl.allocate import check_current_limits, field_and_pull_u, u_actuation_matrix
+from rigctl.config import RigConfig, dump_rig, load_rig
+from rigctl.devices import CoilSupplies
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.errors import ConfigError, DeviceTimeout, LimitError, PlanError, RigError
+from rigctl.plans.pair import (
+    ZERO_RADIAL_ANGLE_RAD, PairPlannerOptions, agent_positions, check, goal_error, physics_of,
+    plan_arrays, problem_of, replan_pair, rig_max_pull, simulate, state_from_positions, state_of,
+)
+from rigctl.plans.schema import PairFormationPlan, dump_plan
+from rigctl.pursuit import PairPursuit, PursuitSettings, distance_to_path
+from rigctl.record import RunRecord
+from rigctl.stream import StreamLoop
+
+log = logging.getLogger(__name__)
+
+EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
+CONTROLLER_PULL_SHARE = 0.95  # of the rig's largest pull: the plan used PULL_MARGIN (0.8) of it
+VOLTAGE_SHARE = 0.9  # closed-loop current steps are limited to keep R I + L dI/dt below this
+HOLD_START_SHARE = 0.75  # the hold's clock starts when both agents are this share of the tolerance in
+LOOPBACK_REPLY_TIMEOUT_S = 1.0  # supplies' watchdog when execute started the emulated bench
+HOLD_DITHER_S = 0.1  # open-loop hold: +-54.74 deg about the goal heading, switched this often
+
+
+@dataclass(frozen=True)
+class PairRunSettings:
+    closed_loop: bool = True
+    pursuit: PursuitSettings = PursuitSettings()
+    ramp_s: float = 0.1
+    timeout_factor: float = 3.0  # give up after this times the plan's duration ...
+    timeout_extra_s: float = 30.0  # ... plus this
+    replan_after_s: float = 2.0
+    lost_after_s: float = 2.0  # tracking lost this long: a fault
+    stale_s: float = 0.25  # no fresh frame this long: hold the agents unseen (a frozen camera)
+
+
+@dataclass
+class PairSummary:
+    reached: bool
+    agents: list[dict]
+    run: str
+    duration_s: float
+    positions_from: str
+    tolerance_bl: float
+    mode: str
+    faults: list[dict] = field(default_factory=list)
+    stream: dict | None = None
+    rms_tracking_error_bl: float | None = None
+    max_tracking_error_bl: float | None = None
+    min_separation_bl: float | None = None
+    truth_min_separation_bl: float | None = None
+    hold_max_error_bl: float | None = None
+    held_s: float = 0.0
+    frames: int = 0
+    lost_frames: int = 0
+    replans: int = 0
+    replan_ms: list[float] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        out = dict(self.__dict__)
+        out["duration_s"] = round(self.duration_s, 3)
+        for key in ("rms_tracking_error_bl", "max_tracking_error_bl", "min_separation_bl",
+                    "truth_min_separation_bl", "hold_max_error_bl"):
+            if out[key] is not None:
+                out[key] = round(float(out[key]), 4)
+        out["held_s"] = round(self.held_s, 3)
+        out["replan_ms"] = [round(v, 2) for v in self.replan_ms]
+        return out
+
+
+@dataclass
+class PreparedPair:
+    plan: PairFormationPlan
+    problem: object
+    nodes: np.ndarray  # (k + 1, 4) start and expected states, BL
+    program_A: np.ndarray  # (T, n) open-loop currents, ramps and hold included
+    u_to_currents: np.ndarray  # (n, 8) pinv of the U actuation matrix
+    controller_pull: float  # BL/s
+
+
+def u_of(plan: PairFormationPlan, u: np.ndarray) -> np.ndarray:
+    """The 8-vector U (8,) for a control u = (psi_g, f_x, f_y) of this plan's agents."""
+    physics = physics_of(plan)
+    force = np.asarray(u[1:], dtype=float) * physics.drag_N_s_per_m * physics.diameter_m
+    return field_and_pull_u(float(u[0]), force, physics.moment_Am2, plan.field_mT * 1e-3)
+
+
+def open_loop_controls(plan: PairFormationPlan, rate_hz: float,
+                       ramp_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per stream sample: the control (T, 3) and the field scale (T,) (ramp up, segments, hold
+    dithered about the goal heading at +-54.74 deg, ramp down)."""
+    start, controls, dts = plan_arrays(plan)
+    ramp = max(1, round(ramp_s * rate_hz))
+    rows, scale = [], []
+    first = controls[0] if len(controls) else np.array([start[3] + ZERO_RADIAL_ANGLE_RAD, 0, 0])
+    for k in range(ramp):
+        rows.append([first[0], 0.0, 0.0])
+        scale.append((k + 1) / ramp)
+    for u, dt in zip(controls, dts):
+        n = max(1, round(dt * rate_hz))
+        rows += [u.tolist()] * n
+        scale += [1.0] * n
+    goal_phi = math.radians(plan.goal.phi_deg)
+    per = max(1, round(HOLD_DITHER_S * rate_hz))
+    for k in range(max(0, round(plan.hold_s * rate_hz))):
+        sign = 1.0 if (k // per) % 2 == 0 else -1.0
+        rows.append([goal_phi + sign * ZERO_RADIAL_ANGLE_RAD, 0.0, 0.0])
+        scale.append(1.0)
+    last = rows[-1]
+    for k in range(ramp):
+        rows.append([last[0], 0.0, 0.0])
+        scale.append(1.0 - (k + 1) / ramp)
+    return np.array(rows), np.array(scale)
+
+
+def prepare_pair(plan: PairFormationPlan, rig: RigConfig, settings: PairRunSettings) -> PreparedPair:
+    """Every refusal, no I/O: plan checks, the rig's pull, the open-loop program's limits."""
+    if rig.rig.kind != "six-coil":
+        raise PlanError(f"a pair-formation plan runs on a six-coil rig, not a {rig.rig.kind} rig")
+    if plan.expected is None:
+        plan = simulate(plan)
+    check(plan)
+    physics = physics_of(plan)
+    rig_pull = rig_max_pull(rig, physics, plan.field_mT)
+    if plan.max_pull_bl_s > rig_pull * (1 + 1e-6):
+        raise LimitError(f"the plan pulls up to {plan.max_pull_bl_s:.3f} BL/s but this rig's coils "
+                         f"make at most {rig_pull:.3f} BL/s with a {plan.field_mT:g} mT field; "
+                         "re-plan with --rig for this rig")
+    A8 = u_actuation_matrix(rig)
+    pinv = np.linalg.pinv(A8)
+    controls, scale = open_loop_controls(plan, rig.stream.rate_hz, settings.ramp_s)
+    physics_force = physics.drag_N_s_per_m * physics.diameter_m
+    forces = controls[:, 1:] * physics_force
+    U = field_and_pull_u(controls[:, 0], forces, physics.moment_Am2, plan.field_mT * 1e-3)
+    U[:, :3] *= scale[:, None]
+    program = slew_limited(U @ pinv.T, rig)
+    n_ramp = max(1, round(settings.ramp_s * rig.stream.rate_hz))
+    seg_of = np.concatenate([[-1] * n_ramp] + [[k] * max(1, round(dt * rig.stream.rate_hz))
+                                                for k, dt in enumerate(plan_arrays(plan)[2])])
+    check_current_limits(
+        program, rig, rig.stream.rate_hz,
+        lambda k: (f"segment {int(seg_of[k])}" if k < len(seg_of) and seg_of[k] >= 0
+                   else f"sample {k} (ramp or hold)"),
+        current_advice="lower field_mT or re-plan with a smaller pull (--rig for this rig)",
+        voltage_advice="re-plan: consecutive segments turn the field too far for the coils' "
+        "inductance, or raise the coil's compliance_V")
+    start = state_of(plan.start, physics.body_diameter_mm)
+    expected = [state_of(e, physics.body_diameter_mm) for e in plan.expected or []]
+    goal = state_of(plan.goal, physics.body_diameter_mm)
+    # the path ends at the goal itself: the planner stops within its tolerance of it, the closed
+    # loop closes the rest
+    nodes = np.vstack([start[None], *([np.array(expected)] if expected else []), goal[None]])
+    return PreparedPair(plan, problem_of(plan), nodes, program, pinv,
+                        CONTROLLER_PULL_SHARE * rig_pull)
+
+
+class CoilSlew:
+    """Per-sample current steps that keep every supply's R I + L dI/dt within VOLTAGE_SHARE of its
+    compliance: a jump between two segments' currents is spread over the samples it needs (the
+    coils' L/R = 20 ms lags them about as much anyway)."""
+
+    def __init__(self, rig: RigConfig) -> None:
+        self.rate = rig.stream.rate_hz
+        self.resistance = np.array([c.resistance_ohm for c in rig.coils])
+        self.inductance = np.array([c.inductance_H for c in rig.coils])
+        self.compliance = np.array([c.compliance_V for c in rig.coils])
+        self.limits = np.array([c.current_limit_A for c in rig.coils])
+
+    def step(self, last: np.ndarray, target: np.ndarray) -> np.ndarray:
+        target = np.clip(target, -self.limits, self.limits)
+        room = np.maximum(VOLTAGE_SHARE * self.compliance - self.resistance * np.abs(target), 0.0) \
+            / (self.inductance * self.rate)
+        return last + np.clip(target - last, -room, room)
+
+
+def slew_limited(program: np.ndarray, rig: RigConfig) -> np.ndarray:
+    """A current program (T, n) with every step limited by `CoilSlew` (starting from 0 A)."""
+    slew = CoilSlew(rig)
+    out = np.empty_like(program)
+    last = np.zeros(program.shape[1])
+    for k, target in enumerate(program):
+        last = out[k] = slew.step(last, target)
+    return out
+
+
+class PairRun:
+    """One pair-formation plan on one six-coil rig; construction refuses a bad plan without I/O."""
+
+    def __init__(self, plan: PairFormationPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
+                 progress_out: TextIO | None = None,
+                 settings: PairRunSettings = PairRunSettings()) -> None:
+        if settings.closed_loop and rig.camera is None:
+            raise ConfigError("closed loop needs the rig's camera; this rig has none "
+                              "(use --open-loop)")
+        self.prepared = prepare_pair(plan, rig, settings)
+        self.plan = self.prepared.plan
+        self.rig = rig
+        self.settings = settings
+        self.runs_dir = Path(runs_dir)
+        self.out = progress_out
+        self.d_mm = self.plan.agents.body_diameter_mm
+        self._abort = threading.Event()
+        self._truth_at_end: dict | None = None
+
+    def abort(self) -> None:
+        self._abort.set()
+
+    def execute(self) -> PairSummary:
+        from rigctl.execute import _portable_workspace
+        from rigctl.supervisor import TrackingLoop
+
+        plan, rig, prep = self.plan, self.rig, self.prepared
+        record = RunRecord(self.runs_dir, plan.name or "pair-formation")
+        record.write_file("plan.json", dump_plan(plan))
+        record.write_file("rig.toml", dump_rig(rig))
+        record.event("prepared", samples=len(prep.program_A), rate_hz=rig.stream.rate_hz,
+                     closed_loop=self.settings.closed_loop)
+        started = time.monotonic()
+        faults: list[dict] = []
+        stats = None
+        backdoor = BackdoorClient(rig.emulation.backdoor) if rig.emulation else None
+        tracking = None
+        supplies = None
+        self.metrics = _Metrics(prep.nodes, self.plan)
+        try:
+            start_mm = agent_positions(prep.nodes[0]) * self.d_mm
+            if backdoor is not None:
+                backdoor.request(
+                    "place", workspace=_portable_workspace(plan),
+                    agents=[{"position": p.tolist(), "radius": 0.5 * self.d_mm} for p in start_mm],
+                    pair=plan.agents.model_dump())
+                record.event("placed", agents=start_mm.tolist())
+            if rig.camera is not None:
+                bounds = prep.problem.workspace.bounds
+                tracking = TrackingLoop(rig.camera, np.full(2, 0.5 * self.d_mm), start_mm,
+                                        roi_mm=bounds)
+                first = tracking.start()
+                record.event("tracking", positions_mm=first.positions_mm.tolist())
+            supplies = CoilSupplies.connect(rig)
+            for name, identity in zip(supplies.names, supplies.identities):
+                record.event("connected", device=name, identity=identity)
+            supplies.energise()
+            record.event("energised", devices=supplies.names)
+            stats = self._stream(supplies, tracking, record)
+        except RigError as err:
+            faults.append({"device": err.device, "reason": str(err), "kind": type(err).__name__})
+            record.event("fault", device=err.device, reason=str(err), kind=type(err).__name__)
+            log.error("run stopped: %s", err)
+        except KeyboardInterrupt:
+            faults.append({"device": None, "reason": "aborted by the operator", "kind": "Abort"})
+            record.event("abort", reason="operator interrupt")
+        finally:
+            # ground truth as the run leaves the agents, before the field goes: with no field
+            # the magnets still attract each other, and that is not the run's doing
+            self._truth_at_end = self._read_truth(backdoor)
+            if supplies is not None:
+                supplies.stop(ramp_s=rig.stream.ramp_down_s)
+                record.event("safe", supplies=supplies.names)
+            if tracking is not None:
+                tracking.stop()
+        summary = self._summary(record, backdoor, tracking, faults, stats, started)
+        if backdoor is not None:
+            backdoor.close()
+        record.finish(summary.as_dict())
+        return summary
+
+    # -- the stream ----------------------------------------------------------------------------
+    def _stream(self, supplies: CoilSupplies, tracking, record: RunRecord):
+        rig, prep, s = self.rig, self.prepared, self.settings
+        rate = rig.stream.rate_hz
+        record.open_stream(supplies.names, rate_hz=rate)
+        loop = StreamLoop(rate)
+        slew = CoilSlew(rig)
+        ramp = max(1, round(s.ramp_s * rate))
+        closed = s.closed_loop and tracking is not None
+        pursuit = PairPursuit(prep.problem, prep.nodes,
+                              PursuitSettings(**{**s.pursuit.__dict__,
+                                                 "max_pull": prep.controller_pull}))
+        deadline = time.monotonic() + s.timeout_factor * float(np.sum(plan_arrays(self.plan)[2])) \
+            + self.plan.hold_s + s.timeout_extra_s
+        state = {"last": np.zeros(len(supplies.names)), "target": None, "frame": -1,
+                 "hold_from": None, "off_since": None, "replan": None, "ramp_down": None,
+                 "lost_since": None, "phi": float(prep.nodes[0][3]), "seen_at": time.monotonic()}
+        worker: dict = {}
+
+        def replan_async(q: np.ndarray, k: int) -> None:
+            t0 = time.perf_counter()
+            try:
+                path, joined = replan_pair(prep.problem, q, pursuit.nodes, max(k - 1, 0),
+                                           PairPlannerOptions(time_s=0.3),
+                                           seed=len(self.metrics.replan_ms))
+                worker["result"] = (path, joined, q)
+            except PlanError as err:
+                worker["result"] = err
+            worker["ms"] = (time.perf_counter() - t0) * 1e3
+
+        def cycle(k: int) -> bool:
+            now = time.monotonic()
+            if self._abort.is_set() or now > deadline:
+                if state["ramp_down"] is None:
+                    record.event("stop", reason="abort" if self._abort.is_set() else "timeout")
+                    state["ramp_down"] = 0
+            if closed:
+                latest = tracking.latest()
+                if latest is not None and latest.frame != state["frame"] and not latest.lost.any():
+                    state["frame"] = latest.frame
+                    state["seen_at"] = now
+                    if state["lost_since"] is not None:
+                        record.event("resume", after_s=round(now - state["lost_since"], 3))
+                        state["lost_since"] = None
+                    q = state_from_positions(latest.positions_mm / self.d_mm)
+                    state["phi"] = float(q[3])
+                    self.metrics.measure(q, pursuit, now)
+                    q_now = pursuit.carry_forward(q, now - latest.t_source)
+                    u = pursuit.decide(q_now)
+                    state["target"] = prep.u_to_currents @ u_of(self.plan, u)
+                    record.event("track", frame=latest.frame, q=np.round(q, 5).tolist(),
+                                 mode=pursuit.mode, node=pursuit.k, u=np.round(u, 5).tolist())
+                    self._watch_path(pursuit, q, now, state, worker, replan_async, record)
+                    settled = goal_error(q, prep.nodes[-1]) <= HOLD_START_SHARE * self.plan.tolerance_bl
+                    if pursuit.mode == "hold" and (settled or state["hold_from"] is not None):
+                        if state["hold_from"] is None:
+                            state["hold_from"] = now
+                            record.event("holding", node=pursuit.k)
+                        self.metrics.held(q, now - state["hold_from"])
+                        if now - state["hold_from"] >= self.plan.hold_s and state["ramp_down"] is None:
+                            state["ramp_down"] = 0
+                elif not tracking.ok(now) or now - state["seen_at"] > s.stale_s:
+                    if state["lost_since"] is None:
+                        state["lost_since"] = now
+                        record.event("suspend", reason="tracking lost")
+                    elif now - state["lost_since"] > s.lost_after_s:
+                        raise DeviceTimeout(f"tracking lost for {s.lost_after_s:g} s",
+                                            device="camera")
+                    # unseen, the agents are held where they were last seen: no pull, the field
+                    # flipped about the zero-radial angle of their last heading (a held field
+                    # would keep moving them, and they could collide unseen)
+                    sign = 1.0 if int((now - state["lost_since"]) / HOLD_DITHER_S) % 2 == 0 else -1.0
+                    u = np.array([state["phi"] + sign * ZERO_RADIAL_ANGLE_RAD, 0.0, 0.0])
+                    state["target"] = prep.u_to_currents @ u_of(self.plan, u)
+                target = state["target"] if state["target"] is not None else np.zeros_like(state["last"])
+                if state["ramp_down"] is not None:
+                    state["ramp_down"] += 1
+                    target = state["last"] * max(0.0, 1.0 - state["ramp_down"] / ramp)
+                    if state["ramp_down"] > ramp:
+                        return False
+                elif k < ramp:
+                    target = target * (k + 1) / ramp
+                move = pursuit.k
+            else:
+                if k >= len(prep.program_A) or state["ramp_down"] is not None:
+                    return False
+                target = prep.program_A[k]
+                move = -1
+                if tracking is not None:
+                    latest = tracking.latest()
+                    if latest is not None and latest.frame != state["frame"]:
+                        state["frame"] = latest.frame
+                        q = state_from_positions(latest.positions_mm / self.d_mm)
+                        self.metrics.measure(q, None, now)
+            setpoints = slew.step(state["last"], target)
+            measured = supplies.cycle(setpoints)
+            state["last"] = setpoints
+            record.stream_row(k, move, setpoints, measured, loop.last_error_s)
+            return True
+
+        try:
+            return loop.run(cycle)
+        finally:
+            record.event("stream_stats", **loop.stats().as_dict())
+
+    def _watch_path(self, pursuit: PairPursuit, q, now, state, worker, replan_async, record) -> None:
+        """Re-plan when the proximity controller has not brought the agents back in time."""
+        if "result" in worker:
+            result = worker.pop("result")
+            self.metrics.replan_ms.append(worker.pop("ms"))
+            state["replan"] = None
+            if isinstance(result, PlanError):
+                record.event("replan_failed", reason=str(result))
+            else:
+                path, joined, q0 = result
+                if path.solved:
+                    pursuit.splice(np.vstack([q0[None], path.states]), joined)
+                    self.metrics.paths = pursuit.paths
+                    record.event("replan", joined=joined, segments=len(path.dts),
+                                 ms=round(self.metrics.replan_ms[-1], 2))
+        if pursuit.mode != "proximity":
+            state["off_since"] = None
+            return
+        if state["off_since"] is None:
+            state["off_since"] = now
+        if now - state["off_since"] > self.settings.replan_after_s and state["replan"] is None:
+            state["replan"] = threading.Thread(target=replan_async, args=(q.copy(), pursuit.k),
+                                               name="pair-replan", daemon=True)
+            state["replan"].start()
+            state["off_since"] = now
+
+    # -- the summary ---------------------------------------------------------------------------
+    @staticmethod
+    def _read_truth(backdoor: BackdoorClient | None) -> dict | None:
+        if backdoor is None:
+            return None
+        try:
+            return backdoor.request("truth")
+        except RigError as err:
+            log.error("could not read ground truth: %s", err)
+            return None
+
+    def _summary(self, record, backdoor, tracking, faults, stats, started) -> PairSummary:
+        plan, d = self.plan, self.d_mm
+        goal = state_of(plan.goal, d)
+        goal_mm = agent_positions(goal) * d
+        truth = self._truth_at_end
+        m = self.metrics
+        final = m.last_q
+        positions_from = "camera" if final is not None else "unknown"
+        if final is None and truth is not None:
+            final = state_from_positions(np.array(truth["agents"]) / d)
+            positions_from = "emulator ground truth"
+        agents = []
+        for i in range(2):
+            entry = {"goal_mm": goal_mm[i].round(4).tolist(), "final_mm": None, "error_bl": None}
+            if final is not None:
+                p = agent_positions(final)[i] * d
+                entry["final_mm"] = p.round(4).tolist()
+                entry["error_bl"] = round(float(np.hypot(*(p - goal_mm[i])) / d), 4)
+            if truth is not None:
+                t = np.array(truth["agents"][i])
+                entry["truth_error_bl"] = round(float(np.hypot(*(t - goal_mm[i])) / d), 4)
+            agents.append(entry)
+        tol = plan.tolerance_bl
+        errors = [a.get("truth_error_bl", a["error_bl"]) if not self.settings.closed_loop
+                  else a["error_bl"] for a in agents]
+        reached = not faults and all(e is not None and e <= tol for e in errors)
+        if self.settings.closed_loop:
+            reached = reached and m.held_s >= plan.hold_s - 0.05 and (
+                m.hold_max is not None and m.hold_max <= tol)
+        if truth is not None and truth.get("min_separation_mm") is not None:
+            truth_sep = truth["min_separation_mm"] / d
+        else:
+            truth_sep = None
+        return PairSummary(
+            reached=reached, agents=agents, run=str(record.path),
+            duration_s=time.monotonic() - started, positions_from=positions_from,
+            tolerance_bl=tol, mode="closed loop" if self.settings.closed_loop else "open loop",
+            faults=faults, stream=None if stats is None else stats.as_dict(),
+            rms_tracking_error_bl=m.rms(), max_tracking_error_bl=m.max_error(),
+            min_separation_bl=m.min_sep, truth_min_separation_bl=truth_sep,
+            hold_max_error_bl=m.hold_max, held_s=m.held_s, frames=m.frames,
+            lost_frames=0 if tracking is None else tracking.lost_frames,
+            replans=len(m.replan_ms), replan_ms=list(m.replan_ms))
+
+
+class _Metrics:
+    """Tracking figures from the camera's measurements (body lengths)."""
+
+    def __init__(self, nodes: np.ndarray, plan: PairFormationPlan) -> None:
+        self.paths = agent_positions(nodes)
+        self.goal = nodes[-1]
+        self.sq: list[float] = []
+        self.errors: list[float] = []
+        self.min_sep: float | None = None
+        self.hold_max: float | None = None
+        self.held_s = 0.0
+        self.frames = 0
+        self.last_q: np.ndarray | None = None
+        self.replan_ms: list[float] = []
+
+    def measure(self, q: np.ndarray, pursuit: PairPursuit | None, now: float) -> None:
+        p = agent_positions(q)
+        d = distance_to_path(p, self.paths if pursuit is None else pursuit.paths)
+        self.sq += (d**2).tolist()
+        self.errors.append(float(d.max()))
+        self.min_sep = float(q[2]) if self.min_sep is None else min(self.min_sep, float(q[2]))
+        self.frames += 1
+        self.last_q = q
+
+    def held(self, q: np.ndarray, held_s: float) -> None:
+        err = float(goal_error(q, self.goal))
+        self.hold_max = err if self.hold_max is None else max(self.hold_max, err)
+        self.held_s = held_s
+
+    def rms(self) -> float | None:
+        return float(np.sqrt(np.mean(self.sq))) if self.sq else None
+
+    def max_error(self) -> float | None:
+        return max(self.errors) if self.errors else None
+
+
+def format_pair_summary(summary: PairSummary) -> str:
+    lines = [f"run record: {summary.run}", f"duration: {summary.duration_s:.1f} s ({summary.mode})"]
+    if summary.stream:
+        st = summary.stream
+        lines.append(f"stream: {st['cycles']} cycles at {st['rate_hz']:g} Hz; late {st['late_cycles']}")
+    if summary.rms_tracking_error_bl is not None:
+        lines.append(f"tracking: RMS {summary.rms_tracking_error_bl:.3f} BL, max "
+                     f"{summary.max_tracking_error_bl:.3f} BL over {summary.frames} frames "
+                     f"({summary.lost_frames} lost); re-plans {summary.replans}")
+    if summary.min_separation_bl is not None:
+        extra = "" if summary.truth_min_separation_bl is None else \
+            f" (ground truth {summary.truth_min_separation_bl:.3f} BL)"
+        lines.append(f"closest approach: {summary.min_separation_bl:.3f} BL{extra}")
+    if summary.hold_max_error_bl is not None:
+        lines.append(f"hold: {summary.held_s:.1f} s, worst agent error "
+                     f"{summary.hold_max_error_bl:.3f} BL")
+    lines.append(f"positions from: {summary.positions_from}")
+    for i, a in enumerate(summary.agents):
+        err = "?" if a["error_bl"] is None else f"{a['error_bl']:.3f} BL"
+        lines.append(f"  agent {i}: final {a['final_mm']} mm, goal {a['goal_mm']} mm, error {err}")
+    for f in summary.faults:
+        lines.append(f"FAULT: {f['reason']}")
+    lines.append(f"REACHED and held: both agents within {summary.tolerance_bl:g} BL"
+                 if summary.reached else f"NOT REACHED (tolerance {summary.tolerance_bl:g} BL)")
+    return "\n".join(lines)
+
+
+def loopback_rig(rig: RigConfig) -> RigConfig:
+    """The rig of the emulated bench `execute` starts itself, with the supplies' reply watchdog
+    at least `LOOPBACK_REPLY_TIMEOUT_S`: the bench is a process on the same (perhaps busy)
+    machine, nothing real is energised, and a scheduler stall of a few hundred ms is not a
+    silent supply. A rig file given with --rig keeps its own watchdog."""
+    timeout = max(rig.stream.reply_timeout_s, LOOPBACK_REPLY_TIMEOUT_S)
+    return rig.model_copy(update={"stream": rig.stream.model_copy(
+        update={"reply_timeout_s": timeout})})
+
+
+def execute_cli(plan: PairFormationPlan, args: argparse.Namespace) -> int:
+    """`rigctl execute PLAN` for a pair-formation plan: exit 0 reached and held, 1 not, 3 fault
+    (bad input raises PlanError / LimitError / ConfigError: exit 2 from the CLI)."""
+    from rigctl.cli import _mismatch_args
+    from rigctl.emulators.process import EmulatedBenchProcess
+
+    out = None if args.quiet else sys.stderr
+    settings = PairRunSettings(closed_loop=not args.open_loop)
+    if getattr(args, "agnostic", False):
+        raise ConfigError("--agnostic is for the depm rig")
+    if getattr(args, "world", None) not in (None, "pair"):
+        raise ConfigError("a pair-formation plan runs in the pair world (--world pair)")
+    if args.rig is not None:
+        if _mismatch_args(args):
+            raise ConfigError("--slip, --noise, --drift and --seed set up the emulated bench that "
+                              "execute starts itself: give them to `rigctl emulate` with --rig")
+        summary = PairRun(plan, load_rig(args.rig), runs_dir=args.runs, progress_out=out,
+                          settings=settings).execute()
+    else:
+        from rigctl.plans.pair import default_rig
+
+        prepare_pair(plan, default_rig(), settings)  # refuse a bad plan before starting a bench
+        with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
+            if out:
+                print("no --rig given: starting the emulated six-coil bench (pair world) on "
+                      "loopback (nothing real is energised)", file=out)
+            with EmulatedBenchProcess("six-coil", Path(tmp) / "bench.toml",
+                                      extra_args=["--world", "pair", *_mismatch_args(args)]) as rig_path:
+                summary = PairRun(plan, loopback_rig(load_rig(rig_path)), runs_dir=args.runs,
+                                  progress_out=out, settings=settings).execute()
+    print(format_pair_summary(summary))
+    if args.json:
+        print(json.dumps(summary.as_dict(), separators=(",", ":")))
+    if summary.faults:
+        return EXIT_FAULT
+    return EXIT_OK if summary.reached else EXIT_NOT_REACHED
