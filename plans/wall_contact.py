@@ -235,7 +235,8 @@ class TwoMoveStep:
 
 
 def best_two_move_step(
-    region: CentreRegion, positions: np.ndarray, goals: np.ndarray, reach: float = 0.0
+    region: CentreRegion, positions: np.ndarray, goals: np.ndarray, reach: float = 0.0,
+    push: float = 0.0,
 ) -> TwoMoveStep | None:
     """The Alg. 1 step from positions (2, 2) toward goals (2, 2): the 2-move reachable delta
     nearest to the goal's delta, and among contacts reaching it the shortest path (Sec. V).
@@ -244,12 +245,16 @@ def best_two_move_step(
     must not carry the moving particle through the pinned one, so offsets it could only reach
     across the disc |offset| < reach are left out (conservatively: the visible part is taken as
     the union of three half-planes bounded by the tangents from the current offset).
+
+    push (mm): move 2 must carry the moving particle at least this far into the pinning wall's
+    normal direction (0: the paper's set; a rig whose pull is not quite uniform needs a margin, so
+    that the pinned particle is really pushed into its wall and not grazing along it).
     """
     reach = reach * (1.0 + 1e-6) + _MARGIN_REL * region.size if reach > 0 else 0.0
     if isinstance(region, DiskRegion):
-        candidates = _disk_steps(region, positions, goals, reach)
+        candidates = _disk_steps(region, positions, goals, reach, push)
     else:
-        candidates = _polygon_steps(region, positions, goals, reach)
+        candidates = _polygon_steps(region, positions, goals, reach, push=push)
     if not candidates:
         return None
     nearest = min(step.distance for step in candidates)
@@ -303,6 +308,7 @@ def _polygon_steps(
     goals: np.ndarray,
     reach: float,
     corners: list | None = None,
+    push: float = 0.0,
 ) -> list:
     size = region.size
     margin = _MARGIN_REL * size
@@ -325,7 +331,7 @@ def _polygon_steps(
         if t_range is None:
             continue
         # Where move 2 can take the other particle: a slice of Q by a line parallel to the wall.
-        slice_ = _clip_polygon(region.vertices, -n, -(h + n @ d + margin))
+        slice_ = _clip_polygon(region.vertices, -n, -(h + n @ d + margin + push))
         slice_ = _inset_polygon(slice_, margin)
         if slice_ is None:
             continue
@@ -365,7 +371,8 @@ def _polygon_steps(
     return steps
 
 
-def _disk_steps(region: DiskRegion, positions: np.ndarray, goals: np.ndarray, reach: float) -> list:
+def _disk_steps(region: DiskRegion, positions: np.ndarray, goals: np.ndarray, reach: float,
+                push: float = 0.0) -> list:
     R, O = region.radius, region.centre
     margin = _MARGIN_REL * region.size
     goal_delta = goals[1] - goals[0]
@@ -387,7 +394,7 @@ def _disk_steps(region: DiskRegion, positions: np.ndarray, goals: np.ndarray, re
             n = np.stack([np.cos(psi), np.sin(psi)], axis=-1)
             c = O + R * n
             # Move 2 keeps n.(q - O) >= R + n.d (+ margin): the chord region of eq. 3-4.
-            level = R + n @ d + margin
+            level = R + n @ d + margin + push
             q = _nearest_in_chord_region(O, R - margin, n, level, target + c)
             blocked = _blocked(d, q - c, reach)
             if blocked.any():
@@ -632,6 +639,7 @@ def _look_ahead(
     reach: float,
     greedy: TwoMoveStep,
     epsilon: float,
+    push: float = 0.0,
 ) -> TwoMoveStep:
     """A departure from Alg. 1's greedy choice, for polygons: when the greedy step cannot reach
     the goal's delta and neither can the step after it, aim instead at the corner of the 2-move
@@ -639,11 +647,11 @@ def _look_ahead(
     does). Greedy steps toward a delta near the edge of the Delta space can otherwise crawl."""
     if not isinstance(region, PolygonRegion):
         return greedy
-    following = best_two_move_step(region, _after(region, positions, greedy), goals, reach)
+    following = best_two_move_step(region, _after(region, positions, greedy), goals, reach, push)
     if following is not None and following.distance <= epsilon:
         return greedy
     corners: list = []
-    _polygon_steps(region, positions, goals, reach, corners)
+    _polygon_steps(region, positions, goals, reach, corners, push)
     if not corners:
         return greedy
     corners_arr = np.unique(np.round(np.array(corners), 9), axis=0)
@@ -654,10 +662,10 @@ def _look_ahead(
     best, best_length = greedy, math.inf
     for corner in corners_arr:
         aim = np.stack([positions[0], positions[0] + corner])
-        first = best_two_move_step(region, positions, aim, reach)
+        first = best_two_move_step(region, positions, aim, reach, push)
         if first is None or first.distance > 1e-6 * region.size:
             continue
-        second = best_two_move_step(region, _after(region, positions, first), goals, reach)
+        second = best_two_move_step(region, _after(region, positions, first), goals, reach, push)
         if second is not None and second.distance <= epsilon:
             length = first.length + second.length
             if length < best_length:
@@ -670,7 +678,7 @@ def _look_ahead(
 class WallContactResult:
     """A planned move sequence: moves (m, 2) mm, states (m, 2, 2) after each move (point
     kinematics), whether the goal was reached within epsilon, the path length (mm, sum of |move|)
-    and planning time (s)."""
+    and planning time (s). The 3D planner (`wall_contact_3d`) uses it with (m, 3) and (m, 2, 3)."""
 
     moves: np.ndarray
     states: np.ndarray
@@ -680,7 +688,7 @@ class WallContactResult:
 
     @property
     def length(self) -> float:
-        return float(np.sum(np.hypot(self.moves[:, 0], self.moves[:, 1]))) if len(self.moves) else 0.0
+        return float(np.sum(np.linalg.norm(self.moves, axis=1))) if len(self.moves) else 0.0
 
 
 def plan_two_particles(
@@ -691,10 +699,11 @@ def plan_two_particles(
     reach: float = 0.0,
     max_steps: int = 40,
     lookahead: bool = True,
+    push: float = 0.0,
 ) -> WallContactResult:
     """Alg. 1 (2-PARTICLEPATHPLAN): moves that bring particles from starts (2, 2) to goals (2, 2)
     mm, both within `epsilon` mm, in the centre region, centres kept `reach` mm apart during
-    the relative moves (see `best_two_move_step`). Iterates two-move steps toward the
+    the relative moves (see `best_two_move_step`, also for `push`). Iterates two-move steps toward the
     nearest 2-move reachable delta (at most `max_steps`), then translates to the goal."""
     started = time.perf_counter()
     # Coincident particles can never be told apart again (seed 004 asks for distinct starts), so
@@ -716,9 +725,9 @@ def plan_two_particles(
     for _ in range(max_steps):
         if math.hypot(*(positions[1] - positions[0] - goal_delta)) <= epsilon:
             break
-        step = best_two_move_step(region, positions, goals, reach)
+        step = best_two_move_step(region, positions, goals, reach, push)
         if lookahead and step is not None and step.distance > epsilon:
-            step = _look_ahead(region, positions, goals, reach, step, epsilon)
+            step = _look_ahead(region, positions, goals, reach, step, epsilon, push)
         before = math.hypot(*(positions[1] - positions[0] - goal_delta))
         if step is None or step.distance >= before - 1e-12 * region.size:
             log.debug("wall contact: no step improves the relative position (%.3g mm)", before)

@@ -169,8 +169,14 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             Path(args.output).write_text(text)
         else:
             print(text)
-    print(f"OK: {args.file}: {plan.kind} plan for a {plan.rig} rig, {len(plan.agents)} agents, "
-          f"{len(plan.moves)} moves", file=sys.stderr if args.simulate and not args.output else sys.stdout)
+    if plan.kind == "field-sequence":
+        size = f"{len(plan.sequence)} components, {plan.t_s[-1]:.1f} s"
+    elif plan.kind == "pair-formation":
+        size = f"2 agents, {len(plan.segments)} segments"
+    else:
+        size = f"{len(plan.agents)} agents, {len(plan.moves)} moves"
+    print(f"OK: {args.file}: {plan.kind} plan for a {plan.rig} rig, {size}",
+          file=sys.stderr if args.simulate and not args.output else sys.stdout)
     return EXIT_OK
 
 
@@ -212,7 +218,7 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
     if mismatch.slip <= 0 or mismatch.speed_spread < 0 or mismatch.drift_mm_per_s < 0 or \
             mismatch.noise_mm < 0:
         raise ConfigError("--slip must be > 0; --speed-spread, --drift and --noise >= 0")
-    with SixCoilBench(host=args.host, mismatch=mismatch) as bench:
+    with SixCoilBench(host=args.host, mismatch=mismatch, world=args.world or "rolling") as bench:
         assert bench.rig is not None
         rig = bench.rig.model_copy(update={"emulation": bench.rig.emulation.model_copy(
             update={"pid": os.getpid()})})
@@ -255,6 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "whenever the rig has a camera)")
     p.add_argument("--agnostic", action="store_true",
                    help="depm rig: run the magnetic-agnostic baseline (straight joint-space moves)")
+    p.add_argument("--time-scale", type=float, metavar="K",
+                   help="depm emulated bench only: run its clock K times faster than real time")
     _add_mismatch_flags(p)
     _add_bench_flags(p)
     p.set_defaults(func=_cmd_execute)

@@ -151,6 +151,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    f"{DEFAULT_EPSILON_MM:g})")
     p.add_argument("--interchangeable", action="store_true",
                    help="the particles are alike: also try the swapped goals, keep the shorter path")
+    p.add_argument("--height", type=float, metavar="H",
+                   help="3D (Sec. IV-G): a right prism / cylinder of height H mm over the boundary; "
+                   "--start/--goal then are X,Y,Z; writes a rigctl.plan3d/1 document (no 3D rig runs it)")
     p.add_argument("-o", "--output", required=True, metavar="PLAN.json", help="plan file to write")
     p.add_argument("--json", action="store_true",
                    help='end the output with {"solved", "moves", "length", "seconds"}')
@@ -178,6 +181,42 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="grid points per axis of the Delta space (default 121)")
     p.add_argument("--json", action="store_true", help='end the output with {"fraction": f}')
     p.set_defaults(func=run_reachable)
+
+    # plan depm: the dual-EPM hybrid planner (seed 003); the command lives in rigctl.plans.depm.
+    p = planners.add_parser(
+        "depm", help="dual-EPM field/gradient sequence: hybrid planner (seed 003) or baseline",
+        description="Plan the two arms' joint trajectories that produce a sequence of field and "
+        "gradient 8-vectors U at the workspace centre (hybrid planner of seed 003), or the "
+        "magnetic-agnostic baseline. Every trajectory is checked against the safety constraints. "
+        "Exit 0 planned, 1 planned but refused by the safety check (plan still written), 2 bad "
+        "input.",
+    )
+    p.add_argument("--sequence", required=True, metavar="FILE",
+                   help='JSON list of {"name", "U": [Bx, By, Bz mT, 5 gradient terms mT/m], '
+                   '"hold_s"}')
+    p.add_argument("--waypoints", type=int, default=20, metavar="N",
+                   help="waypoints per transition (default 20)")
+    p.add_argument("--k", type=int, default=4, metavar="K",
+                   help="radial path alternatives per waypoint (default 4)")
+    p.add_argument("--agnostic", action="store_true",
+                   help="the baseline: straight joint-space moves to the same end poses")
+    p.add_argument("--rig", metavar="RIG.toml",
+                   help="plan for this depm rig file's arm bases, magnets and limits (default: "
+                   "the emulated rig's, docs/depm.md)")
+    p.add_argument("-o", "--output", required=True, metavar="PLAN.json", help="plan file to write")
+    p.add_argument("--json", action="store_true", help="end the output with one JSON line")
+    p.set_defaults(func=_run_depm)
+
+    from rigctl.plans.pair import add_cli as add_pair_planner  # seed 002's two-agent planner
+
+    add_pair_planner(planners)
+
+
+def _run_depm(args: argparse.Namespace) -> int:
+    """`rigctl plan depm` (imported on use: the planner pulls in scipy's optimisers)."""
+    from rigctl.plans.depm import cli
+
+    return cli(args)
 
 
 # ---------------------------------------------------------------- workspace documents
@@ -491,6 +530,8 @@ def run_wall_contact(args: argparse.Namespace) -> int:
     if document.get("obstacles"):
         raise PlanError("--workspace: the wall-contact planner works in convex workspaces without "
                         "obstacles")
+    if args.height is not None:
+        return _run_wall_contact_3d(args, document)
     starts = _points(args.start, "--start")
     goals = _points(args.goal, "--goal")
     if len(starts) != 2 or len(goals) != 2:
@@ -527,6 +568,44 @@ def run_wall_contact(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"solved": result.solved, "moves": len(result.moves),
                           "length": round(result.length, 6), "seconds": round(seconds, 6)}))
+    return EXIT_SOLVED if result.solved else EXIT_NOT_SOLVED
+
+
+def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
+    """`rigctl plan wall-contact --height H`: Sec. IV-G in a right prism or cylinder."""
+    from rigctl.plans.wall_contact import centre_region
+    from rigctl.plans.wall_contact_3d import plan_document_3d, plan_wall_contact_3d, prism_region
+
+    points = {}
+    for flag, values in (("--start", args.start), ("--goal", args.goal)):
+        parsed = []
+        for number, text in enumerate(values, start=1):
+            try:
+                x, y, z = (float(v) for v in text.replace(" ", "").split(","))
+            except ValueError:
+                raise PlanError(f"{flag} #{number}: with --height, expected X,Y,Z in mm, got "
+                                f"{text!r}") from None
+            parsed.append((x, y, z))
+        if len(parsed) != 2:
+            raise PlanError(f"{flag}: the planner places exactly two particles, got {len(parsed)}")
+        points[flag] = np.array(parsed)
+    if not (args.height > 2 * args.radius and args.radius > 0 and args.epsilon > 0):
+        raise PlanError(f"--height {args.height:g}: must exceed the particles' diameter "
+                        f"{2 * args.radius:g} mm (and --radius, --epsilon > 0)")
+    region = prism_region(centre_region(document["boundary"], args.radius), args.height, args.radius)
+    result, chosen = plan_wall_contact_3d(region, points["--start"], points["--goal"], args.epsilon,
+                                          args.interchangeable)
+    output = Path(args.output)
+    output.write_text(json.dumps(plan_document_3d(document, args.height, args.radius,
+                                                  points["--start"], chosen, result, args.epsilon),
+                                 indent=1))
+    verdict = "solved" if result.solved else "NOT SOLVED"
+    print(f"wall-contact 3D: {verdict}: {len(result.moves)} moves, path {result.length:.3f} mm, "
+          f"{result.error:.3g} mm from the goal, {result.seconds * 1e3:.1f} ms -> {output}",
+          file=sys.stderr)
+    if args.json:
+        print(json.dumps({"solved": result.solved, "moves": len(result.moves),
+                          "length": round(result.length, 6), "seconds": round(result.seconds, 6)}))
     return EXIT_SOLVED if result.solved else EXIT_NOT_SOLVED
 
 

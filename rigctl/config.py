@@ -160,7 +160,7 @@ class DepmSettings(_Strict):
     tool_offset_mm: Annotated[float, Field(gt=0, description="EPM centre on the flange z axis")] = 85.0
     hall_url: str = Field(description="the Hall board's sample stream, tcp://host:port")
     sensor_offsets_mm: list[Vector3] = Field(
-        default=[(0.0, 0.0, 0.0), (4.0, 0.0, 0.0), (0.0, 4.0, 0.0)],
+        default=[(0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 2.0, 0.0)],
         description="sensor positions from the workspace centre; the first is the reference")
     keep_out_radius_mm: Annotated[float, Field(gt=0)] = 150.0
     epm_radius_mm: Annotated[float, Field(gt=0)] = 72.0

@@ -1,0 +1,597 @@
+"""Run a two-particle plan on the coil board, the loop closed through the camera (seed 004 Alg. 1).
+
+Alg. 1 is a feedback law: from wherever the particles are, it gives the next two-move step towards
+the goal. A coil-board run uses it that way. It starts with the plan's moves; after every move it
+looks at the particles (camera -> tracker), and if they are not where the move's expected state
+put them (further than half the tolerance), it re-runs Alg. 1 from the measured positions and goes
+on with the new moves. It stops when both particles are within the plan's tolerance of their goals
+(reached), or after `max_moves` moves (not reached), or on a fault.
+
+A move is driven, not timed: the coils pull along the move's direction (the +x/-x and +y/-y coils
+in the ratio of its components, the larger at full drive), and the stream loop watches the tracked
+particles: a move meant to bring a particle to a wall ends when it is there (or held); any other
+when the particles that should end it in free space are, on average, where it puts them (a
+particle meant to be pinned stays on its wall by itself). The
+drive is ramped down over the last `slow_zone_mm` and the stop is anticipated by the tracking
+latency, so a particle that moves fast near a coil does not overshoot much. What the field's
+non-uniformity does to the other particle is measured after the move and corrected by re-planning.
+
+Safety as everywhere: the plan is checked before the board is opened; the board's watchdog zeroes
+the coils if this process stops talking; every exit path stops the coils; a fault of the board,
+the camera or the tracking ends the run with the device named (exit status 3).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from rigctl.config import RigConfig, dump_rig, load_rig
+from rigctl.errors import ConfigError, DeviceTimeout, PlanError, RigError
+from rigctl.execute import AgentResult, RunSummary, format_summary, summary_json_line
+from rigctl.plans.schema import GlobalMovesPlan, check_plan, dump_plan, plan_workspace
+from rigctl.plans.wall_contact import CentreRegion, DiskRegion, centre_region, plan_two_particles
+from rigctl.record import RunRecord
+
+log = logging.getLogger(__name__)
+
+EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class CoilBoardRunSettings:
+    """How a coil-board run drives and judges its moves.
+
+    drive: |coil command| (1..127) of the stronger coil during a move; slow_zone_mm: the drive
+    falls linearly over the last this-many mm of a move, down to min_drive_fraction; max_moves:
+    bound on moves executed (then not reached); move_timeout_s: a move not done in this long is
+    ended and the run re-plans; stall_s / stall_mm: no particle moved more than stall_mm in stall_s:
+    the move is over (everything is held); settle_s: after the coils stop, the first frame taken
+    this much later is the measurement; follow_fraction: measured within this fraction of the
+    tolerance of the expected state, the current plan goes on (else re-plan); aim_fraction: Alg. 1
+    aims at this fraction of the tolerance; rate_hz: command rate during a move;
+    skip_mm: moves shorter than this are not driven; max_steer_deg: how far the pull may turn from
+    the move's direction (steering to the target, and against the field's lean); lean_gain,
+    lean_speed_mm_s, lean_lag_cycles: the lean estimate's filter gain, the speed below which it
+    is not updated, and the age in commands of the command a frame's motion is compared with;
+    free_margin_mm: a particle this far inside the planning region is off the walls (for learning
+    the `RelativeDrift`); pin_margin_deg: a particle meant to stay on its wall is pushed into it at
+    least this steeply; pin_slip_mm: if it moves this far anyway, the move ends (re-plan);
+    push_mm: re-planned steps move the free particle at least this far into the pinning wall's
+    normal direction (Alg. 1's `push`), so that the pinned one is pushed, not grazed;
+    keep_apart_mm: re-planned relative moves keep this gap between the particles (the camera
+    sees touching particles as one blob); learn_min_mm: only moves at least this long teach the
+    `RelativeDrift`.
+    """
+
+    drive: int = 127
+    slow_zone_mm: float = 1.5
+    min_drive_fraction: float = 0.12
+    max_moves: int = 40
+    move_timeout_s: float = 30.0
+    stall_s: float = 0.5
+    stall_mm: float = 0.02
+    settle_s: float = 0.08
+    follow_fraction: float = 0.5
+    aim_fraction: float = 0.4
+    rate_hz: float = 50.0
+    skip_mm: float = 0.02
+    max_steer_deg: float = 25.0
+    free_margin_mm: float = 0.1
+    pin_margin_deg: float = 10.0
+    push_mm: float = 1.0
+    keep_apart_mm: float = 1.0
+    learn_min_mm: float = 3.0
+    pin_slip_mm: float = 0.15
+    lean_gain: float = 0.3
+    lean_speed_mm_s: float = 0.3
+    lean_lag_cycles: int = 3
+    syren_ready_timeout_s: float = 5.0
+    acquire_timeout_s: float = 10.0
+
+
+def planning_region(plan: GlobalMovesPlan, radius_mm: float) -> CentreRegion:
+    """The convex region Alg. 1 plans in: the plan's boundary (disk, rect, convex polygon), or for
+    a boundary that is not convex (the intestine phantom's protrusions) the largest disk about the
+    boundary's centroid that stays clear of it, as the paper planned its ring on a disk."""
+    boundary = plan.workspace.boundary.model_dump()
+    try:
+        return centre_region(boundary, radius_mm)
+    except PlanError:
+        if "polygon" not in boundary:
+            raise
+    vertices = np.asarray(boundary["polygon"], dtype=float)
+    centre = vertices.mean(axis=0)
+    room = float(plan_workspace(plan).clearance(centre))
+    if room <= radius_mm:
+        raise PlanError(f"{plan.source}: workspace: not convex, and no disk about its centroid "
+                        "holds a particle; the wall-contact planner cannot plan in it")
+    return DiskRegion(centre, room - radius_mm)
+
+
+class RelativeDrift:
+    """How a translation changes the particles' relative position on this rig, learned in the run.
+
+    On the paper's rig the pull is stronger nearer the active coil and leans towards its centre,
+    so a translation of length L along u does not keep delta = p2 - p1: to first order in the
+    particles' offsets from the coils' centre (the pull of a coil D away falling as 1/d^n),
+
+        change of delta = L (k_along (delta . u) u - k_across (delta - (delta . u) u)),
+
+    with k_along = n / D and k_across = 1 / D. Both are fitted (least squares, pulled towards the
+    uniform model k = 0 by `prior_weight`) from every move in which both particles moved freely,
+    and used to aim Alg. 1's relative position so that the final translation lands on the goals.
+    """
+
+    def __init__(self, prior_weight: float = 0.05, k_max: float = 0.05) -> None:
+        self.k_max = k_max
+        self.rows: list[np.ndarray] = []
+        self.values: list[float] = []
+        self.prior_weight = prior_weight
+        self.k = np.zeros(2)  # (k_along, k_across) in 1/mm
+
+    def observe(self, u: np.ndarray, length: float, delta: np.ndarray, change: np.ndarray) -> None:
+        along = (delta @ u) * u
+        across = delta - along
+        for axis in range(2):
+            self.rows.append(length * np.array([along[axis], -across[axis]]))
+            self.values.append(float(change[axis]))
+        a = np.array(self.rows)
+        b = np.array(self.values)
+        scale = self.prior_weight * max(1.0, float(np.abs(a).max()))
+        a = np.vstack([a, scale * np.eye(2)])
+        b = np.concatenate([b, np.zeros(2)])
+        # Both are positive for coils that pull (1/d^n, towards their centres); a noisy fit
+        # outside [0, k_max] would aim Alg. 1 far off.
+        self.k = np.clip(np.linalg.lstsq(a, b, rcond=None)[0], 0.0, self.k_max)
+
+    def aim(self, goal_delta: np.ndarray, u: np.ndarray, length: float) -> np.ndarray:
+        """The delta (2,) to have before a translation (u, length) so that it ends at goal_delta."""
+        along = np.outer(u, u)
+        change = length * (self.k[0] * along - self.k[1] * (np.eye(2) - along))
+        return np.linalg.solve(np.eye(2) + change, goal_delta)
+
+
+@dataclass
+class CoilBoardSummary(RunSummary):
+    """A run summary with the moves driven (a coil-board run's move count is not the plan's)."""
+
+    moves: int = 0
+
+    def as_dict(self) -> dict:
+        return {**super().as_dict(), "moves": self.moves}
+
+
+class CoilBoardRun:
+    """One run: `execute()` returns the summary; device faults are reported, not raised."""
+
+    def __init__(self, plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
+                 progress_out: TextIO | None = sys.stderr,
+                 settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> None:
+        if plan.kind != "global-moves" or plan.rig != "coil-board":
+            raise PlanError(f"{plan.source}: a coil-board run takes a coil-board global-moves plan")
+        if len(plan.agents) != 2:
+            raise PlanError(f"{plan.source}: agents: the coil board's planner places exactly two "
+                            f"particles, the plan has {len(plan.agents)}")
+        if rig.rig.kind != "coil-board" or rig.board is None:
+            raise ConfigError("the rig is not a coil board (kind coil-board with a [board] table)")
+        if rig.camera is None or rig.camera.calibration is None:
+            raise ConfigError("a coil-board run closes the loop through the camera: the rig needs a "
+                              "[camera] table with a calibration (`rigctl calibrate camera`)")
+        if not 1 <= settings.drive <= rig.board.max_command:
+            raise ConfigError(f"drive {settings.drive} must be 1..{rig.board.max_command} (the "
+                              "board's max_command)")
+        check_plan(plan)
+        self.plan = plan
+        self.rig = rig
+        self.settings = settings
+        self.out = progress_out
+        self.runs_dir = runs_dir
+        self.radii = np.array([a.radius for a in plan.agents], dtype=float)
+        self.starts = np.array([a.start for a in plan.agents], dtype=float)
+        self.goals = np.array([a.goal for a in plan.agents], dtype=float)
+        self.tolerance = float(plan.tolerance_mm)
+        self.region = planning_region(plan, float(self.radii.max()))
+        self.workspace = plan_workspace(plan)
+        # Particles that touch make one blob on the camera: re-planned moves keep them apart.
+        self.reach = float(self.radii.sum() + max(plan.min_separation_mm, settings.keep_apart_mm))
+        self.replans = 0
+        self.moves_done = 0
+        self.drift = RelativeDrift()
+        self.lost_holds = 0  # moves held while the tracker had lost a particle
+        self.board = None
+        self.tracking = None
+        self.record: RunRecord | None = None
+        self._sample = 0
+
+    # -- the run --------------------------------------------------------------------------------
+    def execute(self) -> CoilBoardSummary:
+        from rigctl.drivers.coilboard import CoilBoard
+        from rigctl.supervisor import TrackingLoop
+
+        started = time.monotonic()
+        record = self.record = RunRecord(self.runs_dir, self.plan.name or "coil-board-plan")
+        record.write_file("plan.json", dump_plan(self.plan))
+        record.write_file("rig.toml", dump_rig(self.rig))
+        record.event("start", plan=self.plan.source, rig=self.rig.rig.name,
+                     tolerance_mm=self.tolerance, emulated=self.rig.emulated)
+        record.open_stream(list(self.rig.board.coil_names), self.settings.rate_hz)
+        faults: list[dict] = []
+        backdoor = None
+        try:
+            if self.rig.emulation is not None:
+                backdoor = self._place_on_bench()
+            self._say(f"opening the board at {self.rig.board.url}")
+            self.board = CoilBoard.from_settings(self.rig.board)
+            self._wait_syren_ready()
+            xmin, ymin, xmax, ymax = plan_workspace(self.plan).bounds
+            self.tracking = TrackingLoop(self.rig.camera, self.radii, self.starts,
+                                         roi_mm=(xmin, ymin, xmax, ymax))
+            self.tracking.start(self.settings.acquire_timeout_s)
+            self._loop()
+        except RigError as err:
+            log.error("coil-board run: %s", err)
+            faults.append({"device": err.device or "rig", "reason": str(err)})
+            record.event("fault", device=err.device, reason=str(err))
+        finally:
+            measured = self._final_measurement()
+            self._shut_down(faults)
+        agents, source = self._results(measured, backdoor)
+        if backdoor is not None:
+            backdoor.close()
+        # Reached: the camera's last look, after the coils were stopped, has both within tolerance.
+        reached = not faults and all(a.error_mm is not None and a.error_mm <= self.tolerance
+                                     for a in agents)
+        tracking = None
+        if self.tracking is not None:
+            tracking = {"frames": self.tracking.frames, "lost_frames": self.tracking.lost_frames,
+                        "holds": self.lost_holds}
+        summary = CoilBoardSummary(
+            reached=reached, agents=agents, run=str(record.path),
+            duration_s=time.monotonic() - started, positions_from=source,
+            tolerance_mm=self.tolerance, faults=faults, replans=self.replans, tracking=tracking,
+            moves=self.moves_done)
+        record.event("end", reached=reached, moves=self.moves_done, replans=self.replans)
+        record.finish(summary.as_dict())
+        return summary
+
+    def _loop(self) -> bool:
+        """Moves until both particles are within the tolerance; True if they got there."""
+        s = self.settings
+        moves = np.array(self.plan.moves, dtype=float).reshape(-1, 2)
+        expected = np.array(self.plan.expected, dtype=float).reshape(-1, 2, 2) \
+            if self.plan.expected is not None else None
+        index = 0
+        position = self._measure()
+        while True:
+            error = float(np.max(np.hypot(*(position - self.goals).T)))
+            if error <= self.tolerance:
+                self._say(f"both particles within {self.tolerance:g} mm (worst {error:.3f} mm)")
+                return True
+            if self.moves_done >= s.max_moves:
+                self._say(f"stopping after {self.moves_done} moves: worst error {error:.3f} mm")
+                return False
+            follow = (expected is not None and index < len(moves) and (index == 0 or float(np.max(
+                np.hypot(*(position - expected[index - 1]).T))) <= s.follow_fraction * self.tolerance))
+            if not follow:
+                moves, expected = self._replan(position)
+                index = 0
+                if not len(moves) or np.hypot(*moves.T).max() < s.skip_mm:
+                    self._say(f"Alg. 1 finds no move the rig can make that improves on "
+                              f"{error:.3f} mm")
+                    return False
+            move, end = moves[index], expected[index]
+            index += 1
+            if math.hypot(*move) < s.skip_mm:
+                continue
+            self.moves_done += 1
+            self._say(f"move {self.moves_done}: ({move[0]:+.2f}, {move[1]:+.2f}) mm"
+                      + ("" if follow else " (re-planned)"))
+            position = self._drive(move, position, end)
+
+    def _replan(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Alg. 1 from the measured positions (2, 2): moves (m, 2) and the states it expects.
+
+        The relative position is aimed so that the last move (the translation to the goals) ends
+        on them under the learned `RelativeDrift` (two fixed-point rounds)."""
+        self.replans += 1
+        aim = self.settings.aim_fraction * self.tolerance
+        inside = self._into_region(position)
+        centre = self.goals.mean(axis=0)
+        goal_delta = self.goals[1] - self.goals[0]
+        goals = self.goals
+        push, reach = self.settings.push_mm, self.reach
+        result = plan_two_particles(self.region, inside, goals, aim, reach=reach, push=push)
+        if not result.solved:
+            # The margins (pushing, keeping apart) leave no way there: the paper's set may.
+            plain = plan_two_particles(self.region, inside, goals, aim, reach=float(self.radii.sum()))
+            if plain.error < result.error:
+                push, reach, result = 0.0, float(self.radii.sum()), plain
+        for _ in range(2):
+            if not len(result.moves) or not self.drift.k.any():
+                break
+            last = result.moves[-1]
+            length = math.hypot(*last)
+            if length == 0:
+                break
+            delta = self.drift.aim(goal_delta, last / length, length)
+            aimed = np.stack([centre - delta / 2, centre + delta / 2])
+            if not self.region.contains(aimed).all():
+                break
+            goals = aimed
+            result = plan_two_particles(self.region, inside, goals, aim, reach=reach, push=push)
+        # Alg. 1 ends with the translation to the aimed goals; the real goals' midpoint is the same.
+        self.record.event("replan", measured=position.tolist(), moves=result.moves.tolist(),
+                          aimed_goals=goals.tolist(), drift_k=self.drift.k.tolist(), push_mm=push,
+                          seconds=result.seconds)
+        return result.moves, result.states
+
+    def _into_region(self, position: np.ndarray) -> np.ndarray:
+        """Measured positions pulled into the planning region (the tracker's noise, a particle in
+        a phantom's villus) so Alg. 1's point kinematics start from a valid state."""
+        inside = position.copy()
+        for i in range(len(inside)):
+            if self.region.contains(inside[i])[0]:
+                continue
+            if isinstance(self.region, DiskRegion):
+                w = inside[i] - self.region.centre
+                inside[i] = self.region.centre + w * (self.region.radius / math.hypot(*w))
+            else:
+                centroid = self.region.vertices.mean(axis=0)
+                u = inside[i] - centroid
+                length = math.hypot(*u)
+                inside[i] = centroid + self.region.exit_distance(centroid, u / length) * u / length
+        return inside
+
+    # -- one move -------------------------------------------------------------------------------
+    def _drive(self, move: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+        """Pull along `move` until the particles that should end it in free space are, on average,
+        where the move puts them; then stop the coils and measure. Returns positions (2, 2).
+
+        The pull is steered (within `max_steer_deg` of the move's direction) towards the watched
+        particles' mean target, and turned against the measured difference between the direction
+        the coils were asked to pull in and the direction the particles went (the field leans
+        towards the active coils' centres)."""
+        s = self.settings
+        u = move / math.hypot(*move)
+        planned = (end - start) @ u  # (2,) planned advance along u
+        free_end = self.region.contains(end, slack=0.01)  # ends the move off every wall
+        # A move that brings a particle to a wall (Alg. 1's move 1) is over when that particle is
+        # there; otherwise when the particles meant to end in free space are where they should be.
+        contact = ~free_end & self.region.contains(start, slack=0.05) & (planned > s.skip_mm)
+        watched = contact if contact.any() else free_end & (planned > s.skip_mm)
+        if not watched.any():
+            watched = planned > s.skip_mm
+        target = np.mean(end[watched], axis=0)
+        # Particles the move must leave where they are, on a wall: the pull has to push into
+        # that wall by at least `pin_margin_deg` (the field leans, and Alg. 1's moves may graze).
+        pinned = (np.hypot(*(end - start).T) < s.skip_mm) & ~self.region.contains(start, slack=0.05)
+        outward = -self.workspace.normal(start)  # (2, 2)
+        pin_angles = [math.atan2(outward[i, 1], outward[i, 0]) for i in np.flatnonzero(pinned)]
+        pin_limit = math.pi / 2 - math.radians(s.pin_margin_deg)
+        history: list[tuple[float, np.ndarray]] = []
+        sent: list[float] = []  # angle of each command sent, radians
+        lean = 0.0  # measured motion angle minus commanded angle
+        lost_since: float | None = None  # tracking lost since (monotonic s)
+        began = time.monotonic()
+        tracking = self.tracking
+        assert tracking is not None and self.board is not None
+        move_number = self.moves_done
+        max_steer = math.radians(s.max_steer_deg)
+        base = math.atan2(u[1], u[0])
+
+        def command(_: int) -> list[int] | None:
+            nonlocal lean, lost_since
+            now = time.monotonic()
+            state = tracking.latest()
+            if not tracking.ok(now):
+                # Hold (coils off) while the tracker looks for them; give up after the camera's
+                # timeout.
+                lost_since = now if lost_since is None else lost_since
+                if tracking.failure is not None or now - lost_since > self.rig.camera.timeout_s:
+                    raise DeviceTimeout("tracking lost during a move (no fresh frame with both "
+                                        "particles); the coils were stopped", device="camera")
+                history.clear()
+                self._log_row(move_number, [0, 0, 0, 0])
+                return [0, 0, 0, 0]
+            if lost_since is not None:
+                self.lost_holds += 1
+                self.record.event("tracking_regained", after_s=now - lost_since)
+                lost_since = None
+            if not history or history[-1][0] != state.t_source:
+                history.append((state.t_source, state.positions_mm))
+            velocity = np.zeros(2)
+            if len(history) >= 3 and history[-1][0] > history[-3][0]:
+                (t0, p0), (t1, p1) = history[-3], history[-1]
+                velocity = np.mean((p1 - p0)[watched], axis=0) / (t1 - t0)
+            # Where the watched particles will be when a command sent now takes effect.
+            lead = (now - state.t_source) + 1.0 / s.rate_hz
+            offset = target - np.mean(state.positions_mm[watched], axis=0) - velocity * lead
+            if offset @ u <= 0 or now - began > s.move_timeout_s or self._stalled(
+                    history, now, began, watched):
+                return None
+            speed = math.hypot(*velocity)
+            if speed > s.lean_speed_mm_s and len(sent) > s.lean_lag_cycles:
+                seen = math.atan2(velocity[1], velocity[0]) - sent[-1 - s.lean_lag_cycles]
+                seen = (seen + math.pi) % (2 * math.pi) - math.pi
+                lean += s.lean_gain * (max(-max_steer, min(max_steer, seen)) - lean)
+            wanted = math.atan2(offset[1], offset[0]) - base
+            wanted = (wanted + math.pi) % (2 * math.pi) - math.pi
+            angle = base + max(-max_steer, min(max_steer, wanted)) - lean
+            for wall in pin_angles:
+                off = (angle - wall + math.pi) % (2 * math.pi) - math.pi
+                angle = wall + max(-pin_limit, min(pin_limit, off))
+            if pinned.any() and float(np.max(np.hypot(*(state.positions_mm - start)[pinned].T))) \
+                    > s.pin_slip_mm:
+                return None  # a pinned particle slipped: stop and re-plan from here
+            sent.append(angle)
+            direction = np.array([math.cos(angle), math.sin(angle)])
+            direction /= max(abs(direction[0]), abs(direction[1]))
+            pulls = (max(direction[0], 0), max(-direction[0], 0), max(direction[1], 0),
+                     max(-direction[1], 0))
+            fraction = min(1.0, max(s.min_drive_fraction, (offset @ u) / s.slow_zone_mm))
+            values = [int(round(s.drive * fraction * p)) for p in pulls]
+            self._log_row(move_number, values)
+            return values
+
+        self.board.stream(command, self.settings.rate_hz)
+        self.board.stop()
+        self._log_row(move_number, [0, 0, 0, 0])
+        measured = self._measure(after=time.monotonic() + s.settle_s)
+        # A move both particles made freely (neither held, neither stopped by a wall) shows how
+        # a translation changes their relative position here.
+        advances = (measured - start) @ u
+        advance = float(np.mean(advances))
+        if self.region.contains(measured, slack=s.free_margin_mm).all() and \
+                advance > s.learn_min_mm and advances.min() > 0.5 * advance:
+            delta_before, delta_after = start[1] - start[0], measured[1] - measured[0]
+            self.drift.observe(u, advance, 0.5 * (delta_before + delta_after),
+                               delta_after - delta_before)
+        self.record.event("move", number=move_number, move=move.tolist(), expected=end.tolist(),
+                          measured=measured.tolist(), lean_deg=math.degrees(lean),
+                          seconds=time.monotonic() - began)
+        return measured
+
+    def _stalled(self, history: list, now: float, began: float, watched: np.ndarray) -> bool:
+        """The watched particles moved less than `stall_mm` in the last `stall_s` (held)."""
+        s = self.settings
+        if now - began < s.stall_s or len(history) < 2:
+            return False
+        recent = [p for t, p in history if t >= history[-1][0] - s.stall_s]
+        if history[0][0] > history[-1][0] - s.stall_s:
+            return False
+        return float(np.max(np.hypot(*(recent[-1] - recent[0])[watched].T))) < s.stall_mm
+
+    def _log_row(self, move: int, values: list[int]) -> None:
+        applied = list(self.board.last_ack.outputs) if self.board.last_ack is not None else [0] * 4
+        self.record.stream_row(self._sample, move, values, applied)
+        self._sample += 1
+
+    # -- measuring --------------------------------------------------------------------------------
+    def _measure(self, after: float | None = None) -> np.ndarray:
+        """Positions (2, 2) mm from the first frame taken after monotonic `after` (default: now)."""
+        assert self.tracking is not None
+        after = time.monotonic() if after is None else after
+        timeout = self.rig.camera.timeout_s + max(0.0, after - time.monotonic())
+        state = self.tracking.captured_after(after, timeout)
+        if state is None:
+            raise DeviceTimeout("no frame with both particles after the move", device="camera")
+        return state.positions_mm.copy()
+
+    def _final_measurement(self) -> np.ndarray | None:
+        if self.tracking is None or self.tracking.latest() is None:
+            return None
+        try:
+            return self._measure(after=time.monotonic())
+        except RigError:
+            state = self.tracking.latest()
+            return state.positions_mm.copy() if state is not None else None
+
+    def _results(self, measured: np.ndarray | None, backdoor) -> tuple[list[AgentResult], str]:
+        truth = None
+        if backdoor is not None:
+            try:
+                truth = np.array(backdoor.request("truth")["agents"], dtype=float)
+            except RigError as err:
+                log.error("could not read ground truth: %s", err)
+        agents = []
+        for i, goal in enumerate(self.goals):
+            final = None if measured is None else [round(float(v), 4) for v in measured[i]]
+            error = None if measured is None else round(float(np.hypot(*(measured[i] - goal))), 4)
+            truth_error = None if truth is None else round(float(np.hypot(*(truth[i] - goal))), 4)
+            agents.append(AgentResult(final, goal.tolist(), error, truth_error))
+        source = "camera (closed loop)" + ("; emulator ground truth in truth_error_mm"
+                                           if truth is not None else "")
+        return agents, source
+
+    # -- set-up and shut-down ---------------------------------------------------------------------
+    def _place_on_bench(self):
+        from rigctl.emulators.backdoor import BackdoorClient
+        from rigctl.execute import _portable_workspace
+
+        backdoor = BackdoorClient(self.rig.emulation.backdoor)
+        backdoor.request("place", workspace=_portable_workspace(self.plan),
+                         agents=[{"position": a.start, "radius": a.radius} for a in self.plan.agents])
+        return backdoor
+
+    def _wait_syren_ready(self) -> None:
+        """The board sends to the SyRens only after their start-up (2 s after power-on)."""
+        deadline = time.monotonic() + self.settings.syren_ready_timeout_s
+        while not self.board.status().syren_ready:
+            if time.monotonic() > deadline:
+                raise DeviceTimeout("the board never reported its SyRen drivers ready "
+                                    f"(SYREN_READY) within {self.settings.syren_ready_timeout_s:g} s",
+                                    device=self.board.name)
+            time.sleep(0.05)  # a bounded poll of the board's own state, not of a server
+
+    def _shut_down(self, faults: list[dict]) -> None:
+        if self.board is not None:
+            try:
+                self.board.close()  # stops the coils first
+            except RigError as err:
+                if not faults:
+                    faults.append({"device": err.device or "coil board", "reason": str(err)})
+        if self.tracking is not None:
+            self.tracking.stop()
+
+    def _say(self, text: str) -> None:
+        if self.out is not None:
+            print(f"  {text}", file=self.out, flush=True)
+
+
+def execute_coilboard(plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
+                      progress_out: TextIO | None = sys.stderr,
+                      settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> CoilBoardSummary:
+    """Run `plan` on the coil board `rig`; refusals raise before anything is opened."""
+    return CoilBoardRun(plan, rig, runs_dir=runs_dir, progress_out=progress_out,
+                        settings=settings).execute()
+
+
+def format_coilboard_summary(summary: CoilBoardSummary) -> str:
+    lines = format_summary(summary).splitlines()
+    lines.insert(2, f"moves: {summary.moves} driven, {summary.replans} re-plans from the camera")
+    return "\n".join(lines)
+
+
+def execute_cli(plan: GlobalMovesPlan, args: argparse.Namespace) -> int:
+    """`rigctl execute PLAN` for a coil-board plan: exit 0 reached, 1 not, 2 bad input, 3 fault."""
+    from rigctl.emulators.process import EmulatedBenchProcess
+
+    out = None if args.quiet else sys.stderr
+    if args.open_loop:
+        raise ConfigError("--open-loop: a coil-board move ends when the camera sees it done; the "
+                          "coil board runs closed loop only")
+    if getattr(args, "agnostic", False):
+        raise ConfigError("--agnostic is for the depm rig")
+    extra: list[str] = []
+    if getattr(args, "firmware", None):
+        extra += ["--firmware", args.firmware]
+    if args.rig is not None:
+        if extra:
+            raise ConfigError("--firmware chooses the emulated bench that execute starts itself: "
+                              "give it to `rigctl emulate coil-board` when using --rig")
+        summary = execute_coilboard(plan, load_rig(args.rig), runs_dir=args.runs, progress_out=out)
+    else:
+        with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
+            if out:
+                print("no --rig given: starting the emulated coil-board bench on loopback (nothing "
+                      "real is energised)", file=out)
+            with EmulatedBenchProcess("coil-board", Path(tmp) / "bench.toml",
+                                      extra_args=extra) as rig_path:
+                summary = execute_coilboard(plan, load_rig(rig_path), runs_dir=args.runs,
+                                            progress_out=out)
+    print(format_coilboard_summary(summary))
+    if args.json:
+        print(summary_json_line(summary))
+    if summary.faults:
+        return EXIT_FAULT
+    return EXIT_OK if summary.reached else EXIT_NOT_REACHED

@@ -1,0 +1,61 @@
+"""`rigctl execute` of a coil-board plan on the emulated board: the real driver, the Python firmware
+on a pty, the SyRen wire, the non-uniform coils and the camera loop all in the chain."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
+from rigctl.plans.schema import load_plan
+
+PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "coilboard-disk.json"
+
+
+def test_execute_delivers_both_particles_within_the_tolerance(tmp_path):
+    plan = load_plan(PLAN)
+    with EmulatedBenchProcess("coil-board", tmp_path / "bench.toml") as rig_file:
+        from rigctl.config import load_rig
+
+        rig = load_rig(rig_file)
+        with BackdoorClient(rig.emulation.backdoor) as backdoor:
+            backdoor.request("speed", factor=2.5)  # simulated seconds per real second
+            # Coils 400 mm out (the world's physics stays for the run's own `place`): still not
+            # uniform (the pull varies by 27 % across the disk and leans up to 3.3 degrees), milder
+            # than the default 200 mm, with which Alg. 1 as a feedback law does not yet deliver
+            # reliably (bench/coilboard.py measures both).
+            backdoor.request("place", workspace=plan.workspace.model_dump(), agents=[
+                {"position": a.start, "radius": a.radius} for a in plan.agents],
+                physics={"pole_distance_mm": 400.0})
+        done = subprocess.run(
+            [sys.executable, "-m", "rigctl", "execute", str(PLAN), "--rig", str(rig_file),
+             "--runs", str(tmp_path / "runs"), "--json"],
+            capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    assert summary["reached"] and summary["faults"] == []
+    goals = np.array([a.goal for a in plan.agents])
+    for agent, goal in zip(summary["agents"], goals):
+        # The camera's verdict and the emulator's ground truth both within the plan's tolerance.
+        assert agent["error_mm"] <= plan.tolerance_mm
+        assert agent["truth_error_mm"] <= plan.tolerance_mm
+        assert abs(np.hypot(*(np.array(agent["final"]) - goal)) - agent["error_mm"]) < 1e-3
+    assert summary["moves"] >= len(plan.moves)
+    events = [json.loads(line) for line in
+              (Path(summary["run"]) / "events.jsonl").read_text().splitlines()]
+    assert events[0]["event"] == "start" and events[-1]["event"] == "end"
+    assert sum(e["event"] == "move" for e in events) == summary["moves"]
+
+
+def test_execute_refuses_open_loop_before_anything_starts(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-m", "rigctl", "execute", str(PLAN), "--open-loop",
+         "--runs", str(tmp_path / "runs")], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert "closed loop" in done.stderr
+    assert not (tmp_path / "runs").exists()
