@@ -32,27 +32,38 @@ Replies are `{"ok": true, ...}` or `{"ok": false, "error": "..."}`.
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
 from dataclasses import dataclass
 
 import numpy as np
-
-from rigctl.config import CameraSettings, Emulation, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.emulators.backdoor import json_lines
 from rigctl.emulators.camera.mjpeg import serve_camera
-from rigctl.emulators.camera.render import PAPER_RESOLUTION, CameraModel, Renderer, Scene
+from rigctl.emulators.camera.render import (
+    PAPER_RESOLUTION,
+    CameraModel,
+    Renderer,
+    Scene,
+)
 from rigctl.emulators.kepco_bop.model import BopCoilModel
 from rigctl.emulators.kepco_bop.protocol import BopScpi
-from rigctl.emulators.server import Endpoint, EmulatorServer
+from rigctl.emulators.server import EmulatorServer, Endpoint
 from rigctl.emulators.world.pair import PairWorld
 from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
-from rigctl.magnetics import loop_field
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.pair import PairPhysics
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
+
+from rigctl.config import (
+    CameraSettings,
+    Emulation,
+    RigConfig,
+    RigInfo,
+    default_six_coil_coils,
+)
+from rigctl.magnetics import loop_field
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +136,8 @@ class SixCoilBench:
             )
             self.supplies.append(_Supply(coil.name, model, endpoint, np.asarray(field, dtype=float)))
             coils.append(coil.model_copy(update={"url": endpoint.url}))
-        self.backdoor = self.server.serve_lines_tcp(self._backdoor, name="backdoor", host=self.host)
+        self.backdoor = self.server.serve_lines_tcp(json_lines(self._backdoor_command), name="backdoor",
+                                              host=self.host)
         # The camera looks down on a fixed 400 x 400 mm field from 600 mm, slightly tilted, as a
         # real one would be mounted; it is not re-aimed when robots are placed.
         camera_model = CameraModel.overhead(
@@ -222,16 +234,6 @@ class SixCoilBench:
                          np.asarray(self.world.model.radii, dtype=float).copy())
 
     # -- backdoor -----------------------------------------------------------------------------
-    def _backdoor(self, line: str) -> str:
-        try:
-            request = json.loads(line)
-            if not isinstance(request, dict):
-                raise ValueError("a request is a JSON object")
-            reply = self._backdoor_command(request)
-        except Exception as err:  # the backdoor answers every line, whatever it was
-            return json.dumps({"ok": False, "error": f"{type(err).__name__}: {err}"})
-        return json.dumps({"ok": True, **reply})
-
     def _backdoor_command(self, request: dict) -> dict:
         cmd = request.get("cmd")
         if cmd == "ping":

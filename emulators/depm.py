@@ -23,7 +23,6 @@ Backdoor (JSON lines over TCP; replies `{"ok": true, ...}` or `{"ok": false, "er
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import signal
@@ -32,17 +31,18 @@ import threading
 from pathlib import Path
 
 import numpy as np
-
-from rigctl.config import DepmSettings, Emulation, RigConfig, RigInfo, dump_rig
+from rigctl.emulators.backdoor import json_lines
 from rigctl.emulators.hall.board import HallBoardServer
 from rigctl.emulators.kuka.arm import KST_PORT, EmulatedArm, SimClock
 from rigctl.emulators.kuka.model import ArmLimits
 from rigctl.emulators.process import READY_PREFIX
 from rigctl.emulators.server import EmulatorServer
+from rigctl.plans.depm import default_rig, rig_from_settings
+
+from rigctl.config import DepmSettings, Emulation, RigConfig, RigInfo, dump_rig
 from rigctl.errors import ConfigError
 from rigctl.kinematics import DEFAULT_BASES
 from rigctl.magnetics import dipole_field, field_vector
-from rigctl.plans.depm import default_rig, rig_from_settings
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,8 @@ class DepmBench:
         self.hall = HallBoardServer(self.server, field_at=self.field_at, now=self.clock.now,
                                     offsets_mm=self.settings.sensor_offsets_mm,
                                     rate_hz=self.hall_rate_hz, seed=self.seed, host=self.host)
-        backdoor = self.server.serve_lines_tcp(self._backdoor, name="backdoor", host=self.host)
+        backdoor = self.server.serve_lines_tcp(json_lines(self._command), name="backdoor",
+                                              host=self.host)
         self.server.every(TICK_S, self.advance)
         depm = self.settings.model_copy(update={"arm_urls": [a.url for a in self.arms],
                                                 "hall_url": self.hall.url})
@@ -150,16 +151,6 @@ class DepmBench:
         return dipole_field(np.asarray(points_m)[:, None, :], centres, moments).sum(axis=1)
 
     # -- backdoor -------------------------------------------------------------------------------
-    def _backdoor(self, line: str) -> str:
-        try:
-            request = json.loads(line)
-            if not isinstance(request, dict):
-                raise ValueError("a request is a JSON object")
-            reply = self._command(request)
-        except Exception as err:  # the backdoor answers every line, whatever it was
-            return json.dumps({"ok": False, "error": f"{type(err).__name__}: {err}"})
-        return json.dumps({"ok": True, **reply})
-
     def _arm(self, name: object) -> EmulatedArm:
         for arm in self.arms:
             if arm.name == name:
