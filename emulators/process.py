@@ -12,9 +12,13 @@ import os
 import select
 import subprocess
 import sys
+import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator, TextIO
 
+from rigctl.config import RigConfig, load_rig
 from rigctl.errors import RigError
 
 log = logging.getLogger(__name__)
@@ -74,3 +78,19 @@ class EmulatedBenchProcess:
         if self.proc is not None and self.proc.stdout is not None:
             self.proc.stdout.close()
         self._log.close()
+
+
+@contextmanager
+def rig_for_run(rig_file: str | None, kind: str, *, extra_args: list[str] | None = None,
+                progress_out: TextIO | None = None, world: str = "") -> Iterator[RigConfig]:
+    """The rig a `rigctl execute` runs on: the rig file given, or else an emulated bench of `kind`
+    started for this run on loopback (so nothing real is energised) and stopped after it."""
+    if rig_file is not None:
+        yield load_rig(rig_file)
+        return
+    with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
+        if progress_out:
+            print(f"no --rig given: starting the emulated {kind} bench{world} on loopback "
+                  "(nothing real is energised)", file=progress_out)
+        with EmulatedBenchProcess(kind, Path(tmp) / "bench.toml", extra_args=extra_args) as path:
+            yield load_rig(path)

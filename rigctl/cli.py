@@ -14,7 +14,6 @@ import logging
 import os
 import signal
 import sys
-import tempfile
 import threading
 from pathlib import Path
 
@@ -33,7 +32,7 @@ def _cmd_execute(args: argparse.Namespace) -> int:
         from rigctl.cli_daemon import execute_remote
 
         return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
-    from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.emulators.process import rig_for_run
     from rigctl.execute import execute_plan, format_summary, summary_json_line
     from rigctl.plans.schema import load_plan
 
@@ -44,24 +43,13 @@ def _cmd_execute(args: argparse.Namespace) -> int:
         return importlib.import_module(runner).execute_cli(plan, args)
     out = sys.stderr if not args.quiet else None
     closed_loop = False if args.open_loop else None  # None: whenever the rig has a camera
-    if args.rig is not None:
-        if _mismatch_args(args):
-            raise ConfigError("--slip, --speed-spread, --drift, --noise, --seed and "
-                              "--field-at-robots set up the emulated bench that execute starts "
-                              "itself: give them to `rigctl emulate` when using --rig")
-        rig = load_rig(args.rig)
+    if args.rig is not None and _mismatch_args(args):
+        raise ConfigError("--slip, --speed-spread, --drift, --noise, --seed and "
+                          "--field-at-robots set up the emulated bench that execute starts "
+                          "itself: give them to `rigctl emulate` when using --rig")
+    with rig_for_run(args.rig, plan.rig, extra_args=_mismatch_args(args), progress_out=out) as rig:
         summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out,
                                closed_loop=closed_loop)
-    else:
-        with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
-            if out:
-                print(f"no --rig given: starting the emulated {plan.rig} bench on loopback "
-                      "(nothing real is energised)", file=out)
-            with EmulatedBenchProcess(plan.rig, Path(tmp) / "bench.toml",
-                                      extra_args=_mismatch_args(args)) as rig_path:
-                rig = load_rig(rig_path)
-                summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out,
-                                       closed_loop=closed_loop)
     print(format_summary(summary))
     if args.json:
         print(summary_json_line(summary))

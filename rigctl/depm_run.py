@@ -29,7 +29,6 @@ import json
 import logging
 import math
 import sys
-import tempfile
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -38,7 +37,7 @@ from typing import TextIO
 
 import numpy as np
 
-from rigctl.config import RigConfig, dump_rig, load_rig
+from rigctl.config import RigConfig, dump_rig
 from rigctl.depm_safety import SafetyLimits, Violation, violations
 from rigctl.plans.depm import baseline_of, joint_trajectory, plan_violations, rig_from_settings
 from rigctl.drivers.hall import HallBoard, HallSample, HallStream, field_vector_from_sensors
@@ -573,7 +572,7 @@ def format_summary(result: RunResult) -> str:
 
 def execute_cli(plan, args: argparse.Namespace) -> int:
     """`rigctl execute PLAN` for field-sequence plans (see the module docstring)."""
-    from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.emulators.process import rig_for_run
 
     out = None if args.quiet else sys.stderr
     time_scale = float(args.time_scale or 1.0)
@@ -582,16 +581,9 @@ def execute_cli(plan, args: argparse.Namespace) -> int:
     if args.agnostic:
         _progress(out, "the magnetic-agnostic baseline: straight joint moves to the plan's end poses")
         plan = baseline_of(plan)
-    if args.rig is not None:
-        result = run_field_sequence(plan, load_rig(args.rig), runs_dir=args.runs,
-                                    progress_out=out, time_scale=time_scale)
-    else:
-        with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
-            _progress(out, "no --rig given: starting the emulated depm bench on loopback "
-                           "(nothing real moves)")
-            with EmulatedBenchProcess("depm", Path(tmp) / "bench.toml") as rig_path:
-                result = run_field_sequence(plan, load_rig(rig_path), runs_dir=args.runs,
-                                            progress_out=out, time_scale=time_scale)
+    with rig_for_run(args.rig, "depm", progress_out=out) as rig:
+        result = run_field_sequence(plan, rig, runs_dir=args.runs, progress_out=out,
+                                    time_scale=time_scale)
     print(format_summary(result))
     if args.json:
         print(json.dumps(result.json()))

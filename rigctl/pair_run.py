@@ -29,7 +29,6 @@ import json
 import logging
 import math
 import sys
-import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -39,7 +38,7 @@ from typing import TextIO
 import numpy as np
 
 from rigctl.allocate import check_current_limits, field_and_pull_u, u_actuation_matrix
-from rigctl.config import RigConfig, dump_rig, load_rig
+from rigctl.config import RigConfig, dump_rig
 from rigctl.devices import CoilSupplies
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.errors import ConfigError, DeviceTimeout, LimitError, PlanError, RigError
@@ -568,7 +567,7 @@ def execute_cli(plan: PairFormationPlan, args: argparse.Namespace) -> int:
     """`rigctl execute PLAN` for a pair-formation plan: exit 0 reached and held, 1 not, 3 fault
     (bad input raises PlanError / LimitError / ConfigError: exit 2 from the CLI)."""
     from rigctl.cli import _mismatch_args
-    from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.emulators.process import rig_for_run
 
     out = None if args.quiet else sys.stderr
     settings = PairRunSettings(closed_loop=not args.open_loop)
@@ -580,20 +579,16 @@ def execute_cli(plan: PairFormationPlan, args: argparse.Namespace) -> int:
         if _mismatch_args(args):
             raise ConfigError("--slip, --noise, --drift and --seed set up the emulated bench that "
                               "execute starts itself: give them to `rigctl emulate` with --rig")
-        summary = PairRun(plan, load_rig(args.rig), runs_dir=args.runs, progress_out=out,
-                          settings=settings).execute()
     else:
         from rigctl.plans.pair import default_rig
 
         prepare_pair(plan, default_rig(), settings)  # refuse a bad plan before starting a bench
-        with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
-            if out:
-                print("no --rig given: starting the emulated six-coil bench (pair world) on "
-                      "loopback (nothing real is energised)", file=out)
-            with EmulatedBenchProcess("six-coil", Path(tmp) / "bench.toml",
-                                      extra_args=["--world", "pair", *_mismatch_args(args)]) as rig_path:
-                summary = PairRun(plan, loopback_rig(load_rig(rig_path)), runs_dir=args.runs,
-                                  progress_out=out, settings=settings).execute()
+    with rig_for_run(args.rig, "six-coil", extra_args=["--world", "pair", *_mismatch_args(args)],
+                     progress_out=out, world=" (pair world)") as rig:
+        if args.rig is None:
+            rig = loopback_rig(rig)
+        summary = PairRun(plan, rig, runs_dir=args.runs, progress_out=out,
+                          settings=settings).execute()
     print(format_pair_summary(summary))
     if args.json:
         print(json.dumps(summary.as_dict(), separators=(",", ":")))
