@@ -58,6 +58,9 @@ _ON_WALL_REL = 1e-9
 _MARGIN_REL = 1e-8
 # Contacts keep this far (relative to size) from polygon corners, where the wall normal is ambiguous.
 _CORNER_REL = 1e-5
+# Polygon contacts keep this share of their feasible span from its ends: at an end the moving
+# particle ends exactly on the margin, and a later move grazing that wall would stop it early.
+_SPAN_KEEP_REL = 2.5e-6
 # Contact angles per pinned particle in the disk's coarse search.
 _PSI_GRID = 361
 # A step whose delta is this close (relative to size) to the goal's counts as the last one: its
@@ -93,6 +96,9 @@ class PolygonRegion:
     normals: np.ndarray = field(init=False)  # (V, 2) outward unit normals
     offsets: np.ndarray = field(init=False)  # (V,) n_i . x <= offsets_i inside
     size: float = field(init=False)  # diameter (mm)
+    # (V, 2) the polygon shrunk by the planner's margin (_MARGIN_REL of the size): where move 2
+    # may take the moving particle. Shrinking is exact for convex polygons (every edge moves in).
+    shrunk: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         v = np.asarray(self.vertices, dtype=float)
@@ -109,6 +115,7 @@ class PolygonRegion:
         object.__setattr__(self, "offsets", offsets)
         span = v[:, None, :] - v[None, :, :]
         object.__setattr__(self, "size", float(np.sqrt((span**2).sum(-1)).max()))
+        object.__setattr__(self, "shrunk", _edge_lines_meet(normals, offsets - _MARGIN_REL * self.size))
 
     def contains(self, points: np.ndarray, slack: float = 0.0) -> np.ndarray:
         p = np.asarray(points, dtype=float).reshape(-1, 2)
@@ -117,7 +124,10 @@ class PolygonRegion:
     def exit_distance(self, point: np.ndarray, direction: np.ndarray) -> float:
         rate = self.normals @ direction
         room = self.offsets - self.normals @ point
-        ahead = rate > 1e-15
+        # A move this close to parallel to a wall runs along it (as in `apply_move`, which pins a
+        # particle only when the move pushes into its wall by more than this): without the same
+        # bound a particle on a wall would stop dead under a move meant to slide along it.
+        ahead = rate > 1e-12
         if not ahead.any():
             return math.inf
         return float(max(np.min(room[ahead] / rate[ahead]), 0.0))
@@ -131,12 +141,7 @@ class PolygonRegion:
         that radius may go); PlanError if an edge vanishes."""
         if distance <= 0:
             return self
-        n, h = self.normals, self.offsets - distance
-        count = len(n)
-        vertices = np.empty((count, 2))
-        for i in range(count):
-            j = (i - 1) % count  # vertex i is where edge i-1 meets edge i
-            vertices[i] = np.linalg.solve(np.stack([n[j], n[i]]), [h[j], h[i]])
+        vertices = _edge_lines_meet(self.normals, self.offsets - distance)
         edge = np.roll(vertices, -1, axis=0) - vertices
         if np.any(np.sum(edge * (np.roll(self.vertices, -1, axis=0) - self.vertices), axis=1) <= 0):
             raise PlanError(f"particles of radius {distance:g} mm do not fit this workspace's corners")
@@ -170,6 +175,15 @@ class DiskRegion:
         if dist < self.radius * (1 - _ON_WALL_REL) or dist == 0:
             return np.empty((0, 2))
         return (w / dist)[None]
+
+
+def _edge_lines_meet(normals: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(V, 2) vertex i where line i-1 meets line i ({x : normals_k . x = offsets_k})."""
+    prev_n, prev_h = np.roll(normals, 1, axis=0), np.roll(offsets, 1)
+    det = prev_n[:, 0] * normals[:, 1] - prev_n[:, 1] * normals[:, 0]
+    x = (prev_h * normals[:, 1] - prev_n[:, 1] * offsets) / det
+    y = (prev_n[:, 0] * offsets - prev_h * normals[:, 0]) / det
+    return np.stack([x, y], axis=1)
 
 
 def centre_region(boundary: dict, radius: float) -> PolygonRegion | DiskRegion:
@@ -250,11 +264,19 @@ def best_two_move_step(
     normal direction (0: the paper's set; a rig whose pull is not quite uniform needs a margin, so
     that the pinned particle is really pushed into its wall and not grazing along it).
     """
-    reach = reach * (1.0 + 1e-6) + _MARGIN_REL * region.size if reach > 0 else 0.0
+    reach = _clearance(region, reach)
     if isinstance(region, DiskRegion):
-        candidates = _disk_steps(region, positions, goals, reach, push)
-    else:
-        candidates = _polygon_steps(region, positions, goals, reach, push=push)
+        return _nearest_then_shortest(_disk_steps(region, positions, goals, reach, push), region)
+    return _nearest_then_shortest(_polygon_steps(region, positions, goals, reach, push=push), region)
+
+
+def _clearance(region: CentreRegion, reach: float) -> float:
+    """The centre distance the relative moves keep for particles `reach` mm apart (with slack)."""
+    return reach * (1.0 + 1e-6) + _MARGIN_REL * region.size if reach > 0 else 0.0
+
+
+def _nearest_then_shortest(candidates: list, region: CentreRegion) -> TwoMoveStep | None:
+    """The candidate step nearest the goal's delta; among (near) ties, the shortest."""
     if not candidates:
         return None
     nearest = min(step.distance for step in candidates)
@@ -302,6 +324,60 @@ def _blocked(d: np.ndarray, w: np.ndarray, reach: float) -> np.ndarray:
     return np.hypot(closest[:, 0], closest[:, 1]) < reach
 
 
+@dataclass(frozen=True)
+class _WallPart:
+    """What one wall (polygon edge) adds to the 2-move reachable set from given positions (Alg. 2),
+    independent of the goal: the pinned particle, the offset d = other - pinned, the feasible
+    contacts a + t edge (t in t_range), the slice of Q move 2 may end in and the set of
+    reachable offsets q - c (a convex polygon), both with their half-planes."""
+
+    pin: int
+    d: np.ndarray
+    a: np.ndarray
+    edge: np.ndarray
+    normal: np.ndarray
+    offset: float
+    t_range: tuple[float, float]
+    slice_: np.ndarray
+    slice_planes: tuple[np.ndarray, np.ndarray]
+    offsets: np.ndarray
+    offsets_planes: tuple[np.ndarray, np.ndarray]
+
+
+def _polygon_parts(region: PolygonRegion, positions: np.ndarray, push: float = 0.0) -> list:
+    """The `_WallPart`s of every wall from positions (2, 2) (walls both particles meet together,
+    or with no feasible contact, add nothing)."""
+    size = region.size
+    margin = _MARGIN_REL * size
+    parts = []
+    count = len(region.vertices)
+    outward_all = positions @ region.normals.T  # (2, V)
+    for e in range(count):
+        n, h = region.normals[e], float(region.offsets[e])
+        outward = outward_all[:, e]
+        if abs(outward[0] - outward[1]) <= margin:
+            continue  # both meet this wall together: the step changes nothing
+        pin = int(np.argmax(outward))
+        d = positions[1 - pin] - positions[pin]
+        # Feasible contacts c = a + t (b - a): c + d inside the polygon, off the corners.
+        a = region.vertices[e]
+        edge = region.vertices[(e + 1) % count] - a
+        corner = _CORNER_REL * size / math.hypot(*edge)
+        t_range = _clip_interval(region, a + d, edge, corner, 1.0 - corner)
+        if t_range is None:
+            continue
+        # Where move 2 can take the other particle: a slice of Q by a line parallel to the wall.
+        # (Shrinking the slice by the margin = slicing the shrunk polygon a margin further in.)
+        slice_ = _clip_polygon(region.shrunk, -n, -(h + n @ d + 2.0 * margin + push))
+        if slice_ is None:
+            continue
+        c_lo, c_hi = a + t_range[0] * edge, a + t_range[1] * edge
+        offsets = _convex_hull(np.concatenate([slice_ - c_lo, slice_ - c_hi]))
+        parts.append(_WallPart(pin, d, a, edge, n, h, t_range, slice_, _halfplanes(slice_),
+                               offsets, _halfplanes(offsets)))
+    return parts
+
+
 def _polygon_steps(
     region: PolygonRegion,
     positions: np.ndarray,
@@ -309,66 +385,61 @@ def _polygon_steps(
     reach: float,
     corners: list | None = None,
     push: float = 0.0,
+    parts: list | None = None,
 ) -> list:
+    """One candidate step per wall (`_WallPart`, computed here unless given for these positions):
+    the offset nearest the goal's, reached by the shortest contact."""
     size = region.size
-    margin = _MARGIN_REL * size
     goal_delta = goals[1] - goals[0]
     steps = []
-    for e in range(len(region.vertices)):
-        n, h = region.normals[e], region.offsets[e]
-        outward = positions @ n
-        if abs(outward[0] - outward[1]) <= margin:
-            continue  # both meet this wall together: the step changes nothing
-        pin = int(np.argmax(outward))
-        other = 1 - pin
-        d = positions[other] - positions[pin]
+    for part in _polygon_parts(region, positions, push) if parts is None else parts:
+        pin, d, a, edge, offsets = part.pin, part.d, part.a, part.edge, part.offsets
         target = goal_delta if pin == 0 else -goal_delta  # wanted other - pinned
-        # Feasible contacts c = a + t (b - a): c + d inside the polygon, off the corners.
-        a = region.vertices[e]
-        edge = region.vertices[(e + 1) % len(region.vertices)] - a
-        corner = _CORNER_REL * size / math.hypot(*edge)
-        t_range = _clip_interval(region, a + d, edge, corner, 1.0 - corner)
-        if t_range is None:
-            continue
-        # Where move 2 can take the other particle: a slice of Q by a line parallel to the wall.
-        slice_ = _clip_polygon(region.vertices, -n, -(h + n @ d + margin + push))
-        slice_ = _inset_polygon(slice_, margin)
-        if slice_ is None:
-            continue
-        c_lo, c_hi = a + t_range[0] * edge, a + t_range[1] * edge
-        offsets = _convex_hull(np.concatenate([slice_ - c_lo, slice_ - c_hi]))
         if corners is not None:  # the corners of this part of the set, as deltas p2 - p1
             visible = offsets[~_blocked(d, offsets, reach)]
             corners.extend(visible if pin == 0 else -visible)
-        near = _nearest_in_polygon(offsets, target)
-        if _blocked(d, near, reach)[0]:
+        near = _nearest_in_polygon(offsets, target, part.offsets_planes)
+        if reach > 0 and _blocked(d, near, reach)[0]:
             options = []
             for a_, b_ in _visible_halfplanes(d, reach):
-                part = _clip_polygon(offsets, -a_, -b_)
-                if part is not None:
-                    options.append(_nearest_in_polygon(part, target))
+                cut = _clip_polygon(offsets, -a_, -b_)
+                if cut is not None:
+                    options.append(_nearest_in_polygon(cut, target))
             if not options:
                 continue
             near = min(options, key=lambda w: math.hypot(*(w - target)))
         distance = math.hypot(*(near - target))
         finishing = distance <= _FINISHING_REL * size
         # The contacts that give `near`: t with near + c(t) in the slice; keep the shortest path.
-        span = _clip_interval_poly(slice_, near + a, edge, *t_range, tol=1e-9 * size)
-
-        def cost(t: np.ndarray) -> np.ndarray:
-            # |move 1| + |move 2| (+ the final translation): move 2 is the same for every t.
-            c = a + t[:, None] * edge
-            length = np.hypot(*(c - positions[pin]).T) + math.hypot(*(near - d))
-            if finishing:
-                length = length + np.hypot(*(goals[pin] - c).T)
-            return length
-
-        t = _minimise_on_interval(cost, *span)
+        span = _clip_interval_poly(part.slice_planes, near + a, edge, *part.t_range,
+                                   tol=1e-9 * size)
+        # |move 1| + |move 2| (+ the final translation): move 2 is the same for every t, and
+        # the rest is convex in t, so its minimum over the span is the free minimum clipped.
+        goal_pin = goals[pin] if finishing else None
+        keep = _SPAN_KEEP_REL * (span[1] - span[0])
+        t = _shortest_contact(a, edge, part.normal, part.offset, positions[pin], goal_pin)
+        t = min(max(t, span[0] + keep), span[1] - keep)
         c = a + t * edge
         q = near + c
         delta = q - c if pin == 0 else c - q
-        steps.append(TwoMoveStep(pin, c, q, delta, distance, float(cost(np.array([t]))[0])))
+        length = math.hypot(*(c - positions[pin])) + math.hypot(*(near - d))
+        if finishing:
+            length += math.hypot(*(goals[pin] - c))
+        steps.append(TwoMoveStep(pin, c, q, delta, distance, length))
     return steps
+
+
+def _shortest_contact(a, edge, normal, offset, start, goal) -> float:
+    """The t minimising |c - start| (+ |goal - c| when goal is given) for c = a + t edge on the
+    wall line normal . c = offset, start and goal inside: the foot of start, or where the segment
+    from start to the goal's mirror image crosses the wall (the reflection law of Sec. V)."""
+    scale = float(edge @ edge)
+    if goal is None:
+        return float((start - a) @ edge) / scale
+    mirror = goal + 2.0 * (offset - float(normal @ goal)) * normal
+    rise = float(normal @ (mirror - start))
+    s = (offset - float(normal @ start)) / rise if rise > 1e-300 else 0.0
+    return float((start + s * (mirror - start) - a) @ edge) / scale
 
 
 def _disk_steps(region: DiskRegion, positions: np.ndarray, goals: np.ndarray, reach: float,
@@ -505,43 +576,32 @@ def _signed_area(v: np.ndarray) -> float:
 
 def _clip_polygon(vertices: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray | None:
     """The part of a convex polygon (V, 2) with normal . x <= offset, or None if empty."""
-    side = vertices @ normal - offset
+    side = (vertices @ normal - offset).tolist()  # plain floats: this loop runs very often
+    points = vertices.tolist()
     out = []
-    count = len(vertices)
+    count = len(points)
     for i in range(count):
         j = (i + 1) % count
         if side[i] <= 0:
-            out.append(vertices[i])
+            out.append(points[i])
         if (side[i] < 0 < side[j]) or (side[j] < 0 < side[i]):
             t = side[i] / (side[i] - side[j])
-            out.append(vertices[i] + t * (vertices[j] - vertices[i]))
+            (xi, yi), (xj, yj) = points[i], points[j]
+            out.append([xi + t * (xj - xi), yi + t * (yj - yi)])
     return np.array(out) if len(out) >= 3 else None
 
 
-def _inset_polygon(vertices: np.ndarray | None, distance: float) -> np.ndarray | None:
-    """A convex polygon shrunk by `distance` (by clipping every edge's half-plane), or None."""
-    if vertices is None:
-        return None
-    v = vertices
-    edge = np.roll(v, -1, axis=0) - v
-    length = np.hypot(edge[:, 0], edge[:, 1])
-    keep = length > 1e-15
-    normals = np.stack([edge[keep, 1], -edge[keep, 0]], axis=1) / length[keep, None]
-    offsets = np.sum(normals * v[keep], axis=1) - distance
-    result = v
-    for n, h in zip(normals, offsets):
-        result = _clip_polygon(result, n, h)
-        if result is None:
-            return None
-    return result
+def _edges(vertices: np.ndarray) -> np.ndarray:
+    """(V, 2) edge vectors of a polygon (V, 2): vertex i to vertex i + 1."""
+    return np.concatenate((vertices[1:], vertices[:1])) - vertices
 
 
 def _halfplanes(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Outward normals (V, 2) and offsets (V,) of a counter-clockwise convex polygon."""
-    edge = np.roll(vertices, -1, axis=0) - vertices
+    edge = _edges(vertices)
     length = np.maximum(np.hypot(edge[:, 0], edge[:, 1]), 1e-300)
     normals = np.stack([edge[:, 1], -edge[:, 0]], axis=1) / length[:, None]
-    return normals, np.sum(normals * vertices, axis=1)
+    return normals, (normals * vertices).sum(axis=1)
 
 
 def _clip_interval(region: PolygonRegion, base, direction, lo: float, hi: float):
@@ -549,10 +609,11 @@ def _clip_interval(region: PolygonRegion, base, direction, lo: float, hi: float)
     return _interval(region.normals, region.offsets, base, direction, lo, hi, 0.0)
 
 
-def _clip_interval_poly(vertices, base, direction, lo, hi, tol):
-    """As `_clip_interval` for a counter-clockwise polygon (V, 2), `tol` mm lenient; if nothing
-    fits (rounding on a boundary), the t that violates least."""
-    normals, offsets = _halfplanes(vertices)
+def _clip_interval_poly(planes, base, direction, lo, hi, tol):
+    """As `_clip_interval` for a convex polygon given by its half-planes (normals (V, 2),
+    offsets (V,)), `tol` mm lenient; if nothing fits (rounding on a boundary), the t that
+    violates least."""
+    normals, offsets = planes
     found = _interval(normals, offsets, base, direction, lo, hi, tol)
     if found is not None:
         return found
@@ -563,8 +624,8 @@ def _clip_interval_poly(vertices, base, direction, lo, hi, tol):
 
 
 def _interval(normals, offsets, base, direction, lo, hi, tol):
-    rate = normals @ direction
-    room = offsets - normals @ base + tol
+    rate = (normals @ direction).tolist()
+    room = (offsets - normals @ base + tol).tolist()
     for r, m in zip(rate, room):
         if abs(r) < 1e-15:
             if m < 0:
@@ -598,17 +659,18 @@ def _convex_hull(points: np.ndarray) -> np.ndarray:
     return np.array(lower[:-1] + upper[:-1])
 
 
-def _nearest_in_polygon(vertices: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Nearest point (2,) to x (2,) in a counter-clockwise convex polygon (V, 2)."""
-    normals, offsets = _halfplanes(vertices)
+def _nearest_in_polygon(vertices: np.ndarray, x: np.ndarray, planes=None) -> np.ndarray:
+    """Nearest point (2,) to x (2,) in a counter-clockwise convex polygon (V, 2) (its
+    `_halfplanes`, if known, in planes)."""
+    normals, offsets = _halfplanes(vertices) if planes is None else planes
     if np.all(normals @ x <= offsets):
         return x.copy()
     a = vertices
-    edge = np.roll(a, -1, axis=0) - a
-    t = np.clip(np.sum((x - a) * edge, axis=1) / np.maximum(np.sum(edge * edge, axis=1), 1e-300), 0, 1)
-    foot = a + t[:, None] * edge
-    k = int(np.argmin(np.sum((foot - x) ** 2, axis=1)))
-    return foot[k]
+    edge = _edges(a)
+    t = ((x - a) * edge).sum(axis=1) / np.maximum((edge * edge).sum(axis=1), 1e-300)
+    foot = a + t.clip(0.0, 1.0)[:, None] * edge
+    gap = foot - x
+    return foot[int((gap * gap).sum(axis=1).argmin())]
 
 
 def _minimise_on_interval(f, lo: float, hi: float, points: int = 21, rounds: int = 5) -> float:
@@ -640,18 +702,25 @@ def _look_ahead(
     greedy: TwoMoveStep,
     epsilon: float,
     push: float = 0.0,
+    memo: dict | None = None,
 ) -> TwoMoveStep:
     """A departure from Alg. 1's greedy choice, for polygons: when the greedy step cannot reach
     the goal's delta and neither can the step after it, aim instead at the corner of the 2-move
     reachable set from which the next step reaches the goal with the shortest two steps (if any
-    does). Greedy steps toward a delta near the edge of the Delta space can otherwise crawl."""
+    does). Greedy steps toward a delta near the edge of the Delta space can otherwise crawl.
+    memo: greedy steps already computed (see `_memo_step`)."""
     if not isinstance(region, PolygonRegion):
         return greedy
-    following = best_two_move_step(region, _after(region, positions, greedy), goals, reach, push)
+    memo = {} if memo is None else memo
+    following = _memo_step(memo, region, _after(region, positions, greedy), goals, reach, push)
     if following is not None and following.distance <= epsilon:
         return greedy
+    # The reachable set from these positions does not depend on the goal: build it once for the
+    # greedy step's corners and for every step aimed at one of them.
+    clear = _clearance(region, reach)
+    parts = _memo_parts(memo, region, positions, push)
     corners: list = []
-    _polygon_steps(region, positions, goals, reach, corners, push)
+    _polygon_steps(region, positions, goals, clear, corners, push, parts)
     if not corners:
         return greedy
     corners_arr = np.unique(np.round(np.array(corners), 9), axis=0)
@@ -659,19 +728,60 @@ def _look_ahead(
     goal_delta = goals[1] - goals[0]
     order = np.argsort(np.hypot(*(corners_arr - goal_delta).T))
     corners_arr = corners_arr[order[:_LOOKAHEAD_CORNERS]]
-    best, best_length = greedy, math.inf
-    for corner in corners_arr:
-        aim = np.stack([positions[0], positions[0] + corner])
-        first = best_two_move_step(region, positions, aim, reach, push)
-        if first is None or first.distance > 1e-6 * region.size:
+    # A step aimed at a corner is kept only if it reaches it (within 1e-6 of the size), and it is
+    # chosen among the parts nearest the corner, so parts farther than that need no evaluation
+    # (their half-planes with that slack, doubled, hold every part near enough to count).
+    slack = 2e-6 * region.size
+    holds = np.array([
+        np.all((corners_arr if part.pin == 0 else -corners_arr) @ part.offsets_planes[0].T
+               <= part.offsets_planes[1] + slack, axis=1)
+        for part in parts
+    ]).reshape(len(parts), len(corners_arr))
+    firsts = []
+    for k, corner in enumerate(corners_arr):
+        near_parts = [part for part, held in zip(parts, holds[:, k]) if held]
+        if not near_parts:
             continue
-        second = best_two_move_step(region, _after(region, positions, first), goals, reach, push)
+        aim = np.stack([positions[0], positions[0] + corner])
+        candidates = _polygon_steps(region, positions, aim, clear, push=push, parts=near_parts)
+        first = _nearest_then_shortest(candidates, region)
+        if first is not None and first.distance <= 1e-6 * region.size:
+            firsts.append(first)
+    # Shortest first steps first: once a first step alone is as long as the best pair found,
+    # no later one can do better, so their second steps need not be planned.
+    best, best_length = greedy, math.inf
+    for first in sorted(firsts, key=lambda step: step.length):
+        if first.length >= best_length:
+            break
+        second = _memo_step(memo, region, _after(region, positions, first), goals, reach, push)
         if second is not None and second.distance <= epsilon:
             length = first.length + second.length
             if length < best_length:
                 best, best_length = first, length
     return best
 
+
+def _memo_step(memo: dict, region, positions, goals, reach, push) -> TwoMoveStep | None:
+    """`best_two_move_step`, remembered by positions: the look-ahead plans the step after its
+    choice, which Alg. 1's next iteration would plan again from the very same positions."""
+    key = ("step", positions.tobytes())
+    if key not in memo:
+        if isinstance(region, PolygonRegion):
+            parts = _memo_parts(memo, region, positions, push)
+            steps = _polygon_steps(region, positions, goals, _clearance(region, reach),
+                                   push=push, parts=parts)
+            memo[key] = _nearest_then_shortest(steps, region)
+        else:
+            memo[key] = best_two_move_step(region, positions, goals, reach, push)
+    return memo[key]
+
+
+def _memo_parts(memo: dict, region: PolygonRegion, positions: np.ndarray, push: float) -> list:
+    """`_polygon_parts`, remembered by positions (the look-ahead needs them at Alg. 1's)."""
+    key = ("parts", positions.tobytes())
+    if key not in memo:
+        memo[key] = _polygon_parts(region, positions, push)
+    return memo[key]
 
 
 @dataclass
@@ -715,6 +825,7 @@ def plan_two_particles(
     goal_delta = goals[1] - goals[0]
     moves: list[np.ndarray] = []
     states: list[np.ndarray] = []
+    memo: dict = {}  # greedy steps by positions (goals, reach and push are fixed here)
 
     def do(move: np.ndarray) -> None:
         nonlocal positions
@@ -725,9 +836,9 @@ def plan_two_particles(
     for _ in range(max_steps):
         if math.hypot(*(positions[1] - positions[0] - goal_delta)) <= epsilon:
             break
-        step = best_two_move_step(region, positions, goals, reach, push)
+        step = _memo_step(memo, region, positions, goals, reach, push)
         if lookahead and step is not None and step.distance > epsilon:
-            step = _look_ahead(region, positions, goals, reach, step, epsilon, push)
+            step = _look_ahead(region, positions, goals, reach, step, epsilon, push, memo)
         before = math.hypot(*(positions[1] - positions[0] - goal_delta))
         if step is None or step.distance >= before - 1e-12 * region.size:
             log.debug("wall contact: no step improves the relative position (%.3g mm)", before)

@@ -339,3 +339,105 @@ def test_cli_rejects_obstacles_and_a_third_particle(tmp_path, capsys):
     args = _cli(tmp_path, {"rect": [0, 0, 50, 50]}, "--start", "5,5", "--start", "10,5",
                 "--start", "20,5", "--goal", "1,1", "--goal", "2,2", "--goal", "3,3")
     assert cli_main(args) == 2
+
+
+# ---------------------------------------------------------------- speed-ups keep the answers
+
+
+def test_shortest_contact_matches_a_dense_search_along_the_wall():
+    """The closed-form contact (foot of the start; reflection law with the final translation)
+    against the best of 200001 contacts sampled along the wall."""
+    from rigctl.plans.wall_contact import _shortest_contact
+
+    region = PolygonRegion(np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]))
+    a, edge = region.vertices[0], region.vertices[1] - region.vertices[0]  # the wall y = 0
+    normal, offset = region.normals[0], region.offsets[0]
+    ts = np.linspace(-1.0, 2.0, 200001)
+    contacts = a + ts[:, None] * edge
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        start, goal = rng.uniform(0.5, 9.5, 2), rng.uniform(0.5, 9.5, 2)
+        alone = np.hypot(*(contacts - start).T)
+        assert _shortest_contact(a, edge, normal, offset, start, None) == pytest.approx(
+            ts[np.argmin(alone)], abs=2e-5)
+        both = alone + np.hypot(*(contacts - goal).T)
+        assert _shortest_contact(a, edge, normal, offset, start, goal) == pytest.approx(
+            ts[np.argmin(both)], abs=2e-5)
+    # Hand-computed: start (2, 1), goal (8, 3): the mirror of the goal is (8, -3), the segment
+    # from (2, 1) crosses y = 0 a quarter of the way, at x = 3.5, so t = 0.35.
+    t = _shortest_contact(a, edge, normal, offset, np.array([2.0, 1.0]), np.array([8.0, 3.0]))
+    assert t == pytest.approx(0.35, abs=1e-12)
+
+
+def test_look_ahead_matches_trying_every_corner_in_full():
+    """The look-ahead evaluates only the walls near each corner and skips second steps that
+    cannot win; a plain version (every wall, every second step) must choose the same step."""
+    from rigctl.plans.wall_contact import (
+        _LOOKAHEAD_CORNERS,
+        _after,
+        _clearance,
+        _look_ahead,
+        _polygon_steps,
+    )
+
+    def plain(region, positions, goals, reach, greedy):
+        following = best_two_move_step(region, _after(region, positions, greedy), goals, reach)
+        if following is not None and following.distance <= EPSILON:
+            return greedy
+        corners: list = []
+        _polygon_steps(region, positions, goals, _clearance(region, reach), corners)
+        corners = np.unique(np.round(np.array(corners), 9), axis=0)
+        goal_delta = goals[1] - goals[0]
+        corners = corners[np.argsort(np.hypot(*(corners - goal_delta).T))[:_LOOKAHEAD_CORNERS]]
+        best, best_length = greedy, math.inf
+        for corner in corners:
+            aim = np.stack([positions[0], positions[0] + corner])
+            first = best_two_move_step(region, positions, aim, reach)
+            if first is None or first.distance > 1e-6 * region.size:
+                continue
+            second = best_two_move_step(region, _after(region, positions, first), goals, reach)
+            if (second is not None and second.distance <= EPSILON
+                    and first.length + second.length < best_length):
+                best, best_length = first, first.length + second.length
+        return best
+
+    rng = np.random.default_rng(11)
+    departures = compared = 0
+    for name in ("hexagon", "acute-triangle", "square"):
+        boundary = WORKSPACES[name]
+        ws, region = _shape_workspace(boundary), centre_region(boundary, RADIUS)
+        for _ in range(30):
+            positions, goals = _random_pair(ws, rng), _random_pair(ws, rng)
+            greedy = best_two_move_step(region, positions, goals, 2 * RADIUS)
+            if greedy is None or greedy.distance <= EPSILON:
+                continue
+            fast = _look_ahead(region, positions, goals, 2 * RADIUS, greedy, EPSILON)
+            slow = plain(region, positions, goals, 2 * RADIUS, greedy)
+            np.testing.assert_allclose(fast.contact, slow.contact, atol=1e-9)
+            np.testing.assert_allclose(fast.other_end, slow.other_end, atol=1e-9)
+            assert fast.length == pytest.approx(slow.length, abs=1e-9)
+            departures += fast is not greedy
+            compared += 1
+    # The comparison covered many look-aheads, some of which left the greedy step (52 and 10).
+    assert compared >= 30 and departures >= 5
+
+
+def test_a_move_along_the_wall_a_particle_is_on_slides_along_it():
+    """A move parallel to a wall up to rounding (into it by 1e-14 of its length) neither pins
+    the particle on that wall (eq. 1 needs a push) nor stops it dead: it slides the full length."""
+    region = PolygonRegion(np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]))
+    end = apply_move(region, [[0.0, 5.0]], [-3e-14, 3.0])
+    np.testing.assert_allclose(end, [[0.0, 8.0]], atol=1e-12)
+
+
+def test_planner_margin_polygon_lies_the_margin_inside_every_edge():
+    from rigctl.plans.wall_contact import _MARGIN_REL
+
+    region = PolygonRegion(np.array([[0.0, 0.0], [60.0, 0.0], [5.0, 15.0]]))
+    margin = _MARGIN_REL * region.size
+    gaps = region.offsets[None, :] - region.shrunk @ region.normals.T  # (vertex, edge)
+    # Vertex i of the shrunk polygon is where edges i-1 and i, moved in by the margin, meet.
+    for i in range(3):
+        assert gaps[i, i] == pytest.approx(margin, abs=1e-12)
+        assert gaps[i, i - 1] == pytest.approx(margin, abs=1e-12)
+        assert gaps[i, (i + 1) % 3] > margin
