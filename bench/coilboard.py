@@ -18,8 +18,9 @@ replay) and executed closed loop through the whole emulated chain in this proces
 driver, the Python firmware on a pty, the SyRen wire, the non-uniform coils (the world's default
 physics: pull ~ 1/d^4 from poles 200 mm out, leaning to the active coil's centre) and the camera +
 tracker; the bench in its own process as `rigctl execute` starts it. A run delivers when the emulator's ground truth has both particles within `--epsilon` of
-their goals. The world runs `--speed` (3) times faster than real time, so that 20 runs fit in about
-two minutes; the goal of issue 6 is at least 19/20.
+their goals. The world runs `--speed` (3) times faster than real time, so that 20 runs fit in a few
+minutes (about 10 s a run; a run that needs all 60 moves, ~45 s); the goal of issue 6 is at
+least 19/20. `--runs` sets the number of runs (fewer for a quick look).
 
 Usage: python bench/coilboard.py [--pairs N] [--seed S] [--runs N] [--speed F] [--epsilon E]
                                  [--no-link] [--no-delivery]

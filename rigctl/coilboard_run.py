@@ -27,7 +27,6 @@ import argparse
 import logging
 import math
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,7 @@ from typing import TextIO
 
 import numpy as np
 
-from rigctl.config import RigConfig, dump_rig, load_rig
+from rigctl.config import RigConfig, dump_rig
 from rigctl.errors import ConfigError, DeviceTimeout, PlanError, RigError
 from rigctl.execute import AgentResult, RunSummary, format_summary, summary_json_line
 from rigctl.plans.schema import GlobalMovesPlan, check_plan, dump_plan, plan_workspace
@@ -59,13 +58,16 @@ class CoilBoardRunSettings:
     this much later is the measurement; follow_fraction: measured within this fraction of the
     tolerance of the expected state, the current plan goes on (else re-plan); aim_fraction: Alg. 1
     aims at this fraction of the tolerance; rate_hz: command rate during a move;
-    skip_mm: moves shorter than this are not driven; max_steer_deg: how far the pull may turn from
-    the move's direction (steering to the target, and against the field's lean); lean_gain,
+    skip_mm: moves shorter than this are not driven; chord_mm: a particle on a wall that a move
+    carries at least this far to a wall is waited for (else it only grazes its wall);
+    max_steer_deg: how far the pull may turn from the move's direction (steering to the target,
+    and against the field's lean); lean_gain,
     lean_speed_mm_s, lean_lag_cycles: the lean estimate's filter gain, the speed below which it
     is not updated, and the age in commands of the command a frame's motion is compared with;
     free_margin_mm: a particle this far inside the planning region is off the walls (for learning
     the `RelativeDrift`); pin_margin_deg: a particle meant to stay on its wall is pushed into it at
-    least this steeply; pin_slip_mm: if it moves this far anyway, the move ends (re-plan);
+    least this steeply (and one the move carries along is pulled off it as steeply);
+    pin_slip_mm: if it moves this far anyway, the move ends (re-plan);
     push_mm: re-planned steps move the free particle at least this far into the pinning wall's
     normal direction (Alg. 1's `push`), so that the pinned one is pushed, not grazed;
     keep_apart_mm: re-planned relative moves keep this gap between the particles (the camera
@@ -74,9 +76,9 @@ class CoilBoardRunSettings:
     """
 
     drive: int = 127
-    slow_zone_mm: float = 1.5
-    min_drive_fraction: float = 0.12
-    max_moves: int = 40
+    slow_zone_mm: float = 4.0
+    min_drive_fraction: float = 0.06
+    max_moves: int = 60
     move_timeout_s: float = 30.0
     stall_s: float = 0.5
     stall_mm: float = 0.02
@@ -85,6 +87,7 @@ class CoilBoardRunSettings:
     aim_fraction: float = 0.4
     rate_hz: float = 50.0
     skip_mm: float = 0.02
+    chord_mm: float = 1.0
     max_steer_deg: float = 25.0
     free_margin_mm: float = 0.1
     pin_margin_deg: float = 10.0
@@ -121,44 +124,79 @@ def planning_region(plan: GlobalMovesPlan, radius_mm: float) -> CentreRegion:
 class RelativeDrift:
     """How a translation changes the particles' relative position on this rig, learned in the run.
 
-    On the paper's rig the pull is stronger nearer the active coil and leans towards its centre,
-    so a translation of length L along u does not keep delta = p2 - p1: to first order in the
-    particles' offsets from the coils' centre (the pull of a coil D away falling as 1/d^n),
+    On the paper's rig each coil pulls harder nearer itself and leans towards its centre. Per mm a
+    particle travels under the +x or -x coil, the x gap between the particles grows by the
+    fraction k_along (the pull's log-gradient along the coil's axis, n / d for a 1/d^n pull) and
+    the y gap shrinks by k_across (the lean, 1 / d); the y coils likewise with x and y swapped.
+    The board drives at most one coil per axis, so a translation (dx, dy) is |dx| under an x coil
+    and |dy| under a y coil, and the gaps change multiplicatively:
 
-        change of delta = L (k_along (delta . u) u - k_across (delta - (delta . u) u)),
+        delta_x' = delta_x exp(k_along |dx| - k_across |dy|),
+        delta_y' = delta_y exp(k_along |dy| - k_across |dx|),
 
-    with k_along = n / D and k_across = 1 / D. Both are fitted (least squares, pulled towards the
-    uniform model k = 0 by `prior_weight`) from every move in which both particles moved freely,
-    and used to aim Alg. 1's relative position so that the final translation lands on the goals.
+    with both rates scaled by D / (D - s), s the travel's mean offset towards the active coil
+    (D = 1 / k_across: a coil's pull converges on its centre). Two coils driven together (a
+    diagonal move) thus spread both gaps by k_along - k_across, not as one coil along the
+    diagonal. k_along and k_across are fitted (least squares on the log-mean gaps, pulled
+    towards the uniform model k = 0 by `prior_weight`) from every move in which both particles
+    moved freely, and used to aim Alg. 1's relative position so that the last translation lands
+    on the goals.
     """
 
     def __init__(self, prior_weight: float = 0.05, k_max: float = 0.05) -> None:
         self.k_max = k_max
-        self.rows: list[np.ndarray] = []
-        self.values: list[float] = []
         self.prior_weight = prior_weight
+        self.samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.k = np.zeros(2)  # (k_along, k_across) in 1/mm
 
-    def observe(self, u: np.ndarray, length: float, delta: np.ndarray, change: np.ndarray) -> None:
-        along = (delta @ u) * u
-        across = delta - along
-        for axis in range(2):
-            self.rows.append(length * np.array([along[axis], -across[axis]]))
-            self.values.append(float(change[axis]))
-        a = np.array(self.rows)
-        b = np.array(self.values)
-        scale = self.prior_weight * max(1.0, float(np.abs(a).max()))
-        a = np.vstack([a, scale * np.eye(2)])
-        b = np.concatenate([b, np.zeros(2)])
-        # Both are positive for coils that pull (1/d^n, towards their centres); a noisy fit
-        # outside [0, k_max] would aim Alg. 1 far off.
-        self.k = np.clip(np.linalg.lstsq(a, b, rcond=None)[0], 0.0, self.k_max)
+    def _scales(self, middle: np.ndarray, travel: np.ndarray) -> np.ndarray:
+        """(2,) factors D / (D - s) of the x and y coils that make `travel` from `middle`."""
+        offset = np.sign(travel) * middle  # towards the coil pulling on each axis
+        return 1.0 / np.clip(1.0 - self.k[1] * offset, 0.5, None)
 
-    def aim(self, goal_delta: np.ndarray, u: np.ndarray, length: float) -> np.ndarray:
-        """The delta (2,) to have before a translation (u, length) so that it ends at goal_delta."""
-        along = np.outer(u, u)
-        change = length * (self.k[0] * along - self.k[1] * (np.eye(2) - along))
-        return np.linalg.solve(np.eye(2) + change, goal_delta)
+    def _rates(self, middle: np.ndarray, travel: np.ndarray) -> np.ndarray:
+        """(2, 2) coefficients of (k_along, k_across) in the log-growth of (delta_x, delta_y)."""
+        ax, ay = np.abs(travel) * self._scales(middle, travel)
+        return np.array([[ax, -ay], [ay, -ax]])
+
+    def observe(self, start_mean: np.ndarray, travel: np.ndarray, delta_before: np.ndarray,
+                delta_after: np.ndarray) -> None:
+        """One free move: the particles' mean left `start_mean` (mm, from the coils' centre) and
+        went `travel` (2,) mm; their relative position went from delta_before to delta_after."""
+        self.samples.append((start_mean + travel / 2, travel, delta_before, delta_after))
+        for _ in range(2):  # the scales depend on k_across
+            rows, values = [], []
+            for middle, moved, before, after in self.samples:
+                rates = self._rates(middle, moved)
+                for axis in range(2):
+                    b, a = before[axis], after[axis]
+                    if b * a > 0 and abs(b - a) > 1e-9:
+                        mean = (a - b) / math.log(a / b)  # log-mean: exact for exponential growth
+                    else:
+                        mean = 0.5 * (a + b)
+                    rows.append(mean * rates[axis])
+                    values.append(a - b)
+            a_mat, b_vec = np.array(rows), np.array(values)
+            scale = self.prior_weight * max(1.0, float(np.abs(a_mat).max()))
+            a_mat = np.vstack([a_mat, scale * np.eye(2)])
+            b_vec = np.concatenate([b_vec, np.zeros(2)])
+            # Both are positive for coils that pull (1/d^n, towards their centres); a noisy fit
+            # outside [0, k_max] would aim Alg. 1 far off.
+            self.k = np.clip(np.linalg.lstsq(a_mat, b_vec, rcond=None)[0], 0.0, self.k_max)
+
+    def growth(self, start_mean: np.ndarray, travel: np.ndarray, steps: int = 8) -> np.ndarray:
+        """(2,) factors by which translating `travel` from `start_mean` multiplies the gaps."""
+        log_growth = np.zeros(2)
+        for j in range(steps):
+            middle = start_mean + (j + 0.5) / steps * travel
+            log_growth += self._rates(middle, travel / steps) @ self.k
+        return np.exp(log_growth)
+
+    def aim(self, goal_delta: np.ndarray, start_mean: np.ndarray,
+            goal_mean: np.ndarray) -> np.ndarray:
+        """The delta (2,) to have before translating the mean from start_mean to goal_mean (mm,
+        from the coils' centre) so that it ends at goal_delta."""
+        return goal_delta / self.growth(start_mean, goal_mean - start_mean)
 
 
 @dataclass
@@ -202,6 +240,8 @@ class CoilBoardRun:
         self.tolerance = float(plan.tolerance_mm)
         self.region = planning_region(plan, float(self.radii.max()))
         self.workspace = plan_workspace(plan)
+        # Rig coordinates have their origin at the coils' centre (docs/coilboard-rig.md).
+        self.coils_centre = np.zeros(2)
         # Particles that touch make one blob on the camera: re-planned moves keep them apart.
         self.reach = float(self.radii.sum() + max(plan.min_separation_mm, settings.keep_apart_mm))
         self.replans = 0
@@ -319,11 +359,9 @@ class CoilBoardRun:
         for _ in range(2):
             if not len(result.moves) or not self.drift.k.any():
                 break
-            last = result.moves[-1]
-            length = math.hypot(*last)
-            if length == 0:
-                break
-            delta = self.drift.aim(goal_delta, last / length, length)
+            before = result.states[-2] if len(result.states) > 1 else inside
+            delta = self.drift.aim(goal_delta, before.mean(axis=0) - self.coils_centre,
+                                   centre - self.coils_centre)
             aimed = np.stack([centre - delta / 2, centre + delta / 2])
             if not self.region.contains(aimed).all():
                 break
@@ -366,8 +404,12 @@ class CoilBoardRun:
         planned = (end - start) @ u  # (2,) planned advance along u
         free_end = self.region.contains(end, slack=0.01)  # ends the move off every wall
         # A move that brings a particle to a wall (Alg. 1's move 1) is over when that particle is
-        # there; otherwise when the particles meant to end in free space are where they should be.
-        contact = ~free_end & self.region.contains(start, slack=0.05) & (planned > s.skip_mm)
+        # there, also when it leaves one wall for another across a chord (stopping on the free
+        # particle instead would leave it short, and the next steps would close in on the wall
+        # only geometrically); otherwise when the particles meant to end in free space are where
+        # they should be. A particle that only grazes its wall is not waited for (it is held).
+        leaves = self.region.contains(start, slack=0.05) | (planned > s.chord_mm)
+        contact = ~free_end & leaves & (planned > s.skip_mm)
         watched = contact if contact.any() else free_end & (planned > s.skip_mm)
         if not watched.any():
             watched = planned > s.skip_mm
@@ -378,6 +420,11 @@ class CoilBoardRun:
         outward = -self.workspace.normal(start)  # (2, 2)
         pin_angles = [math.atan2(outward[i, 1], outward[i, 0]) for i in np.flatnonzero(pinned)]
         pin_limit = math.pi / 2 - math.radians(s.pin_margin_deg)
+        # Particles on a wall that the move carries along (a graze, as Alg. 1 may plan): the pull
+        # has to leave that wall by `pin_margin_deg`, or the wall holds them where the plan
+        # moves them (and the next re-plan asks for the same graze again).
+        grazing = ~pinned & ~self.region.contains(start, slack=0.05) & (planned > s.skip_mm)
+        graze_angles = [math.atan2(outward[i, 1], outward[i, 0]) for i in np.flatnonzero(grazing)]
         history: list[tuple[float, np.ndarray]] = []
         sent: list[float] = []  # angle of each command sent, radians
         lean = 0.0  # measured motion angle minus commanded angle
@@ -427,6 +474,10 @@ class CoilBoardRun:
             wanted = math.atan2(offset[1], offset[0]) - base
             wanted = (wanted + math.pi) % (2 * math.pi) - math.pi
             angle = base + max(-max_steer, min(max_steer, wanted)) - lean
+            for wall in graze_angles:
+                off = (angle - wall + math.pi) % (2 * math.pi) - math.pi
+                if abs(off) < math.pi - pin_limit:
+                    angle = wall + math.copysign(math.pi - pin_limit, off)
             for wall in pin_angles:
                 off = (angle - wall + math.pi) % (2 * math.pi) - math.pi
                 angle = wall + max(-pin_limit, min(pin_limit, off))
@@ -453,9 +504,9 @@ class CoilBoardRun:
         advance = float(np.mean(advances))
         if self.region.contains(measured, slack=s.free_margin_mm).all() and \
                 advance > s.learn_min_mm and advances.min() > 0.5 * advance:
-            delta_before, delta_after = start[1] - start[0], measured[1] - measured[0]
-            self.drift.observe(u, advance, 0.5 * (delta_before + delta_after),
-                               delta_after - delta_before)
+            self.drift.observe(start.mean(axis=0) - self.coils_centre,
+                               measured.mean(axis=0) - start.mean(axis=0),
+                               start[1] - start[0], measured[1] - measured[0])
         self.record.event("move", number=move_number, move=move.tolist(), expected=end.tolist(),
                           measured=measured.tolist(), lean_deg=math.degrees(lean),
                           seconds=time.monotonic() - began)
@@ -564,7 +615,7 @@ def format_coilboard_summary(summary: CoilBoardSummary) -> str:
 
 def execute_cli(plan: GlobalMovesPlan, args: argparse.Namespace) -> int:
     """`rigctl execute PLAN` for a coil-board plan: exit 0 reached, 1 not, 2 bad input, 3 fault."""
-    from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.emulators.process import rig_for_run
 
     out = None if args.quiet else sys.stderr
     if args.open_loop:
@@ -575,20 +626,11 @@ def execute_cli(plan: GlobalMovesPlan, args: argparse.Namespace) -> int:
     extra: list[str] = []
     if getattr(args, "firmware", None):
         extra += ["--firmware", args.firmware]
-    if args.rig is not None:
-        if extra:
-            raise ConfigError("--firmware chooses the emulated bench that execute starts itself: "
-                              "give it to `rigctl emulate coil-board` when using --rig")
-        summary = execute_coilboard(plan, load_rig(args.rig), runs_dir=args.runs, progress_out=out)
-    else:
-        with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
-            if out:
-                print("no --rig given: starting the emulated coil-board bench on loopback (nothing "
-                      "real is energised)", file=out)
-            with EmulatedBenchProcess("coil-board", Path(tmp) / "bench.toml",
-                                      extra_args=extra) as rig_path:
-                summary = execute_coilboard(plan, load_rig(rig_path), runs_dir=args.runs,
-                                            progress_out=out)
+    if args.rig is not None and extra:
+        raise ConfigError("--firmware chooses the emulated bench that execute starts itself: "
+                          "give it to `rigctl emulate coil-board` when using --rig")
+    with rig_for_run(args.rig, "coil-board", extra_args=extra, progress_out=out) as rig:
+        summary = execute_coilboard(plan, rig, runs_dir=args.runs, progress_out=out)
     print(format_coilboard_summary(summary))
     if args.json:
         print(summary_json_line(summary))

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import logging
 import os
 import signal
@@ -44,16 +43,33 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from rigctl.config import CameraSettings, CoilBoardSettings, Emulation, RigConfig, RigInfo, dump_rig
+from rigctl.emulators.backdoor import json_lines
 from rigctl.emulators.camera.mjpeg import serve_camera
-from rigctl.emulators.camera.render import PAPER_RESOLUTION, CameraModel, Renderer, Scene
+from rigctl.emulators.camera.render import (
+    PAPER_RESOLUTION,
+    CameraModel,
+    Renderer,
+    Scene,
+)
 from rigctl.emulators.coilboard.syren import SyrenBus
 from rigctl.emulators.server import EmulatorServer, Endpoint
-from rigctl.emulators.world.coilboard import CoilBoardPhysics, CoilBoardWorld, intestine_ring_spec
-from rigctl.errors import ConfigError
+from rigctl.emulators.world.coilboard import (
+    CoilBoardPhysics,
+    CoilBoardWorld,
+    intestine_ring_spec,
+)
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
+
+from rigctl.config import (
+    CameraSettings,
+    CoilBoardSettings,
+    Emulation,
+    RigConfig,
+    RigInfo,
+    dump_rig,
+)
+from rigctl.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +116,8 @@ class CoilBoardBench:
         self.server.start()
         try:
             board_url = self._start_firmware()
-            self.backdoor = self.server.serve_lines_tcp(self._backdoor, name="backdoor", host=self.host)
+            self.backdoor = self.server.serve_lines_tcp(json_lines(self._command), name="backdoor",
+                                                  host=self.host)
             camera_model = CameraModel.overhead(CAMERA_FIELD_MM, tilt_deg=4.0)
             self.camera = serve_camera(self.server, self._scene, Renderer(camera_model, seed=4),
                                        fps=CAMERA_FPS, host=self.host)
@@ -176,16 +193,6 @@ class CoilBoardBench:
                          self.world.radii_mm.copy())
 
     # -- backdoor -----------------------------------------------------------------------------
-    def _backdoor(self, line: str) -> str:
-        try:
-            request = json.loads(line)
-            if not isinstance(request, dict):
-                raise ValueError("a request is a JSON object")
-            reply = self._command(request)
-        except Exception as err:  # the backdoor answers every line, whatever it was
-            return json.dumps({"ok": False, "error": f"{type(err).__name__}: {err}"})
-        return json.dumps({"ok": True, **reply})
-
     def _command(self, request: dict) -> dict:
         cmd = request.get("cmd")
         if cmd == "ping":

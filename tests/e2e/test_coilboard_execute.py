@@ -25,13 +25,12 @@ def test_execute_delivers_both_particles_within_the_tolerance(tmp_path):
         rig = load_rig(rig_file)
         with BackdoorClient(rig.emulation.backdoor) as backdoor:
             backdoor.request("speed", factor=2.5)  # simulated seconds per real second
-            # Coils 400 mm out (the world's physics stays for the run's own `place`): still not
-            # uniform (the pull varies by 27 % across the disk and leans up to 3.3 degrees), milder
-            # than the default 200 mm, with which Alg. 1 as a feedback law does not yet deliver
-            # reliably (bench/coilboard.py measures both).
-            backdoor.request("place", workspace=plan.workspace.model_dump(), agents=[
-                {"position": a.start, "radius": a.radius} for a in plan.agents],
-                physics={"pole_distance_mm": 400.0})
+            # The world's default physics, the non-uniform field of issue 6: coils 200 mm out,
+            # the pull varying 2.5x across the disk and leaning up to ~7 degrees.
+            placed = backdoor.request("place", workspace=plan.workspace.model_dump(), agents=[
+                {"position": a.start, "radius": a.radius} for a in plan.agents])
+            assert placed["physics"]["pole_distance_mm"] == 200.0
+            assert placed["physics"]["exponent"] == 4.0
         done = subprocess.run(
             [sys.executable, "-m", "rigctl", "execute", str(PLAN), "--rig", str(rig_file),
              "--runs", str(tmp_path / "runs"), "--json"],

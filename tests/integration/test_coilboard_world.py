@@ -154,3 +154,45 @@ def test_the_real_firmware_in_simavr_drives_the_world_the_same_way():
         t = second["sim_time_s"] - first["sim_time_s"]
         assert second["agents"][0] == pytest.approx(
             [axis_flight(first["agents"][0][0], V0, t), 0.0], abs=2e-3)
+
+
+# -- the run's drift model (rigctl/coilboard_run.py) against the world -----------------------------
+
+
+def _translate(positions, outputs, seconds):
+    """Two free particles in the default world (coils 200 mm out) after `seconds` of `outputs`."""
+    from rigctl.emulators.world.coilboard import CoilBoardWorld
+    from rigctl.plans.workspace import ShapeWorkspace
+
+    world = CoilBoardWorld(ShapeWorkspace(("disk", (0.0, 0.0, 23.0))), positions, [R, R])
+    world.step(seconds, outputs)
+    return world.positions_mm.copy()
+
+
+def test_drift_model_fitted_on_single_coils_predicts_a_two_coil_diagonal():
+    """Fitted from four one-coil translations, the model's rates are the pull law's closed forms
+    (k_along = n / D, k_across = 1 / D for 1/d^n from D = 200 mm) and it predicts where a diagonal
+    translation with two coils on (the case a one-direction model gets wrong) leaves the gap."""
+    from rigctl.coilboard_run import RelativeDrift
+
+    drift = RelativeDrift()
+    rng = np.random.default_rng(3)
+    for k, outputs in enumerate(([1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1])):
+        start = np.array([[-7.0, 3.0], [5.0, -6.0]]) + rng.normal(0.0, 1.5, (2, 2))
+        end = _translate(start, outputs, 1.5)
+        drift.observe(start.mean(axis=0), end.mean(axis=0) - start.mean(axis=0),
+                      start[1] - start[0], end[1] - end[0])
+    assert drift.k[0] == pytest.approx(4.0 / 200.0, rel=0.1)
+    assert drift.k[1] == pytest.approx(1.0 / 200.0, rel=0.15)
+    start = np.array([[-12.0, -4.0], [-2.0, -14.0]])
+    end = _translate(start, [1, 0, 1, 0], 2.0)  # +x and +y together: 17 mm up and right
+    predicted = (start[1] - start[0]) * drift.growth(start.mean(axis=0),
+                                                     end.mean(axis=0) - start.mean(axis=0))
+    change = (end[1] - end[0]) - (start[1] - start[0])
+    assert np.hypot(*change) > 2.0  # the gap changes by millimetres: the field is far from uniform
+    assert np.hypot(*(predicted - (end[1] - end[0]))) < 0.15
+    # Aiming inverts the prediction: leaving with `aim` lands on the wanted gap.
+    wanted = np.array([4.0, -7.0])
+    aim = drift.aim(wanted, start.mean(axis=0), end.mean(axis=0))
+    assert aim * drift.growth(start.mean(axis=0), end.mean(axis=0) - start.mean(axis=0)) == \
+        pytest.approx(wanted)
