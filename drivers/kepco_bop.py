@@ -279,10 +279,10 @@ class KepcoBop:
 
     # -- stopping --------------------------------------------------------------------------------
 
-    def emergency_zero(self) -> None:
+    def emergency_zero(self) -> bool:
         """E-stop, from any thread: 0 A and output off in one message, now, and latch (every later
-        setpoint leaves as 0 A). Never raises; a dead link is logged (the supply's own watchdog is
-        what makes it safe then)."""
+        setpoint leaves as 0 A). Never raises: returns False when the message could not be sent
+        (a dead link, logged; the supply's own watchdog or interlock must make it safe then)."""
         with self._wire:
             self._estopped = True
             self._last_setpoint_A = 0.0
@@ -290,6 +290,8 @@ class KepcoBop:
                 self._transport.write(b"CURR 0.0000;:OUTP OFF" + TERMINATOR)
             except (RigError, OSError) as err:
                 log.error("%s: e-stop could not be sent (%s)", self.name, err)
+                return False
+        return True
 
     def safe_stop(self, ramp_s: float = 0.1, steps: int = 10) -> None:
         """Ramp from the last setpoint to 0 A in `steps` over `ramp_s`, then output off.

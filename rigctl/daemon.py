@@ -39,7 +39,7 @@ import zmq
 from pydantic import ValidationError
 
 from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, LimitError, PlanError, RigError
+from rigctl.errors import ConfigError, Disconnected, LimitError, PlanError, RigError
 from rigctl.keys import CurveServer
 from rigctl.messages import (
     COMMAND_ARGS,
@@ -107,7 +107,7 @@ class RunLike(Protocol):
     def pause(self, immediate: bool = False) -> None: ...
     def resume(self) -> None: ...
     def abort(self) -> None: ...
-    def estop(self) -> None: ...
+    def estop(self) -> list[str]: ...  # the supplies it could not reach
 
     plan: Any  # the plan being run (agents, moves, expected)
     record: Any  # the run record once execute() has made it, else None
@@ -676,20 +676,29 @@ class Daemon:
 
     def _cmd_estop(self, _: Any) -> dict:
         active = self._active
+        unreached: list[str] = []
         if active is not None:  # first, before any lock: the supplies are zeroed from this thread
-            active.job.estop()
+            unreached = active.job.estop() or []
         with self._lock:
             if self._active is not None and self._active is not active:  # started meanwhile
                 active = self._active
-                active.job.estop()
+                unreached = active.job.estop() or []
             self._transition("estop", reason="emergency stop")
             self.manual_field_mT = None
+            for name in unreached:
+                self._device(name, "fault", "e-stop could not be sent: link down (its own "
+                             "watchdog or interlock must stop it)")
         if active is None:
             threading.Thread(target=self._zero_supplies_directly, name="daemon-estop").start()
         log.warning("EMERGENCY STOP")
-        return {"state": self.state.value,
-                "zeroing": "done: every supply told 0 A and output off" if active
-                else "directly (no run active)"}
+        if active is None:
+            zeroing = "directly (no run active)"
+        elif unreached:
+            zeroing = (f"sent to every supply but {', '.join(unreached)} (link down: check that "
+                       "supply by hand)")
+        else:
+            zeroing = "done: every supply told 0 A and output off"
+        return {"state": self.state.value, "zeroing": zeroing, "unreached": unreached}
 
     def _cmd_reset(self, _: Any) -> dict:
         with self._lock:
@@ -827,8 +836,9 @@ class Daemon:
         self.devices[name] = {**self.devices[name], "health": health, "detail": detail}
 
     def _sample_agents(self, active: _ActiveRun) -> None:
-        """Until the camera loop exists: the emulator's ground truth, published as `agents` and
-        recorded in the run's event log, AGENTS_HZ times a second while the run lasts."""
+        """On an emulated rig: the emulator's ground truth, published as `agents` and recorded in
+        the run's event log, AGENTS_HZ times a second while the run lasts (a closed-loop run's
+        camera positions are the supervisor's, in its own events and the summary)."""
         from rigctl.emulators.backdoor import BackdoorClient
 
         self._agents_stop.clear()
@@ -860,9 +870,12 @@ class Daemon:
                 supply = KepcoBop(transport, name=coil.name, current_limit_A=coil.current_limit_A,
                                   compliance_V=coil.compliance_V,
                                   timeout_s=self.rig.stream.reply_timeout_s)
-                supply.safe_stop(ramp_s=0.0)
+                sent = supply.emergency_zero()
                 supply.close()
-                self._device(coil.name, "off", "e-stop: zeroed, output off")
+                if not sent:
+                    raise Disconnected(f"{coil.url}: the e-stop message could not be sent",
+                                       device=coil.name)
+                self._device(coil.name, "off", "e-stop: told 0 A and output off")
             except RigError as err:
                 log.error("e-stop: %s", err)
                 self._device(coil.name, "fault", f"e-stop could not reach it: {err}")
@@ -927,12 +940,13 @@ class FieldHold:
     def abort(self) -> None:
         self.retarget(np.zeros_like(self._last), self.ramp_down_s, release=True)
 
-    def estop(self) -> None:
+    def estop(self) -> list[str]:
         self._estop.set()
-        self.supplies.emergency_zero()
+        unreached = self.supplies.emergency_zero()
         loop = self.stream_loop
         if loop is not None:
             loop.wake()
+        return unreached
 
 
 def _describe_run(run: Any) -> dict:

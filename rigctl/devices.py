@@ -80,12 +80,11 @@ class CoilSupplies:
             self.supplies[turn].check_errors()
         return self.measured_A
 
-    def emergency_zero(self) -> None:
+    def emergency_zero(self) -> list[str]:
         """E-stop from any thread, without waiting for the stream thread: every supply gets 0 A
         and output off in one message each, and latches at zero (see `KepcoBop.emergency_zero`).
-        Never raises."""
-        for supply in self.supplies:
-            supply.emergency_zero()
+        Never raises; returns the names of the supplies the message could not be sent to."""
+        return [supply.name for supply in self.supplies if not supply.emergency_zero()]
 
     def zero_now(self) -> None:
         """E-stop: every setpoint to zero at once, then every output off; best effort per supply."""

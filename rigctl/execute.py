@@ -285,19 +285,22 @@ class Run:
     def abort(self) -> None:
         self.sequencer.request_abort()
 
-    def estop(self) -> None:
+    def estop(self) -> list[str]:
         """Drop every output now: the calling thread itself tells every connected supply 0 A and
         output off (latched: the stream thread can send nothing but zero after it), then wakes the
-        stream thread, which stops the stream and closes the supplies."""
+        stream thread, which stops the stream and closes the supplies. Returns the supplies the
+        e-stop could not be sent to (dead links)."""
         self._estop_at = time.monotonic()
         self._estop.set()
+        unreached: list[str] = []
         supplies = self._supplies
         if supplies is not None:
-            supplies.emergency_zero()
+            unreached = supplies.emergency_zero()
             self._estop_zeroed_at = time.monotonic()
         loop = self.stream_loop
         if loop is not None:
             loop.wake()
+        return unreached
 
     def _set_state(self, state: RunState, **info: object) -> None:
         if state == self.state:

@@ -33,6 +33,7 @@ class StandInRun:
         self.field_program = SimpleNamespace(duration_s=plan["samples"] / RATE_HZ)
         self.fault_at = plan.get("fault_at")
         self.suspended = plan.get("suspended")  # [from, to): lost tracking, as a supervisor says
+        self.unreachable = plan.get("unreachable", [])  # supplies whose link is down at e-stop
         self.runs_dir, self.on_cycle, self.on_state = runs_dir, on_cycle, on_state
         self.record = None
         self.stream_loop = None
@@ -51,6 +52,7 @@ class StandInRun:
 
     def estop(self):
         self.estopped.set()
+        return list(self.unreachable)
 
     def execute(self):
         self.record = SimpleNamespace(path=Path(self.runs_dir) / "stand-in-run")
@@ -265,6 +267,16 @@ def test_estop_from_any_state_is_immediate_and_reset_leaves_it(daemon, rig_clien
     assert rig_client.reset()["state"] == "idle"
     assert rig_client.estop()["state"] == "estopped"  # from idle too
     assert rig_client.reset()["state"] == "idle"
+
+
+def test_estop_names_the_supplies_it_could_not_reach(daemon, rig_client):
+    load_and_execute(rig_client, samples=100_000, unreachable=["y+"])
+    rig_client.wait_state("running")
+    reply = rig_client.estop()
+    assert reply["state"] == "estopped" and reply["unreached"] == ["y+"]
+    assert "y+" in reply["zeroing"] and "done" not in reply["zeroing"]
+    devices = {d["name"]: d for d in rig_client.status()["devices"]}
+    assert devices["y+"]["health"] == "fault" and "could not be sent" in devices["y+"]["detail"]
 
 
 def test_a_fault_during_a_run_leaves_the_daemon_serving_in_faulted(daemon, rig_client):

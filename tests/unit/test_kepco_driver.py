@@ -245,6 +245,20 @@ def test_safe_stop_on_a_dead_link_logs_and_does_not_raise(caplog) -> None:
     assert "x+: safe stop incomplete" in caplog.text
 
 
+def test_emergency_zero_is_one_message_and_latches_every_later_setpoint_at_zero() -> None:
+    driver, script = bop([(b"CURR 0.0000;:OUTP OFF\n", None), (b"CURR 0.0000;:MEAS:CURR?\n", None)])
+    assert driver.emergency_zero() is True
+    driver.send_setpoint(5.0)  # the stream thread, not yet stopped, still asks for 5 A
+    script.assert_done()
+
+
+def test_emergency_zero_on_a_dead_link_says_so_and_does_not_raise(caplog) -> None:
+    driver, script = bop([])
+    script.close()  # every write raises Disconnected
+    assert driver.emergency_zero() is False
+    assert "x+: e-stop could not be sent" in caplog.text
+
+
 def test_close_closes_the_transport() -> None:
     driver, script = bop([])
     driver.close()
