@@ -177,7 +177,7 @@ class HallBoard:
             raw = np.asarray(message["raw"], dtype=float)
             flags = np.asarray(message["sat"], dtype=int)
             t_s = float(message["t_s"])
-        except (KeyError, TypeError, ValueError) as err:
+        except (KeyError, TypeError, ValueError, OverflowError) as err:  # 1e999 -> int(inf)
             raise ProtocolError(f"bad sample line: {err}", device=self.name) from None
         if raw.shape != (n, 3) or flags.shape != (n,):
             raise ProtocolError(f"sample has raw {raw.shape} and sat {flags.shape}; the board has "
@@ -225,6 +225,11 @@ class HallStream:
             except RigError as err:
                 if not self._stop.is_set():
                     self._error = err
+                return
+            except Exception as err:  # never end silently: the run must see why the samples stopped
+                if not self._stop.is_set():
+                    self._error = ProtocolError(f"Hall board reader stopped: {type(err).__name__}: "
+                                                f"{err}", device=self.board.name)
                 return
             with self._lock:
                 self._samples.append(sample)

@@ -43,7 +43,7 @@ from rigctl.plans.depm import baseline_of, joint_trajectory, plan_violations, ri
 from rigctl.drivers.hall import HallBoard, HallSample, HallStream, field_vector_from_sensors
 from rigctl.drivers.kuka_sunrise import KukaArm
 from rigctl.errors import ConfigError, DeviceError, RigError
-from rigctl.kinematics import ArmKinematics
+from rigctl.kinematics import ArmKinematics, base_transform
 from rigctl.magnetics import U_COMPONENTS
 from rigctl.record import RunRecord
 
@@ -220,8 +220,6 @@ def check_plan_against_rig(plan, rig: RigConfig, arms: list[ArmKinematics]) -> N
     assert d is not None
     if len(plan.arms) != len(arms):
         raise ConfigError(f"the plan has {len(plan.arms)} arms, the rig {len(arms)}")
-    from rigctl.kinematics import base_transform
-
     for arm_plan, kin in zip(plan.arms, arms):
         base = base_transform(np.asarray(arm_plan.position_mm) * 1e-3, arm_plan.rpy_deg)
         if arm_plan.name != kin.name or not np.allclose(base, kin.base, atol=1e-6):

@@ -86,10 +86,11 @@ class KstServer:
 
     # -- completion of PTP moves (called after each simulation step) ----------------------------
     def deliver_completions(self) -> None:
-        for reached in self.model.collect_finished():
-            if self._ptp_waiting > 0 and self._session is not None:
-                self._ptp_waiting -= 1
-                self._session.send(ACK if reached else NAK)
+        replies: list[str] = []
+        self.deliver_completions_into(replies)
+        if self._session is not None:
+            for reply in replies:
+                self._session.send(reply)
 
     # -- commands -------------------------------------------------------------------------------
     def _handle(self, session: Session, line: str) -> list[str]:

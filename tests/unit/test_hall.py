@@ -115,3 +115,11 @@ def test_driver_rejects_garbage_and_wrong_versions():
     old = HELLO.replace(b'"version": 1', b'"version": 0')
     with pytest.raises(ProtocolError, match="version"):
         HallBoard(ScriptedTransport([(None, old)]))
+
+
+def test_out_of_range_numbers_are_a_protocol_error():
+    # JSON reads 1e999 as inf; int(inf) is an OverflowError, which must not end the reader thread
+    bad = line(1).replace(b'"seq":1', b'"seq":1e999')
+    board = HallBoard(ScriptedTransport([(None, HELLO), (None, bad)]))
+    with pytest.raises(ProtocolError, match="hall board: bad sample line"):
+        board.read()
