@@ -46,6 +46,14 @@ def _q(doc, d):
     return np.array([doc[0] / d, doc[1] / d, doc[2], math.radians(doc[3])])
 
 
+def _spread(seconds: list[float], unit: str, scale: float, digits: int) -> dict:
+    """Median, p95 (nearest rank: never below the median) and max of `seconds` times `scale`."""
+    v = sorted(seconds)
+    return {f"median_{unit}": round(scale * statistics.median(v), digits),
+            f"p95_{unit}": round(scale * v[math.ceil(0.95 * len(v)) - 1], digits),
+            f"max_{unit}": round(scale * v[-1], digits)}
+
+
 def bench_solve(names, seeds, variants, budget_s):
     """Each variant of the planner (`PairPlannerOptions.paper` = Alg. 1-3 as printed, `fast` =
     plus the goal tree and connect steps) on each problem, seeds 0..seeds-1, `budget_s` each."""
@@ -69,11 +77,9 @@ def bench_solve(names, seeds, variants, budget_s):
                     solved += 1
                     plan_s.append(float(path.dts.sum()))
                     segments.append(len(path.dts))
-            times.sort()
             out[f"{name}/{variant}"] = {
                 "seeds": seeds, "budget_s": budget_s, "solved_share": solved / seeds,
-                "median_s": round(statistics.median(times), 4),
-                "p95_s": round(times[int(0.95 * (len(times) - 1))], 4), "max_s": round(times[-1], 4),
+                **_spread(times, "s", 1.0, 4),
                 "median_nodes": int(statistics.median(nodes)),
                 "median_plan_duration_s": round(statistics.median(plan_s), 2) if plan_s else None,
                 "median_segments": int(statistics.median(segments)) if segments else None}
@@ -103,11 +109,7 @@ def bench_replan(count):
         path, _ = replan_pair(problem, q, nodes, k, PairPlannerOptions(time_s=0.5), seed=i)
         times.append(time.perf_counter() - t0)
         joined += path.solved
-    times.sort()
-    return {"count": count, "joined_share": joined / count,
-            "median_ms": round(1e3 * statistics.median(times), 2),
-            "p95_ms": round(1e3 * times[int(0.95 * (len(times) - 1))], 2),
-            "max_ms": round(1e3 * times[-1], 2)}
+    return {"count": count, "joined_share": joined / count, **_spread(times, "ms", 1e3, 2)}
 
 
 def _unit2(rng):
@@ -130,9 +132,8 @@ def bench_decide():
         t0 = time.perf_counter()
         ctl.decide(q + 0.02)
         times.append(time.perf_counter() - t0)
-    times.sort()
-    return {"median_ms": round(1e3 * statistics.median(times), 3),
-            "p95_ms": round(1e3 * times[int(0.95 * (len(times) - 1))], 3)}
+    spread = _spread(times, "ms", 1e3, 3)
+    return {"median_ms": spread["median_ms"], "p95_ms": spread["p95_ms"]}
 
 
 def bench_runs(names, noise):

@@ -31,7 +31,7 @@ import math
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
@@ -118,10 +118,11 @@ class PreparedPair:
 
 
 def u_of(plan: PairFormationPlan, u: np.ndarray) -> np.ndarray:
-    """The 8-vector U (8,) for a control u = (psi_g, f_x, f_y) of this plan's agents."""
+    """The 8-vector U (..., 8) for controls u = (psi_g, f_x, f_y) (..., 3) of this plan's agents."""
     physics = physics_of(plan)
-    force = np.asarray(u[1:], dtype=float) * physics.drag_N_s_per_m * physics.diameter_m
-    return field_and_pull_u(float(u[0]), force, physics.moment_Am2, plan.field_mT * 1e-3)
+    u = np.asarray(u, dtype=float)
+    force = u[..., 1:] * physics.drag_N_s_per_m * physics.diameter_m
+    return field_and_pull_u(u[..., 0], force, physics.moment_Am2, plan.field_mT * 1e-3)
 
 
 def open_loop_controls(plan: PairFormationPlan, rate_hz: float,
@@ -168,19 +169,24 @@ def prepare_pair(plan: PairFormationPlan, rig: RigConfig, settings: PairRunSetti
     A8 = u_actuation_matrix(rig)
     pinv = np.linalg.pinv(A8)
     controls, scale = open_loop_controls(plan, rig.stream.rate_hz, settings.ramp_s)
-    physics_force = physics.drag_N_s_per_m * physics.diameter_m
-    forces = controls[:, 1:] * physics_force
-    U = field_and_pull_u(controls[:, 0], forces, physics.moment_Am2, plan.field_mT * 1e-3)
+    U = u_of(plan, controls)
     U[:, :3] *= scale[:, None]
-    program = slew_limited(U @ pinv.T, rig)
     n_ramp = max(1, round(settings.ramp_s * rig.stream.rate_hz))
     seg_of = np.concatenate([[-1] * n_ramp] + [[k] * max(1, round(dt * rig.stream.rate_hz))
                                                 for k, dt in enumerate(plan_arrays(plan)[2])])
+
+    def describe(k: int) -> str:
+        return (f"segment {int(seg_of[k])}" if k < len(seg_of) and seg_of[k] >= 0
+                else f"sample {k} (ramp or hold)")
+
+    # the current limits on the program as asked: `slew_limited` clips to them, which would hide it
+    raw = U @ pinv.T
     check_current_limits(
-        program, rig, rig.stream.rate_hz,
-        lambda k: (f"segment {int(seg_of[k])}" if k < len(seg_of) and seg_of[k] >= 0
-                   else f"sample {k} (ramp or hold)"),
-        current_advice="lower field_mT or re-plan with a smaller pull (--rig for this rig)",
+        raw, rig, None, describe,
+        current_advice="lower field_mT or re-plan with a smaller pull (--rig for this rig)")
+    program = slew_limited(raw, rig)
+    check_current_limits(
+        program, rig, rig.stream.rate_hz, describe, current_advice="",
         voltage_advice="re-plan: consecutive segments turn the field too far for the coils' "
         "inductance, or raise the coil's compliance_V")
     start = state_of(plan.start, physics.body_diameter_mm)
@@ -260,7 +266,7 @@ class PairRun:
         backdoor = BackdoorClient(rig.emulation.backdoor) if rig.emulation else None
         tracking = None
         supplies = None
-        self.metrics = _Metrics(prep.nodes, self.plan)
+        self.metrics = _Metrics(prep.nodes)
         try:
             start_mm = agent_positions(prep.nodes[0]) * self.d_mm
             if backdoor is not None:
@@ -313,8 +319,7 @@ class PairRun:
         ramp = max(1, round(s.ramp_s * rate))
         closed = s.closed_loop and tracking is not None
         pursuit = PairPursuit(prep.problem, prep.nodes,
-                              PursuitSettings(**{**s.pursuit.__dict__,
-                                                 "max_pull": prep.controller_pull}))
+                              replace(s.pursuit, max_pull=prep.controller_pull))
         deadline = time.monotonic() + s.timeout_factor * float(np.sum(plan_arrays(self.plan)[2])) \
             + self.plan.hold_s + s.timeout_extra_s
         state = {"last": np.zeros(len(supplies.names)), "target": None, "frame": -1,
@@ -349,7 +354,7 @@ class PairRun:
                         state["lost_since"] = None
                     q = state_from_positions(latest.positions_mm / self.d_mm)
                     state["phi"] = float(q[3])
-                    self.metrics.measure(q, pursuit, now)
+                    self.metrics.measure(q, pursuit)
                     q_now = pursuit.carry_forward(q, now - latest.t_source)
                     u = pursuit.decide(q_now)
                     state["target"] = prep.u_to_currents @ u_of(self.plan, u)
@@ -396,7 +401,7 @@ class PairRun:
                     if latest is not None and latest.frame != state["frame"]:
                         state["frame"] = latest.frame
                         q = state_from_positions(latest.positions_mm / self.d_mm)
-                        self.metrics.measure(q, None, now)
+                        self.metrics.measure(q, None)
             setpoints = slew.step(state["last"], target)
             measured = supplies.cycle(setpoints)
             state["last"] = setpoints
@@ -493,7 +498,7 @@ class PairRun:
 class _Metrics:
     """Tracking figures from the camera's measurements (body lengths)."""
 
-    def __init__(self, nodes: np.ndarray, plan: PairFormationPlan) -> None:
+    def __init__(self, nodes: np.ndarray) -> None:
         self.paths = agent_positions(nodes)
         self.goal = nodes[-1]
         self.sq: list[float] = []
@@ -505,7 +510,7 @@ class _Metrics:
         self.last_q: np.ndarray | None = None
         self.replan_ms: list[float] = []
 
-    def measure(self, q: np.ndarray, pursuit: PairPursuit | None, now: float) -> None:
+    def measure(self, q: np.ndarray, pursuit: PairPursuit | None) -> None:
         p = agent_positions(q)
         d = distance_to_path(p, self.paths if pursuit is None else pursuit.paths)
         self.sq += (d**2).tolist()

@@ -91,10 +91,6 @@ class PairPursuit:
         self.last_u = np.zeros(3)
         self._max_pull = settings.max_pull if settings.max_pull is not None else problem.max_pull
 
-    @property
-    def finished_path(self) -> bool:
-        return self.k >= len(self.nodes) - 1 and self.mode == "hold"
-
     def splice(self, new_nodes: np.ndarray, joined: int) -> None:
         """Re-planned: go through `new_nodes` (m, 4) and continue with the old nodes after `joined`."""
         self.nodes = np.vstack([new_nodes, self.nodes[joined + 1:]])
