@@ -590,9 +590,13 @@ class _PtyByteLink:
             log.exception("%s: emulator failed on %r; input dropped", self.name, data[:64])
             return
         if reply:
-            out = self.faults.outgoing(reply, b"")
-            if out:
-                self.send(out)
+            self.reply(reply)
+
+    def reply(self, data: bytes) -> None:
+        """Send the device's own output (loop thread) through the link's faults (stall, corrupt)."""
+        out = self.faults.outgoing(data, b"")
+        if out:
+            self.send(out)
 
     def send(self, data: bytes) -> None:
         """Write to the client now (loop thread); what the pty cannot take waits for it."""

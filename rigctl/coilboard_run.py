@@ -456,6 +456,10 @@ class CoilBoardRun:
                 lost_since = None
             if not history or history[-1][0] != state.t_source:
                 history.append((state.t_source, state.positions_mm))
+                # Keep one frame older than the stall window (all `_stalled` needs) and the last
+                # three (the velocity): each cycle then costs the same however long the move runs.
+                while len(history) > 3 and history[1][0] <= history[-1][0] - s.stall_s:
+                    del history[0]
             velocity = np.zeros(2)
             if len(history) >= 3 and history[-1][0] > history[-3][0]:
                 (t0, p0), (t1, p1) = history[-3], history[-1]

@@ -351,9 +351,7 @@ class FirmwareEmulator:
             return
         replies = self.firmware.tick(self._clock())
         if replies and self.endpoint is not None:
-            out = self.endpoint.faults.outgoing(replies, b"")
-            if out:
-                self.endpoint._link.send(out)
+            self.endpoint._link.reply(replies)  # loop thread, through the link's faults
 
     # -- backdoor -------------------------------------------------------------------------------
 
