@@ -35,7 +35,7 @@ class EmulatedBenchProcess:
         self.rig_out = Path(rig_out)
         self.extra_args = extra_args or []
         self.start_timeout_s = start_timeout_s
-        self.proc: subprocess.Popen[str] | None = None
+        self.proc: subprocess.Popen[bytes] | None = None
         self.log_path = self.rig_out.with_suffix(".log")
 
     def __enter__(self) -> Path:
@@ -43,8 +43,10 @@ class EmulatedBenchProcess:
                *self.extra_args]
         # the child's log goes to a file beside the rig file: a pipe nobody drains would block it
         self._log = open(self.log_path, "w")
+        # unbuffered bytes: `select` then sees exactly what `readline` has not taken yet (a
+        # buffered reader could hold the READY line while select waits for more)
         self.proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=self._log, text=True,
+            cmd, stdout=subprocess.PIPE, stderr=self._log, bufsize=0,
             env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
         deadline = time.monotonic() + self.start_timeout_s
@@ -54,7 +56,7 @@ class EmulatedBenchProcess:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or not select.select([self.proc.stdout], [], [], remaining)[0]:
                 break
-            line = self.proc.stdout.readline()
+            line = self.proc.stdout.readline().decode(errors="replace")
             if not line:
                 break  # the child exited
             if line.startswith(READY_PREFIX):

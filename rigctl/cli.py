@@ -43,11 +43,12 @@ def _cmd_execute(args: argparse.Namespace) -> int:
         return importlib.import_module(runner).execute_cli(plan, args)
     out = sys.stderr if not args.quiet else None
     closed_loop = False if args.open_loop else None  # None: whenever the rig has a camera
-    if args.rig is not None and _mismatch_args(args):
+    mismatch = _mismatch_args(args)
+    if args.rig is not None and mismatch:
         raise ConfigError("--slip, --speed-spread, --drift, --noise, --seed and "
                           "--field-at-robots set up the emulated bench that execute starts "
                           "itself: give them to `rigctl emulate` when using --rig")
-    with rig_for_run(args.rig, plan.rig, extra_args=_mismatch_args(args), progress_out=out) as rig:
+    with rig_for_run(args.rig, plan.rig, extra_args=mismatch, progress_out=out) as rig:
         summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out,
                                closed_loop=closed_loop)
     print(format_summary(summary))
@@ -130,7 +131,12 @@ def _cmd_calibrate_camera(args: argparse.Namespace) -> int:
     elif args.markers is not None:
         if args.marker_radius is None:
             raise ConfigError("--markers needs --marker-radius")
-        points = [[float(v) for v in p.split(",")] for p in args.markers.split(";") if p.strip()]
+        try:
+            points = [[float(x), float(y)] for x, y in
+                      (p.split(",") for p in args.markers.split(";") if p.strip())]
+        except ValueError:
+            raise ConfigError(f"--markers: expected 'x,y;x,y;...' in mm, got {args.markers!r}") \
+                from None
         options["markers_mm"] = points
         options["marker_radius_mm"] = args.marker_radius
     else:

@@ -61,12 +61,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--tuned for all four) make it solve much faster. Exit 0 solved, 1 not solved (plan "
         "still written), 2 bad input.",
     )
-    p.add_argument("--workspace", required=True, metavar="WS.json",
-                   help="workspace document (shapes or an image), or a plan whose workspace to use")
-    p.add_argument("--start", action="append", required=True, metavar="X,Y",
-                   help="a robot's start in mm; once per robot")
-    p.add_argument("--goal", action="append", required=True, metavar="X,Y",
-                   help="a robot's goal in mm; once per robot, same order as --start")
+    _add_problem_arguments(p, "(shapes or an image)", "a robot's", "once per robot")
     p.add_argument("--radius", action="append", type=float, metavar="R",
                    help=f"robot radius in mm: once for all robots or once per robot "
                    f"(default {DEFAULT_RADIUS_MM:g})")
@@ -137,12 +132,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "expected states come from the non-slip model. Exit 0 solved, 1 not solved (plan still "
         "written), 2 bad input.",
     )
-    p.add_argument("--workspace", required=True, metavar="WS.json",
-                   help="workspace document with a convex boundary, or a plan whose workspace to use")
-    p.add_argument("--start", action="append", required=True, metavar="X,Y",
-                   help="a particle's start in mm; twice")
-    p.add_argument("--goal", action="append", required=True, metavar="X,Y",
-                   help="a particle's goal in mm; twice, same order as --start")
+    _add_problem_arguments(p, "with a convex boundary", "a particle's", "twice")
     p.add_argument("--radius", type=float, default=DEFAULT_PARTICLE_RADIUS_MM, metavar="R",
                    help=f"particle radius in mm (default {DEFAULT_PARTICLE_RADIUS_MM:g}: the paper's "
                    "1 mm spheres)")
@@ -212,6 +202,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_pair_planner(planners)
 
 
+def _add_problem_arguments(p: argparse.ArgumentParser, workspace: str, whose: str,
+                           count: str) -> None:
+    """--workspace, --start and --goal, shared by the planners that place agents."""
+    p.add_argument("--workspace", required=True, metavar="WS.json",
+                   help=f"workspace document {workspace}, or a plan whose workspace to use")
+    p.add_argument("--start", action="append", required=True, metavar="X,Y",
+                   help=f"{whose} start in mm; {count}")
+    p.add_argument("--goal", action="append", required=True, metavar="X,Y",
+                   help=f"{whose} goal in mm; {count}, same order as --start")
+
+
 def _run_depm(args: argparse.Namespace) -> int:
     """`rigctl plan depm` (imported on use: the planner pulls in scipy's optimisers)."""
     from rigctl.plans.depm import cli
@@ -226,21 +227,13 @@ class _WorkspaceSource:
     """A workspace document read from disk: its spec, folder (for image paths) and hash."""
 
     def __init__(self, path: str) -> None:
-        from rigctl.plans.schema import parse_workspace
+        from rigctl.plans.schema import load_workspace
 
         self.path = Path(path)
         try:
-            data = json.loads(self.path.read_text())
-        except FileNotFoundError:
-            raise PlanError(f"--workspace: {path} does not exist") from None
-        except json.JSONDecodeError as err:
-            raise PlanError(
-                f"--workspace: {path}: invalid JSON at line {err.lineno} column {err.colno}: "
-                f"{err.msg}"
-            ) from None
-        if isinstance(data, dict) and "schema" in data and "workspace" in data:
-            data = data["workspace"]  # a whole plan: use its workspace
-        self.spec = parse_workspace(data, str(path))
+            self.spec = load_workspace(self.path)  # a whole plan: its workspace
+        except PlanError as err:
+            raise PlanError(f"--workspace: {err}") from None
         self.base_dir = self.path.resolve().parent
         self.document = self.spec.model_dump(mode="json", exclude_none=True)
         self.image_path = None
@@ -273,6 +266,14 @@ class _WorkspaceSource:
 
 
 # ---------------------------------------------------------------- plan rrt
+
+
+def _output_path(text: str) -> Path:
+    """The -o path, its folder checked before any planning is done."""
+    output = Path(text)
+    if not output.resolve().parent.is_dir():
+        raise PlanError(f"-o: folder {output.resolve().parent} does not exist")
+    return output
 
 
 def _points(values: list[str], flag: str) -> np.ndarray:
@@ -399,9 +400,7 @@ def run_rrt(args: argparse.Namespace) -> int:
     if len(starts) != len(goals):
         raise PlanError(f"--goal: {len(goals)} goals for {len(starts)} starts; give one per robot")
     radii = _radii(args.radius, len(starts))
-    output = Path(args.output)
-    if not output.resolve().parent.is_dir():
-        raise PlanError(f"-o: folder {output.resolve().parent} does not exist")
+    output = _output_path(args.output)
 
     tree = None
     if args.tree:
@@ -541,9 +540,7 @@ def run_wall_contact(args: argparse.Namespace) -> int:
         raise PlanError(f"--radius: must be > 0 mm, got {args.radius:g}")
     if not args.epsilon > 0:
         raise PlanError(f"--epsilon: must be > 0 mm, got {args.epsilon:g}")
-    output = Path(args.output)
-    if not output.resolve().parent.is_dir():
-        raise PlanError(f"-o: folder {output.resolve().parent} does not exist")
+    output = _output_path(args.output)
     radii = np.full(2, args.radius)
     region = centre_region(document["boundary"], args.radius)
     exact = source.workspace()
@@ -592,10 +589,10 @@ def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
     if not (args.height > 2 * args.radius and args.radius > 0 and args.epsilon > 0):
         raise PlanError(f"--height {args.height:g}: must exceed the particles' diameter "
                         f"{2 * args.radius:g} mm (and --radius, --epsilon > 0)")
+    output = _output_path(args.output)
     region = prism_region(centre_region(document["boundary"], args.radius), args.height, args.radius)
     result, chosen = plan_wall_contact_3d(region, points["--start"], points["--goal"], args.epsilon,
                                           args.interchangeable)
-    output = Path(args.output)
     output.write_text(json.dumps(plan_document_3d(document, args.height, args.radius,
                                                   points["--start"], chosen, result, args.epsilon),
                                  indent=1))

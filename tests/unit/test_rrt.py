@@ -270,9 +270,10 @@ def test_tree_from_another_start_is_refused(model):
 
 
 def test_time_budget_stops_early(model):
-    result = plan_rrt(model, START, GOAL, options=RrtOptions(max_nodes=10_000_000),
-                      rng=np.random.default_rng(0), time_budget_s=0.2)
-    assert result.seconds < 1.0
+    options = RrtOptions(max_nodes=10_000_000, stop_when_solved=False)
+    result = plan_rrt(model, START, GOAL, options=options, rng=np.random.default_rng(0),
+                      time_budget_s=0.2)
+    # only the budget can have ended it (no timed assertion: the machine may be loaded)
     assert 1 < result.nodes < 10_000_000
 
 
