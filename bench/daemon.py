@@ -3,7 +3,8 @@
 The emulated six-coil bench runs in its own process, `rigctl daemon` in another (stream at
 1 kHz), and this process is the operator: it submits a plan of back-and-forth rolling moves and
 measures, while the plan streams,
-- the `status` round trip over tcp loopback (p50, p99, max, microseconds), 200 requests a second;
+- the `status` round trip over tcp loopback (p50, p99, max, microseconds), 200 requests a second,
+  next to the same figures with the daemon idle and for a bare REQ/REP echo (the floor);
 - telemetry delivered to 1 and to 10 subscribers: `currents` messages per second per subscriber,
   against the stream rate, and lost `state` / `fault` messages (sequence gaps);
 - e-stop latency: request received by the daemon -> seen by the stream thread -> every supply
@@ -37,6 +38,7 @@ from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.record import read_events
 
 RATE_HZ = 1000.0
+REALTIME_SEEN: list[str] = []  # threads found at SCHED_FIFO while the plan streamed
 
 
 def back_and_forth_plan(moves: int) -> dict:
@@ -49,10 +51,13 @@ def back_and_forth_plan(moves: int) -> dict:
     }
 
 
-def start_daemon(rig_path: Path, runs: Path, log_path: Path) -> tuple[subprocess.Popen, dict]:
+def start_daemon(rig_path: Path, runs: Path, log_path: Path,
+                 realtime: int = 0) -> tuple[subprocess.Popen, dict]:
     cmd = [sys.executable, "-m", "rigctl", "daemon", "--rig", str(rig_path), "--runs", str(runs),
            "--command", "tcp://127.0.0.1:0", "--telemetry", "tcp://127.0.0.1:0",
            "--events", "tcp://127.0.0.1:0"]
+    if realtime:
+        cmd += ["--realtime", str(realtime)]
     log = open(log_path, "w")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -94,6 +99,23 @@ def delivered_rate(subscribers: list[Subscriber], window: tuple[float, float],
             "lost_messages": lost}
 
 
+def realtime_threads(pid: int) -> list[str]:
+    """Threads of process `pid` and its children at SCHED_FIFO: "process/thread name"."""
+    found = []
+    children = Path(f"/proc/{pid}/task/{pid}/children")
+    pids = [pid, *map(int, children.read_text().split())] if children.exists() else [pid]
+    for p in pids:
+        for task in Path(f"/proc/{p}/task").iterdir():
+            try:
+                stat = (task / "stat").read_text()
+            except OSError:
+                continue
+            fields = stat[stat.rindex(")") + 2:].split()
+            if fields[38] == "1":  # policy (field 41 of stat): 1 is SCHED_FIFO
+                found.append(f"{p}/{(task / 'comm').read_text().strip()}")
+    return found
+
+
 def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
               measure_status: bool) -> tuple[dict, dict | None]:
     stop = threading.Event()
@@ -104,8 +126,9 @@ def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
     rig.execute(plan_id)
     rig.wait_state("running")
     time.sleep(0.5)
+    REALTIME_SEEN[:] = realtime_threads(rig.ping()["pid"])
     start = time.monotonic()
-    rtts = []
+    rtts: list[float] = []
     while rig.status()["state"] in ("running", "paused"):
         if measure_status:  # an operator script polling hard: 200 requests a second
             t0 = time.perf_counter()
@@ -125,13 +148,61 @@ def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
         raise RuntimeError(f"the benchmark's run did not stream cleanly: {summary['faults']}")
     stream = dict(summary["stream"])
     stream["cycles_per_s"] = stream["cycles"] / summary["duration_s"]
-    status = None
-    if rtts:
-        us = np.asarray(rtts) * 1e6
-        status = {"samples": len(us), "p50_us": round(float(np.percentile(us, 50)), 1),
-                  "p99_us": round(float(np.percentile(us, 99)), 1),
-                  "max_us": round(float(us.max()), 1)}
+    status = microseconds(rtts) if rtts else None
     return delivered_rate(subscribers, (start, end), stream), status
+
+
+def round_trips(call, seconds: float = 4.0, rate_hz: float = 200.0) -> dict:
+    """`call()` round trips at `rate_hz` for `seconds`: p50, p99, max in microseconds."""
+    rtts = []
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        t0 = time.perf_counter()
+        call()
+        rtts.append(time.perf_counter() - t0)
+        time.sleep(max(0.0, 1.0 / rate_hz - (time.perf_counter() - t0)))
+    return microseconds(rtts)
+
+
+def microseconds(seconds: list[float]) -> dict:
+    us = np.asarray(seconds) * 1e6
+    return {"samples": len(us), "p50_us": round(float(np.percentile(us, 50)), 1),
+            "p99_us": round(float(np.percentile(us, 99)), 1), "max_us": round(float(us.max()), 1)}
+
+
+BARE_REP = """
+import sys, zmq
+sock = zmq.Context().socket(zmq.REP)
+port = sock.bind_to_random_port("tcp://127.0.0.1")
+print(port, flush=True)
+while True:
+    sock.send(sock.recv())
+"""
+
+
+def bare_zmq_round_trip() -> dict:
+    """The floor: a REQ/REP echo of a status-sized message over tcp loopback, another process."""
+    import zmq
+
+    server = subprocess.Popen([sys.executable, "-c", BARE_REP], stdout=subprocess.PIPE, text=True)
+    try:
+        port = int(server.stdout.readline())
+        sock = zmq.Context.instance().socket(zmq.REQ)
+        sock.connect(f"tcp://127.0.0.1:{port}")
+        message = b"x" * 700  # about a status reply
+
+        def echo() -> None:
+            sock.send(message)
+            sock.recv()
+
+        for _ in range(100):
+            echo()
+        result = round_trips(echo)
+        sock.close(linger=0)
+        return result
+    finally:
+        server.kill()
+        server.wait()
 
 
 def estop_latency(rig: Rig, plan_id: str, backdoor_url: str, runs: Path) -> dict:
@@ -166,8 +237,13 @@ def estop_latency(rig: Rig, plan_id: str, backdoor_url: str, runs: Path) -> dict
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--moves", type=int, default=16, help="moves per plan (about 0.7 s each)")
+    parser.add_argument("--realtime", type=int, default=40, metavar="PRIO",
+                        help="the daemon's --realtime, as systemd/rigctl.service gives it (default "
+                             "40; 0: normal scheduling). Where not permitted the daemon streams at "
+                             "normal priority and says so in its log")
     args = parser.parse_args()
     load_before = round(os.getloadavg()[0], 2)  # other work on the machine skews every figure
+    bare = bare_zmq_round_trip()
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-daemon-") as tmp:
         tmp = Path(tmp)
         with EmulatedBenchProcess("six-coil", tmp / "bench.toml") as rig_path:
@@ -182,21 +258,28 @@ def main() -> None:
                 "camera": None})
             (tmp / "rig-1khz.toml").write_text(dump_rig(fast))
             runs = tmp / "runs"
-            proc, endpoints = start_daemon(tmp / "rig-1khz.toml", runs, tmp / "daemon.log")
+            proc, endpoints = start_daemon(tmp / "rig-1khz.toml", runs, tmp / "daemon.log",
+                                           args.realtime)
             try:
                 with Rig(endpoints["command"], timeout_s=5.0) as client:
                     plan_id = client.load(back_and_forth_plan(args.moves))
+                    idle = round_trips(client.status)
                     one, status_rtt = timed_run(client, plan_id, 1, endpoints, measure_status=True)
+                    realtime = REALTIME_SEEN
                     ten, _ = timed_run(client, plan_id, 10, endpoints, measure_status=False)
                     estop = estop_latency(client, plan_id, rig.emulation.backdoor, runs)
             finally:
                 proc.terminate()
                 proc.wait(timeout=30)
+
     print(json.dumps({
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                     "load_average_1min_before": load_before,
                     "load_average_1min_after": round(os.getloadavg()[0], 2)},
         "stream_rate_hz": RATE_HZ,
+        "realtime_threads": realtime,
+        "bare_zmq_req_rep_round_trip": bare,
+        "status_round_trip_idle": idle,
         "status_round_trip_while_running": status_rtt,
         "telemetry_1_subscriber": one,
         "telemetry_10_subscribers": ten,

@@ -192,6 +192,9 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
     from rigctl.emulators.bench import SixCoilBench
     from rigctl.emulators.process import READY_PREFIX
 
+    # devices answer within 0.1 ms of a request even while another thread of the bench is busy
+    # in Python (the camera rendering a frame, the world stepping): a real device has no GIL
+    sys.setswitchinterval(1e-4)
     if args.kind in _BENCHES:
         return importlib.import_module(_BENCHES[args.kind]).emulate_cli(args)
     rig_out = Path(args.rig_out)

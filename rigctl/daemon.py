@@ -5,12 +5,16 @@ Threads and who does what:
   client that vanishes mid-request costs nothing (its reply is dropped by ZeroMQ). Quick commands
   are answered on this thread; slow ones (`load` realizes and allocates a whole plan, `runs` and
   `run` read the disk, `set_field` opens the supplies) go to a worker thread and are answered when
-  it is done, so nothing ever waits behind them. `estop` is carried out on the command thread the
-  moment it is read: it writes 0 A and output off to every supply of the active run itself (the
-  drivers latch at zero, so the stream thread can send nothing else after it) and flags the run,
-  whose stream thread then stops; with nothing active it starts zeroing the supplies directly;
-- the *run thread* (one at a time) executes a `Run` (or holds a manual field) and is the stream
-  thread, raised to SCHED_FIFO when allowed;
+  it is done, so nothing ever waits behind them. `estop` is carried out the moment it is read:
+  the command thread hands it to the stream process, which writes 0 A and output off to every
+  supply of the active run from its own command thread (the drivers latch at zero, so the stream
+  can send nothing else after it) and answers with the supplies it could not reach; with nothing
+  active the command thread starts zeroing the supplies directly;
+- plan runs stream in the *stream process* (`rigctl.runhost`, spawned when the daemon starts), so
+  that no Python of the daemon's competes with the stream for a GIL, nor the stream with a reply
+  to a client. The daemon's *run thread* (one at a time) waits for the run and passes on what the
+  stream process reports; it is the stream thread itself only for a manual field (`FieldHold`),
+  raised to SCHED_FIFO when allowed, as the stream process's stream thread is;
 - the *telemetry thread* (`rigctl.telemetry`) publishes what the stream thread hands it.
 
 States are those of `DaemonState`; every change goes through `TRANSITIONS`, an explicit table of
@@ -39,7 +43,7 @@ import zmq
 from pydantic import ValidationError
 
 from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, Disconnected, LimitError, PlanError, RigError
+from rigctl.errors import ConfigError, LimitError, PlanError, RigError
 from rigctl.keys import CurveServer
 from rigctl.messages import (
     COMMAND_ARGS,
@@ -56,6 +60,14 @@ from rigctl.messages import (
     error_reply,
     is_loopback_endpoint,
     ok_reply,
+)
+from rigctl.runhost import (
+    DAEMON_PLANS,
+    RemoteRun,
+    RunHost,
+    build_run,
+    make_realtime,
+    realtime_permitted,
 )
 from rigctl.sdnotify import SystemdNotifier
 from rigctl.telemetry import CycleSample, TelemetryPublisher
@@ -109,12 +121,15 @@ class RunLike(Protocol):
     def abort(self) -> None: ...
     def estop(self) -> list[str]: ...  # the supplies it could not reach
 
-    plan: Any  # the plan being run (agents, moves, expected)
+    plan: Any  # the plan being run (agents, expected)
+    info: dict  # what `load` and `status` say of it: name, size, planned duration
     record: Any  # the run record once execute() has made it, else None
     stream_loop: Any  # the StreamLoop while streaming (its `last_error_s`), else None
 
 
 class RunFactory(Protocol):
+    def start(self) -> None: ...  # when the daemon starts (spawn helpers)
+    def close(self) -> None: ...  # when it stops
     def parse_plan(self, data: dict) -> Any: ...
 
     def prepare(self, plan: Any, rig: RigConfig, *, runs_dir: Path,
@@ -123,19 +138,33 @@ class RunFactory(Protocol):
 
 
 class PlanRuns:
-    """The real thing: plans from `rigctl.plans.schema`, runs from `rigctl.execute.Run`."""
+    """The real thing: plans from `rigctl.plans.schema` (the kinds in `DAEMON_PLANS`), prepared
+    here at load (a bad plan is refused before anything else) and streamed in the stream process
+    (`rigctl.runhost`), which `start` spawns and `close` stops."""
+
+    def __init__(self, realtime_priority: int | None = None) -> None:
+        self.host = RunHost(realtime_priority)
+
+    def start(self) -> None:
+        self.host.start()
+
+    def close(self) -> None:
+        self.host.close()
 
     def parse_plan(self, data: dict) -> Any:
         from rigctl.plans.schema import parse_plan
 
-        return parse_plan(data, "plan")
+        plan = parse_plan(data, "plan")
+        if (plan.kind, plan.rig) not in DAEMON_PLANS:
+            runs = ", ".join(f"{kind} plans on a {rig} rig" for kind, rig in sorted(DAEMON_PLANS))
+            raise PlanError(f"plan: the daemon runs {runs}; this is a {plan.kind} plan for a "
+                            f"{plan.rig} rig: run it with `rigctl execute PLAN --rig RIG.toml` "
+                            "(with the daemon stopped: it holds the devices)")
+        return plan
 
     def prepare(self, plan, rig, *, runs_dir, on_cycle, on_state) -> RunLike:
-        from rigctl.execute import Run
-
-        # closed loop whenever the rig has a camera, as `rigctl execute` does
-        return Run(plan, rig, runs_dir=runs_dir, progress_out=None, on_cycle=on_cycle,
-                   on_state=on_state, closed_loop=rig.camera is not None)
+        local = build_run(plan, rig, runs_dir=runs_dir)
+        return RemoteRun(self.host, local, on_cycle=on_cycle, on_state=on_state)
 
 
 @dataclass(frozen=True)
@@ -240,7 +269,7 @@ class Daemon:
     ) -> None:
         self.rig = rig
         self.runs_dir = Path(runs_dir)
-        self.factory = run_factory or PlanRuns()
+        self.factory = run_factory or PlanRuns(realtime_priority)
         self.realtime_priority = realtime_priority
         self.currents_hz = currents_hz
         self.notifier = notifier or SystemdNotifier()
@@ -255,6 +284,15 @@ class Daemon:
                         "needs --server-key and --allowed-keys (make them with `rigctl keys new`)")
         self._keys = (server_key, allowed_keys)
         self.context = zmq.Context()
+        self._command_priority = None
+        if realtime_priority and realtime_permitted(realtime_priority - 1):
+            # the command path (ZeroMQ's I/O thread and the command thread) just below the
+            # stream: a reply, and an e-stop on its way to the stream process, wait for no
+            # ordinary process on the machine, yet a flood of requests cannot starve the stream.
+            # libzmq aborts when it may not set these, hence the check first.
+            self._command_priority = realtime_priority - 1
+            self.context.set(zmq.THREAD_SCHED_POLICY, os.SCHED_FIFO)
+            self.context.set(zmq.THREAD_PRIORITY, self._command_priority)
         self.curve: CurveServer | None = None
         self.publisher: TelemetryPublisher | None = None
         self.endpoints: DaemonEndpoints | None = None
@@ -322,6 +360,7 @@ class Daemon:
             router.close(linger=0)
             raise ConfigError(f"cannot bind the daemon's sockets: {err}") from None
         self._router = router
+        self.factory.start()
         self.publisher.start()
         self._log_handler = _TelemetryLogHandler(self.publisher)
         logging.getLogger("rigctl").addHandler(self._log_handler)
@@ -359,6 +398,8 @@ class Daemon:
         watchdog = self.notifier.watchdog_s
         next_pet = 0.0
         next_heartbeat = time.monotonic() + STATE_HEARTBEAT_S
+        if self._command_priority is not None:
+            make_realtime(self._command_priority, "command thread")
         self.notifier.ready(f"serving {self.endpoints.command}")
         self._serving.set()
         try:
@@ -423,6 +464,7 @@ class Daemon:
             active.thread.join(timeout=30)
         if self._log_handler is not None:
             logging.getLogger("rigctl").removeHandler(self._log_handler)
+        self.factory.close()
         if self.publisher is not None:
             self.publisher.stop()
         if self._router is not None:
@@ -458,6 +500,11 @@ class Daemon:
         request_id = data.get("id") if isinstance(data, dict) else None
         if not isinstance(request_id, (str, int)) or isinstance(request_id, bool):
             request_id = None
+        if (isinstance(data, dict) and data.get("cmd") == "status" and data.get("args", {}) == {}
+                and data.keys() <= {"id", "cmd", "args"} and data.get("id") == request_id):
+            self._send_json(envelope, {"id": request_id, "ok": True,
+                                       "result": self._cmd_status(None), "error": None})
+            return
         try:
             request = Request.model_validate(data)
         except ValidationError as err:
@@ -548,9 +595,19 @@ class Daemon:
             self._deliveries.popleft()()
 
     def _send(self, envelope: list[bytes], reply: Reply) -> None:
+        self._send_bytes(envelope, reply.model_dump_json().encode())
+
+    def _send_json(self, envelope: list[bytes], reply: dict) -> None:
+        """A reply built without the models: `status`, the command scripts poll hundreds of times
+        a second. Its request was checked to be exactly what `Request` accepts for `status`, and
+        the bytes are what `Reply.model_dump_json` gives (the protocol tests compare the two).
+        The models cost 10-40 us each when the caches are cold, as they are after an idle 5 ms."""
+        self._send_bytes(envelope, json.dumps(reply, separators=(",", ":"), ensure_ascii=False).encode())
+
+    def _send_bytes(self, envelope: list[bytes], body: bytes) -> None:
         assert self._router is not None
         try:
-            self._router.send_multipart([*envelope, reply.model_dump_json().encode()], zmq.NOBLOCK)
+            self._router.send_multipart([*envelope, body], zmq.NOBLOCK)
         except zmq.Again:
             log.warning("a client's reply queue is full; reply dropped")
 
@@ -616,7 +673,7 @@ class Daemon:
         plan = self.factory.parse_plan(args.plan)
         plan_id = hashlib.sha256(json.dumps(args.plan, sort_keys=True).encode()).hexdigest()[:12]
         prepared = self._prepare(plan)
-        info = _describe_run(prepared)
+        info = dict(prepared.info)
         with self._lock:
             self._plans[plan_id] = _LoadedPlan(plan_id, plan, info, prepared)
             self._plans.move_to_end(plan_id)
@@ -769,13 +826,16 @@ class Daemon:
 
     # -- the run thread and its callbacks (called on the stream thread) -------------------------
     def _run_thread(self, active: _ActiveRun) -> None:
-        if self.realtime_priority:
-            _make_realtime(self.realtime_priority)
+        if self.realtime_priority and not isinstance(active.job, RemoteRun):
+            make_realtime(self.realtime_priority)
         if self.publisher is not None:
             self.publisher.reset_stream(self.rig.stream.rate_hz)
         summary = None
         try:
             summary = active.job.execute()
+        except RigError as err:  # e.g. the stream process died: it said what it did about it
+            log.error("the %s stopped: %s", active.kind, err)
+            self._fault(err.device, str(err), type(err).__name__, active)
         except Exception as err:
             log.exception("the %s stopped with an unexpected error", active.kind)
             self._fault(None, f"internal error: {type(err).__name__}: {err}", "Internal", active)
@@ -795,9 +855,11 @@ class Daemon:
             self._agents_stop.set()
             self._wakeup.wake()
 
-    def _on_cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray) -> None:
+    def _on_cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray,
+                  t: float | None = None) -> None:
+        """One stream cycle (`t`: when it ran, `time.monotonic()`; default now)."""
         active = self._active
-        now = time.monotonic()
+        now = time.monotonic() if t is None else t
         if active is not None:
             active.sample, active.move, active.last_cycle = sample, move, now
         if self.publisher is not None:
@@ -842,8 +904,8 @@ class Daemon:
         from rigctl.emulators.backdoor import BackdoorClient
 
         self._agents_stop.clear()
-        expected = active.job.plan.expected
-        starts = [list(a.start) for a in active.job.plan.agents]
+        expected = getattr(active.job.plan, "expected", None)  # a pair plan has none per move
+        starts = [list(a.start) for a in active.job.plan.agents] if expected is not None else []
         try:
             with BackdoorClient(self.rig.emulation.backdoor, timeout_s=1.0) as backdoor:
                 while not self._agents_stop.wait(1.0 / AGENTS_HZ) and self._active is active:
@@ -861,24 +923,13 @@ class Daemon:
 
     def _zero_supplies_directly(self) -> None:
         """E-stop with no run active: open each supply, zero it, switch it off; best effort."""
-        from rigctl.drivers.kepco_bop import KepcoBop
-        from rigctl.transport import open_transport
+        from rigctl.devices import zero_supplies_directly
 
-        for coil in self.rig.coils:
-            try:
-                transport = open_transport(coil.url, timeout_s=self.rig.stream.reply_timeout_s)
-                supply = KepcoBop(transport, name=coil.name, current_limit_A=coil.current_limit_A,
-                                  compliance_V=coil.compliance_V,
-                                  timeout_s=self.rig.stream.reply_timeout_s)
-                sent = supply.emergency_zero()
-                supply.close()
-                if not sent:
-                    raise Disconnected(f"{coil.url}: the e-stop message could not be sent",
-                                       device=coil.name)
-                self._device(coil.name, "off", "e-stop: told 0 A and output off")
-            except RigError as err:
-                log.error("e-stop: %s", err)
-                self._device(coil.name, "fault", f"e-stop could not reach it: {err}")
+        for name, err in zero_supplies_directly(self.rig).items():
+            if err is None:
+                self._device(name, "off", "e-stop: told 0 A and output off")
+            else:
+                self._device(name, "fault", f"e-stop could not reach it: {err}")
 
 
 class FieldHold:
@@ -949,13 +1000,6 @@ class FieldHold:
         return unreached
 
 
-def _describe_run(run: Any) -> dict:
-    plan = run.plan
-    return {"name": plan.name, "moves": len(plan.moves),
-            "samples": int(len(run.currents.t_s)),
-            "duration_s": round(float(run.field_program.duration_s), 3)}
-
-
 def _period_error(active: _ActiveRun | None) -> float | None:
     loop = active.job.stream_loop if active is not None else None
     return None if loop is None else loop.last_error_s
@@ -967,13 +1011,3 @@ def _describe(err: ValidationError) -> str:
         where = ".".join(str(p) for p in problem["loc"]) or "(top level)"
         problems.append(f"{where}: {problem['msg']}")
     return "; ".join(problems)
-
-
-def _make_realtime(priority: int) -> None:
-    """SCHED_FIFO for the calling thread (Linux applies it per thread), if permitted."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        log.info("stream thread at SCHED_FIFO priority %d", priority)
-    except (PermissionError, OSError, AttributeError) as err:
-        log.warning("realtime scheduling not permitted (%s): streaming at normal priority; "
-                    "allow it with LimitRTPRIO= or CAP_SYS_NICE", err)

@@ -348,8 +348,8 @@ def run_field_sequence(plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
             kuka.append(KukaArm.open(url, name=name, timeout_s=d.reply_timeout_s,
                                      joint_limits_rad=joint_limits))
         board = HallBoard.open(d.hall_url, timeout_s=d.reply_timeout_s + 1.0 / 10)
-        offsets = board.info.offsets_m
         stream = HallStream(board).start()
+        estimator = sensor_estimator(board.info.offsets_m)  # once: the offsets are fixed
         record.event("connected", arms=d.arm_urls, hall=d.hall_url)
         q_now = np.array([arm.joint_positions() for arm in kuka])
         q_start = np.array([a.joints_rad[0] for a in plan.arms], dtype=float)
@@ -367,7 +367,7 @@ def run_field_sequence(plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
                 arm.move_to(q, relative_velocity=d.speed_fraction, timeout_s=timeout)
             record.event("at_start")
             _stream_plan(plan, kuka, stream, d, record, time_scale, progress_out, times, estimates,
-                         offsets, result)
+                         estimator, result)
             record.event("done")
     except RigError as err:
         result.faults.append(str(err))
@@ -390,7 +390,7 @@ def run_field_sequence(plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
 
 def _stream_plan(plan, kuka: list[KukaArm], stream: HallStream, d, record: RunRecord,
                  time_scale: float, progress_out, times: list, estimates: list,
-                 offsets: np.ndarray, result: RunResult) -> None:
+                 estimator: np.ndarray, result: RunResult) -> None:
     curves = joint_trajectory(plan)
     end_s = float(plan.t_s[-1])
     # a faster-than-real emulated bench gets the same number of targets per real second, at most
@@ -401,7 +401,7 @@ def _stream_plan(plan, kuka: list[KukaArm], stream: HallStream, d, record: RunRe
     joints_csv = _Csv(record.path / "joints.csv", ["t_s"] + [
         f"{kind}_{n}_q{j + 1}" for n in names for kind in ("cmd", "meas") for j in range(7)])
     field_csv = _Csv(record.path / "field.csv", ["t_s", "seq"] + [
-        f"B{i + 1}{axis}_mT" for i in range(len(offsets)) for axis in "xyz"] + [
+        f"B{i + 1}{axis}_mT" for i in range(estimator.shape[1] // 3) for axis in "xyz"] + [
         f"U_{c}" for c in U_COMPONENTS])
     segment_starts = [(s.start_s, s.name) for s in plan.segments]
     announced = 0
@@ -455,9 +455,9 @@ def _stream_plan(plan, kuka: list[KukaArm], stream: HallStream, d, record: RunRe
                 row += [*q_cmd, *q_meas]
             joints_csv.row(row)
             if n % 5 == 0:
-                _take_samples(stream, clock, offsets, times, estimates, field_csv, result)
+                _take_samples(stream, clock, estimator, times, estimates, field_csv, result)
             n += 1
-        _take_samples(stream, clock, offsets, times, estimates, field_csv, result)
+        _take_samples(stream, clock, estimator, times, estimates, field_csv, result)
         for arm in kuka:
             arm.stop_servo()
         result.duration_s = end_s
@@ -500,7 +500,18 @@ def _distance_to_span(q: np.ndarray, targets) -> np.ndarray:
     return np.maximum(np.maximum(below, above), 0.0)
 
 
-def _take_samples(stream: HallStream, clock: tuple[list[float], list[float]], offsets: np.ndarray,
+def sensor_estimator(offsets_m: np.ndarray) -> np.ndarray:
+    """E (8, 3 n) with U = E @ fields.ravel() (T, T/m at the reference sensor) for the n sensors'
+    fields (n, 3) T at `offsets_m` (n, 3) m: `field_vector_from_sensors` (eq. 24) is linear in the
+    fields, so its matrix is its value on the unit fields. It depends only on the board's fixed
+    sensor offsets: built once per run instead of a least-squares fit per batch of samples.
+    ConfigError if the offsets cannot give all five gradient terms."""
+    n_values = 3 * len(offsets_m)
+    unit_fields = np.eye(n_values).reshape(n_values, len(offsets_m), 3)
+    return field_vector_from_sensors(unit_fields, offsets_m).T
+
+
+def _take_samples(stream: HallStream, clock: tuple[list[float], list[float]], estimator: np.ndarray,
                   times: list, estimates: list, field_csv: _Csv, result: RunResult) -> None:
     """Samples read so far, on the plan's clock: a sample's arrival is placed between the stream
     cycles around it, so a stream that runs late (a loaded computer) stays aligned with the plan."""
@@ -508,7 +519,7 @@ def _take_samples(stream: HallStream, clock: tuple[list[float], list[float]], of
     if not samples:
         return
     fields = np.array([s.field_T for s in samples])
-    U = field_vector_from_sensors(fields, offsets) * 1e3  # mT and mT/m
+    U = fields.reshape(len(fields), -1) @ estimator.T * 1e3  # mT and mT/m
     t_plans = np.interp([s.received_s for s in samples], clock[0], clock[1])
     for sample, u, f, t_plan in zip(samples, U, fields, t_plans):
         t_plan = float(t_plan)

@@ -114,3 +114,23 @@ class CoilSupplies:
         for supply in self.supplies:
             supply.safe_stop(ramp_s=0.0)  # zero and output off, best effort
             supply.close()
+
+
+def zero_supplies_directly(rig: RigConfig) -> dict[str, str | None]:
+    """E-stop without the stream's connections (no run active, or its process died): open each
+    supply anew, tell it 0 A and output off, close it. Best effort, never raises; returns each
+    supply's name -> None when told, else why it could not be reached."""
+    result: dict[str, str | None] = {}
+    for coil in rig.coils:
+        try:
+            transport = open_transport(coil.url, timeout_s=rig.stream.reply_timeout_s)
+            supply = KepcoBop(transport, name=coil.name, current_limit_A=coil.current_limit_A,
+                              compliance_V=coil.compliance_V, timeout_s=rig.stream.reply_timeout_s)
+            sent = supply.emergency_zero()
+            supply.close()
+            result[coil.name] = None if sent else f"{coil.url}: the e-stop message could not be sent"
+        except RigError as err:
+            result[coil.name] = str(err)
+        if result[coil.name] is not None:
+            log.error("e-stop: %s could not be reached: %s", coil.name, result[coil.name])
+    return result

@@ -91,7 +91,10 @@ class Progress:
         self._last_move = -2
         self._last_draw = 0.0
 
-    def update(self, move: int, t_s: float) -> None:
+    def update(self, move: int, t_s: float, what: str | None = None) -> None:
+        """`t_s` s into the run, in `move` (-1: a ramp or hold, not a line of its own off a
+        terminal). `what` names the stage for runs whose stages are not global moves (a pair
+        run's segments and hold); a new line off a terminal still comes only with a new `move`."""
         if self.out is None:
             return
         now = time.monotonic()
@@ -99,18 +102,20 @@ class Progress:
             return
         new_move = move != self._last_move
         self._last_move, self._last_draw = move, now
-        if move < 0:
-            what = "ramp/hold"
-        elif move < self.n_moves:
-            what = f"move {move + 1}/{self.n_moves}"
-        else:  # moves the closed loop spliced in after re-planning
-            what = f"correction {move + 1 - self.n_moves}"
+        what = what or self._move_name(move)
         line = f"  {what:<14} {t_s:6.1f} s / {self.duration_s:.1f} s planned"
         if self.tty:
             self.out.write("\r" + line.ljust(50))
             self.out.flush()
         elif new_move and move >= 0:
             self.out.write(line + "\n")
+
+    def _move_name(self, move: int) -> str:
+        if move < 0:
+            return "ramp/hold"
+        if move < self.n_moves:
+            return f"move {move + 1}/{self.n_moves}"
+        return f"correction {move + 1 - self.n_moves}"  # spliced in by the closed loop's re-plans
 
     def done(self) -> None:
         if self.out is not None and self.tty:
@@ -144,6 +149,100 @@ class RunState(str, Enum):
     ESTOPPED = "estopped"
     ABORTED = "aborted"
     DONE = "done"
+
+
+# -- run control shared by `Run` and `rigctl.pair_run.PairRun` ----------------------------------
+
+class RunControl:
+    """What every run shares of its control: the state (each change written to the record as a
+    `state` event and handed to `on_state`) and the e-stop, taken on the calling thread and
+    finished on the stream thread. A run calls `_init_control` in its constructor, sets `record`,
+    `stream_loop` and `_supplies` as it goes, and calls `_finish_estop` from its stream cycle."""
+
+    def _init_control(self, on_state: Callable[[RunState, dict], None] | None) -> None:
+        self.on_state = on_state
+        self.state = RunState.PREPARED
+        self.record: RunRecord | None = None
+        self.stream_loop: StreamLoop | None = None  # while streaming: its timing, for telemetry
+        self._estop = threading.Event()
+        self._estop_at: float | None = None
+        self._estop_zeroed_at: float | None = None  # every supply told 0 A and off (any thread)
+        self._supplies: CoilSupplies | None = None  # once connected: e-stop writes to them directly
+
+    def estop(self, asked_at: float | None = None) -> list[str]:
+        """Drop every output now: the calling thread itself tells every connected supply 0 A and
+        output off (latched: the stream thread can send nothing but zero after it), then wakes the
+        stream thread, which stops the stream and closes the supplies. Returns the supplies the
+        e-stop could not be sent to (dead links). `asked_at` (`time.monotonic()`) is when the
+        e-stop was asked for, if before this call (another process took it): the record measures
+        from it."""
+        self._estop_at = time.monotonic() if asked_at is None else asked_at
+        self._estop.set()
+        unreached: list[str] = []
+        supplies = self._supplies
+        if supplies is not None:
+            unreached = supplies.emergency_zero()
+            self._estop_zeroed_at = time.monotonic()
+        loop = self.stream_loop
+        if loop is not None:
+            loop.wake()
+        return unreached
+
+    def _set_state(self, state: RunState, **info: object) -> None:
+        if state == self.state:
+            return
+        self.state = state
+        if self.record is not None:
+            self.record.event("state", state=state.value, **info)
+        if self.on_state is not None:
+            self.on_state(state, dict(info))
+
+    def _finish_estop(self, supplies: CoilSupplies, record: RunRecord) -> None:
+        """On the stream thread, once it sees the e-stop: zero every supply again (belt and
+        braces) and record how long after the request the supplies were zeroed."""
+        seen = time.monotonic()
+        supplies.zero_now()
+        done = time.monotonic()
+        # from the request: when every supply had been told zero and switched off (by the
+        # thread that took the e-stop, or else by this one), and when this thread saw it
+        asked = self._estop_at or seen
+        direct = self._estop_zeroed_at
+        record.event("estop_zeroed",
+                     after_request_s=round(min(done, direct or done) - asked, 6),
+                     seen_after_request_s=round(seen - asked, 6),
+                     stream_zeroed_after_request_s=round(done - asked, 6),
+                     direct=direct is not None)
+
+    def _stopped_by(self, err: RigError, record: RunRecord, faults: list[dict]) -> None:
+        """A device error ended the run: a fault (recorded, added to `faults`, state faulted),
+        unless the e-stop caused it (switching on after it latched, say)."""
+        if self._estop.is_set():
+            record.event("estop", reason=f"while starting or stopping: {err}")
+            return
+        faults.append({"device": err.device, "reason": str(err), "kind": type(err).__name__})
+        record.event("fault", device=err.device, reason=str(err), kind=type(err).__name__)
+        log.error("run stopped: %s", err)
+        self._set_state(RunState.FAULTED, device=err.device, reason=str(err))
+
+    def _end_state(self, faults: list[dict], *, aborted: bool,
+                   gave_up: RigError | None = None) -> None:
+        """The final state once the supplies are safe: an e-stop, the closed loop giving up
+        (`gave_up`) or an abort, each also added to `faults`; done when nothing went wrong."""
+        if self._estop.is_set():
+            faults.append({"device": None, "reason": "emergency stop", "kind": "EStop"})
+            self._set_state(RunState.ESTOPPED)
+        elif gave_up is not None:
+            faults.append({"device": gave_up.device, "reason": f"closed loop gave up: {gave_up}",
+                           "kind": type(gave_up).__name__})
+            self._set_state(RunState.FAULTED, device=gave_up.device, reason=str(gave_up))
+        elif aborted:
+            faults.append({"device": None, "reason": "aborted by the operator", "kind": "Abort"})
+            self._set_state(RunState.ABORTED)
+        elif not faults:
+            self._set_state(RunState.DONE)
+
+
+# -- end of the shared run control ----------------------------------------------------------------
 
 
 class Sequencer:
@@ -227,7 +326,7 @@ class Sequencer:
             return self._last, k, int(self.segments[k])
 
 
-class Run:
+class Run(RunControl):
     """One plan on one rig. Construction refuses a bad plan (PlanError, LimitError) without I/O;
     `execute()` then energises, streams and returns the summary. `pause`, `resume`, `abort` and
     `estop` may be called from any thread while `execute()` runs."""
@@ -249,7 +348,7 @@ class Run:
         self.runs_dir = Path(runs_dir)
         self.progress_out = progress_out
         self.on_cycle = on_cycle
-        self.on_state = on_state
+        self._init_control(on_state)
         ramp = max(1, round(rig.stream.ramp_down_s * rig.stream.rate_hz))
         ends = [self.field_program.move_end_index(i) for i in range(self.field_program.n_moves)]
         self.sequencer = Sequencer(self.currents, ends, ramp)
@@ -263,13 +362,6 @@ class Run:
                 settings=supervisor_settings or SupervisorSettings(),
                 truth=self._truth if rig.emulation else None)
             self.sequencer = self.supervisor.sequencer
-        self.state = RunState.PREPARED
-        self._estop = threading.Event()
-        self._estop_at: float | None = None
-        self._estop_zeroed_at: float | None = None  # every supply told 0 A and off (any thread)
-        self._supplies: CoilSupplies | None = None  # once connected: e-stop writes to them directly
-        self.stream_loop: StreamLoop | None = None  # while streaming: its timing, for telemetry
-        self.record: RunRecord | None = None
 
     def _truth(self) -> np.ndarray:
         """The emulator's true positions (n, 2) mm (the supervisor measures the tracker with it)."""
@@ -284,32 +376,6 @@ class Run:
 
     def abort(self) -> None:
         self.sequencer.request_abort()
-
-    def estop(self) -> list[str]:
-        """Drop every output now: the calling thread itself tells every connected supply 0 A and
-        output off (latched: the stream thread can send nothing but zero after it), then wakes the
-        stream thread, which stops the stream and closes the supplies. Returns the supplies the
-        e-stop could not be sent to (dead links)."""
-        self._estop_at = time.monotonic()
-        self._estop.set()
-        unreached: list[str] = []
-        supplies = self._supplies
-        if supplies is not None:
-            unreached = supplies.emergency_zero()
-            self._estop_zeroed_at = time.monotonic()
-        loop = self.stream_loop
-        if loop is not None:
-            loop.wake()
-        return unreached
-
-    def _set_state(self, state: RunState, **info: object) -> None:
-        if state == self.state:
-            return
-        self.state = state
-        if self.record is not None:
-            self.record.event("state", state=state.value, **info)
-        if self.on_state is not None:
-            self.on_state(state, dict(info))
 
     # -- the run --------------------------------------------------------------------------------
     def execute(self) -> RunSummary:
@@ -348,14 +414,7 @@ class Run:
             self._set_state(RunState.RUNNING)
             stats = self._stream(supplies)
         except RigError as err:
-            if self._estop.is_set():  # e.g. switching on after the e-stop latched: not a fault
-                record.event("estop", reason=f"while starting or stopping: {err}")
-            else:
-                faults.append({"device": err.device, "reason": str(err),
-                               "kind": type(err).__name__})
-                record.event("fault", device=err.device, reason=str(err), kind=type(err).__name__)
-                log.error("run stopped: %s", err)
-                self._set_state(RunState.FAULTED, device=err.device, reason=str(err))
+            self._stopped_by(err, record, faults)
         except _EStopped:
             record.event("estop", reason="before the supplies were switched on")
         except KeyboardInterrupt:
@@ -369,19 +428,8 @@ class Run:
                 record.event("safe", supplies=supplies.names)
             if self.supervisor is not None:
                 self.supervisor.stop()
-        gave_up = self.supervisor.fault if self.supervisor is not None else None
-        if self._estop.is_set():
-            faults.append({"device": None, "reason": "emergency stop", "kind": "EStop"})
-            self._set_state(RunState.ESTOPPED)
-        elif gave_up is not None:
-            faults.append({"device": gave_up.device, "reason": f"closed loop gave up: {gave_up}",
-                           "kind": type(gave_up).__name__})
-            self._set_state(RunState.FAULTED, device=gave_up.device, reason=str(gave_up))
-        elif self.sequencer.aborted:
-            faults.append({"device": None, "reason": "aborted by the operator", "kind": "Abort"})
-            self._set_state(RunState.ABORTED)
-        elif not faults:
-            self._set_state(RunState.DONE)
+        self._end_state(faults, aborted=self.sequencer.aborted,
+                        gave_up=self.supervisor.fault if self.supervisor is not None else None)
 
         duration = time.monotonic() - started
         agents, positions_from = _final_positions(plan, backdoor)
@@ -413,18 +461,7 @@ class Run:
 
         def cycle(_: int) -> bool:
             if self._estop.is_set():
-                seen = time.monotonic()
-                supplies.zero_now()  # again, from this thread: belt and braces
-                done = time.monotonic()
-                # from the request: when every supply had been told zero and switched off (by the
-                # thread that took the e-stop, or else by this one), and when this thread saw it
-                asked = self._estop_at or seen
-                direct = self._estop_zeroed_at
-                record.event("estop_zeroed",
-                             after_request_s=round(min(done, direct or done) - asked, 6),
-                             seen_after_request_s=round(seen - asked, 6),
-                             stream_zeroed_after_request_s=round(done - asked, 6),
-                             direct=direct is not None)
+                self._finish_estop(supplies, record)
                 return False
             step = sequencer.next()
             if step is None:

@@ -140,7 +140,7 @@ class RunRecord:
         safe_name = re.sub(r"[^A-Za-z0-9_.-]+", "-", plan_name).strip("-") or "plan"
         self.path = Path(root) / f"{stamp}-{safe_name}"
         self.path.mkdir(parents=True, exist_ok=False)
-        self._t0 = time.monotonic()
+        self.t0 = time.monotonic()  # event and stream times are seconds since this
         self._lock = threading.Lock()  # events come from the stream thread and the daemon's
         self._events: TextIO = open(self.path / "events.jsonl", "a", buffering=1)
         self._stream: TextIO | None = None
@@ -150,7 +150,7 @@ class RunRecord:
         (self.path / name).write_text(text)
 
     def event(self, event: str, **fields: Any) -> None:
-        entry = {"t": round(time.monotonic() - self._t0, 6), "event": event, **fields}
+        entry = {"t": round(time.monotonic() - self.t0, 6), "event": event, **fields}
         line = json.dumps(entry, default=_jsonable) + "\n"
         with self._lock:
             if not self._events.closed:
@@ -167,7 +167,7 @@ class RunRecord:
     def stream_row(self, sample: int, move: int, commanded, measured,
                    period_error_s: float | None = None) -> None:
         assert self._stream is not None, "open_stream first"
-        t = time.monotonic() - self._t0
+        t = time.monotonic() - self.t0
         values = ",".join(f"{x:.5f}" for x in (*commanded, *measured))
         self._stream.write(f"{t:.6f},{sample},{move},{values}\n")
         if self._parquet is not None:

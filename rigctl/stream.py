@@ -2,9 +2,16 @@
 
 Cycle k is due at t0 + k / rate. The loop sleeps until a cycle is due, runs it, and records how
 late it started (the period error). It never skips a sample: a field program is a path, and
-dropping samples would change where the robots go. A cycle that starts behind schedule runs at
-once, so the loop catches up. A cycle counts as late when it starts more than `late_fraction` of a
-period after its due time.
+dropping samples would change where the robots go. Nor does it bunch samples to catch up: a cycle
+counts as late when it starts more than `late_fraction` of a period after its due time, and a late
+cycle moves the rest of the schedule back by its lateness (the slip), so the next sample still
+leaves a period after it. Two cycles therefore never start less than (1 - late_fraction) periods
+apart (unless `wake` asks for it, which only a constant hold does). Sending a stretch of the
+program at full speed would turn the field many times faster than the realizer allowed; the coils'
+L/R lag then cuts the corners of the path (a steering turn and the roll after it overlap, and the
+magnets roll about a wrong axis), so a stall that was caught up moved the robots off the plan. A
+stall that slips only holds the field for a while: the path pauses, and the run ends later by the
+total slip, which the stats report.
 
 The loop owns timing only; what a cycle does (send currents, read them back) is the caller's.
 
@@ -74,6 +81,7 @@ class StreamStats:
     period_error_p99_s: float
     period_error_max_s: float
     overrun_cycles: int  # cycles whose own work took longer than one period
+    slip_s: float = 0.0  # how far late cycles moved the schedule back, in total
 
     @property
     def late_share(self) -> float:
@@ -86,6 +94,7 @@ class StreamStats:
             "late_cycles": self.late_cycles,
             "late_share": self.late_share,
             "overrun_cycles": self.overrun_cycles,
+            "slip_s": self.slip_s,
             "period_error_us": {
                 "p50": self.period_error_p50_s * 1e6,
                 "p99": self.period_error_p99_s * 1e6,
@@ -108,6 +117,7 @@ class StreamLoop:
         self._count = 0
         self._late = 0
         self._overruns = 0
+        self._slip_s = 0.0
         self.last_error_s: float | None = None  # the period error of the cycle now running
 
     def wake(self) -> None:
@@ -126,6 +136,7 @@ class StreamLoop:
     def _run(self, cycle: Callable[[int], bool | None], max_cycles: int | None) -> StreamStats:
         self._errors = np.empty(max_cycles if max_cycles is not None else 4096)
         self._count = self._late = self._overruns = 0
+        self._slip_s = 0.0
         late_after = self.late_fraction * self.period_s
         t0 = time.perf_counter() + self.period_s  # first cycle one period from now
         k = 0
@@ -147,6 +158,10 @@ class StreamLoop:
             self._count = k + 1
             if error > late_after:
                 self._late += 1
+                # late: the schedule moves back with this cycle instead of the next ones
+                # bunching up to catch up (see the module docstring)
+                t0 += error
+                self._slip_s += error
             keep_going = cycle(k)
             if time.perf_counter() - start > self.period_s:
                 self._overruns += 1
@@ -167,4 +182,5 @@ class StreamLoop:
             period_error_p99_s=float(np.percentile(errors, 99)),
             period_error_max_s=float(errors.max()),
             overrun_cycles=self._overruns,
+            slip_s=self._slip_s,
         )

@@ -19,15 +19,30 @@ def rigctl(*args, cwd):
                           text=True, timeout=600)
 
 
+# How far the emulated world may end from the plan's model on a bench without model mismatch.
+# At the realizer's speeds the two differ only by the coils' L/R lag (a few hundredths of a mm);
+# half the plans' 1 mm tolerance leaves room for the tracker and still fails when the field's
+# path changes (samples bunched after stalls once moved a robot past it under load).
+WORLD_FOLLOWS_MODEL_MM = 0.5
+
+
 def check_reached_expected(result, plan_path):
     assert result.returncode == 0, result.stdout + result.stderr
     summary = json.loads(result.stdout.strip().splitlines()[-1])
     plan = json.loads(plan_path.read_text())
     assert summary["reached"] is True
     expected_final = np.array(plan["expected"][-1])
+    goals = np.array([a["goal"] for a in plan["agents"]])
+    np.testing.assert_array_equal(expected_final, goals)  # so the goal errors below are the model's
+    # the emulated world, moved only by the field the supplies made, followed the model without
+    # the closed loop having to correct it ...
+    assert summary.get("replans", 0) == 0, summary
+    # ... and ends where the model said: in the camera's view ...
     finals = np.array([a["final"] for a in summary["agents"]])
-    # the emulated world, moved only by the field the supplies made, ends where the model said
-    np.testing.assert_allclose(finals, expected_final, atol=0.5)
+    np.testing.assert_allclose(finals, expected_final, atol=WORLD_FOLLOWS_MODEL_MM)
+    # ... and in the emulator's ground truth (the final positions themselves when open loop)
+    truth = [a.get("truth_error_mm", a["error_mm"]) for a in summary["agents"]]
+    assert max(truth) <= WORLD_FOLLOWS_MODEL_MM, summary["agents"]
     assert Path(summary["run"]).is_dir()
     return summary
 

@@ -4,6 +4,8 @@ supplies' currents measured at zero, a supply fault leaving the daemon serving i
 manual field checked against the closed-form field of a loop on its axis."""
 
 import json
+import os
+import signal
 import time
 from pathlib import Path
 
@@ -180,6 +182,81 @@ def test_a_supply_fault_during_a_run_leaves_the_daemon_serving_in_faulted(rig, b
     run_dir = Path(status["last_run"]["run"])
     assert any(e["event"] == "fault" and e["device"] == "y+" for e in read_events(run_dir))
     assert rig.reset()["state"] == "idle"
+
+
+def wait_current(bench, amps=1.0, timeout_s=10):
+    """Until some supply drives at least `amps` (the run is energised)."""
+    deadline = time.monotonic() + timeout_s
+    while max(abs(s.model.current_A) for s in bench.supplies) < amps:
+        assert time.monotonic() < deadline, "the run never drove current"
+        time.sleep(0.01)
+
+
+def all_off(bench, within_s=0.5):
+    """Whether every emulated supply is at 0 A with its output off within `within_s` (an e-stop
+    message is written, not waited on: the emulator may still be reading it)."""
+    deadline = time.monotonic() + within_s
+    while any(s.model.output_on or s.model.current_setpoint_A for s in bench.supplies):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.001)
+    return True
+
+
+def test_the_stream_process_dying_mid_run_leaves_the_supplies_off_and_the_daemon_serving(
+        rig, bench, daemon):
+    plan_id = rig.load(plan("fig4-two-magnets.json"))
+    rig.execute(plan_id)
+    wait_current(bench)
+    os.kill(daemon.factory.host.pid, signal.SIGKILL)
+    status = rig.wait_state("faulted", timeout_s=10)
+    assert "stream process died" in status["reason"]
+    status = wait_run_over(rig)
+    assert all_off(bench)  # zeroed by the daemon over new connections: nobody else was left
+    newest = rig.runs()[0]
+    assert not newest["finished"]  # cut off: no summary, everything up to the crash kept
+    run_dir = daemon.runs_dir / newest["id"]
+    assert status["last_fault"]["run"] == newest["id"]
+    died = [e for e in read_events(run_dir) if e.get("kind") == "StreamProcessDied"]
+    assert died and "0 A and output off" in died[0]["reason"]
+    # a new stream process runs the next plan
+    assert rig.reset()["state"] == "idle"
+    rig.execute(plan_id)
+    wait_current(bench)
+    rig.abort()
+    assert wait_run_over(rig)["state"] == "idle"
+    assert all_off(bench)
+
+
+def test_an_estop_the_stream_process_cannot_answer_is_carried_out_by_the_daemon(
+        rig, bench, daemon):
+    plan_id = rig.load(plan("fig4-two-magnets.json"))
+    rig.execute(plan_id)
+    wait_current(bench)
+    host = daemon.factory.host.pid
+    os.kill(host, signal.SIGSTOP)  # hung: holds its connections, answers nothing
+    try:
+        reply = rig.estop()
+    finally:
+        try:
+            os.kill(host, signal.SIGCONT)
+        except ProcessLookupError:  # killed by the daemon, as it should be
+            pass
+    assert reply["state"] == "estopped" and reply["unreached"] == []
+    assert all_off(bench)  # the daemon killed the hung process and zeroed them itself
+    status = wait_run_over(rig)
+    assert status["state"] == "estopped"
+    assert rig.reset()["state"] == "idle"
+
+
+def test_a_plan_the_daemon_cannot_run_is_refused_at_load_naming_its_kind(rig):
+    for name, kind, rig_kind in [("depm-plan.json", "field-sequence", "depm"),
+                                 ("coilboard-disk.json", "global-moves", "coil-board")]:
+        with pytest.raises(CommandRefused) as refused:
+            rig.load(plan(name))
+        assert refused.value.code == "plan_invalid"
+        assert f"{kind} plan for a {rig_kind} rig" in str(refused.value)
+    assert rig.status()["state"] == "idle"
 
 
 def test_manual_field_matches_the_closed_form_and_limits_are_enforced(rig, bench):

@@ -29,8 +29,9 @@ class StandInRun:
     def __init__(self, plan, runs_dir, on_cycle, on_state):
         self.plan = SimpleNamespace(name="stand-in", moves=[[10, 0]] * (plan["samples"] // 50),
                                     agents=[], expected=None)
-        self.currents = SimpleNamespace(t_s=np.zeros(plan["samples"]))
-        self.field_program = SimpleNamespace(duration_s=plan["samples"] / RATE_HZ)
+        self.samples = plan["samples"]
+        self.info = {"name": "stand-in", "moves": len(self.plan.moves), "samples": self.samples,
+                     "duration_s": self.samples / RATE_HZ}
         self.fault_at = plan.get("fault_at")
         self.suspended = plan.get("suspended")  # [from, to): lost tracking, as a supervisor says
         self.unreachable = plan.get("unreachable", [])  # supplies whose link is down at e-stop
@@ -58,7 +59,7 @@ class StandInRun:
         self.record = SimpleNamespace(path=Path(self.runs_dir) / "stand-in-run")
         self.on_state(RunState.RUNNING, {})
         index, paused = 0, False
-        n = len(self.currents.t_s)
+        n = self.samples
 
         def cycle(_):
             nonlocal index, paused
@@ -97,6 +98,12 @@ class StandInRun:
 class StandInRuns:
     def __init__(self):
         self.runs = []
+
+    def start(self):
+        pass
+
+    def close(self):
+        pass
 
     def parse_plan(self, data):
         if not isinstance(data.get("samples"), int) or data["samples"] <= 0:
@@ -152,8 +159,27 @@ def test_plain_req_socket_ping_and_status(daemon):
     assert result["run"] is None and result["last_fault"] is None
 
 
+def test_status_answered_without_the_models_is_what_the_models_would_say(daemon):
+    from rigctl.messages import Reply, ok_reply
+
+    for request_id, payload in [("s", b'{"id": "s", "cmd": "status", "args": {}}'),
+                                (8, b'{"cmd": "status", "id": 8}'), (None, b'{"cmd": "status"}')]:
+        with zmq.Context.instance().socket(zmq.REQ) as sock:
+            sock.connect(daemon.endpoints.command)
+            sock.send(payload)
+            assert sock.poll(5000)
+            body = sock.recv()
+        modelled = json.loads(ok_reply(request_id, daemon._cmd_status(None)).model_dump_json())
+        quick = json.loads(body)
+        assert Reply.model_validate(quick).id == request_id
+        modelled["result"].pop("uptime_s"), quick["result"].pop("uptime_s")
+        assert quick == modelled
+
+
 @pytest.mark.parametrize("payload, code", [
     (b"this is not json", "bad_json"),
+    (b'{"id": 1, "cmd": "status", "args": {"verbose": true}}', "bad_args"),
+    (b'{"id": 1.5, "cmd": "status"}', "bad_request"),
     (b"\xff\xfe\x00", "bad_json"),
     (b"[1, 2, 3]", "bad_request"),
     (b'{"id": 1}', "bad_request"),

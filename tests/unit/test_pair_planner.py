@@ -146,12 +146,51 @@ def test_replan_from_a_disturbed_state_is_fast_and_joins_the_path(problem):
     # its time (the goal is < 100 ms) is measured by bench/pair.py, not asserted here
 
 
-def test_rig_pull_bound_is_below_what_the_coils_make():
+def cube_pull_bound_bl_s(rig, field_T, moment_Am2, viscosity_Pa_s, diameter_m):
+    """The largest centroid speed (BL/s) a cube of six equal loops can give both agents at any
+    field angle, in closed form from the loops' on-axis field.
+
+    A loop of N turns, radius a, fed I, at distance d from the centre on its axis makes there
+    B = b I along the axis, b = mu0 N a^2 / (2 (a^2 + d^2)^(3/2)), and the axial gradient
+    c I, c = 3 d b / (a^2 + d^2) (sign: towards the loop), with -c I / 2 on each transverse
+    diagonal term (div B = 0, axial symmetry) and no off-diagonal terms. So a pair's sum of
+    currents makes the field and its difference D the gradient, and for the in-plane terms
+    G_x = c (D_x - (D_y + D_z) / 2), G_y = c (D_y - (D_x + D_z) / 2). The least-norm currents have
+    D_x + D_y + D_z = 0, hence D_x = 2 G_x / (3c), D_y = 2 G_y / (3c), D_z = -2 (G_x + G_y) / (3c):
+    an x coil carries B_x / (2b) + G_x / (3c) at worst, a z coil (G_x + G_y) / (3c). With
+    |B| = field_T at any angle and |G_x|, |G_y| <= g, the x and y coils allow
+    g = 3c (I_max - field_T / (2b)), the z coils g = 3c I_max / 2.
+    The pull on a moment m aligned with the field is m g along the axis it points on (seed 002:
+    a weak gradient pulls the centroid), against the Stokes drag sigma = 6 pi eta R of each agent:
+    v = m g / (3 pi eta D), or v / D body lengths per second.
+    """
+    coils = rig.coils
+    a_m = coils[0].loop_radius_mm * 1e-3
+    d_m = abs(max(coils[0].centre_mm, key=abs)) * 1e-3
+    turns, i_max = coils[0].turns, coils[0].current_limit_A
+    for coil in coils:  # the closed form holds for a cube of equal coils facing the centre
+        assert (coil.loop_radius_mm * 1e-3, coil.turns, coil.current_limit_A) == (a_m, turns, i_max)
+        assert np.allclose(np.abs(np.asarray(coil.centre_mm) * 1e-3), d_m * np.abs(coil.axis))
+    assert sorted(tuple(np.sign(c.centre_mm).astype(int)) for c in coils) == sorted(
+        tuple(s * e) for e in np.eye(3, dtype=int) for s in (1, -1))
+    mu0 = 4e-7 * math.pi
+    b = mu0 * turns * a_m**2 / (2.0 * (a_m**2 + d_m**2) ** 1.5)
+    c = 3.0 * d_m * b / (a_m**2 + d_m**2)
+    g = 3.0 * c * min(i_max - field_T / (2.0 * b), i_max / 2.0)
+    return moment_Am2 * g / (3.0 * math.pi * viscosity_Pa_s * diameter_m) / diameter_m
+
+
+@pytest.mark.parametrize("field_mT", [2.0, 4.0, 5.5])
+def test_rig_pull_bound_is_what_the_coils_make(field_mT):
+    """The planner's pull bound equals the closed form: larger would ask the coils for more than
+    their 20 A, smaller would throw away pull. 2 mT: the z coils (gradients only) bind; 4 and
+    5.5 mT (above 3.07 mT): the field's share of the x and y coils' current does."""
     physics = PairPhysics()
-    pull = rig_max_pull(default_rig(), physics, 2.0)
-    # 29.7 mT/m (see test_pair_allocate) times m / (sigma D)
-    assert pull == pytest.approx(0.02975 * physics.moment_Am2 / (
-        physics.drag_N_s_per_m * physics.diameter_m), rel=2e-3)
+    rig = default_rig()
+    expected = cube_pull_bound_bl_s(rig, field_mT * 1e-3, physics.moment_Am2,
+                                    physics.viscosity_Pa_s, physics.body_diameter_mm * 1e-3)
+    # (the code takes the gradients by central differences of the loop field: 1e-7 apart)
+    assert rig_max_pull(rig, physics, field_mT) == pytest.approx(expected, rel=1e-6)
 
 
 @pytest.mark.parametrize("name", ["pair-microfactory.json", "pair-formation-change.json"])

@@ -1,0 +1,569 @@
+"""The stream process: where the daemon's plan runs stream, apart from the process that serves clients.
+
+Why a process of its own. A run's stream thread does Python work a thousand times a second (the
+sequencer, six supply exchanges, the record, the callbacks) and gives the GIL up at every socket
+call. A command thread in the same interpreter then has to win the GIL back at each of its own
+socket calls, and under that ping-pong a `status` round trip reached 1-1.5 ms at p99 on two cores.
+In its own process the stream shares its GIL with nothing of the daemon's: not the command
+thread, not the worker that realizes and allocates the next plan, not the telemetry publisher. It
+also makes a crash of the stream side survivable: the daemon sees the pipe close, zeroes every
+supply over fresh connections, writes the fault into the run's event log, and keeps serving.
+
+The host process is spawned when the daemon starts (its imports take about a second, which an
+`execute` should not wait for) and runs plans one at a time; when it dies, the next run spawns
+another. `RemoteRun` is what the daemon holds: it has the `Run` interface (`execute`, `pause`,
+`resume`, `abort`, `estop`, `plan`, `record`, `stream_loop`) and forwards each call.
+
+Messages are pickled tuples over two one-way `multiprocessing` pipes:
+
+    daemon -> host   ("run", plan, rig, runs_dir)   ("pause", immediate)
+                     ("resume",)  ("abort",)  ("estop", asked_at)  ("event", name, fields)
+                     ("exit",)
+    host -> daemon   ("ready", pid)   ("cycles", t, sample, move, commanded, measured, error)
+                     ("state", state, info, record_path, record_t0)   ("estopped", unreached)
+                     ("done", summary)   ("failed", kind, message)   ("log", level, name, text)
+
+Times are `time.monotonic()`, one clock for both processes on Linux, so `asked_at` (when the
+daemon took the e-stop) is measured against the host's own clock in the run record.
+
+Inside the host, the stream thread never writes to the pipe: its cycles and state changes go into
+a queue that an uplink thread sends in batches (`UPLINK_BATCH_S`), so a daemon slow to read can
+delay telemetry but never a cycle. The host's main thread reads the daemon's commands; an e-stop
+is carried out there the moment it arrives (`Run.estop` writes zero to every supply from the
+calling thread) and acknowledged with the supplies it could not reach.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rigctl.config import RigConfig
+from rigctl.devices import zero_supplies_directly
+from rigctl.errors import RigError
+
+log = logging.getLogger(__name__)
+
+UPLINK_BATCH_S = 0.01  # the host sends cycles to the daemon at most this late
+UPLINK_MAX_QUEUED = 60_000  # cycles held for a daemon that stopped reading (a minute at 1 kHz)
+ESTOP_ACK_S = 0.25  # an e-stop the host has not acknowledged by then: kill it, zero directly
+START_TIMEOUT_S = 60.0  # imports on a loaded machine
+
+
+class HostGone(RigError):
+    """The stream process is not running (it crashed, or the daemon is shutting down)."""
+
+
+DAEMON_PLANS = {("global-moves", "six-coil"), ("pair-formation", "six-coil")}
+"""(plan kind, rig kind) the daemon runs; `rigctl execute` runs the others."""
+
+
+def build_run(plan: Any, rig: RigConfig, *, runs_dir: str | Path, on_cycle: Any = None,
+              on_state: Any = None) -> Any:
+    """The runner for one of `DAEMON_PLANS`, prepared (a bad plan is refused here, before any
+    I/O), closed loop whenever the rig has a camera, as `rigctl execute` does. Used by the daemon
+    to check a plan at load and by the stream process to run it."""
+    closed_loop = rig.camera is not None
+    if plan.kind == "pair-formation":
+        from rigctl.pair_run import PairRun, PairRunSettings
+
+        return PairRun(plan, rig, runs_dir=runs_dir, on_cycle=on_cycle, on_state=on_state,
+                       settings=PairRunSettings(closed_loop=closed_loop))
+    from rigctl.execute import Run
+
+    return Run(plan, rig, runs_dir=runs_dir, progress_out=None, closed_loop=closed_loop,
+               on_cycle=on_cycle, on_state=on_state)
+
+
+def describe_run(run: Any) -> dict:
+    """What `load` and `status` tell of a prepared run: its name, size and planned duration."""
+    plan = run.plan
+    if plan.kind == "pair-formation":
+        samples = len(run.prepared.program_A)  # the open-loop program; closed loop takes its time
+        return {"name": plan.name, "segments": len(plan.segments), "samples": samples,
+                "duration_s": round(samples / run.rig.stream.rate_hz, 3)}
+    return {"name": plan.name, "moves": len(plan.moves), "samples": int(len(run.currents.t_s)),
+            "duration_s": round(float(run.field_program.duration_s), 3)}
+
+
+# -- the daemon's side ----------------------------------------------------------------------------
+
+class RunHost:
+    """The stream process and the thread that reads what it sends. Thread-safe."""
+
+    def __init__(self, realtime_priority: int | None = None) -> None:
+        self.realtime_priority = realtime_priority
+        self._lock = threading.Lock()  # one sender at a time on the pipe; the process handles
+        self._process: Any = None
+        self._down: Any = None
+        self._ready = threading.Event()
+        self._current: RemoteRun | None = None
+        self._closing = False
+
+    def start(self) -> None:
+        """Spawn the process now (it imports in the background; `submit` waits for it)."""
+        with self._lock:
+            if self._process is None or not self._process.is_alive():
+                self._spawn()
+
+    def _spawn(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        down_read, down_write = ctx.Pipe(duplex=False)
+        up_read, up_write = ctx.Pipe(duplex=False)
+        process = ctx.Process(target=host_main, args=(down_read, up_write, self.realtime_priority),
+                              name="rigctl-stream", daemon=True)
+        process.start()
+        down_read.close()
+        up_write.close()
+        self._process, self._down = process, down_write
+        ready = self._ready = threading.Event()
+        threading.Thread(target=self._read, args=(process, up_read, ready),
+                         name="runhost-reader", daemon=True).start()
+        log.info("stream process %d started", process.pid)
+
+    def submit(self, run: RemoteRun) -> None:
+        """Hand `run` to the process (spawned again if it died) and return at once."""
+        with self._lock:
+            if self._closing:
+                raise HostGone("the daemon is shutting down")
+            if self._process is None or not self._process.is_alive():
+                self._spawn()
+            ready = self._ready
+        if not ready.wait(START_TIMEOUT_S):
+            raise HostGone(f"the stream process did not start within {START_TIMEOUT_S:g} s")
+        with self._lock:
+            if self._current is not None:
+                raise HostGone("the stream process is still running another plan")
+            self._current = run
+        self.send("run", run.plan, run.rig, str(run.runs_dir))
+        run._sent()
+
+    def send(self, *message: Any) -> None:
+        with self._lock:
+            if self._down is None:
+                raise HostGone("the stream process is not running")
+            try:
+                self._down.send(message)
+            except (OSError, ValueError) as err:
+                raise HostGone(f"the stream process is gone ({err})") from None
+
+    def kill(self) -> None:
+        """For a host that stopped answering: SIGKILL (its reader then reports the loss)."""
+        process = self._process
+        if process is not None and process.is_alive():
+            log.error("stream process %d is not answering: killing it", process.pid)
+            process.kill()
+
+    def close(self, timeout_s: float = 30.0) -> None:
+        """Ask the process to ramp down whatever it runs and exit; kill it if it will not."""
+        with self._lock:
+            self._closing = True
+            process = self._process
+        if process is None:
+            return
+        try:
+            self.send("exit")
+        except HostGone:
+            pass
+        process.join(timeout_s)
+        if process.is_alive():
+            process.kill()
+            process.join(5)
+
+    @property
+    def pid(self) -> int | None:
+        return self._process.pid if self._process is not None else None
+
+    def _read(self, process: Any, up: Any, ready: threading.Event) -> None:
+        try:
+            while True:
+                message = up.recv()
+                kind = message[0]
+                if kind == "ready":
+                    ready.set()
+                elif kind == "log":
+                    _, level, name, text = message
+                    logging.getLogger(name).log(level, "%s", text)
+                else:
+                    run = self._current
+                    if run is None:
+                        continue
+                    if kind in ("done", "failed"):
+                        with self._lock:
+                            self._current = None
+                    try:
+                        run._receive(message)
+                    except Exception:  # a bug in a callback must not pass for a dead process
+                        log.exception("handling %r from the stream process failed", kind)
+        except (EOFError, OSError):
+            pass
+        finally:
+            up.close()
+            process.join(5)
+            with self._lock:
+                if self._process is process:
+                    self._down.close()
+                    self._process, self._down = None, None
+                run, self._current = self._current, None
+            if run is not None:
+                run._host_lost(process.exitcode)
+            elif not self._closing:
+                log.warning("stream process %d exited (code %s); the next run starts another",
+                            process.pid, process.exitcode)
+
+
+class _LoopView:
+    """What the daemon reads of the stream loop: the period error of the latest cycle."""
+
+    last_error_s: float | None = None
+
+
+class _RecordView:
+    """The run record as the daemon sees it: where it is, and events appended by the host."""
+
+    def __init__(self, path: str, t0: float, host: RunHost) -> None:
+        self.path = Path(path)
+        self.t0 = t0
+        self._host = host
+
+    def event(self, event: str, **fields: Any) -> None:
+        try:
+            self._host.send("event", event, fields)
+        except HostGone:
+            pass
+
+
+class RemoteRun:
+    """A run (`build_run`) streamed by the `RunHost`; the daemon uses it as it would the run.
+
+    `local` is the run prepared in the daemon when the plan was loaded: it refused a bad plan
+    before anything else happened and tells the plan's size. The host prepares its own copy from
+    the same plan and rig (deterministic, so the same program) and streams that."""
+
+    def __init__(self, host: RunHost, local: Any, *, on_cycle: Any, on_state: Any) -> None:
+        self._host = host
+        self.plan, self.rig, self.runs_dir = local.plan, local.rig, local.runs_dir
+        self.info = describe_run(local)
+        self.on_cycle, self.on_state = on_cycle, on_state
+        self.record: _RecordView | None = None
+        self.stream_loop = _LoopView()
+        self._done = threading.Event()
+        self._result: Any = None
+        self._error: Exception | None = None
+        self._estop_acks: queue.SimpleQueue = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._submitted = False
+        self._early: list[tuple] = []  # control calls made before the host had the run
+
+    def execute(self) -> Any:
+        self._host.submit(self)
+        self._done.wait()
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+    def pause(self, immediate: bool = False) -> None:
+        self._control("pause", immediate)
+
+    def resume(self) -> None:
+        self._control("resume")
+
+    def abort(self) -> None:
+        self._control("abort")
+
+    def estop(self) -> list[str]:
+        """Tell the host (which zeroes every supply on receipt) and wait for its answer; a host
+        that does not answer within ESTOP_ACK_S is killed and the supplies are zeroed from here.
+        Before the host has the run, nothing is energised: the e-stop goes with the run, which
+        then never switches on."""
+        asked = time.monotonic()
+        try:
+            if not self._control("estop", asked):
+                return []
+            return self._estop_acks.get(timeout=ESTOP_ACK_S)
+        except (HostGone, queue.Empty):
+            self._host.kill()
+            return [name for name, err in zero_supplies_directly(self.rig).items() if err]
+
+    def _control(self, *message: Any) -> bool:
+        """Send a control message; before the run is with the host, keep it for `_sent`."""
+        with self._lock:
+            if not self._submitted:
+                self._early.append(message)
+                return False
+        self._host.send(*message)
+        return True
+
+    def _sent(self) -> None:
+        """The host has the run: what was asked meanwhile follows it, in order."""
+        with self._lock:
+            for message in self._early:
+                self._host.send(*message)
+            self._early, self._submitted = [], True
+
+    # called on the host's reader thread
+    def _receive(self, message: tuple) -> None:
+        kind = message[0]
+        if kind == "cycles":
+            _, t, sample, move, commanded, measured, error = message
+            for i in range(len(sample)):
+                self.stream_loop.last_error_s = None if np.isnan(error[i]) else float(error[i])
+                self.on_cycle(int(sample[i]), int(move[i]), commanded[i], measured[i], t=t[i])
+        elif kind == "state":
+            _, state, info, path, t0 = message
+            if self.record is None and path is not None:
+                self.record = _RecordView(path, t0, self._host)
+            self.on_state(state, info)
+        elif kind == "estopped":
+            self._estop_acks.put(message[1])
+        elif kind == "done":
+            self._result = message[1]
+            self._done.set()
+        elif kind == "failed":
+            self._error = RigError(f"the stream process could not run the plan: {message[1]}: "
+                                   f"{message[2]}")
+            self._done.set()
+
+    def _host_lost(self, exitcode: int | None) -> None:
+        """The process died with this run on it: make the supplies safe, say so, end the run."""
+        zeroed = zero_supplies_directly(self.rig)
+        unreached = [name for name, err in zeroed.items() if err]
+        reason = (f"the stream process died (exit code {exitcode}) during the run; every supply "
+                  + (f"but {', '.join(unreached)} " if unreached else "")
+                  + "was told 0 A and output off over a new connection")
+        log.error("%s", reason)
+        if self.record is not None:
+            line = {"t": round(time.monotonic() - self.record.t0, 6), "event": "fault",
+                    "device": None, "reason": reason, "kind": "StreamProcessDied"}
+            with open(self.record.path / "events.jsonl", "a") as events:
+                events.write(json.dumps(line) + "\n")
+        self._error = HostGone(reason)
+        self._done.set()
+
+
+# -- the stream process's side --------------------------------------------------------------------
+
+class _Uplink:
+    """The host's sender: queued cycles and messages, sent in order by one thread."""
+
+    def __init__(self, up: Any) -> None:
+        self._up = up
+        self._lock = threading.Lock()
+        self._queue: deque = deque(maxlen=UPLINK_MAX_QUEUED)
+        self._wake = threading.Event()
+        self._stop = False
+        self._thread = threading.Thread(target=self._serve, name="runhost-uplink", daemon=True)
+        self._thread.start()
+
+    def cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray,
+              error: float | None) -> None:
+        """From the stream thread: a deque append, nothing else."""
+        self._queue.append((time.monotonic(), sample, move, commanded.tolist(), measured.tolist(),
+                            np.nan if error is None else error))
+
+    def message(self, *message: Any) -> None:
+        """In order with the cycles before it; sent at once."""
+        self._queue.append(message)
+        self._wake.set()
+
+    def send_now(self, *message: Any) -> None:
+        """Ahead of anything queued (the e-stop acknowledgement)."""
+        self._send(message)
+
+    def flush(self) -> None:
+        batch: list = []
+        while self._queue:
+            item = self._queue.popleft()
+            if isinstance(item[0], str):
+                self._send_cycles(batch)
+                batch = []
+                self._send(item)
+            else:
+                batch.append(item)
+        self._send_cycles(batch)
+
+    def close(self) -> None:
+        self._stop = True
+        self._wake.set()
+        self._thread.join(5)
+        self.flush()
+
+    def _serve(self) -> None:
+        while not self._stop:
+            self._wake.wait(UPLINK_BATCH_S)
+            self._wake.clear()
+            try:
+                self.flush()
+            except (OSError, ValueError):  # the daemon is gone; the main thread sees it too
+                return
+
+    def _send_cycles(self, batch: list) -> None:
+        if batch:
+            t, sample, move, commanded, measured, error = zip(*batch)
+            self._send(("cycles", np.array(t), np.array(sample), np.array(move),
+                        np.array(commanded), np.array(measured), np.array(error)))
+
+    def _send(self, message: tuple) -> None:
+        with self._lock:
+            self._up.send(message)
+
+
+class _ForwardLogs(logging.Handler):
+    def __init__(self, uplink: _Uplink) -> None:
+        super().__init__(logging.INFO)
+        self.uplink = uplink
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = record.getMessage()
+            if record.exc_info:
+                text += "\n" + logging.Formatter().formatException(record.exc_info)
+            self.uplink.message("log", record.levelno, record.name, text)
+        except Exception:
+            self.handleError(record)
+
+
+class _Host:
+    """The stream process: one run at a time on its run thread; commands on the main thread."""
+
+    def __init__(self, uplink: _Uplink, realtime_priority: int | None) -> None:
+        self.uplink = uplink
+        self.realtime_priority = realtime_priority
+        self._lock = threading.Lock()
+        self.run: Any = None
+        self._pending: list[tuple[str, tuple]] = []  # calls made while the Run was being built
+        self._thread: threading.Thread | None = None
+
+    def serve(self, down: Any) -> None:
+        while True:
+            try:
+                message = down.recv()
+            except (EOFError, OSError):  # the daemon died: ramp down, as on shutdown
+                log.error("the daemon went away: ramping down")
+                self._call("abort")
+                break
+            kind, args = message[0], message[1:]
+            if kind == "run":
+                self._start(*args)
+            elif kind == "estop":
+                unreached = self._call("estop", *args)
+                self.uplink.send_now("estopped", unreached or [])
+            elif kind == "event":
+                name, fields = args
+                run = self.run
+                if run is not None and run.record is not None:
+                    run.record.event(name, **fields)
+            elif kind == "exit":
+                self._call("abort")
+                break
+            else:
+                self._call(kind, *args)
+        if self._thread is not None:
+            self._thread.join()
+
+    def _call(self, name: str, *args: Any) -> Any:
+        with self._lock:
+            if self.run is None:
+                if self._thread is not None and self._thread.is_alive():
+                    self._pending.append((name, args))
+                return None
+            run = self.run
+        return getattr(run, name)(*args)
+
+    def _start(self, plan: Any, rig: RigConfig, runs_dir: str) -> None:
+        with self._lock:
+            self._pending = []
+        self._thread = threading.Thread(target=self._execute, args=(plan, rig, runs_dir),
+                                        name="stream", daemon=True)
+        self._thread.start()
+
+    def _execute(self, plan: Any, rig: RigConfig, runs_dir: str) -> None:
+        try:
+            if self.realtime_priority:
+                make_realtime(self.realtime_priority)
+            run = build_run(
+                plan, rig, runs_dir=runs_dir,
+                on_cycle=lambda k, move, cmd, meas: self.uplink.cycle(
+                    k, move, cmd, meas, run.stream_loop.last_error_s),
+                on_state=lambda state, info: self.uplink.message(
+                    "state", state, info, str(run.record.path) if run.record else None,
+                    run.record.t0 if run.record else None))
+            with self._lock:
+                self.run, pending, self._pending = run, self._pending, []
+            for name, args in pending:  # an e-stop before the run began: it never energises
+                getattr(run, name)(*args)
+            summary = run.execute()
+            self.uplink.message("done", summary)
+        except BaseException as err:  # reported to the daemon, which faults the run
+            log.exception("the run failed")
+            self.uplink.message("failed", type(err).__name__, str(err))
+        finally:
+            with self._lock:
+                self.run = None
+
+
+def host_main(down: Any, up: Any, realtime_priority: int | None) -> None:
+    """The stream process's entry point (spawned by `RunHost`)."""
+    sys.setswitchinterval(1e-4)  # the e-stop on the main thread gets the GIL within 0.1 ms
+    # the daemon decides when to stop: a SIGTERM to the service's whole cgroup or a Ctrl-C to the
+    # terminal's process group must not end a run here without its ramp-down (the daemon sends
+    # "exit", which ramps down; if the daemon itself dies, its pipe closes and we ramp down too)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    uplink = _Uplink(up)
+    root = logging.getLogger()
+    root.handlers[:] = [_ForwardLogs(uplink)]
+    root.setLevel(logging.INFO)
+    host = _Host(uplink, realtime_priority)
+    if realtime_priority:  # the e-stop is taken on this thread: ahead of the stream thread
+        make_realtime(realtime_priority + 1, "stream process's command thread")
+    uplink.message("ready", os.getpid())
+    try:
+        host.serve(down)
+    finally:
+        uplink.close()
+
+
+def make_realtime(priority: int, what: str = "stream thread") -> bool:
+    """SCHED_FIFO for the calling thread (Linux applies it per thread), if permitted. Threads and
+    processes it starts later do not inherit it (SCHED_RESET_ON_FORK): a worker that realizes a
+    plan for seconds must not run at realtime priority because the command thread started it."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK,
+                              os.sched_param(priority))
+        log.info("%s at SCHED_FIFO priority %d", what, priority)
+        return True
+    except (PermissionError, OSError, AttributeError) as err:
+        log.warning("realtime scheduling not permitted for the %s (%s): it runs at normal "
+                    "priority; allow it with LimitRTPRIO= or CAP_SYS_NICE", what, err)
+        return False
+
+
+def realtime_permitted(priority: int) -> bool:
+    """Whether this process may put a thread at SCHED_FIFO `priority` (tried on a thread that
+    ends at once, so no thread of ours changes)."""
+    result: list[bool] = []
+
+    def attempt() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            result.append(True)
+        except (PermissionError, OSError, AttributeError):
+            result.append(False)
+
+    probe = threading.Thread(target=attempt, name="realtime-probe")
+    probe.start()
+    probe.join()
+    return result[0]
