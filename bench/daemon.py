@@ -3,8 +3,10 @@
 The emulated six-coil bench runs in its own process, `rigctl daemon` in another (stream at
 1 kHz), and this process is the operator: it submits a plan of back-and-forth rolling moves and
 measures, while the plan streams,
-- the `status` round trip over tcp loopback (p50, p99, max, microseconds), 200 requests a second,
-  next to the same figures with the daemon idle and for a bare REQ/REP echo (the floor);
+- the `status` round trip over tcp loopback (p50, p99, max, microseconds), 200 requests a second
+  from this process (nothing else in it), next to the same figures with the daemon idle and for a
+  bare REQ/REP echo between two processes (the floor on this machine, now), and which threads
+  ran at SCHED_FIFO (`--realtime`, as the systemd unit gives it);
 - telemetry delivered to 1 and to 10 subscribers: `currents` messages per second per subscriber,
   against the stream rate, and lost `state` / `fault` messages (sequence gaps);
 - e-stop latency: request received by the daemon -> seen by the stream thread -> every supply
@@ -38,7 +40,6 @@ from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.record import read_events
 
 RATE_HZ = 1000.0
-REALTIME_SEEN: list[str] = []  # threads found at SCHED_FIFO while the plan streamed
 
 
 def back_and_forth_plan(moves: int) -> dict:
@@ -117,7 +118,10 @@ def realtime_threads(pid: int) -> list[str]:
 
 
 def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
-              measure_status: bool) -> tuple[dict, dict | None]:
+              measure_status: bool) -> dict:
+    """One run of the plan with `n_subscribers` telemetry subscribers in this process, or (with
+    `measure_status`, and no subscriber here, whose decoding would hold this process's GIL) an
+    operator script polling `status` 200 times a second. What was measured, and the stream."""
     stop = threading.Event()
     subscribers = [Subscriber(endpoints, stop) for _ in range(n_subscribers)]
     for s in subscribers:
@@ -126,11 +130,11 @@ def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
     rig.execute(plan_id)
     rig.wait_state("running")
     time.sleep(0.5)
-    REALTIME_SEEN[:] = realtime_threads(rig.ping()["pid"])
+    realtime = realtime_threads(rig.ping()["pid"])
     start = time.monotonic()
     rtts: list[float] = []
     while rig.status()["state"] in ("running", "paused"):
-        if measure_status:  # an operator script polling hard: 200 requests a second
+        if measure_status:
             t0 = time.perf_counter()
             rig.status()
             rtts.append(time.perf_counter() - t0)
@@ -148,8 +152,10 @@ def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
         raise RuntimeError(f"the benchmark's run did not stream cleanly: {summary['faults']}")
     stream = dict(summary["stream"])
     stream["cycles_per_s"] = stream["cycles"] / summary["duration_s"]
-    status = microseconds(rtts) if rtts else None
-    return delivered_rate(subscribers, (start, end), stream), status
+    if measure_status:
+        return {**microseconds(rtts), "stream_late_share": round(stream["late_share"], 4),
+                "realtime_threads": realtime}
+    return delivered_rate(subscribers, (start, end), stream)
 
 
 def round_trips(call, seconds: float = 4.0, rate_hz: float = 200.0) -> dict:
@@ -264,9 +270,9 @@ def main() -> None:
                 with Rig(endpoints["command"], timeout_s=5.0) as client:
                     plan_id = client.load(back_and_forth_plan(args.moves))
                     idle = round_trips(client.status)
-                    one, status_rtt = timed_run(client, plan_id, 1, endpoints, measure_status=True)
-                    realtime = REALTIME_SEEN
-                    ten, _ = timed_run(client, plan_id, 10, endpoints, measure_status=False)
+                    status_rtt = timed_run(client, plan_id, 0, endpoints, measure_status=True)
+                    one = timed_run(client, plan_id, 1, endpoints, measure_status=False)
+                    ten = timed_run(client, plan_id, 10, endpoints, measure_status=False)
                     estop = estop_latency(client, plan_id, rig.emulation.backdoor, runs)
             finally:
                 proc.terminate()
@@ -277,7 +283,6 @@ def main() -> None:
                     "load_average_1min_before": load_before,
                     "load_average_1min_after": round(os.getloadavg()[0], 2)},
         "stream_rate_hz": RATE_HZ,
-        "realtime_threads": realtime,
         "bare_zmq_req_rep_round_trip": bare,
         "status_round_trip_idle": idle,
         "status_round_trip_while_running": status_rtt,

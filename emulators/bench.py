@@ -99,6 +99,7 @@ class SixCoilBench:
         self.host = host
         self.server = EmulatorServer()
         self.supplies: list[_Supply] = []
+        self._field_matrix: np.ndarray | None = None  # (n_supplies, 3): T per A of each
         self.world: RollingMagnetWorld | PairWorld | None = None
         self.speed = 1.0
         self._lock = threading.Lock()
@@ -196,10 +197,9 @@ class SixCoilBench:
 
     def field_T(self) -> np.ndarray:
         """The field at the workspace centre from the supplies' actual currents, (3,) in tesla."""
-        total = np.zeros(3)
-        for supply in self.supplies:
-            total += supply.field_per_amp_T * supply.model.current_A
-        return total
+        if self._field_matrix is None or len(self._field_matrix) != len(self.supplies):
+            self._field_matrix = np.array([s.field_per_amp_T for s in self.supplies])
+        return np.array([s.model.current_A for s in self.supplies]) @ self._field_matrix
 
     def _fields_at_robots(self) -> np.ndarray:
         """The field each robot feels at its own floor position, (n, 3) T (caller holds the lock)."""

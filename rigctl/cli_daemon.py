@@ -109,7 +109,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
     run = status.get("run")
     if run:
         print(f"run: {run.get('id')} plan {run.get('plan_id')} sample {run['sample']}"
-              f"/{run.get('samples', '?')} move {run['move'] + 1}/{run.get('moves', '?')}")
+              f"/{run.get('samples', '?')} {_step(run)}")
     if status.get("manual_field_mT"):
         print(f"manual field: {status['manual_field_mT']} mT")
     for device in status["devices"]:
@@ -193,7 +193,9 @@ def execute_remote(plan_path: str | Path, endpoint: str, *, json_out: bool = Fal
         except CommandRefused as err:
             return _refused_exit(err)
         if out:
-            print(f"submitted to {endpoint}: plan {loaded}, {started['moves']} moves, "
+            steps = (f"{started['moves']} moves" if "moves" in started
+                     else f"{started.get('segments')} segments")
+            print(f"submitted to {endpoint}: plan {loaded}, {steps}, "
                   f"{started['duration_s']:.1f} s", file=out)
         status = _follow(rig, out, started)
         last = status.get("last_run") or {}
@@ -202,15 +204,33 @@ def execute_remote(plan_path: str | Path, endpoint: str, *, json_out: bool = Fal
     if summary is None:
         print(f"the run ended in state {status['state']} without a summary", file=sys.stderr)
         return EXIT_FAULT
-    from rigctl.execute import AgentResult, RunSummary, format_summary, summary_json_line
-
-    result = RunSummary(**{**summary, "agents": [AgentResult(**a) for a in summary["agents"]]})
-    print(format_summary(result))
-    if json_out:
-        print(summary_json_line(result))
+    result = _print_summary(summary, json_out)
     if result.faults:
         return EXIT_FAULT
     return EXIT_OK if result.reached else EXIT_NOT_REACHED
+
+
+def _print_summary(summary: dict, json_out: bool):
+    """The run's summary as `rigctl execute` prints it for that kind of run; returns it."""
+    from rigctl.execute import AgentResult, RunSummary, format_summary, summary_json_line
+
+    if "tolerance_bl" in summary:  # a pair formation change (rigctl.pair_run)
+        from rigctl.pair_run import PairSummary, format_pair_summary
+
+        result = PairSummary(**summary)
+        print(format_pair_summary(result))
+    else:
+        result = RunSummary(**{**summary, "agents": [AgentResult(**a) for a in summary["agents"]]})
+        print(format_summary(result))
+    if json_out:
+        print(summary_json_line(result))
+    return result
+
+
+def _step(run: dict) -> str:
+    """Where a run is: "move 3/8" for global moves, "segment 2/6" for a pair formation change."""
+    unit = "move" if "moves" in run else "segment"
+    return f"{unit} {run['move'] + 1}/{run.get(unit + 's', '?')}"
 
 
 def _follow(rig, out, started: dict) -> dict:
@@ -226,8 +246,7 @@ def _follow(rig, out, started: dict) -> dict:
         if out is not None and run is not None:
             done = max(0, run["sample"]) / samples
             bar = "#" * int(30 * done) + "-" * (30 - int(30 * done))
-            line = (f"[{bar}] {100 * done:5.1f} %  move {run['move'] + 1}/{run.get('moves')}"
-                    f"  {status['state']}")
+            line = f"[{bar}] {100 * done:5.1f} %  {_step(run)}  {status['state']}"
             if tty:
                 out.write("\r" + line)
                 out.flush()

@@ -34,7 +34,7 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -70,7 +70,7 @@ from rigctl.runhost import (
     realtime_permitted,
 )
 from rigctl.sdnotify import SystemdNotifier
-from rigctl.telemetry import CycleSample, TelemetryPublisher
+from rigctl.telemetry import CycleBatch, CycleSample, TelemetryPublisher
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +134,9 @@ class RunFactory(Protocol):
 
     def prepare(self, plan: Any, rig: RigConfig, *, runs_dir: Path,
                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None],
+                on_cycles: Callable[[CycleBatch], None],
                 on_state: Callable[[Any, dict], None]) -> RunLike: ...
+    # a run calls on_cycle after every stream cycle, or on_cycles with several (t: monotonic)
 
 
 class PlanRuns:
@@ -162,9 +164,9 @@ class PlanRuns:
                             "(with the daemon stopped: it holds the devices)")
         return plan
 
-    def prepare(self, plan, rig, *, runs_dir, on_cycle, on_state) -> RunLike:
+    def prepare(self, plan, rig, *, runs_dir, on_cycle, on_cycles, on_state) -> RunLike:
         local = build_run(plan, rig, runs_dir=runs_dir)
-        return RemoteRun(self.host, local, on_cycle=on_cycle, on_state=on_state)
+        return RemoteRun(self.host, local, on_cycles=on_cycles, on_state=on_state)
 
 
 @dataclass(frozen=True)
@@ -684,7 +686,8 @@ class Daemon:
 
     def _prepare(self, plan: Any) -> RunLike:
         return self.factory.prepare(plan, self.rig, runs_dir=self.runs_dir,
-                                    on_cycle=self._on_cycle, on_state=self._on_run_state)
+                                    on_cycle=self._on_cycle, on_cycles=self._on_cycles,
+                                    on_state=self._on_run_state)
 
     def _cmd_execute(self, args: Any) -> dict:
         with self._lock:
@@ -855,11 +858,20 @@ class Daemon:
             self._agents_stop.set()
             self._wakeup.wake()
 
-    def _on_cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray,
-                  t: float | None = None) -> None:
-        """One stream cycle (`t`: when it ran, `time.monotonic()`; default now)."""
+    def _on_cycles(self, batch: CycleBatch) -> None:
+        """Cycles a run in the stream process ran (`t` on `time.monotonic()`), about every 10 ms:
+        one append for the publisher, so this thread holds the GIL for microseconds."""
         active = self._active
-        now = time.monotonic() if t is None else t
+        if active is not None:
+            active.sample, active.move = int(batch.sample[-1]), int(batch.move[-1])
+            active.last_cycle = float(batch.t[-1])
+        if self.publisher is not None:
+            self.publisher.offer_cycles(replace(batch, t=batch.t - self.t0))
+
+    def _on_cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray) -> None:
+        """One stream cycle of a run on a thread of this process (a manual field)."""
+        active = self._active
+        now = time.monotonic()
         if active is not None:
             active.sample, active.move, active.last_cycle = sample, move, now
         if self.publisher is not None:
@@ -904,8 +916,9 @@ class Daemon:
         from rigctl.emulators.backdoor import BackdoorClient
 
         self._agents_stop.clear()
-        expected = getattr(active.job.plan, "expected", None)  # a pair plan has none per move
-        starts = [list(a.start) for a in active.job.plan.agents] if expected is not None else []
+        plan = active.job.plan
+        expected = plan.expected if plan.kind == "global-moves" else None  # positions per move
+        starts = [list(a.start) for a in plan.agents] if expected is not None else []
         try:
             with BackdoorClient(self.rig.emulation.backdoor, timeout_s=1.0) as backdoor:
                 while not self._agents_stop.wait(1.0 / AGENTS_HZ) and self._active is active:

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
@@ -582,5 +582,6 @@ def format_summary(summary: RunSummary) -> str:
     return "\n".join(lines)
 
 
-def summary_json_line(summary: RunSummary) -> str:
+def summary_json_line(summary: RunSummary | Any) -> str:
+    """Any run's summary (anything with `as_dict`) as the one JSON line `--json` prints."""
     return json.dumps(summary.as_dict(), separators=(",", ":"))

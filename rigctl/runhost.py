@@ -14,14 +14,16 @@ The host process is spawned when the daemon starts (its imports take about a sec
 another. `RemoteRun` is what the daemon holds: it has the `Run` interface (`execute`, `pause`,
 `resume`, `abort`, `estop`, `plan`, `record`, `stream_loop`) and forwards each call.
 
-Messages are pickled tuples over two one-way `multiprocessing` pipes:
+Messages are pickled tuples over one-way pipes (`multiprocessing.connection.Connection`):
 
     daemon -> host   ("run", plan, rig, runs_dir)   ("pause", immediate)
                      ("resume",)  ("abort",)  ("estop", asked_at)  ("event", name, fields)
                      ("exit",)
-    host -> daemon   ("ready", pid)   ("cycles", t, sample, move, commanded, measured, error)
-                     ("state", state, info, record_path, record_t0)   ("estopped", unreached)
+    host -> daemon   ("ready", pid)   ("cycles", *CycleBatch fields; t on `time.monotonic()`)
+                     ("state", state, info, record_path, record_t0)
                      ("done", summary)   ("failed", kind, message)   ("log", level, name, text)
+    host -> daemon   (asked_at, unreached), the e-stop's answer, on a pipe of its own that the
+                     daemon's command thread reads itself
 
 Times are `time.monotonic()`, one clock for both processes on Linux, so `asked_at` (when the
 daemon took the e-stop) is measured against the host's own clock in the run record.
@@ -37,14 +39,14 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
 import os
-import queue
 import signal
+import subprocess
 import sys
 import threading
 import time
 from collections import deque
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +55,7 @@ import numpy as np
 from rigctl.config import RigConfig
 from rigctl.devices import zero_supplies_directly
 from rigctl.errors import RigError
+from rigctl.telemetry import CycleBatch
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +111,7 @@ class RunHost:
         self._lock = threading.Lock()  # one sender at a time on the pipe; the process handles
         self._process: Any = None
         self._down: Any = None
+        self._acks: Any = None  # e-stop acknowledgements, read by whoever sent the e-stop
         self._ready = threading.Event()
         self._current: RemoteRun | None = None
         self._closing = False
@@ -115,21 +119,28 @@ class RunHost:
     def start(self) -> None:
         """Spawn the process now (it imports in the background; `submit` waits for it)."""
         with self._lock:
-            if self._process is None or not self._process.is_alive():
+            if self._process is None or self._process.poll() is not None:
                 self._spawn()
 
     def _spawn(self) -> None:
-        ctx = multiprocessing.get_context("spawn")
-        down_read, down_write = ctx.Pipe(duplex=False)
-        up_read, up_write = ctx.Pipe(duplex=False)
-        process = ctx.Process(target=host_main, args=(down_read, up_write, self.realtime_priority),
-                              name="rigctl-stream", daemon=True)
-        process.start()
-        down_read.close()
-        up_write.close()
-        self._process, self._down = process, down_write
+        # a plain `python -m rigctl.runhost` with the pipes' ends passed down, not
+        # multiprocessing's spawn, which imports the parent's main module again in the child
+        # (a script embedding the daemon without an `if __name__ == "__main__"` guard would
+        # start itself over)
+        down_read, down_write = os.pipe()
+        up_read, up_write = os.pipe()
+        ack_read, ack_write = os.pipe()
+        process = subprocess.Popen(
+            [sys.executable, "-m", "rigctl.runhost", str(down_read), str(up_write),
+             str(ack_write), str(self.realtime_priority or 0)],
+            pass_fds=(down_read, up_write, ack_write), stdin=subprocess.DEVNULL)
+        for fd in (down_read, up_write, ack_write):
+            os.close(fd)
+        self._process, self._down = process, Connection(down_write, readable=False)
+        self._acks = Connection(ack_read, writable=False)
         ready = self._ready = threading.Event()
-        threading.Thread(target=self._read, args=(process, up_read, ready),
+        threading.Thread(target=self._read, args=(process, Connection(up_read, writable=False),
+                                                  ready),
                          name="runhost-reader", daemon=True).start()
         log.info("stream process %d started", process.pid)
 
@@ -138,7 +149,7 @@ class RunHost:
         with self._lock:
             if self._closing:
                 raise HostGone("the daemon is shutting down")
-            if self._process is None or not self._process.is_alive():
+            if self._process is None or self._process.poll() is not None:
                 self._spawn()
             ready = self._ready
         if not ready.wait(START_TIMEOUT_S):
@@ -146,8 +157,16 @@ class RunHost:
         with self._lock:
             if self._current is not None:
                 raise HostGone("the stream process is still running another plan")
+            if self._down is None:
+                raise HostGone("the stream process exited as it started: see the daemon's log")
             self._current = run
-        self.send("run", run.plan, run.rig, str(run.runs_dir))
+        try:
+            self.send("run", run.plan, run.rig, str(run.runs_dir))
+        except HostGone:
+            with self._lock:
+                if self._current is run:
+                    self._current = None
+            raise
         run._sent()
 
     def send(self, *message: Any) -> None:
@@ -159,10 +178,25 @@ class RunHost:
             except (OSError, ValueError) as err:
                 raise HostGone(f"the stream process is gone ({err})") from None
 
+    def estop_ack(self, asked_at: float, timeout_s: float) -> list[str] | None:
+        """The stream process's answer to the e-stop asked at `asked_at`: the supplies it could
+        not reach; None if none came within `timeout_s`. Read on the calling thread (the
+        daemon's command thread), not the reader, so the reply waits for no other thread."""
+        acks = self._acks
+        deadline = time.monotonic() + timeout_s
+        try:
+            while acks is not None and acks.poll(max(0.0, deadline - time.monotonic())):
+                token, unreached = acks.recv()
+                if token == asked_at:
+                    return unreached  # (an older e-stop's late answer is passed over)
+        except (EOFError, OSError):
+            pass
+        return None
+
     def kill(self) -> None:
         """For a host that stopped answering: SIGKILL (its reader then reports the loss)."""
         process = self._process
-        if process is not None and process.is_alive():
+        if process is not None and process.poll() is None:
             log.error("stream process %d is not answering: killing it", process.pid)
             process.kill()
 
@@ -177,10 +211,11 @@ class RunHost:
             self.send("exit")
         except HostGone:
             pass
-        process.join(timeout_s)
-        if process.is_alive():
+        try:
+            process.wait(timeout_s)
+        except subprocess.TimeoutExpired:
             process.kill()
-            process.join(5)
+            process.wait(5)
 
     @property
     def pid(self) -> int | None:
@@ -210,18 +245,24 @@ class RunHost:
         except (EOFError, OSError):
             pass
         finally:
+            ready.set()  # a `submit` waiting for a process that died starting finds it gone
             up.close()
-            process.join(5)
+            try:
+                process.wait(5)
+            except subprocess.TimeoutExpired:  # its pipe closed but it lingers: it is lost anyway
+                process.kill()
+                process.wait(5)
             with self._lock:
                 if self._process is process:
                     self._down.close()
-                    self._process, self._down = None, None
+                    self._acks.close()
+                    self._process, self._down, self._acks = None, None, None
                 run, self._current = self._current, None
             if run is not None:
-                run._host_lost(process.exitcode)
+                run._host_lost(process.returncode)
             elif not self._closing:
                 log.warning("stream process %d exited (code %s); the next run starts another",
-                            process.pid, process.exitcode)
+                            process.pid, process.returncode)
 
 
 class _LoopView:
@@ -252,17 +293,16 @@ class RemoteRun:
     before anything else happened and tells the plan's size. The host prepares its own copy from
     the same plan and rig (deterministic, so the same program) and streams that."""
 
-    def __init__(self, host: RunHost, local: Any, *, on_cycle: Any, on_state: Any) -> None:
+    def __init__(self, host: RunHost, local: Any, *, on_cycles: Any, on_state: Any) -> None:
         self._host = host
         self.plan, self.rig, self.runs_dir = local.plan, local.rig, local.runs_dir
         self.info = describe_run(local)
-        self.on_cycle, self.on_state = on_cycle, on_state
+        self.on_cycles, self.on_state = on_cycles, on_state
         self.record: _RecordView | None = None
         self.stream_loop = _LoopView()
         self._done = threading.Event()
         self._result: Any = None
         self._error: Exception | None = None
-        self._estop_acks: queue.SimpleQueue = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._submitted = False
         self._early: list[tuple] = []  # control calls made before the host had the run
@@ -292,10 +332,14 @@ class RemoteRun:
         try:
             if not self._control("estop", asked):
                 return []
-            return self._estop_acks.get(timeout=ESTOP_ACK_S)
-        except (HostGone, queue.Empty):
+        except HostGone:
+            unreached = None
+        else:
+            unreached = self._host.estop_ack(asked, ESTOP_ACK_S)
+        if unreached is None:
             self._host.kill()
-            return [name for name, err in zero_supplies_directly(self.rig).items() if err]
+            unreached = [name for name, err in zero_supplies_directly(self.rig).items() if err]
+        return unreached
 
     def _control(self, *message: Any) -> bool:
         """Send a control message; before the run is with the host, keep it for `_sent`."""
@@ -317,17 +361,15 @@ class RemoteRun:
     def _receive(self, message: tuple) -> None:
         kind = message[0]
         if kind == "cycles":
-            _, t, sample, move, commanded, measured, error = message
-            for i in range(len(sample)):
-                self.stream_loop.last_error_s = None if np.isnan(error[i]) else float(error[i])
-                self.on_cycle(int(sample[i]), int(move[i]), commanded[i], measured[i], t=t[i])
+            batch = CycleBatch(*message[1:])
+            error = float(batch.period_error_s[-1])
+            self.stream_loop.last_error_s = None if np.isnan(error) else error
+            self.on_cycles(batch)
         elif kind == "state":
             _, state, info, path, t0 = message
             if self.record is None and path is not None:
                 self.record = _RecordView(path, t0, self._host)
             self.on_state(state, info)
-        elif kind == "estopped":
-            self._estop_acks.put(message[1])
         elif kind == "done":
             self._result = message[1]
             self._done.set()
@@ -378,9 +420,6 @@ class _Uplink:
         self._queue.append(message)
         self._wake.set()
 
-    def send_now(self, *message: Any) -> None:
-        """Ahead of anything queued (the e-stop acknowledgement)."""
-        self._send(message)
 
     def flush(self) -> None:
         batch: list = []
@@ -438,8 +477,9 @@ class _ForwardLogs(logging.Handler):
 class _Host:
     """The stream process: one run at a time on its run thread; commands on the main thread."""
 
-    def __init__(self, uplink: _Uplink, realtime_priority: int | None) -> None:
+    def __init__(self, uplink: _Uplink, acks: Any, realtime_priority: int | None) -> None:
         self.uplink = uplink
+        self.acks = acks
         self.realtime_priority = realtime_priority
         self._lock = threading.Lock()
         self.run: Any = None
@@ -459,7 +499,7 @@ class _Host:
                 self._start(*args)
             elif kind == "estop":
                 unreached = self._call("estop", *args)
-                self.uplink.send_now("estopped", unreached or [])
+                self.acks.send((args[0], unreached or []))  # the daemon waits for this
             elif kind == "event":
                 name, fields = args
                 run = self.run
@@ -514,7 +554,7 @@ class _Host:
                 self.run = None
 
 
-def host_main(down: Any, up: Any, realtime_priority: int | None) -> None:
+def host_main(down: Any, up: Any, acks: Any, realtime_priority: int | None) -> None:
     """The stream process's entry point (spawned by `RunHost`)."""
     sys.setswitchinterval(1e-4)  # the e-stop on the main thread gets the GIL within 0.1 ms
     # the daemon decides when to stop: a SIGTERM to the service's whole cgroup or a Ctrl-C to the
@@ -526,7 +566,7 @@ def host_main(down: Any, up: Any, realtime_priority: int | None) -> None:
     root = logging.getLogger()
     root.handlers[:] = [_ForwardLogs(uplink)]
     root.setLevel(logging.INFO)
-    host = _Host(uplink, realtime_priority)
+    host = _Host(uplink, acks, realtime_priority)
     if realtime_priority:  # the e-stop is taken on this thread: ahead of the stream thread
         make_realtime(realtime_priority + 1, "stream process's command thread")
     uplink.message("ready", os.getpid())
@@ -567,3 +607,9 @@ def realtime_permitted(priority: int) -> bool:
     probe.start()
     probe.join()
     return result[0]
+
+
+if __name__ == "__main__":  # python -m rigctl.runhost DOWN_FD UP_FD ACK_FD PRIORITY (RunHost._spawn)
+    host_main(Connection(int(sys.argv[1]), writable=False),
+              Connection(int(sys.argv[2]), readable=False),
+              Connection(int(sys.argv[3]), readable=False), int(sys.argv[4]) or None)

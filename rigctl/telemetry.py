@@ -60,6 +60,39 @@ class CycleSample:
     period_error_s: float | None = None
 
 
+@dataclass(frozen=True)
+class CycleBatch:
+    """Stream cycles, a row each: `t` (n,) s on the publisher's clock, `sample` and `move` (n,),
+    `commanded_A` and `measured_A` (n, n_coils), `period_error_s` (n,), NaN where unknown. How a
+    run in another process hands its cycles over (`offer_cycles`)."""
+
+    t: np.ndarray
+    sample: np.ndarray
+    move: np.ndarray
+    commanded_A: np.ndarray
+    measured_A: np.ndarray
+    period_error_s: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @staticmethod
+    def of(samples: list[CycleSample]) -> "CycleBatch":
+        return CycleBatch(
+            np.array([s.t for s in samples]), np.array([s.sample for s in samples]),
+            np.array([s.move for s in samples]), np.array([s.commanded_A for s in samples]),
+            np.array([s.measured_A for s in samples]),
+            np.array([np.nan if s.period_error_s is None else s.period_error_s for s in samples]))
+
+    @staticmethod
+    def joined(batches: list["CycleBatch"]) -> "CycleBatch":
+        if len(batches) == 1:
+            return batches[0]
+        return CycleBatch(*(np.concatenate([getattr(b, f) for b in batches])
+                            for f in ("t", "sample", "move", "commanded_A", "measured_A",
+                                      "period_error_s")))
+
+
 @dataclass
 class PublisherStats:
     dropped: int = 0  # samples dropped from the in-memory queue (publisher too slow)
@@ -102,8 +135,8 @@ class TelemetryPublisher:
         self.events_endpoint = self._events.getsockopt_string(zmq.LAST_ENDPOINT)
         self.batch_s = batch_s
         self._cond = threading.Condition()
-        self._samples: deque[CycleSample] = deque(maxlen=queue_samples)
-        self._offered = 0  # written by the stream thread only
+        self._samples: deque[CycleSample | CycleBatch] = deque(maxlen=queue_samples)
+        self._offered = 0  # cycles; written by the one thread that offers
         self._consumed = 0
         self._pending_reset: float | None = None
         self._priority: deque[tuple[str, BaseModel]] = deque(maxlen=EVENTS_SEND_HWM)
@@ -156,6 +189,11 @@ class TelemetryPublisher:
         self._samples.append(sample)
         self._offered += 1
 
+    def offer_cycles(self, batch: CycleBatch) -> None:
+        """Many cycles at once (from the thread that reads a stream process): an append too."""
+        self._samples.append(batch)
+        self._offered += len(batch)
+
     def publish_event(self, topic: Topic, **fields: object) -> None:
         """state, fault or log: queued ahead of every sample, sent on the events socket."""
         with self._cond:
@@ -191,13 +229,24 @@ class TelemetryPublisher:
                 self._send(topic, msg)
             if time.monotonic() >= next_batch or stopping:
                 next_batch = time.monotonic() + self.batch_s
-                batch = []
+                singles: list[CycleSample] = []
+                chunks: list[CycleBatch] = []
                 while self._samples:
-                    batch.append(self._samples.popleft())
-                self._consumed += len(batch)
-                self.stats.dropped = self._offered - self._consumed - len(self._samples)
-                if batch:
-                    self._publish_batch(batch)
+                    item = self._samples.popleft()
+                    if isinstance(item, CycleBatch):
+                        if singles:
+                            chunks.append(CycleBatch.of(singles))
+                            singles = []
+                        chunks.append(item)
+                    else:
+                        singles.append(item)
+                if singles:
+                    chunks.append(CycleBatch.of(singles))
+                self._consumed += sum(len(c) for c in chunks)
+                queued = sum(len(c) if isinstance(c, CycleBatch) else 1 for c in list(self._samples))
+                self.stats.dropped = self._offered - self._consumed - queued
+                if chunks:
+                    self._publish_batch(CycleBatch.joined(chunks))
             if stopping:
                 return
 
@@ -209,45 +258,45 @@ class TelemetryPublisher:
         except zmq.Again:  # PUB drops rather than blocks; kept for completeness
             log.debug("telemetry %s dropped", topic)
 
-    def _publish_batch(self, batch: list[CycleSample]) -> None:
+    def _publish_batch(self, batch: CycleBatch) -> None:
         if self._pending_reset is not None:
             self._rate_hz, self._pending_reset = self._pending_reset, None
             self._errors.clear()
             self._late = self._cycles = 0
-        errors = [s.period_error_s for s in batch if s.period_error_s is not None]
-        self._errors.extend(errors)
+        errors = batch.period_error_s[~np.isnan(batch.period_error_s)]
+        self._errors.extend(errors.tolist())
         self._cycles += len(batch)
         if self._rate_hz:
-            self._late += sum(e > 0.5 / self._rate_hz for e in errors)
-        kept = batch
+            self._late += int(np.count_nonzero(errors > 0.5 / self._rate_hz))
+        kept = np.arange(len(batch))
         if self.currents_period > 0:
-            kept = []
-            for s in batch:
-                if s.t - self._last_sent["currents"] >= self.currents_period:
-                    self._last_sent["currents"] = s.t
-                    kept.append(s)
-        if kept:
-            commanded = np.array([s.commanded_A for s in kept]).round(5)
-            measured = np.array([s.measured_A for s in kept]).round(5)
+            chosen = []
+            for i, t in enumerate(batch.t.tolist()):
+                if t - self._last_sent["currents"] >= self.currents_period:
+                    self._last_sent["currents"] = t
+                    chosen.append(i)
+            kept = np.array(chosen, dtype=int)
+        if kept.size:
             self._send("currents", CurrentsMsg.model_construct(
-                seq=self._next_seq(Topic.CURRENTS), t=kept[-1].t, topic="currents",
-                coils=self.coil_names, times=[round(s.t, 6) for s in kept],
-                samples=[s.sample for s in kept], moves=[s.move for s in kept],
-                commanded_A=commanded.tolist(), measured_A=measured.tolist()))
-        last = batch[-1]
-        if self.actuation is not None and last.t - self._last_sent["field"] >= self.field_period:
-            self._last_sent["field"] = last.t
+                seq=self._next_seq(Topic.CURRENTS), t=float(batch.t[kept[-1]]), topic="currents",
+                coils=self.coil_names, times=batch.t[kept].round(6).tolist(),
+                samples=batch.sample[kept].tolist(), moves=batch.move[kept].tolist(),
+                commanded_A=batch.commanded_A[kept].round(5).tolist(),
+                measured_A=batch.measured_A[kept].round(5).tolist()))
+        t_last, commanded, measured = float(batch.t[-1]), batch.commanded_A[-1], batch.measured_A[-1]
+        if self.actuation is not None and t_last - self._last_sent["field"] >= self.field_period:
+            self._last_sent["field"] = t_last
             self._send("field", FieldMsg(
-                seq=self._next_seq(Topic.FIELD), t=last.t,
-                commanded_mT=(self.actuation @ last.commanded_A * 1e3).round(6).tolist(),
-                measured_mT=(self.actuation @ last.measured_A * 1e3).round(6).tolist()))
-        if last.t - self._last_sent["stream"] >= self.stream_period:
-            self._last_sent["stream"] = last.t
+                seq=self._next_seq(Topic.FIELD), t=t_last,
+                commanded_mT=(self.actuation @ commanded * 1e3).round(6).tolist(),
+                measured_mT=(self.actuation @ measured * 1e3).round(6).tolist()))
+        if t_last - self._last_sent["stream"] >= self.stream_period:
+            self._last_sent["stream"] = t_last
             recent = np.asarray(self._errors) * 1e6
             p50, p99, worst = ((np.percentile(recent, 50), np.percentile(recent, 99), recent.max())
                                if recent.size else (0.0, 0.0, 0.0))
             self._send("stream", StreamMsg(
-                seq=self._next_seq(Topic.STREAM), t=last.t, rate_hz=self._rate_hz,
+                seq=self._next_seq(Topic.STREAM), t=t_last, rate_hz=self._rate_hz,
                 cycles=self._cycles, late_cycles=self._late,
                 period_error_p50_us=round(float(p50), 1), period_error_p99_us=round(float(p99), 1),
                 period_error_max_us=round(float(worst), 1), dropped_samples=self.stats.dropped))

@@ -18,9 +18,13 @@ would, so watchdog paths can be tested without waiting.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 from collections import deque
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 from rigctl.errors import DeviceTimeout, Disconnected, ProtocolError
 
@@ -141,3 +145,31 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 20.0, what: str =
             return
         time.sleep(0.01)
     raise AssertionError(f"timed out waiting for {what}")
+
+
+# -- end-to-end helpers ----------------------------------------------------------------------------
+
+def run_rigctl(*args: str, cwd: str | Path, timeout_s: float = 600.0,
+               **kwargs: Any) -> subprocess.CompletedProcess:
+    """`rigctl ARGS` in a fresh interpreter, as a user types it; output captured as text unless
+    `stdout`/`stderr` say where it goes."""
+    if "stdout" not in kwargs and "stderr" not in kwargs:
+        kwargs["capture_output"] = True
+    return subprocess.run([sys.executable, "-m", "rigctl", *args], check=False, cwd=cwd, text=True,
+                          timeout=timeout_s, **kwargs)
+
+
+PAIR_WORKSPACE = Path(__file__).resolve().parents[1] / "plans" / "examples" / \
+    "pair-formation-change-workspace.json"
+
+
+def plan_pair(folder: Path, *, goal: str, hold_s: float, start: str = "8,7,2,0",
+              seed: int = 2) -> Path:
+    """A pair-formation plan made by `rigctl plan pair` in the example workspace (x, y, separation
+    in body lengths and heading in degrees for `start` and `goal`); its path."""
+    plan = folder / "short.json"
+    result = run_rigctl("plan", "pair", "--workspace", str(PAIR_WORKSPACE), "--start", start,
+                        "--goal", goal, "--seed", str(seed), "--hold", str(hold_s), "-o", str(plan),
+                        "--json", cwd=folder)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return plan

@@ -161,6 +161,7 @@ class BopScpi:
             "*OPC": (lambda: None, lambda: "1"),
             "*STB": (None, self._status_byte),
         }
+        self._resolved: dict[tuple[str, ...], _Command] = {}
         self._commands = [
             _Command(_parse_pattern("[SOURce] FUNCtion MODE"), self._set_mode,
                      lambda: "1" if self.model.mode == "CURR" else "0"),
@@ -228,6 +229,20 @@ class BopScpi:
                     break  # a command error discards the rest of the message
         return ";".join(responses) if responses else None
 
+    def _resolve(self, full: tuple[str, ...]) -> _Command:
+        """The command a full header names; remembered, as a device's parser would have it
+        compiled (a stream sends the same two headers a thousand times a second)."""
+        command = self._resolved.get(full)
+        if command is None:
+            if any(not re.fullmatch(r"[A-Z][A-Z0-9]*", w) for w in full):
+                raise _ScpiError(*SYNTAX_ERROR)
+            command = next((c for c in self._commands if _matches(c.pattern, list(full))), None)
+            if command is None:
+                raise _ScpiError(*UNDEFINED_HEADER)
+            if len(self._resolved) < 256:  # bounded: a client sending random headers
+                self._resolved[full] = command
+        return command
+
     def _execute(self, unit: str, path: list[str], responses: list[str]) -> list[str]:
         if not unit:
             raise _ScpiError(*SYNTAX_ERROR)
@@ -241,13 +256,8 @@ class BopScpi:
             return self._common_command(header, is_query, parameter, responses, path)
         if header.startswith(":"):
             path, header = [], header[1:]
-        words = header.split(":")
-        if any(not re.fullmatch(r"[A-Z][A-Z0-9]*", w) for w in words):
-            raise _ScpiError(*SYNTAX_ERROR)
-        full = path + words
-        command = next((c for c in self._commands if _matches(c.pattern, full)), None)
-        if command is None:
-            raise _ScpiError(*UNDEFINED_HEADER)
+        full = path + header.split(":")
+        command = self._resolve(tuple(full))
         if is_query:
             if command.query is None:
                 raise _ScpiError(*UNDEFINED_HEADER)

@@ -211,7 +211,8 @@ class RollingMagnetWorld:
         b = np.asarray(field_T, dtype=float)
         n = len(self._positions_mm)
         if b.ndim == 1:
-            b = np.broadcast_to(b, (n, 3))
+            self._feel_uniform(b)
+            return
         magnitude = np.linalg.norm(b, axis=1)
         follows = magnitude >= self.min_field_T
         if not follows.any():
@@ -240,8 +241,42 @@ class RollingMagnetWorld:
         d_alpha = np.zeros(n)
         d_alpha[rolling] = (angle[rolling] - self._roll_angle[rolling] + math.pi) % (2 * math.pi) - math.pi
         self._roll_angle[live] = angle[live]
+        self._roll(d_alpha)
+
+    def _feel_uniform(self, b: np.ndarray) -> None:
+        """`feel` for one field felt by every robot: the same steps as the general case, robot by
+        robot in scalars (the bench calls this every simulated millisecond; with a few robots,
+        numpy's per-call cost was most of the bench's CPU)."""
+        bx, by, bz = b.tolist()
+        magnitude = math.sqrt(bx * bx + by * by + bz * bz)
+        if magnitude < self.min_field_T:
+            return
+        bx, by, bz = bx / magnitude, by / magnitude, bz / magnitude
+        h_norm = math.hypot(bx, by)
+        axes, has_axis, roll_angle = self._axes, self._has_axis, self._roll_angle
+        n = len(axes)
+        if h_norm > 1e-6:
+            ux, uy = -by / h_norm, bx / h_norm  # perpendicular to B, horizontal: along z x B_h
+            for i in range(n):
+                sign = -1.0 if has_axis[i] and ux * axes[i, 0] + uy * axes[i, 1] < 0 else 1.0
+                axes[i, 0], axes[i, 1] = sign * ux, sign * uy  # symmetric: keep the sign
+                has_axis[i] = True
+        d_alpha = np.zeros(n)
+        for i in range(n):
+            if not has_axis[i]:
+                continue  # a vertical first field says nothing about the axis yet
+            ux, uy = axes[i, 0], axes[i, 1]
+            angle = math.atan2(bz, bx * -uy + by * ux)  # B's angle in the (v, z) plane, v = z x u
+            if not math.isnan(roll_angle[i]):
+                d_alpha[i] = (angle - roll_angle[i] + math.pi) % (2 * math.pi) - math.pi
+            roll_angle[i] = angle  # the first field aligns them without rolling
+        self._roll(d_alpha)
+
+    def _roll(self, d_alpha: np.ndarray) -> None:
+        """Roll each robot by d_alpha (n,) rad about its axis."""
         if not d_alpha.any():
             return
+        u = self._axes
         self.rolled_rad += d_alpha
         # centre velocity of a cylinder rolling about +u: omega * R * (u x z) = R * (u_y, -u_x)
         step = (self.distance_scale * self.rolling_radius_mm * d_alpha)[:, None] * np.stack(

@@ -4,32 +4,21 @@ held, closed loop; open-loop playback; a plan the coils cannot pull refused befo
 """
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from rigctl.testing import plan_pair, run_rigctl
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"
 WORKSPACE = EXAMPLES / "pair-formation-change-workspace.json"
 
 
-def rigctl(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "rigctl", *args], cwd=cwd, capture_output=True,
-                          text=True, timeout=300)
-
-
 @pytest.fixture(scope="module")
 def short_plan(tmp_path_factory):
     """A short formation change: 2 BL side by side -> 2.6 BL at 60 degrees, 1.5 mm further on."""
-    folder = tmp_path_factory.mktemp("pair")
-    plan = folder / "short.json"
-    result = rigctl("plan", "pair", "--workspace", str(WORKSPACE), "--start", "8,7,2,0",
-                    "--goal", "9.5,7.5,2.6,60", "--seed", "2", "--hold", "1.5", "-o", str(plan),
-                    "--json", cwd=folder)
-    assert result.returncode == 0, result.stdout + result.stderr
-    return plan
+    return plan_pair(tmp_path_factory.mktemp("pair"), goal="9.5,7.5,2.6,60", hold_s=1.5)
 
 
 def summary_of(result):
@@ -37,7 +26,7 @@ def summary_of(result):
 
 
 def test_closed_loop_reaches_and_holds_the_goal_formation(short_plan, tmp_path):
-    result = rigctl("execute", str(short_plan), "--json", "--runs", str(tmp_path / "runs"),
+    result = run_rigctl("execute", str(short_plan), "--json", "--runs", str(tmp_path / "runs"),
                     cwd=tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
     s = summary_of(result)
@@ -60,7 +49,7 @@ def test_closed_loop_reaches_and_holds_the_goal_formation(short_plan, tmp_path):
 
 
 def test_open_loop_plays_the_plan_back(short_plan, tmp_path):
-    result = rigctl("execute", str(short_plan), "--open-loop", "--json", "--runs",
+    result = run_rigctl("execute", str(short_plan), "--open-loop", "--json", "--runs",
                     str(tmp_path / "runs"), cwd=tmp_path)
     assert result.returncode in (0, 1), result.stdout + result.stderr
     s = summary_of(result)
@@ -74,7 +63,7 @@ def test_a_pull_beyond_the_coils_is_refused_before_a_bench_starts(short_plan, tm
     plan["max_pull_bl_s"] = 5.0
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(plan))
-    result = rigctl("execute", str(bad), "--runs", str(tmp_path / "runs"), cwd=tmp_path)
+    result = run_rigctl("execute", str(bad), "--runs", str(tmp_path / "runs"), cwd=tmp_path)
     assert result.returncode == 2
     assert "BL/s" in result.stderr and "re-plan" in result.stderr
     assert "starting the emulated" not in result.stderr

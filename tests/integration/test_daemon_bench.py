@@ -18,6 +18,7 @@ from rigctl.daemon import Daemon
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.record import read_events, read_stream
+from rigctl.testing import plan_pair
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 
@@ -279,3 +280,50 @@ def test_manual_field_matches_the_closed_form_and_limits_are_enforced(rig, bench
     status = wait_run_over(rig)
     assert status["manual_field_mT"] is None
     assert all(not s.model.output_on for s in bench.supplies)
+
+
+# -- a pair formation change through the daemon (seed 002): the bench in the pair world --------------
+
+@pytest.fixture
+def pair_daemon(tmp_path):
+    with SixCoilBench(world="pair") as pair_bench:
+        d = Daemon(pair_bench.rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
+                   events="tcp://127.0.0.1:0", runs_dir=tmp_path / "runs")
+        d.start_thread()
+        try:
+            yield d, pair_bench
+        finally:
+            d.stop()
+
+
+def test_a_pair_formation_change_runs_through_the_daemon_with_a_pause(pair_daemon, tmp_path):
+    daemon, pair_bench = pair_daemon
+    plan_file = plan_pair(tmp_path, goal="8.8,7.3,2.3,40", hold_s=0.5)
+    source = json.loads(plan_file.read_text())
+    with Rig(daemon.endpoints.command, timeout_s=5.0) as rig, rig.telemetry(["agents"]) as feed:
+        loaded = rig.request("load", plan=source)
+        assert loaded["segments"] == len(source["segments"])
+        rig.execute(loaded["plan_id"])
+        wait_streaming(rig)
+        rig.pause(immediate=True)
+        assert rig.wait_state("paused", timeout_s=10)["run"]["segments"] == loaded["segments"]
+        deadline, agents = time.monotonic() + 5, None
+        while time.monotonic() < deadline and (agents is None or not agents.tracked_mm):
+            agents = feed.receive(timeout_s=1)  # the first may predate the agents' placing
+        assert agents is not None and len(agents.tracked_mm) == 2 and agents.expected_mm is None
+        rig.resume()
+        status = wait_run_over(rig, timeout_s=120)
+        assert status["state"] == "idle", status
+        summary = rig.run(Path(status["last_run"]["run"]).name)["summary"]
+    assert summary["reached"] is True and summary["faults"] == []
+    events = [e["event"] for e in read_events(Path(status["last_run"]["run"]))]
+    assert "pause" in events and "pause_end" in events
+    # where the emulated world left the agents: the plan's goal formation (centre, separation)
+    goal, body = source["goal"], source["agents"]["body_diameter_mm"]
+    with BackdoorClient(pair_bench.rig.emulation.backdoor) as backdoor:
+        truth = np.array(backdoor.request("truth")["agents"])
+    centre, separation = truth.mean(axis=0), np.hypot(*(truth[1] - truth[0]))
+    slack = 2 * summary["tolerance_bl"] * body  # the field ramps down after the hold: they drift
+    assert np.hypot(centre[0] - goal["x_mm"], centre[1] - goal["y_mm"]) < slack
+    assert abs(separation - goal["r_bl"] * body) < slack
+    assert all(not s.model.output_on for s in pair_bench.supplies)

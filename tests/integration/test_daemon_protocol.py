@@ -110,7 +110,7 @@ class StandInRuns:
             raise PlanError("plan: samples: must be a positive integer")
         return data
 
-    def prepare(self, plan, rig, *, runs_dir, on_cycle, on_state):
+    def prepare(self, plan, rig, *, runs_dir, on_cycle, on_cycles, on_state):
         run = StandInRun(plan, runs_dir, on_cycle, on_state)
         self.runs.append(run)
         return run

@@ -75,3 +75,27 @@ def test_slip_scales_the_distance(slip):
     world.slip = slip
     feel_rotation(world, [0, B0, 0], [1, 0, 0], 4 * math.pi)
     np.testing.assert_allclose(world.positions_mm, [[200.0, 200.0 - 20.0 * slip]], atol=1e-9)
+
+
+def test_one_field_for_all_moves_the_robots_as_the_same_field_given_to_each():
+    """`feel((3,))` has its own scalar path; `feel((n, 3))` with every row equal is the general
+    one: over a random walk of the field (rolls, steering, vertical and weak fields, reversals)
+    both leave every robot at the same place, axis and roll."""
+    rng = np.random.default_rng(7)
+    uniform = make_world([[100, 100], [140, 160], [250, 90]])
+    each = make_world([[100, 100], [140, 160], [250, 90]])
+    field = np.array([0.0, 0.0, B0])  # vertical first: no axis yet
+    for step in range(3000):
+        if step % 500 == 250:
+            field = np.array([0.0, 0.0, 0.2e-3])  # below min_field_T: nothing follows
+        else:
+            turn = rng.normal(0.0, 0.05, 3) + [0.02, 0.0, 0.0]  # rolling, on the whole
+            field = field + np.cross(turn, field) if np.linalg.norm(field) > 1e-3 else \
+                np.array([B0, 0.0, 0.0])
+            field *= B0 / np.linalg.norm(field)
+        uniform.feel(field)
+        each.feel(np.tile(field, (3, 1)))
+    np.testing.assert_allclose(uniform.positions_mm, each.positions_mm, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(uniform.rolled_rad, each.rolled_rad, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(uniform._axes, each._axes, rtol=0, atol=1e-12)
+    assert np.abs(uniform.rolled_rad).min() > 1.0  # they did roll, by over a radian each
