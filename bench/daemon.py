@@ -3,9 +3,10 @@
 The emulated six-coil bench runs in its own process, `rigctl daemon` in another (stream at
 1 kHz), and this process is the operator: it submits a plan of back-and-forth rolling moves and
 measures, while the plan streams,
-- the `status` round trip over tcp loopback (p50, p99, max, microseconds), 200 requests a second
-  from this process (nothing else in it), next to the same figures with the daemon idle and for a
-  bare REQ/REP echo between two processes (the floor on this machine, now), and which threads
+- the `status` round trip over tcp loopback (p50, p99, max, microseconds), 100 requests a second
+  from this process (nothing else in it), each followed by a bare REQ/REP echo of the same size
+  to a process that does nothing else: the floor on this machine under the same load, so that a
+  slow figure can be told from a slow machine. Also both with the daemon idle, and which threads
   ran at SCHED_FIFO (`--realtime`, as the systemd unit gives it);
 - telemetry delivered to 1 and to 10 subscribers: `currents` messages per second per subscriber,
   against the stream rate, and lost `state` / `fault` messages (sequence gaps);
@@ -100,6 +101,12 @@ def delivered_rate(subscribers: list[Subscriber], window: tuple[float, float],
             "lost_messages": lost}
 
 
+def renice(pid: int, nice: int) -> None:
+    """Every thread of process `pid` to `nice` (Linux: a nice value is a thread's)."""
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        os.setpriority(os.PRIO_PROCESS, int(task.name), nice)
+
+
 def realtime_threads(pid: int) -> list[str]:
     """Threads of process `pid` and its children at SCHED_FIFO: "process/thread name"."""
     found = []
@@ -118,10 +125,11 @@ def realtime_threads(pid: int) -> list[str]:
 
 
 def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
-              measure_status: bool) -> dict:
+              echo: BareEcho | None = None) -> dict:
     """One run of the plan with `n_subscribers` telemetry subscribers in this process, or (with
-    `measure_status`, and no subscriber here, whose decoding would hold this process's GIL) an
-    operator script polling `status` 200 times a second. What was measured, and the stream."""
+    `echo`, and no subscriber here, whose decoding would hold this process's GIL) an operator
+    script polling `status` 100 times a second, each followed by a bare echo round trip (the floor
+    under the same load). What was measured, and the stream."""
     stop = threading.Event()
     subscribers = [Subscriber(endpoints, stop) for _ in range(n_subscribers)]
     for s in subscribers:
@@ -132,13 +140,14 @@ def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
     time.sleep(0.5)
     realtime = realtime_threads(rig.ping()["pid"])
     start = time.monotonic()
-    rtts: list[float] = []
+    rtts: dict[str, list[float]] = {"status": [], "bare": []}
     while rig.status()["state"] in ("running", "paused"):
-        if measure_status:
-            t0 = time.perf_counter()
-            rig.status()
-            rtts.append(time.perf_counter() - t0)
-            time.sleep(max(0.0, 0.005 - (time.perf_counter() - t0)))
+        if echo is not None:  # `status` and the bare echo in turn, 200 requests a second
+            for name, call in (("status", rig.status), ("bare", echo.call)):
+                t0 = time.perf_counter()
+                call()
+                rtts[name].append(time.perf_counter() - t0)
+                time.sleep(max(0.0, 0.005 - (time.perf_counter() - t0)))
         else:
             time.sleep(0.05)
     end = time.monotonic() - 0.2
@@ -152,9 +161,9 @@ def timed_run(rig: Rig, plan_id: str, n_subscribers: int, endpoints: dict,
         raise RuntimeError(f"the benchmark's run did not stream cleanly: {summary['faults']}")
     stream = dict(summary["stream"])
     stream["cycles_per_s"] = stream["cycles"] / summary["duration_s"]
-    if measure_status:
-        return {**microseconds(rtts), "stream_late_share": round(stream["late_share"], 4),
-                "realtime_threads": realtime}
+    if echo is not None:
+        return {**microseconds(rtts["status"]), "bare_echo": microseconds(rtts["bare"]),
+                "stream_late_share": round(stream["late_share"], 4), "realtime_threads": realtime}
     return delivered_rate(subscribers, (start, end), stream)
 
 
@@ -186,29 +195,30 @@ while True:
 """
 
 
-def bare_zmq_round_trip() -> dict:
-    """The floor: a REQ/REP echo of a status-sized message over tcp loopback, another process."""
-    import zmq
+class BareEcho:
+    """The floor: a REQ/REP echo of a status-sized reply over tcp loopback, served by another
+    process that does nothing else; `call()` is one round trip."""
 
-    server = subprocess.Popen([sys.executable, "-c", BARE_REP], stdout=subprocess.PIPE, text=True)
-    try:
-        port = int(server.stdout.readline())
-        sock = zmq.Context.instance().socket(zmq.REQ)
-        sock.connect(f"tcp://127.0.0.1:{port}")
-        message = b"x" * 700  # about a status reply
+    def __enter__(self) -> "BareEcho":
+        import zmq
 
-        def echo() -> None:
-            sock.send(message)
-            sock.recv()
-
+        self.server = subprocess.Popen([sys.executable, "-c", BARE_REP], stdout=subprocess.PIPE,
+                                       text=True)
+        port = int(self.server.stdout.readline())
+        self.sock = zmq.Context.instance().socket(zmq.REQ)
+        self.sock.connect(f"tcp://127.0.0.1:{port}")
         for _ in range(100):
-            echo()
-        result = round_trips(echo)
-        sock.close(linger=0)
-        return result
-    finally:
-        server.kill()
-        server.wait()
+            self.call()
+        return self
+
+    def call(self) -> None:
+        self.sock.send(b"x" * 700)
+        self.sock.recv()
+
+    def __exit__(self, *exc: object) -> None:
+        self.sock.close(linger=0)
+        self.server.kill()
+        self.server.wait()
 
 
 def estop_latency(rig: Rig, plan_id: str, backdoor_url: str, runs: Path) -> dict:
@@ -243,17 +253,21 @@ def estop_latency(rig: Rig, plan_id: str, backdoor_url: str, runs: Path) -> dict
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--moves", type=int, default=16, help="moves per plan (about 0.7 s each)")
+    parser.add_argument("--emulator-nice", type=int, default=0, metavar="N",
+                        help="run the emulated devices at this nice value (default 0). They stand "
+                             "in for hardware with processors of its own; on two cores their CPU "
+                             "is a load a real rig does not put on the control computer")
     parser.add_argument("--realtime", type=int, default=40, metavar="PRIO",
                         help="the daemon's --realtime, as systemd/rigctl.service gives it (default "
                              "40; 0: normal scheduling). Where not permitted the daemon streams at "
                              "normal priority and says so in its log")
     args = parser.parse_args()
     load_before = round(os.getloadavg()[0], 2)  # other work on the machine skews every figure
-    bare = bare_zmq_round_trip()
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-daemon-") as tmp:
         tmp = Path(tmp)
         with EmulatedBenchProcess("six-coil", tmp / "bench.toml") as rig_path:
             rig = load_rig(rig_path)
+            renice(rig.emulation.pid, args.emulator_nice)
             # open loop (no camera): this measures the daemon itself; the camera loop's own
             # latency is bench/tracker.py's
             # a watchdog that tolerates a loaded machine, as bench/closed_loop.py: this measures
@@ -269,10 +283,12 @@ def main() -> None:
             try:
                 with Rig(endpoints["command"], timeout_s=5.0) as client:
                     plan_id = client.load(back_and_forth_plan(args.moves))
-                    idle = round_trips(client.status)
-                    status_rtt = timed_run(client, plan_id, 0, endpoints, measure_status=True)
-                    one = timed_run(client, plan_id, 1, endpoints, measure_status=False)
-                    ten = timed_run(client, plan_id, 10, endpoints, measure_status=False)
+                    with BareEcho() as echo:
+                        bare = round_trips(echo.call)
+                        idle = round_trips(client.status)
+                        status_rtt = timed_run(client, plan_id, 0, endpoints, echo)
+                    one = timed_run(client, plan_id, 1, endpoints)
+                    ten = timed_run(client, plan_id, 10, endpoints)
                     estop = estop_latency(client, plan_id, rig.emulation.backdoor, runs)
             finally:
                 proc.terminate()
@@ -283,8 +299,8 @@ def main() -> None:
                     "load_average_1min_before": load_before,
                     "load_average_1min_after": round(os.getloadavg()[0], 2)},
         "stream_rate_hz": RATE_HZ,
-        "bare_zmq_req_rep_round_trip": bare,
-        "status_round_trip_idle": idle,
+        "emulator_nice": args.emulator_nice,
+        "idle": {"status_round_trip": idle, "bare_echo": bare},
         "status_round_trip_while_running": status_rtt,
         "telemetry_1_subscriber": one,
         "telemetry_10_subscribers": ten,

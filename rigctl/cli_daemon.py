@@ -244,7 +244,7 @@ def _follow(rig, out, started: dict) -> dict:
         if run is None and status["state"] not in ("running", "paused", "suspended"):
             break
         if out is not None and run is not None:
-            done = max(0, run["sample"]) / samples
+            done = min(1.0, max(0, run["sample"]) / samples)  # a closed loop may take longer
             bar = "#" * int(30 * done) + "-" * (30 - int(30 * done))
             line = f"[{bar}] {100 * done:5.1f} %  {_step(run)}  {status['state']}"
             if tty:

@@ -18,6 +18,7 @@ from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.config import load_rig
 from rigctl.record import read_events, read_stream
+from rigctl.testing import plan_pair
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"
@@ -170,3 +171,22 @@ def test_systemd_units_verify(unit):
         for key in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "User=rigctl",
                     "ProtectSystem=strict", "LimitRTPRIO="):
             assert key in text
+
+
+def test_a_pair_plan_submitted_to_a_daemon_on_the_pair_bench(tmp_path):
+    """The operator's path for seed 002: `rigctl emulate six-coil --world pair`, `rigctl daemon
+    --rig`, then `rigctl execute PLAN --connect`: the pair run's own summary comes back."""
+    plan = plan_pair(tmp_path, goal="8.8,7.3,2.3,40", hold_s=0.5)
+    with EmulatedBenchProcess("six-coil", tmp_path / "pair-bench.toml",
+                              extra_args=["--world", "pair"]) as rig_path:
+        d = DaemonProcess(rig_path, tmp_path / "runs", tmp_path / "daemon.log")
+        try:
+            result = run_cli("execute", str(plan), "--connect", d.endpoints["command"], "--json",
+                             cwd=tmp_path)
+        finally:
+            d.close()
+    assert result.returncode == 0, result.stdout + result.stderr
+    summary = json.loads(result.stdout.strip().splitlines()[-1])
+    assert summary["reached"] is True and summary["tolerance_bl"] > 0
+    assert summary["mode"] == "closed loop"
+    assert Path(summary["run"]).parent == tmp_path / "runs"
