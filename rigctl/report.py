@@ -63,6 +63,39 @@ def _draw_workspace(ax, workspace: dict, plan_dir: Path) -> None:
         _draw_shape(ax, obstacle, obstacle=True)
 
 
+def _agent_paths(plan: dict, events: list[dict],
+                 summary: dict | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per agent: the planned path (k, 2) mm from the start, the measured one (m, 2) mm, and the
+    goal (2,) mm.
+
+    Global moves: the positions the plan expects after each move; measured, the `agents` events
+    (the daemon's samples of an emulated bench) and the summary's final position. A pair formation
+    change (seed 002): both agents from the plan's states (centre, separation, heading) at the start,
+    after each segment and at the goal; measured, the closed loop's `track` events, else `agents`."""
+    tracked = [e["tracked"] for e in events if e.get("event") == "agents" and e.get("tracked")]
+    if plan.get("kind") == "pair-formation":
+        from rigctl.plans.pair import agent_positions
+
+        body = plan["agents"]["body_diameter_mm"]
+        states = [plan["start"], *(plan.get("expected") or []), plan["goal"]]
+        planned = agent_positions(np.array([[s["x_mm"] / body, s["y_mm"] / body, s["r_bl"],
+                                             np.radians(s["phi_deg"])] for s in states])) * body
+        track = np.array([e["q"] for e in events if e.get("event") == "track"], dtype=float)
+        measured = (agent_positions(track) * body if track.size
+                    else np.array([t for t in tracked if len(t) == 2], dtype=float).reshape(-1, 2, 2))
+        return [(planned[:, i], measured[:, i], planned[-1, i]) for i in range(2)]
+    expected = plan.get("expected") or []
+    paths = []
+    for i, agent in enumerate(plan.get("agents", [])):
+        planned = np.array([agent["start"]] + [step[i] for step in expected], dtype=float)
+        measured = np.array([t[i] for t in tracked if len(t) > i], dtype=float).reshape(-1, 2)
+        if summary and summary.get("agents") and summary["agents"][i].get("final"):
+            final = np.array(summary["agents"][i]["final"], dtype=float)[None, :2]
+            measured = np.vstack([measured, final])
+        paths.append((planned, measured, np.array(agent["goal"], dtype=float)))
+    return paths
+
+
 def render_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """Draw the run at `run_dir` into a PNG (default `RUN/report.png`); returns its path."""
     run_dir = Path(run_dir)
@@ -79,29 +112,22 @@ def render_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
 
     # -- paths ------------------------------------------------------------------------------------
     _draw_workspace(ax_path, plan.get("workspace", {}), run_dir)
-    agents = plan.get("agents", [])
-    expected = plan.get("expected") or []
-    tracked = [e["tracked"] for e in events if e.get("event") == "agents" and e.get("tracked")]
-    for i, agent in enumerate(agents):
+    paths = _agent_paths(plan, events, summary)
+    for i, (planned, measured, goal) in enumerate(paths):
         colour = colours[i % len(colours)]
-        planned = np.array([agent["start"]] + [step[i] for step in expected], dtype=float)
         ax_path.plot(planned[:, 0], planned[:, 1], "--o", color=colour, markersize=3,
                      linewidth=1.0, label=f"agent {i} planned")
-        measured = np.array([t[i] for t in tracked if len(t) > i], dtype=float)
-        if summary and summary.get("agents") and summary["agents"][i].get("final"):
-            final = np.array(summary["agents"][i]["final"], dtype=float)[None, :2]
-            measured = final if measured.size == 0 else np.vstack([measured, final])
         if measured.size:
             ax_path.plot(measured[:, 0], measured[:, 1], "-", color=colour, linewidth=1.8,
                          label=f"agent {i} measured")
-        ax_path.plot(*agent["start"], "s", color=colour, markersize=7)
-        ax_path.plot(*agent["goal"], "*", color=colour, markersize=12)
+        ax_path.plot(*planned[0], "s", color=colour, markersize=7)
+        ax_path.plot(*goal, "*", color=colour, markersize=12)
     ax_path.set_aspect("equal", adjustable="datalim")
     ax_path.autoscale_view()
     ax_path.set_xlabel("x (mm)")
     ax_path.set_ylabel("y (mm)")
     ax_path.set_title("paths: planned (dashed) and measured (solid)")
-    if agents:
+    if paths:
         ax_path.legend(fontsize=7, loc="best")
 
     # -- currents ---------------------------------------------------------------------------------

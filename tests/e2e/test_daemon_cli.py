@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from rigctl.client import Rig
@@ -189,4 +190,21 @@ def test_a_pair_plan_submitted_to_a_daemon_on_the_pair_bench(tmp_path):
     summary = json.loads(result.stdout.strip().splitlines()[-1])
     assert summary["reached"] is True and summary["tolerance_bl"] > 0
     assert summary["mode"] == "closed loop"
-    assert Path(summary["run"]).parent == tmp_path / "runs"
+    run_dir = Path(summary["run"])
+    assert run_dir.parent == tmp_path / "runs"
+    # the report draws both agents, planned from the plan's states and measured from the camera
+    report = run_cli("report", str(run_dir), "-o", str(tmp_path / "pair.png"), cwd=tmp_path)
+    assert report.returncode == 0, report.stderr
+    assert (tmp_path / "pair.png").stat().st_size > 10_000
+    from rigctl.report import _agent_paths
+
+    source = json.loads(plan.read_text())
+    start, body = source["start"], source["agents"]["body_diameter_mm"]
+    half = 0.5 * start["r_bl"] * body * np.array([np.cos(np.radians(start["phi_deg"])),
+                                                    np.sin(np.radians(start["phi_deg"]))])
+    paths = _agent_paths(source, read_events(run_dir), summary)
+    centre = np.array([start["x_mm"], start["y_mm"]])
+    np.testing.assert_allclose(paths[0][0][0], centre - half, atol=1e-9)
+    np.testing.assert_allclose(paths[1][0][0], centre + half, atol=1e-9)
+    assert len(paths[0][1]) > 10  # tracked frames
+    np.testing.assert_allclose(paths[0][1][0], centre - half, atol=0.5 * body)
