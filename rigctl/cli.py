@@ -307,8 +307,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # a service's log is its record of what happened (state changes, loads, which threads run
+    # at realtime priority): the daemon logs INFO; interactive commands only warnings
+    quiet_level = logging.INFO if args.func.__name__ == "_cmd_daemon" else logging.WARNING
     logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.WARNING,
+        level=logging.DEBUG if args.verbose else quiet_level,
         format="%(levelname)s %(name)s: %(message)s",
     )
     try:

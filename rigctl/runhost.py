@@ -57,7 +57,7 @@ from rigctl.devices import zero_supplies_directly
 from rigctl.errors import RigError
 from rigctl.telemetry import CycleBatch
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("rigctl.runhost")  # also when run as `python -m rigctl.runhost`
 
 UPLINK_BATCH_S = 0.01  # the host sends cycles to the daemon at most this late
 UPLINK_MAX_QUEUED = 60_000  # cycles held for a daemon that stopped reading (a minute at 1 kHz)
@@ -412,14 +412,13 @@ class _Uplink:
     def cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray,
               error: float | None) -> None:
         """From the stream thread: a deque append, nothing else."""
-        self._queue.append((time.monotonic(), sample, move, commanded.tolist(), measured.tolist(),
-                            np.nan if error is None else error))
+        self._queue.append((time.monotonic(), sample, move, np.asarray(commanded).tolist(),
+                            np.asarray(measured).tolist(), np.nan if error is None else error))
 
     def message(self, *message: Any) -> None:
         """In order with the cycles before it; sent at once."""
         self._queue.append(message)
         self._wake.set()
-
 
     def flush(self) -> None:
         batch: list = []
@@ -437,7 +436,10 @@ class _Uplink:
         self._stop = True
         self._wake.set()
         self._thread.join(5)
-        self.flush()
+        try:
+            self.flush()
+        except (OSError, ValueError):  # the daemon went first: nobody to tell
+            pass
 
     def _serve(self) -> None:
         while not self._stop:

@@ -159,7 +159,7 @@ def test_plain_req_socket_ping_and_status(daemon):
     assert result["run"] is None and result["last_fault"] is None
 
 
-def test_status_answered_without_the_models_is_what_the_models_would_say(daemon):
+def test_status_and_estop_answered_without_the_models_are_what_the_models_would_say(daemon):
     from rigctl.messages import Reply, ok_reply
 
     for request_id, payload in [("s", b'{"id": "s", "cmd": "status", "args": {}}'),
@@ -174,12 +174,17 @@ def test_status_answered_without_the_models_is_what_the_models_would_say(daemon)
         assert Reply.model_validate(quick).id == request_id
         modelled["result"].pop("uptime_s"), quick["result"].pop("uptime_s")
         assert quick == modelled
+    estop = raw_req(daemon.endpoints.command, b'{"id": "e", "cmd": "estop"}')
+    assert Reply.model_validate(estop).ok and estop["id"] == "e"
+    assert estop["result"]["state"] == "estopped" and estop["result"]["unreached"] == []
+    assert json.loads(ok_reply("e", {**estop["result"]}).model_dump_json()) == estop
 
 
 @pytest.mark.parametrize("payload, code", [
     (b"this is not json", "bad_json"),
     (b'{"id": 1, "cmd": "status", "args": {"verbose": true}}', "bad_args"),
     (b'{"id": 1.5, "cmd": "status"}', "bad_request"),
+    (b'{"id": 1, "cmd": "estop", "args": {"now": true}}', "bad_args"),
     (b"\xff\xfe\x00", "bad_json"),
     (b"[1, 2, 3]", "bad_request"),
     (b'{"id": 1}', "bad_request"),
