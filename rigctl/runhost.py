@@ -62,12 +62,16 @@ log = logging.getLogger("rigctl.runhost")  # also when run as `python -m rigctl.
 UPLINK_BATCH_S = 0.01  # the host sends cycles to the daemon at most this late
 UPLINK_MAX_QUEUED = 60_000  # cycles held for a daemon that stopped reading (a minute at 1 kHz)
 ESTOP_ACK_S = 0.25  # an e-stop the host has not acknowledged by then: kill it, zero directly
+WATCHDOG_POLL_S = 0.1  # how often the daemon checks that a streaming run still reports
+SILENCE_MIN_S = 1.0  # a streaming run silent this long (at least; see RemoteRun) is hung
 START_TIMEOUT_S = 60.0  # imports on a loaded machine
 
 
 class HostGone(RigError):
     """The stream process is not running (it crashed, or the daemon is shutting down)."""
 
+
+TERMINAL_STATES = {"done", "aborted", "faulted", "estopped"}  # RunState values that end a stream
 
 DAEMON_PLANS = {("global-moves", "six-coil"), ("pair-formation", "six-coil")}
 """(plan kind, rig kind) the daemon runs; `rigctl execute` runs the others."""
@@ -221,9 +225,24 @@ class RunHost:
     def pid(self) -> int | None:
         return self._process.pid if self._process is not None else None
 
+    def _watch(self) -> None:
+        """The link's watchdog: a run that streams sends cycles every 10 ms; one silent for
+        `RemoteRun.silence_limit_s` has a hung stream process (a stuck call, a SIGSTOP). It is
+        killed; its pipe then closes and the run ends as if it had crashed: every supply zeroed
+        over new connections, a fault recorded."""
+        run = self._current
+        if run is not None and run._silent_for() > run.silence_limit_s:
+            log.error("the stream process has sent nothing for %.1f s while streaming",
+                      run._silent_for())
+            run.hung = True
+            self.kill()
+
     def _read(self, process: Any, up: Any, ready: threading.Event) -> None:
         try:
             while True:
+                if not up.poll(WATCHDOG_POLL_S):
+                    self._watch()
+                    continue
                 message = up.recv()
                 kind = message[0]
                 if kind == "ready":
@@ -300,6 +319,12 @@ class RemoteRun:
         self.on_cycles, self.on_state = on_cycles, on_state
         self.record: _RecordView | None = None
         self.stream_loop = _LoopView()
+        # streaming: cycles come every UPLINK_BATCH_S; longer than a supply's own reply timeout
+        # (which the run itself turns into a fault) plus the ramp down, and it is hung
+        self.silence_limit_s = max(SILENCE_MIN_S, 2.0 * self.rig.stream.reply_timeout_s
+                                   + self.rig.stream.ramp_down_s)
+        self._last_cycles: float | None = None  # when cycles last came; None when not streaming
+        self.hung = False
         self._done = threading.Event()
         self._result: Any = None
         self._error: Exception | None = None
@@ -361,6 +386,7 @@ class RemoteRun:
     def _receive(self, message: tuple) -> None:
         kind = message[0]
         if kind == "cycles":
+            self._last_cycles = time.monotonic()
             batch = CycleBatch(*message[1:])
             error = float(batch.period_error_s[-1])
             self.stream_loop.last_error_s = None if np.isnan(error) else error
@@ -369,6 +395,8 @@ class RemoteRun:
             _, state, info, path, t0 = message
             if self.record is None and path is not None:
                 self.record = _RecordView(path, t0, self._host)
+            if state.value in TERMINAL_STATES:  # the stream is over: the summary takes its time
+                self._last_cycles = None
             self.on_state(state, info)
         elif kind == "done":
             self._result = message[1]
@@ -378,11 +406,18 @@ class RemoteRun:
                                    f"{message[2]}")
             self._done.set()
 
+    def _silent_for(self) -> float:
+        """Seconds since the last cycles while streaming (0 when not streaming)."""
+        last = self._last_cycles
+        return 0.0 if last is None else time.monotonic() - last
+
     def _host_lost(self, exitcode: int | None) -> None:
         """The process died with this run on it: make the supplies safe, say so, end the run."""
         zeroed = zero_supplies_directly(self.rig)
         unreached = [name for name, err in zeroed.items() if err]
-        reason = (f"the stream process died (exit code {exitcode}) during the run; every supply "
+        what = ("stopped answering while streaming and was killed" if self.hung
+                else f"died (exit code {exitcode})")
+        reason = (f"the stream process {what} during the run; every supply "
                   + (f"but {', '.join(unreached)} " if unreached else "")
                   + "was told 0 A and output off over a new connection")
         log.error("%s", reason)

@@ -229,6 +229,25 @@ def test_the_stream_process_dying_mid_run_leaves_the_supplies_off_and_the_daemon
     assert all_off(bench)
 
 
+def test_a_stream_process_that_hangs_mid_run_is_killed_and_the_supplies_zeroed(rig, bench, daemon):
+    plan_id = rig.load(plan("fig4-two-magnets.json"))
+    rig.execute(plan_id)
+    wait_current(bench)
+    host = daemon.factory.host.pid
+    os.kill(host, signal.SIGSTOP)  # hung: holds its connections, streams nothing, answers nothing
+    try:
+        status = rig.wait_state("faulted", timeout_s=10)
+    finally:
+        try:
+            os.kill(host, signal.SIGCONT)
+        except ProcessLookupError:  # killed by the daemon's watchdog, as it should be
+            pass
+    assert "stopped answering" in status["reason"]
+    assert all_off(bench)
+    assert wait_run_over(rig)["state"] == "faulted"
+    assert rig.reset()["state"] == "idle"
+
+
 def test_an_estop_the_stream_process_cannot_answer_is_carried_out_by_the_daemon(
         rig, bench, daemon):
     plan_id = rig.load(plan("fig4-two-magnets.json"))
