@@ -15,7 +15,8 @@ Threads and who does what:
   to a client. The daemon's *run thread* (one at a time) waits for the run and passes on what the
   stream process reports; it is the stream thread itself only for a manual field (`FieldHold`),
   raised to SCHED_FIFO when allowed, as the stream process's stream thread is;
-- the *telemetry thread* (`rigctl.telemetry`) publishes what the stream thread hands it.
+- the *telemetry thread* (`rigctl.telemetry`) publishes what the runs hand it (a plan run's cycles
+  arrive from the stream process in batches, on the host's reader thread).
 
 States are those of `DaemonState`; every change goes through `TRANSITIONS`, an explicit table of
 (state, event) -> state, and is published on the `state` topic and logged. A repeated request
