@@ -4,17 +4,16 @@ Threads and who does what:
 - the *command thread* serves a ROUTER socket, so any number of REQ clients can talk at once and a
   client that vanishes mid-request costs nothing (its reply is dropped by ZeroMQ). Quick commands
   are answered on this thread; slow ones (`load` realizes and allocates a whole plan, `runs` and
-  `run` read the disk, `set_field` opens the supplies) go to a worker thread and are answered when
+  `run` read the disk, `set_field` waits for the supplies to hold the field) go to a worker thread and are answered when
   it is done, so nothing ever waits behind them. `estop` is carried out the moment it is read:
   the command thread hands it to the stream process, which writes 0 A and output off to every
   supply of the active run from its own command thread (the drivers latch at zero, so the stream
   can send nothing else after it) and answers with the supplies it could not reach; with nothing
   active the command thread starts zeroing the supplies directly;
-- plan runs stream in the *stream process* (`rigctl.runhost`, spawned when the daemon starts), so
-  that no Python of the daemon's competes with the stream for a GIL, nor the stream with a reply
-  to a client. The daemon's *run thread* (one at a time) waits for the run and passes on what the
-  stream process reports; it is the stream thread itself only for a manual field (`FieldHold`),
-  raised to SCHED_FIFO when allowed, as the stream process's stream thread is;
+- plan runs and manual fields stream in the *stream process* (`rigctl.runhost`, spawned when the
+  daemon starts), so that no Python of the daemon's competes with the stream for a GIL, nor the
+  stream with a reply to a client. The daemon's *run thread* (one at a time) waits for the job
+  and passes on what the stream process reports;
 - the *telemetry thread* (`rigctl.telemetry`) publishes what the runs hand it (a plan run's cycles
   arrive from the stream process in batches, on the host's reader thread).
 
@@ -99,6 +98,8 @@ RUN_EVENTS = {"running": "running", "paused": "paused", "suspended": "suspended"
               "faulted": "fault", "estopped": "estop", "aborted": "finished", "done": "finished"}
 """A `RunState` value -> the daemon event it causes (`prepared` causes none)."""
 
+FIELD_START_TIMEOUT_S = 30.0  # set_field waits this long for the supplies to be holding
+
 QUICK_COMMANDS = {"status": "_cmd_status", "estop": "_cmd_estop"}
 """Commands without arguments answered without the pydantic models when the request is exactly
 what `Request` accepts for them (`Daemon._send_json`): `status`, which scripts poll hundreds of
@@ -139,6 +140,9 @@ class RunFactory(Protocol):
     def close(self) -> None: ...  # when it stops
     def parse_plan(self, data: dict) -> Any: ...
 
+    def hold_field(self, rig: RigConfig, currents_A: np.ndarray, ramp_s: float, *,
+                   on_cycles: Callable[[CycleBatch], None]) -> RunLike: ...  # a manual field
+
     def prepare(self, plan: Any, rig: RigConfig, *, runs_dir: Path,
                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None],
                 on_cycles: Callable[[CycleBatch], None],
@@ -173,7 +177,11 @@ class PlanRuns:
 
     def prepare(self, plan, rig, *, runs_dir, on_cycle, on_cycles, on_state) -> RunLike:
         local = build_run(plan, rig, runs_dir=runs_dir)
-        return RemoteRun(self.host, local, on_cycles=on_cycles, on_state=on_state)
+        return RemoteRun.of_plan(self.host, local, on_cycles=on_cycles, on_state=on_state)
+
+    def hold_field(self, rig: RigConfig, currents_A: np.ndarray, ramp_s: float, *,
+                   on_cycles: Callable[[CycleBatch], None]) -> RunLike:
+        return RemoteRun.of_field(self.host, rig, currents_A, ramp_s, on_cycles=on_cycles)
 
 
 @dataclass(frozen=True)
@@ -785,7 +793,6 @@ class Daemon:
         return {"state": self.state.value}
 
     def _cmd_set_field(self, args: Any) -> dict:
-        from rigctl.devices import CoilSupplies
         from rigctl.allocate import currents_for_field
 
         target_T = np.asarray(args.field_mT, dtype=float) * 1e-3
@@ -811,20 +818,22 @@ class Daemon:
                 return {"field_mT": args.field_mT, "currents_A": currents.round(4).tolist()}
             if zero:
                 return {"field_mT": args.field_mT, "currents_A": currents.round(4).tolist()}
-        supplies = CoilSupplies.connect(self.rig)  # on the worker: may take a while
-        supplies.energise()
-        hold = FieldHold(supplies, self.rig.stream.rate_hz, on_cycle=self._on_cycle)
-        hold.retarget(currents, args.ramp_s)
+        # held by the stream process; this (the worker) waits until it streams or cannot start
+        hold = self.factory.hold_field(self.rig, currents, args.ramp_s, on_cycles=self._on_cycles)
         active = _ActiveRun("field", hold, None, {"field_mT": list(args.field_mT)})
         with self._lock:
             if self.state != S.IDLE or self._active is not None or self._stop.is_set():
-                supplies.stop(ramp_s=0.0)
                 raise Refusal(ErrorCode.WRONG_STATE, f"state changed to {self.state.value}")
-            self._active = active
+            self._active = active  # from now on an e-stop reaches it
             self.manual_field_mT = list(args.field_mT)
             active.thread = threading.Thread(target=self._run_thread, args=(active,),
                                              name="daemon-field")
             active.thread.start()
+        hold.started.wait(FIELD_START_TIMEOUT_S)
+        if not hold.streaming:  # the supplies could not be reached: say why; the state stays
+            active.thread.join(FIELD_START_TIMEOUT_S)
+            raise hold.error or RigError("the manual field did not start within "
+                                         f"{FIELD_START_TIMEOUT_S:g} s")
         for name in self.devices:
             self._device(name, "ok", "manual field")
         return {"field_mT": args.field_mT, "currents_A": currents.round(4).tolist()}
@@ -852,7 +861,9 @@ class Daemon:
             summary = active.job.execute()
         except RigError as err:  # e.g. the stream process died: it said what it did about it
             log.error("the %s stopped: %s", active.kind, err)
-            self._fault(err.device, str(err), type(err).__name__, active)
+            if active.kind == "plan" or getattr(active.job, "streaming", True):
+                self._fault(err.device, str(err), type(err).__name__, active)
+            # else a manual field that never started: set_field answers with the error
         except Exception as err:
             log.exception("the %s stopped with an unexpected error", active.kind)
             self._fault(None, f"internal error: {type(err).__name__}: {err}", "Internal", active)
@@ -883,7 +894,8 @@ class Daemon:
             self.publisher.offer_cycles(replace(batch, t=batch.t - self.t0))
 
     def _on_cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray) -> None:
-        """One stream cycle of a run on a thread of this process (a manual field)."""
+        """One stream cycle of a run on a thread of this process (runs a `RunFactory` makes
+        without a stream process, as the protocol tests' stand-ins)."""
         active = self._active
         now = time.monotonic()
         if active is not None:
@@ -957,74 +969,6 @@ class Daemon:
                 self._device(name, "off", "e-stop: told 0 A and output off")
             else:
                 self._device(name, "fault", f"e-stop could not reach it: {err}")
-
-
-class FieldHold:
-    """A manual field (calibration): hold setpoints on the supplies at the stream rate, ramping
-    between targets, until released (ramp to zero), aborted, or e-stopped (zero at once)."""
-
-    plan = None
-    record = None
-
-    def __init__(self, supplies: Any, rate_hz: float,
-                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None]) -> None:
-        self.supplies = supplies
-        self.rate_hz = rate_hz
-        self.on_cycle = on_cycle
-        self._lock = threading.Lock()
-        self._last = np.zeros(len(supplies.names))
-        self._ramp: list[np.ndarray] = []
-        self._release = False
-        self._estop = threading.Event()
-        self.ramp_down_s = 0.1
-        self.stream_loop: Any = None
-
-    def retarget(self, currents_A: np.ndarray, ramp_s: float, release: bool = False) -> None:
-        n = max(1, round(ramp_s * self.rate_hz))
-        with self._lock:
-            start = self._ramp[-1] if self._ramp else self._last
-            self._ramp = [start + (currents_A - start) * (k / n) for k in range(1, n + 1)]
-            self._release = release
-
-    def execute(self) -> None:
-        from rigctl.stream import StreamLoop
-
-        def cycle(k: int) -> bool:
-            if self._estop.is_set():
-                self.supplies.zero_now()
-                return False
-            with self._lock:
-                if self._ramp:
-                    self._last = self._ramp.pop(0)
-                elif self._release:
-                    return False
-                setpoints = self._last
-            measured = self.supplies.cycle(setpoints)
-            self.on_cycle(k, -1, setpoints, measured)
-            return True
-
-        self.stream_loop = StreamLoop(self.rate_hz)
-        try:
-            self.stream_loop.run(cycle)
-        finally:
-            self.supplies.stop(ramp_s=0.0 if self._estop.is_set() else self.ramp_down_s)
-
-    def pause(self, immediate: bool = False) -> None:
-        raise Refusal(ErrorCode.WRONG_STATE, "a manual field cannot be paused")
-
-    def resume(self) -> None:
-        raise Refusal(ErrorCode.WRONG_STATE, "a manual field cannot be resumed")
-
-    def abort(self) -> None:
-        self.retarget(np.zeros_like(self._last), self.ramp_down_s, release=True)
-
-    def estop(self) -> list[str]:
-        self._estop.set()
-        unreached = self.supplies.emergency_zero()
-        loop = self.stream_loop
-        if loop is not None:
-            loop.wake()
-        return unreached
 
 
 def _abort_quietly(active: _ActiveRun) -> None:

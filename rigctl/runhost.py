@@ -46,6 +46,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -54,6 +55,7 @@ import numpy as np
 
 from rigctl.config import RigConfig
 from rigctl.devices import zero_supplies_directly
+from rigctl import errors
 from rigctl.errors import RigError
 from rigctl.telemetry import CycleBatch
 
@@ -165,7 +167,7 @@ class RunHost:
                 raise HostGone("the stream process exited as it started: see the daemon's log")
             self._current = run
         try:
-            self.send("run", run.plan, run.rig, str(run.runs_dir))
+            self.send(*run.job)
         except HostGone:
             with self._lock:
                 if self._current is run:
@@ -306,17 +308,17 @@ class _RecordView:
 
 
 class RemoteRun:
-    """A run (`build_run`) streamed by the `RunHost`; the daemon uses it as it would the run.
+    """A job streamed by the `RunHost`, with the interface of the run it stands for: a plan's run
+    (`of_plan`) or a manual field (`of_field`, a `FieldHold`, which adds `retarget`)."""
 
-    `local` is the run prepared in the daemon when the plan was loaded: it refused a bad plan
-    before anything else happened and tells the plan's size. The host prepares its own copy from
-    the same plan and rig (deterministic, so the same program) and streams that."""
-
-    def __init__(self, host: RunHost, local: Any, *, on_cycles: Any, on_state: Any) -> None:
+    def __init__(self, host: RunHost, job: tuple, rig: RigConfig, *, plan: Any, info: dict,
+                 runs_dir: Any, on_cycles: Any, on_state: Any) -> None:
         self._host = host
-        self.plan, self.rig, self.runs_dir = local.plan, local.rig, local.runs_dir
-        self.info = describe_run(local)
+        self.job = job  # the message that starts it in the host
+        self.plan, self.rig, self.runs_dir, self.info = plan, rig, runs_dir, info
         self.on_cycles, self.on_state = on_cycles, on_state
+        self.started = threading.Event()  # its first cycles came, or it ended without any
+        self.streaming = False
         self.record: _RecordView | None = None
         self.stream_loop = _LoopView()
         # streaming: cycles come every UPLINK_BATCH_S; longer than a supply's own reply timeout
@@ -332,12 +334,37 @@ class RemoteRun:
         self._submitted = False
         self._early: list[tuple] = []  # control calls made before the host had the run
 
+    @classmethod
+    def of_plan(cls, host: RunHost, local: Any, *, on_cycles: Any, on_state: Any) -> "RemoteRun":
+        """`local` is the run prepared in the daemon when the plan was loaded: it refused a bad
+        plan before anything else happened and tells the plan's size. The host prepares its own
+        copy from the same plan and rig (deterministic, so the same program) and streams that."""
+        return cls(host, ("run", local.plan, local.rig, str(local.runs_dir)), local.rig,
+                   plan=local.plan, info=describe_run(local), runs_dir=local.runs_dir,
+                   on_cycles=on_cycles, on_state=on_state)
+
+    @classmethod
+    def of_field(cls, host: RunHost, rig: RigConfig, currents_A: np.ndarray, ramp_s: float, *,
+                 on_cycles: Any) -> "RemoteRun":
+        """Hold the supplies at `currents_A`, reached in a ramp of `ramp_s` (a manual field)."""
+        return cls(host, ("field", rig, np.asarray(currents_A, dtype=float).tolist(), ramp_s),
+                   rig, plan=None, info={}, runs_dir=None, on_cycles=on_cycles,
+                   on_state=lambda *_: None)
+
+    @property
+    def error(self) -> Exception | None:
+        return self._error
+
     def execute(self) -> Any:
         self._host.submit(self)
         self._done.wait()
         if self._error is not None:
             raise self._error
         return self._result
+
+    def retarget(self, currents_A: np.ndarray, ramp_s: float, release: bool = False) -> None:
+        """A manual field's new target (`release`: ramp there, then stop)."""
+        self._control("retarget", np.asarray(currents_A, dtype=float).tolist(), ramp_s, release)
 
     def pause(self, immediate: bool = False) -> None:
         self._control("pause", immediate)
@@ -387,6 +414,8 @@ class RemoteRun:
         kind = message[0]
         if kind == "cycles":
             self._last_cycles = time.monotonic()
+            self.streaming = True
+            self.started.set()
             batch = CycleBatch(*message[1:])
             error = float(batch.period_error_s[-1])
             self.stream_loop.last_error_s = None if np.isnan(error) else error
@@ -400,10 +429,16 @@ class RemoteRun:
             self.on_state(state, info)
         elif kind == "done":
             self._result = message[1]
+            self.started.set()
             self._done.set()
         elif kind == "failed":
-            self._error = RigError(f"the stream process could not run the plan: {message[1]}: "
-                                   f"{message[2]}")
+            _, name, text, device = message
+            error_class = getattr(errors, name, None)
+            if isinstance(error_class, type) and issubclass(error_class, RigError):
+                self._error = error_class(text, device=device)  # as the device said it
+            else:
+                self._error = RigError(f"the stream process failed: {name}: {text}")
+            self.started.set()
             self._done.set()
 
     def _silent_for(self) -> float:
@@ -427,7 +462,78 @@ class RemoteRun:
             with open(self.record.path / "events.jsonl", "a") as events:
                 events.write(json.dumps(line) + "\n")
         self._error = HostGone(reason)
+        self.started.set()
         self._done.set()
+
+
+class FieldHold:
+    """A manual field (calibration): hold setpoints on the supplies at the stream rate, ramping
+    between targets, until released (ramp to zero), aborted, or e-stopped (zero at once)."""
+
+    plan = None
+    record = None
+
+    def __init__(self, supplies: Any, rate_hz: float,
+                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None]) -> None:
+        self.supplies = supplies
+        self.rate_hz = rate_hz
+        self.on_cycle = on_cycle
+        self._lock = threading.Lock()
+        self._last = np.zeros(len(supplies.names))
+        self._ramp: list[np.ndarray] = []
+        self._release = False
+        self._estop = threading.Event()
+        self.ramp_down_s = 0.1
+        self.stream_loop: Any = None
+
+    def retarget(self, currents_A: np.ndarray, ramp_s: float, release: bool = False) -> None:
+        n = max(1, round(ramp_s * self.rate_hz))
+        with self._lock:
+            start = self._ramp[-1] if self._ramp else self._last
+            self._ramp = [start + (currents_A - start) * (k / n) for k in range(1, n + 1)]
+            self._release = release
+
+    def execute(self) -> None:
+        from rigctl.stream import StreamLoop
+
+        def cycle(k: int) -> bool:
+            if self._estop.is_set():
+                self.supplies.zero_now()
+                return False
+            with self._lock:
+                if self._ramp:
+                    self._last = self._ramp.pop(0)
+                elif self._release:
+                    return False
+                setpoints = self._last
+            measured = self.supplies.cycle(setpoints)
+            self.on_cycle(k, -1, setpoints, measured)
+            return True
+
+        self.stream_loop = StreamLoop(self.rate_hz)
+        try:
+            if not self._estop.is_set():  # e-stopped while connecting: never switch on
+                self.supplies.energise()
+                self.stream_loop.run(cycle)
+        finally:
+            self.supplies.stop(ramp_s=0.0 if self._estop.is_set() else self.ramp_down_s)
+
+    def pause(self, immediate: bool = False) -> None:
+        raise RigError("a manual field cannot be paused: set_field [0, 0, 0] releases it")
+
+    def resume(self) -> None:
+        raise RigError("a manual field cannot be resumed")
+
+    def abort(self) -> None:
+        self.retarget(np.zeros_like(self._last), self.ramp_down_s, release=True)
+
+    def estop(self, asked_at: float | None = None) -> list[str]:
+        self._estop.set()
+        unreached = self.supplies.emergency_zero()
+        loop = self.stream_loop
+        if loop is not None:
+            loop.wake()
+        return unreached
 
 
 # -- the stream process's side --------------------------------------------------------------------
@@ -533,7 +639,9 @@ class _Host:
                 break
             kind, args = message[0], message[1:]
             if kind == "run":
-                self._start(*args)
+                self._start(self._build_run, *args)
+            elif kind == "field":
+                self._start(self._build_field, *args)
             elif kind == "estop":
                 unreached = self._call("estop", *args)
                 self.acks.send((args[0], unreached or []))  # the daemon waits for this
@@ -559,33 +667,47 @@ class _Host:
             run = self.run
         return getattr(run, name)(*args)
 
-    def _start(self, plan: Any, rig: RigConfig, runs_dir: str) -> None:
+    def _start(self, build: Any, *args: Any) -> None:
         with self._lock:
             self._pending = []
-        self._thread = threading.Thread(target=self._execute, args=(plan, rig, runs_dir),
-                                        name="stream", daemon=True)
+        self._thread = threading.Thread(target=self._execute, args=(build, *args), name="stream",
+                                        daemon=True)
         self._thread.start()
 
-    def _execute(self, plan: Any, rig: RigConfig, runs_dir: str) -> None:
+    def _build_run(self, plan: Any, rig: RigConfig, runs_dir: str) -> Any:
+        run = build_run(
+            plan, rig, runs_dir=runs_dir,
+            on_cycle=lambda k, move, cmd, meas: self.uplink.cycle(
+                k, move, cmd, meas, run.stream_loop.last_error_s),
+            on_state=lambda state, info: self.uplink.message(
+                "state", state, info, str(run.record.path) if run.record else None,
+                run.record.t0 if run.record else None))
+        return run
+
+    def _build_field(self, rig: RigConfig, currents_A: list, ramp_s: float) -> FieldHold:
+        from rigctl.devices import CoilSupplies
+
+        supplies = CoilSupplies.connect(rig)  # outputs stay off until the hold starts
+        hold = FieldHold(supplies, rig.stream.rate_hz, on_cycle=lambda k, move, cmd, meas:
+                         self.uplink.cycle(k, move, cmd, meas, hold.stream_loop.last_error_s))
+        hold.retarget(np.asarray(currents_A), ramp_s)
+        return hold
+
+    def _execute(self, build: Any, *args: Any) -> None:
         try:
             if self.realtime_priority:
                 make_realtime(self.realtime_priority)
-            run = build_run(
-                plan, rig, runs_dir=runs_dir,
-                on_cycle=lambda k, move, cmd, meas: self.uplink.cycle(
-                    k, move, cmd, meas, run.stream_loop.last_error_s),
-                on_state=lambda state, info: self.uplink.message(
-                    "state", state, info, str(run.record.path) if run.record else None,
-                    run.record.t0 if run.record else None))
+            run = build(*args)
             with self._lock:
                 self.run, pending, self._pending = run, self._pending, []
-            for name, args in pending:  # an e-stop before the run began: it never energises
-                getattr(run, name)(*args)
+            for name, pending_args in pending:  # an e-stop before it began: it never energises
+                getattr(run, name)(*pending_args)
             summary = run.execute()
             self.uplink.message("done", summary)
         except BaseException as err:  # reported to the daemon, which faults the run
-            log.exception("the run failed")
-            self.uplink.message("failed", type(err).__name__, str(err))
+            log.exception("the stream job failed")
+            text = err.args[0] if isinstance(err, RigError) and err.args else str(err)
+            self.uplink.message("failed", type(err).__name__, text, getattr(err, "device", None))
         finally:
             with self._lock:
                 self.run = None

@@ -301,6 +301,26 @@ def test_manual_field_matches_the_closed_form_and_limits_are_enforced(rig, bench
     assert all(not s.model.output_on for s in bench.supplies)
 
 
+def test_a_manual_field_an_unreachable_supply_prevents_is_refused_and_e_stop_reaches_one(
+        rig, bench):
+    with BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
+        backdoor.request("fault", device="y-", kind="drop_link")  # refuses connections
+        with pytest.raises(CommandRefused) as refused:
+            rig.set_field([1.0, 0.0, 0.0], ramp_s=0.05)
+        assert refused.value.code == "device" and "y-" in refused.value.reason
+        status = rig.status()
+        assert status["state"] == "idle" and status["run"] is None
+        assert status["manual_field_mT"] is None
+        assert all(not s.model.output_on for s in bench.supplies)
+        backdoor.request("fault", device="y-", kind="restore")
+    rig.set_field([0.0, 1.0, 0.0], ramp_s=0.05)  # the stream process holds it now
+    wait_current(bench, amps=0.5)
+    assert rig.estop()["state"] == "estopped"
+    assert all_off(bench)
+    assert wait_run_over(rig)["manual_field_mT"] is None
+    assert rig.reset()["state"] == "idle"
+
+
 # -- a pair formation change through the daemon (seed 002): the bench in the pair world --------------
 
 @pytest.fixture
