@@ -143,11 +143,13 @@ class CurrentProgram:
 
 def check_current_limits(currents: np.ndarray, rig: RigConfig, rate_hz: float | None,
                          describe: Callable[[int], str], *, current_advice: str,
-                         voltage_advice: str = "") -> np.ndarray | None:
+                         voltage_advice: str = "",
+                         start_A: np.ndarray | None = None) -> np.ndarray | None:
     """Check a current program (T, n) A against every coil's current limit and, with dI/dt by a
-    backward difference at `rate_hz` from 0 A, its supply's compliance voltage R I + L dI/dt
-    (not with `rate_hz` None: samples that are not a time series). Returns the voltages (T, n);
-    raises LimitError naming the sample (`describe(k)`) and the coil."""
+    backward difference at `rate_hz` from `start_A` (default 0 A: the supplies are off), its
+    supply's compliance voltage R I + L dI/dt (not with `rate_hz` None: samples that are not a
+    time series). Returns the voltages (T, n); raises LimitError naming the sample (`describe(k)`)
+    and the coil."""
     names = [c.name for c in rig.coils]
     limits = np.array([c.current_limit_A for c in rig.coils])
     over = np.abs(currents) / limits
@@ -162,7 +164,8 @@ def check_current_limits(currents: np.ndarray, rig: RigConfig, rate_hz: float | 
     resistance = np.array([c.resistance_ohm for c in rig.coils])
     inductance = np.array([c.inductance_H for c in rig.coils])
     compliance = np.array([c.compliance_V for c in rig.coils])
-    slope = np.diff(currents, axis=0, prepend=np.zeros((1, len(names)))) * rate_hz
+    start = np.zeros(len(names)) if start_A is None else np.asarray(start_A, dtype=float)
+    slope = np.diff(currents, axis=0, prepend=start[None, :]) * rate_hz
     resistive = resistance * currents
     inductive = inductance * slope
     volts = resistive + inductive

@@ -66,11 +66,13 @@ from rigctl.runhost import (
     RemoteRun,
     RunHost,
     build_run,
+    describe_run,
+    field_ramp,
     make_realtime,
     realtime_permitted,
 )
 from rigctl.sdnotify import SystemdNotifier
-from rigctl.telemetry import CycleBatch, CycleSample, TelemetryPublisher
+from rigctl.telemetry import CycleBatch, TelemetryPublisher
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +134,6 @@ class RunLike(Protocol):
     plan: Any  # the plan being run (agents, expected)
     info: dict  # what `load` and `status` say of it: name, size, planned duration
     record: Any  # the run record once execute() has made it, else None
-    stream_loop: Any  # the StreamLoop while streaming (its `last_error_s`), else None
 
 
 class RunFactory(Protocol):
@@ -144,10 +145,9 @@ class RunFactory(Protocol):
                    on_cycles: Callable[[CycleBatch], None]) -> RunLike: ...  # a manual field
 
     def prepare(self, plan: Any, rig: RigConfig, *, runs_dir: Path,
-                on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None],
                 on_cycles: Callable[[CycleBatch], None],
                 on_state: Callable[[Any, dict], None]) -> RunLike: ...
-    # a run calls on_cycle after every stream cycle, or on_cycles with several (t: monotonic)
+    # a run hands its stream cycles to on_cycles in batches (t: time.monotonic())
 
 
 class PlanRuns:
@@ -157,6 +157,10 @@ class PlanRuns:
 
     def __init__(self, realtime_priority: int | None = None) -> None:
         self.host = RunHost(realtime_priority)
+        self._lock = threading.Lock()
+        # id(plan) -> (plan, the plan as prepared, what load says of it): a plan executed again
+        # is not realized and allocated again here (on the command thread) just to be described
+        self._checked: OrderedDict[int, tuple[Any, Any, dict]] = OrderedDict()
 
     def start(self) -> None:
         self.host.start()
@@ -175,9 +179,22 @@ class PlanRuns:
                             "(with the daemon stopped: it holds the devices)")
         return plan
 
-    def prepare(self, plan, rig, *, runs_dir, on_cycle, on_cycles, on_state) -> RunLike:
-        local = build_run(plan, rig, runs_dir=runs_dir)
-        return RemoteRun.of_plan(self.host, local, on_cycles=on_cycles, on_state=on_state)
+    def prepare(self, plan, rig, *, runs_dir, on_cycles, on_state) -> RunLike:
+        """The first time: the run built here refuses a bad plan before anything else happens and
+        tells the plan's size. The stream process builds its own from the same prepared plan and
+        rig (deterministic, so the same program) and streams that."""
+        with self._lock:
+            known = self._checked.get(id(plan))
+        if known is None or known[0] is not plan:
+            local = build_run(plan, rig, runs_dir=runs_dir)
+            known = (plan, local.plan, describe_run(local))
+            with self._lock:
+                self._checked[id(plan)] = known
+                while len(self._checked) > MAX_PLANS:
+                    self._checked.popitem(last=False)
+        _, prepared, info = known
+        return RemoteRun(self.host, ("run", prepared, rig, str(runs_dir)), rig, plan=prepared,
+                         info=info, on_cycles=on_cycles, on_state=on_state)
 
     def hold_field(self, rig: RigConfig, currents_A: np.ndarray, ramp_s: float, *,
                    on_cycles: Callable[[CycleBatch], None]) -> RunLike:
@@ -708,8 +725,7 @@ class Daemon:
 
     def _prepare(self, plan: Any) -> RunLike:
         return self.factory.prepare(plan, self.rig, runs_dir=self.runs_dir,
-                                    on_cycle=self._on_cycle, on_cycles=self._on_cycles,
-                                    on_state=self._on_run_state)
+                                    on_cycles=self._on_cycles, on_state=self._on_run_state)
 
     def _cmd_execute(self, args: Any) -> dict:
         with self._lock:
@@ -793,19 +809,23 @@ class Daemon:
         return {"state": self.state.value}
 
     def _cmd_set_field(self, args: Any) -> dict:
-        from rigctl.allocate import currents_for_field
+        from rigctl.allocate import check_current_limits, currents_for_field
 
         target_T = np.asarray(args.field_mT, dtype=float) * 1e-3
         if self._actuation is None:
             raise Refusal(ErrorCode.WRONG_STATE, "this rig has no coils")
         currents = currents_for_field(self._actuation, target_T)
-        for coil, amps in zip(self.rig.coils, currents):
-            if abs(amps) > coil.current_limit_A + 1e-9:
-                raise LimitError(f"{list(args.field_mT)} mT needs {amps:.2f} A on coil {coil.name} "
-                                 f"(limit {coil.current_limit_A} A)")
-            if abs(amps) * coil.resistance_ohm > coil.compliance_V:
-                raise LimitError(f"{list(args.field_mT)} mT needs {abs(amps) * coil.resistance_ohm:.1f} V "
-                                 f"on coil {coil.name} (compliance {coil.compliance_V} V)")
+        # the ramp from the field held now, then holding it: the same current and voltage
+        # (R I + L dI/dt) limits as a plan's program
+        held = self.manual_field_mT
+        start = (np.zeros(len(currents)) if held is None else
+                 currents_for_field(self._actuation, np.asarray(held, dtype=float) * 1e-3))
+        ramp = field_ramp(start, currents, args.ramp_s, self.rig.stream.rate_hz)
+        check_current_limits(
+            np.vstack([ramp, currents]), self.rig, self.rig.stream.rate_hz,
+            lambda k: f"{list(args.field_mT)} mT ({'held' if k == len(ramp) else 'ramping'})",
+            current_advice="ask for a weaker field", start_A=start,
+            voltage_advice="ramp more slowly (a longer ramp_s) or ask for a weaker field")
         zero = not np.any(target_T)
         with self._lock:
             self._require(S.IDLE, doing="set a manual field")
@@ -829,7 +849,8 @@ class Daemon:
             active.thread = threading.Thread(target=self._run_thread, args=(active,),
                                              name="daemon-field")
             active.thread.start()
-        hold.started.wait(FIELD_START_TIMEOUT_S)
+        if not hold.started.wait(FIELD_START_TIMEOUT_S):
+            hold.estop()  # still connecting: it must not switch on after set_field has failed
         if not hold.streaming:  # the supplies could not be reached: say why; the state stays
             active.thread.join(FIELD_START_TIMEOUT_S)
             raise hold.error or RigError("the manual field did not start within "
@@ -852,8 +873,6 @@ class Daemon:
 
     # -- the run thread and its callbacks (called on the stream thread) -------------------------
     def _run_thread(self, active: _ActiveRun) -> None:
-        if self.realtime_priority and not isinstance(active.job, RemoteRun):
-            make_realtime(self.realtime_priority)
         if self.publisher is not None:
             self.publisher.reset_stream(self.rig.stream.rate_hz)
         summary = None
@@ -892,18 +911,6 @@ class Daemon:
             active.last_cycle = float(batch.t[-1])
         if self.publisher is not None:
             self.publisher.offer_cycles(replace(batch, t=batch.t - self.t0))
-
-    def _on_cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray) -> None:
-        """One stream cycle of a run on a thread of this process (runs a `RunFactory` makes
-        without a stream process, as the protocol tests' stand-ins)."""
-        active = self._active
-        now = time.monotonic()
-        if active is not None:
-            active.sample, active.move, active.last_cycle = sample, move, now
-        if self.publisher is not None:
-            self.publisher.offer_cycle(CycleSample(now - self.t0, sample, move,
-                                                   np.array(commanded), np.array(measured),
-                                                   _period_error(active)))
 
     def _on_run_state(self, run_state: Any, info: dict) -> None:
         value = run_state.value
@@ -978,11 +985,6 @@ def _abort_quietly(active: _ActiveRun) -> None:
         active.job.abort()
     except RigError as err:
         log.warning("abort on shutdown: %s", err)
-
-
-def _period_error(active: _ActiveRun | None) -> float | None:
-    loop = active.job.stream_loop if active is not None else None
-    return None if loop is None else loop.last_error_s
 
 
 def _describe(err: ValidationError) -> str:

@@ -12,7 +12,7 @@ supply over fresh connections, writes the fault into the run's event log, and ke
 The host process is spawned when the daemon starts (its imports take about a second, which an
 `execute` should not wait for) and runs plans one at a time; when it dies, the next run spawns
 another. `RemoteRun` is what the daemon holds: it has the `Run` interface (`execute`, `pause`,
-`resume`, `abort`, `estop`, `plan`, `record`, `stream_loop`) and forwards each call.
+`resume`, `abort`, `estop`, `plan`, `record`) and forwards each call.
 
 Messages are pickled tuples over one-way pipes (`multiprocessing.connection.Connection`):
 
@@ -53,9 +53,9 @@ from typing import Any
 
 import numpy as np
 
+from rigctl import errors
 from rigctl.config import RigConfig
 from rigctl.devices import zero_supplies_directly
-from rigctl import errors
 from rigctl.errors import RigError
 from rigctl.telemetry import CycleBatch
 
@@ -286,12 +286,6 @@ class RunHost:
                             process.pid, process.returncode)
 
 
-class _LoopView:
-    """What the daemon reads of the stream loop: the period error of the latest cycle."""
-
-    last_error_s: float | None = None
-
-
 class _RecordView:
     """The run record as the daemon sees it: where it is, and events appended by the host."""
 
@@ -309,18 +303,18 @@ class _RecordView:
 
 class RemoteRun:
     """A job streamed by the `RunHost`, with the interface of the run it stands for: a plan's run
-    (`of_plan`) or a manual field (`of_field`, a `FieldHold`, which adds `retarget`)."""
+    (`job` ("run", prepared plan, rig, runs dir), see `build_run`) or a manual field (`of_field`,
+    a `FieldHold`, which adds `retarget`)."""
 
     def __init__(self, host: RunHost, job: tuple, rig: RigConfig, *, plan: Any, info: dict,
-                 runs_dir: Any, on_cycles: Any, on_state: Any) -> None:
+                 on_cycles: Any, on_state: Any) -> None:
         self._host = host
         self.job = job  # the message that starts it in the host
-        self.plan, self.rig, self.runs_dir, self.info = plan, rig, runs_dir, info
+        self.plan, self.rig, self.info = plan, rig, info
         self.on_cycles, self.on_state = on_cycles, on_state
         self.started = threading.Event()  # its first cycles came, or it ended without any
         self.streaming = False
         self.record: _RecordView | None = None
-        self.stream_loop = _LoopView()
         # streaming: cycles come every UPLINK_BATCH_S; longer than a supply's own reply timeout
         # (which the run itself turns into a fault) plus the ramp down, and it is hung
         self.silence_limit_s = max(SILENCE_MIN_S, 2.0 * self.rig.stream.reply_timeout_s
@@ -335,20 +329,11 @@ class RemoteRun:
         self._early: list[tuple] = []  # control calls made before the host had the run
 
     @classmethod
-    def of_plan(cls, host: RunHost, local: Any, *, on_cycles: Any, on_state: Any) -> "RemoteRun":
-        """`local` is the run prepared in the daemon when the plan was loaded: it refused a bad
-        plan before anything else happened and tells the plan's size. The host prepares its own
-        copy from the same plan and rig (deterministic, so the same program) and streams that."""
-        return cls(host, ("run", local.plan, local.rig, str(local.runs_dir)), local.rig,
-                   plan=local.plan, info=describe_run(local), runs_dir=local.runs_dir,
-                   on_cycles=on_cycles, on_state=on_state)
-
-    @classmethod
     def of_field(cls, host: RunHost, rig: RigConfig, currents_A: np.ndarray, ramp_s: float, *,
                  on_cycles: Any) -> "RemoteRun":
         """Hold the supplies at `currents_A`, reached in a ramp of `ramp_s` (a manual field)."""
         return cls(host, ("field", rig, np.asarray(currents_A, dtype=float).tolist(), ramp_s),
-                   rig, plan=None, info={}, runs_dir=None, on_cycles=on_cycles,
+                   rig, plan=None, info={}, on_cycles=on_cycles,
                    on_state=lambda *_: None)
 
     @property
@@ -416,10 +401,7 @@ class RemoteRun:
             self._last_cycles = time.monotonic()
             self.streaming = True
             self.started.set()
-            batch = CycleBatch(*message[1:])
-            error = float(batch.period_error_s[-1])
-            self.stream_loop.last_error_s = None if np.isnan(error) else error
-            self.on_cycles(batch)
+            self.on_cycles(CycleBatch(*message[1:]))
         elif kind == "state":
             _, state, info, path, t0 = message
             if self.record is None and path is not None:
@@ -466,6 +448,15 @@ class RemoteRun:
         self._done.set()
 
 
+def field_ramp(start_A: np.ndarray, target_A: np.ndarray, ramp_s: float,
+               rate_hz: float) -> np.ndarray:
+    """The samples (n, coils) of a manual field's straight ramp from `start_A` to `target_A` over
+    `ramp_s` at `rate_hz` (at least one sample: the target itself)."""
+    n = max(1, round(ramp_s * rate_hz))
+    start, target = np.asarray(start_A, dtype=float), np.asarray(target_A, dtype=float)
+    return start + (target - start) * (np.arange(1, n + 1) / n)[:, None]
+
+
 class FieldHold:
     """A manual field (calibration): hold setpoints on the supplies at the stream rate, ramping
     between targets, until released (ramp to zero), aborted, or e-stopped (zero at once)."""
@@ -487,10 +478,9 @@ class FieldHold:
         self.stream_loop: Any = None
 
     def retarget(self, currents_A: np.ndarray, ramp_s: float, release: bool = False) -> None:
-        n = max(1, round(ramp_s * self.rate_hz))
         with self._lock:
             start = self._ramp[-1] if self._ramp else self._last
-            self._ramp = [start + (currents_A - start) * (k / n) for k in range(1, n + 1)]
+            self._ramp = list(field_ramp(start, currents_A, ramp_s, self.rate_hz))
             self._release = release
 
     def execute(self) -> None:

@@ -1,14 +1,14 @@
 """Telemetry: the daemon's two PUB sockets and the thread that feeds them.
 
-The stream thread must never wait on a subscriber, nor on the publisher. `offer_cycle` appends the
-cycle's numbers to a bounded in-memory queue (a deque append: no lock, no wake-up, about a
-microsecond; when the queue is full the oldest sample goes and is counted) and returns. The
-publisher thread wakes every `TELEMETRY_BATCH_S`, takes every queued cycle, and sends them as one
-`currents` message (every cycle, at the stream rate, unless `currents_hz` decimates), the latest
-`field` (from the actuation matrix) and, at `stream_hz`, period-error statistics. Batching keeps
-the publisher's Python work (and so its hold on the GIL, which the stream thread needs back after
-every device read) to a few short bursts a second. Sends use `zmq.NOBLOCK`; a PUB socket never
-blocks anyway, it drops for a subscriber whose queue (`DATA_SEND_HWM` messages) is full.
+The stream must never wait on a subscriber, nor on the publisher. Its cycles arrive in batches
+(`CycleBatch`, about every 10 ms from the stream process), and `offer_cycles` appends each to a
+bounded in-memory queue (a deque append: no lock, no wake-up; when the queue is full the oldest
+batch goes and its cycles are counted as dropped) and returns. The publisher thread wakes every
+`TELEMETRY_BATCH_S`, takes every queued cycle, and sends them as one `currents` message (every
+cycle, at the stream rate, unless `currents_hz` decimates), the latest `field` (from the
+actuation matrix) and, at `stream_hz`, period-error statistics, a few short bursts of Python a
+second. Sends use `zmq.NOBLOCK`; a PUB socket never blocks anyway, it drops for a subscriber
+whose queue (`DATA_SEND_HWM` messages) is full.
 
 `state`, `fault` and `log` are never dropped on our side: they go into their own queue, which
 wakes the publisher at once and is emptied before any sample, and out through a second PUB
@@ -49,18 +49,6 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class CycleSample:
-    """One stream cycle as the stream thread saw it. Currents in A, shape (n_coils,)."""
-
-    t: float
-    sample: int
-    move: int
-    commanded_A: np.ndarray
-    measured_A: np.ndarray
-    period_error_s: float | None = None
-
-
-@dataclass(frozen=True)
 class CycleBatch:
     """Stream cycles, a row each: `t` (n,) s on the publisher's clock, `sample` and `move` (n,),
     `commanded_A` and `measured_A` (n, n_coils), `period_error_s` (n,), NaN where unknown. How a
@@ -75,14 +63,6 @@ class CycleBatch:
 
     def __len__(self) -> int:
         return len(self.t)
-
-    @staticmethod
-    def of(samples: list[CycleSample]) -> "CycleBatch":
-        return CycleBatch(
-            np.array([s.t for s in samples]), np.array([s.sample for s in samples]),
-            np.array([s.move for s in samples]), np.array([s.commanded_A for s in samples]),
-            np.array([s.measured_A for s in samples]),
-            np.array([np.nan if s.period_error_s is None else s.period_error_s for s in samples]))
 
     @staticmethod
     def joined(batches: list["CycleBatch"]) -> "CycleBatch":
@@ -102,7 +82,8 @@ class PublisherStats:
 class TelemetryPublisher:
     """Owns the data and events PUB sockets (bound by `start`) and the publisher thread.
 
-    `offer_cycle` is for the stream thread; `publish_event` and `publish_agents` for any thread.
+    `offer_cycles` is for the thread that hands cycles over; `publish_event` and `publish_agents`
+    for any thread.
     Rates in Hz; a rate of 0 means every sample.
     """
 
@@ -117,7 +98,7 @@ class TelemetryPublisher:
         currents_hz: float = 0.0,
         field_hz: float = 100.0,
         stream_hz: float = 10.0,
-        queue_samples: int = 8192,
+        queue_batches: int = 4096,
         batch_s: float = TELEMETRY_BATCH_S,
         secure: Callable[[zmq.Socket], None] | None = None,
         clock_origin: float | None = None,
@@ -135,7 +116,7 @@ class TelemetryPublisher:
         self.events_endpoint = self._events.getsockopt_string(zmq.LAST_ENDPOINT)
         self.batch_s = batch_s
         self._cond = threading.Condition()
-        self._samples: deque[CycleSample | CycleBatch] = deque(maxlen=queue_samples)
+        self._samples: deque[CycleBatch] = deque(maxlen=queue_batches)
         self._offered = 0  # cycles; written by the one thread that offers
         self._consumed = 0
         self._pending_reset: float | None = None
@@ -184,13 +165,9 @@ class TelemetryPublisher:
         """A new stream starts: period-error statistics begin again (at the next batch)."""
         self._pending_reset = rate_hz
 
-    def offer_cycle(self, sample: CycleSample) -> None:
-        """From the stream thread: an append, nothing else (the oldest goes when full)."""
-        self._samples.append(sample)
-        self._offered += 1
-
     def offer_cycles(self, batch: CycleBatch) -> None:
-        """Many cycles at once (from the thread that reads a stream process): an append too."""
+        """Stream cycles, from the one thread that hands them over (the reader of the stream
+        process): an append, nothing else (the oldest batch goes when the queue is full)."""
         self._samples.append(batch)
         self._offered += len(batch)
 
@@ -229,21 +206,11 @@ class TelemetryPublisher:
                 self._send(topic, msg)
             if time.monotonic() >= next_batch or stopping:
                 next_batch = time.monotonic() + self.batch_s
-                singles: list[CycleSample] = []
                 chunks: list[CycleBatch] = []
                 while self._samples:
-                    item = self._samples.popleft()
-                    if isinstance(item, CycleBatch):
-                        if singles:
-                            chunks.append(CycleBatch.of(singles))
-                            singles = []
-                        chunks.append(item)
-                    else:
-                        singles.append(item)
-                if singles:
-                    chunks.append(CycleBatch.of(singles))
+                    chunks.append(self._samples.popleft())
                 self._consumed += sum(len(c) for c in chunks)
-                queued = sum(len(c) if isinstance(c, CycleBatch) else 1 for c in list(self._samples))
+                queued = sum(len(c) for c in list(self._samples))
                 self.stats.dropped = self._offered - self._consumed - queued
                 if chunks:
                     self._publish_batch(CycleBatch.joined(chunks))

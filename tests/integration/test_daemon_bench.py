@@ -295,6 +295,16 @@ def test_manual_field_matches_the_closed_form_and_limits_are_enforced(rig, bench
     with pytest.raises(CommandRefused) as refused:
         rig.set_field([0.0, 0.0, 10.0])  # 10 mT needs 32.6 A per z coil: over the 20 A limit
     assert refused.value.code == "limit" and "z" in refused.value.reason
+    # the supplies' compliance holds for the ramp too: 5 mT in x is 16.3 A per x coil (under the
+    # 20 A limit); from the 1 mT held, in one 5 ms sample at 200 Hz that is
+    # L dI/dt + R I = 0.03 * 13.0 / 0.005 + 1.5 * 16.3 = 103 V, over the 100 V compliance
+    current_5mT = 5 * expected_A
+    volts = 0.03 * (current_5mT - expected_A) * 200 + 1.5 * current_5mT
+    assert current_5mT < 20 and volts > 100
+    with pytest.raises(CommandRefused) as refused:
+        rig.set_field([5.0, 0.0, 0.0], ramp_s=0.0)
+    assert refused.value.code == "limit" and " V " in refused.value.reason
+    assert rig.status()["manual_field_mT"] == [1.0, 0.0, 0.0]  # still held
     rig.set_field([0.0, 0.0, 0.0], ramp_s=0.05)
     status = wait_run_over(rig)
     assert status["manual_field_mT"] is None

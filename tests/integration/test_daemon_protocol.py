@@ -18,6 +18,7 @@ from rigctl.errors import PlanError
 from rigctl.execute import RunState
 from rigctl.messages import MAX_REQUEST_BYTES, DaemonState, StateMsg
 from rigctl.stream import StreamLoop
+from rigctl.telemetry import CycleBatch
 
 RATE_HZ = 500.0
 
@@ -26,7 +27,7 @@ class StandInRun:
     """Streams `samples` cycles of made-up currents at RATE_HZ; obeys pause, resume, abort and
     estop the way a Run does (pause at the end of a 'move' of 50 samples), and can fault."""
 
-    def __init__(self, plan, runs_dir, on_cycle, on_state):
+    def __init__(self, plan, runs_dir, on_cycles, on_state):
         self.plan = SimpleNamespace(name="stand-in", moves=[[10, 0]] * (plan["samples"] // 50),
                                     agents=[], expected=None)
         self.samples = plan["samples"]
@@ -35,9 +36,8 @@ class StandInRun:
         self.fault_at = plan.get("fault_at")
         self.suspended = plan.get("suspended")  # [from, to): lost tracking, as a supervisor says
         self.unreachable = plan.get("unreachable", [])  # supplies whose link is down at e-stop
-        self.runs_dir, self.on_cycle, self.on_state = runs_dir, on_cycle, on_state
+        self.runs_dir, self.on_cycles, self.on_state = runs_dir, on_cycles, on_state
         self.record = None
-        self.stream_loop = None
         self.pause_requested = self.aborted = False
         self.estopped = threading.Event()
         self.zeroed_at = None
@@ -88,7 +88,10 @@ class StandInRun:
             if index >= n:
                 self.on_state(RunState.DONE, {})
                 return False
-            self.on_cycle(index, index // 50, np.full(6, 1.0), np.full(6, 0.99))
+            # a batch of one cycle (a stream process sends about ten)
+            self.on_cycles(CycleBatch(np.array([time.monotonic()]), np.array([index]),
+                                      np.array([index // 50]), np.full((1, 6), 1.0),
+                                      np.full((1, 6), 0.99), np.array([np.nan])))
             return True
 
         StreamLoop(RATE_HZ).run(cycle)
@@ -110,8 +113,8 @@ class StandInRuns:
             raise PlanError("plan: samples: must be a positive integer")
         return data
 
-    def prepare(self, plan, rig, *, runs_dir, on_cycle, on_cycles, on_state):
-        run = StandInRun(plan, runs_dir, on_cycle, on_state)
+    def prepare(self, plan, rig, *, runs_dir, on_cycles, on_state):
+        run = StandInRun(plan, runs_dir, on_cycles, on_state)
         self.runs.append(run)
         return run
 

@@ -9,7 +9,7 @@ import zmq
 
 from rigctl.client import Telemetry
 from rigctl.messages import DaemonState, Topic
-from rigctl.telemetry import CycleSample, TelemetryPublisher
+from rigctl.telemetry import CycleBatch, TelemetryPublisher
 
 
 def test_a_stalled_subscriber_loses_currents_but_no_state_and_never_slows_the_stream():
@@ -17,7 +17,7 @@ def test_a_stalled_subscriber_loses_currents_but_no_state_and_never_slows_the_st
     publisher = TelemetryPublisher(context, "tcp://127.0.0.1:0", "tcp://127.0.0.1:0",
                                    coil_names=[f"c{i}" for i in range(6)],
                                    actuation_matrix_T_per_A=np.ones((3, 6)) * 1e-4,
-                                   queue_samples=1000, batch_s=0.005)
+                                   queue_batches=100, batch_s=0.005)
     publisher.start()
     stalled = Telemetry(publisher.data_endpoint, publisher.events_endpoint, context=context,
                         receive_hwm=10)
@@ -37,14 +37,16 @@ def test_a_stalled_subscriber_loses_currents_but_no_state_and_never_slows_the_st
                     seen[name] = seen[name] or msg.topic == "state"
         first_state_seq = publisher._seq["state"]
 
-        commanded, measured = np.arange(6.0), np.arange(6.0) * 0.9
-        n_states = 200
-        for k in range(100_000):  # a stream flooding far faster than any real rig
-            publisher.offer_cycle(CycleSample(k * 1e-3, k, 0, commanded, measured, 1e-5))
-            if k % 500 == 0:
-                publisher.publish_event(Topic.STATE, state=DaemonState.RUNNING if k % 1000
+        n_states, per_batch = 200, 10
+        commanded = np.tile(np.arange(6.0), (per_batch, 1))
+        for b in range(10_000):  # 100 000 cycles: a stream flooding far faster than any real rig
+            k = np.arange(b * per_batch, (b + 1) * per_batch)
+            publisher.offer_cycles(CycleBatch(k * 1e-3, k, np.zeros(per_batch, dtype=int),
+                                              commanded, commanded * 0.9, np.full(per_batch, 1e-5)))
+            if b % 50 == 0:
+                publisher.publish_event(Topic.STATE, state=DaemonState.RUNNING if b % 100
                                         else DaemonState.PAUSED)
-            assert len(publisher._samples) <= 1000  # bounded, whatever the subscribers do
+            assert len(publisher._samples) <= 100  # bounded, whatever the subscribers do
         # (what an offer costs is a speed figure: bench/daemon.py measures the stream under
         # subscribers; a timed assertion here would only flake on a loaded machine)
 
