@@ -19,12 +19,12 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from rigctl.emulators.process import EmulatedBenchProcess
+from rigctl.plans.schema import load_plan
 
 from rigctl.config import RigConfig, load_rig
-from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.execute import Run
-from rigctl.plans.schema import load_plan
-from rigctl.supervisor import SupervisorSettings
+from rigctl.rigs.six_coil.global_moves import Run
+from rigctl.rigs.six_coil.supervisor import SupervisorSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,7 +49,7 @@ def one_seed(plan_path: Path, seed: int, mismatch: list[str]) -> dict:
             closed_run = Run(plan, rig, runs_dir=Path(tmp) / "runs", progress_out=None,
                              closed_loop=True, supervisor_settings=SupervisorSettings(seed=seed))
             closed = closed_run.execute()
-            supervisor = closed_run.supervisor
+            supervisor = closed_run.program.supervisor
             assert supervisor is not None
             times = supervisor.sequencer.command_times
             latency = {"continue": [], "replan": []}

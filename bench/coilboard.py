@@ -41,7 +41,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.wall_contact import centre_region, plan_with_model
 from rigctl.plans.workspace import ShapeWorkspace
@@ -119,11 +118,12 @@ def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Gener
                    pole_distance_mm: float | None = None) -> dict:
     """Closed-loop runs on the emulated coil board: the bench in a process of its own (as `rigctl
     execute` starts it), re-placed per run; the runs in this one."""
-    from rigctl.coilboard_run import execute_coilboard
-    from rigctl.config import load_rig
     from rigctl.emulators.backdoor import BackdoorClient
     from rigctl.emulators.process import EmulatedBenchProcess
     from rigctl.plans.schema import parse_plan
+
+    from rigctl.config import load_rig
+    from rigctl.rigs.coil_board.run import execute_coilboard
 
     boundary = {"disk": [0.0, 0.0, 23.0]}
     ws = ShapeWorkspace(_shape(boundary))

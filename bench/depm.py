@@ -25,11 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from rigctl.config import load_rig
-from rigctl.depm_run import cross_activation, run_field_sequence, table1, windows_of
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.errors import PlanError
 from rigctl.plans.depm import (
     baseline_of,
     eight_components,
@@ -39,6 +35,15 @@ from rigctl.plans.depm import (
     plan_violations,
 )
 from rigctl.plans.schema import SequenceComponent
+
+from rigctl.config import load_rig
+from rigctl.errors import PlanError
+from rigctl.rigs.depm.run import (
+    cross_activation,
+    run_field_sequence,
+    table1,
+    windows_of,
+)
 
 MODEL_RATE_HZ = 50.0
 RANDOM_SEQUENCES = (1, 2, 5, 8)  # seeds: these four include the slowest transitions seen

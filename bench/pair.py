@@ -87,7 +87,7 @@ def bench_solve(names, seeds, variants, budget_s):
 
 
 def bench_replan(count):
-    from rigctl.plans.pair import PairPlannerOptions, replan_pair, problem_of, state_of
+    from rigctl.plans.pair import PairPlannerOptions, problem_of, replan_pair, state_of
     from rigctl.plans.schema import load_plan
 
     plan = load_plan(EXAMPLES / PROBLEMS["microfactory"][0])
@@ -118,9 +118,16 @@ def _unit2(rng):
 
 
 def bench_decide():
-    from rigctl.plans.pair import default_rig, physics_of, problem_of, rig_max_pull, state_of
+    from rigctl.plans.pair import (
+        default_rig,
+        physics_of,
+        problem_of,
+        rig_max_pull,
+        state_of,
+    )
     from rigctl.plans.schema import load_plan
-    from rigctl.pursuit import PairPursuit, PursuitSettings
+
+    from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings
 
     plan = load_plan(EXAMPLES / PROBLEMS["microfactory"][0])
     d = plan.agents.body_diameter_mm

@@ -26,12 +26,12 @@ import time
 
 import cv2
 import numpy as np
-
 from rigctl.drivers.camera import CameraDriver
 from rigctl.emulators.camera import CameraModel, Renderer, Scene, serve_camera
 from rigctl.emulators.server import EmulatorServer
 from rigctl.plans.workspace import ShapeWorkspace
-from rigctl.tracker import Tracker
+
+from rigctl.vision.tracker import Tracker
 
 RADIUS_MM = 5.0
 WORKSPACE = ShapeWorkspace(
@@ -141,7 +141,11 @@ def command_latency(runs: int) -> dict:
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from closed_loop import ROOT, one_seed, percentiles_ms  # the closed-loop bench, same folder
+    from closed_loop import (  # the closed-loop bench, same folder
+        ROOT,
+        one_seed,
+        percentiles_ms,
+    )
 
     mismatch = ["--slip", "0.85", "--speed-spread", "0.01", "--noise", "0.05", "--drift", "0.005"]
     plan = ROOT / "plans" / "examples" / "fig4-quick.json"

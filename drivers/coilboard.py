@@ -29,8 +29,16 @@ import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
-from rigctl import coilboard_protocol as proto
-from rigctl.coilboard_protocol import Ack, ErrorReply, Frame, FrameParser, HelloReply, Status
+from rigctl.drivers import coilboard_frame as proto
+from rigctl.drivers.coilboard_frame import (
+    Ack,
+    ErrorReply,
+    Frame,
+    FrameParser,
+    HelloReply,
+    Status,
+)
+
 from rigctl.errors import (
     ConfigError,
     DeviceError,

@@ -23,8 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, ProtocolError, RigError
-from rigctl.magnetics import gradient_from_terms
+from rigctl.errors import (
+    ConfigError,
+    DeviceTimeout,
+    Disconnected,
+    ProtocolError,
+    RigError,
+)
 from rigctl.transport import Transport, open_transport
 
 log = logging.getLogger(__name__)
@@ -55,43 +60,6 @@ class HallSample:
     field_T: np.ndarray
     saturated: np.ndarray
     received_s: float
-
-
-def gradient_design(offsets_m: np.ndarray, reference: int = 0) -> np.ndarray:
-    """The least-squares map from sensor field differences to the five gradient terms.
-
-    With G symmetric and traceless (Maxwell, eq. 4) parameterised by its five terms t (eq. 5),
-    each other sensor i gives B_i - B_ref = G (p_i - p_ref) to first order: three equations per
-    sensor. Returns P (5, 3 (n - 1)) with t = P @ [B_i - B_ref for i != ref].ravel().
-    ConfigError if the offsets do not determine all five terms (fewer than two independent
-    directions).
-    """
-    offsets = np.asarray(offsets_m, dtype=float)
-    deltas = np.delete(offsets - offsets[reference], reference, axis=0)  # (n-1, 3)
-    basis = gradient_from_terms(np.eye(5))  # (5, 3, 3): G for each unit term
-    design = np.einsum("kij,nj->nik", basis, deltas).reshape(-1, 5)  # rows: sensor, component
-    if np.linalg.matrix_rank(design, tol=1e-9) < 5:
-        raise ConfigError(f"sensor offsets {offsets.tolist()} m do not determine all five gradient "
-                          "terms: place two sensors along two different directions from the first")
-    return np.linalg.pinv(design)
-
-
-def field_vector_from_sensors(fields_T: np.ndarray, offsets_m: np.ndarray,
-                              reference: int = 0) -> np.ndarray:
-    """U (..., 8) in T and T/m at the reference sensor from fields (..., n, 3) T at `offsets_m`.
-
-    Seed 003 eq. 24 takes dB_m/dn = (B_m,i - B_m,1) / delta_1i for sensors displaced along the
-    axes. This is the same finite difference written as a least-squares fit of a symmetric,
-    traceless gradient, so it works for any offsets; with sensor 2 at +delta x and sensor 3 at
-    +delta y (the paper's board) it reduces exactly to eq. 24, with dBx/dy (measured twice, as
-    dBx/dy from sensor 3 and dBy/dx from sensor 2) averaged. The estimate is first-order accurate:
-    its error is about (delta / 2) times the field's second derivative.
-    """
-    fields = np.asarray(fields_T, dtype=float)
-    projector = gradient_design(offsets_m, reference)
-    diffs = np.delete(fields - fields[..., reference:reference + 1, :], reference, axis=-2)
-    terms = np.einsum("kn,...n->...k", projector, diffs.reshape(*diffs.shape[:-2], -1))
-    return np.concatenate([fields[..., reference, :], terms], axis=-1)
 
 
 class HallBoard:

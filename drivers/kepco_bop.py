@@ -293,8 +293,9 @@ class KepcoBop:
                 return False
         return True
 
-    def safe_stop(self, ramp_s: float = 0.1, steps: int = 10) -> None:
-        """Ramp from the last setpoint to 0 A in `steps` over `ramp_s`, then output off.
+    def safe_stop(self, ramp_s: float = 0.1, steps: int = 10) -> bool:
+        """Ramp from the last setpoint to 0 A in `steps` over `ramp_s`, then output off, confirmed
+        by `OUTP?` answering 0 (BOP par. B.14). Returns whether the supply confirmed it.
 
         Best effort: never raises on a dead link; what could not be done is logged.
         """
@@ -314,10 +315,15 @@ class KepcoBop:
                     self._last_setpoint_A = amps
                 if k < steps:
                     time.sleep(max(0.0, t0 + k * ramp_s / steps - time.monotonic()))
-            self._write("OUTP OFF")
+            answer = self._query("OUTP OFF;:OUTP?")
+            if answer != "0":
+                log.error("%s: output off not confirmed (OUTP? answered %r)", self.name, answer)
+                return False
             log.info("%s: ramped from %g A to 0 A, output off", self.name, start)
+            return True
         except (RigError, OSError) as err:
             log.error("%s: safe stop incomplete (%s); the supply's state is unknown", self.name, err)
+            return False
 
     def close(self) -> None:
         """Release the transport (does not change the supply's output)."""

@@ -21,7 +21,7 @@ joint trajectories of the two arms that carry the magnets:
 
 The baseline ("magnetic-agnostic", `baseline_of`) sends the arms to the same EPM end poses by
 straight joint-space moves, each arm solving its own joints as its controller would, also at 30 %
-speed. `check(plan)` runs every safety constraint of `rigctl.depm_safety` on a plan, densely in
+speed. `check(plan)` runs every safety constraint of `rigctl.plans.depm_safety` on a plan, densely in
 time. Figures and the reading of the paper: docs/depm.md.
 """
 
@@ -38,18 +38,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.interpolate import PchipInterpolator
-
-from rigctl.depm_safety import SafetyLimits, check_samples, violations
-from rigctl.errors import PlanError
-from rigctl.kinematics import (
-    DEFAULT_BASES,
-    LBR_IIWA_14_R820,
-    ArmKinematics,
-    ArmModel,
-    base_transform,
-)
-from rigctl.magnetics import actuation_matrix, cylinder_moment, field_vector
+from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
 from rigctl.plans.schema import (
     SCHEMA_ID,
     ArmPlan,
@@ -59,6 +48,17 @@ from rigctl.plans.schema import (
     Segment,
     SequenceComponent,
 )
+from scipy.interpolate import PchipInterpolator
+
+from rigctl.errors import PlanError
+from rigctl.kinematics import (
+    DEFAULT_BASES,
+    LBR_IIWA_14_R820,
+    ArmKinematics,
+    ArmModel,
+    base_transform,
+)
+from rigctl.magnetics import actuation_matrix, cylinder_moment, field_vector
 
 log = logging.getLogger(__name__)
 
@@ -1138,7 +1138,7 @@ def _dense(plan: FieldSequencePlan, step: float
 
 def plan_violations(plan: FieldSequencePlan, arms: Sequence[ArmKinematics] | None = None,
                     limits: SafetyLimits | None = None) -> list:
-    """Every safety constraint the plan's trajectories break (rigctl.depm_safety.Violation),
+    """Every safety constraint the plan's trajectories break (rigctl.plans.depm_safety.Violation),
     sampled every `check_step_s` and at every knot; against the plan's own arms and limits, or
     the given ones (a rig file's)."""
     rig = rig_for_plan(plan)

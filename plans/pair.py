@@ -18,7 +18,7 @@ and 1 as psi turns (eq. 2 and Fig. 1: the largest transverse force is half the l
 A weak gradient pulls both agents alike: the centroid moves at f = F / (sigma D) BL/s (eq. 3, first
 rows). On the six-coil rig the gradient at the centre has no off-diagonal terms, so a moment along
 (cos psi_G, sin psi_G) can be pulled by at most p |cos psi_G| along x and p |sin psi_G| along y
-(`rigctl.allocate.max_planar_gradient` gives p): the "singular pulling" constraint of Sec. II-C.
+(`rigctl.rigs.six_coil.allocate.max_planar_gradient` gives p): the "singular pulling" constraint of Sec. II-C.
 
 Planner state q = [x_c, y_c, r, phi] (BL, BL, BL, rad); control u = [psi_G, f_x, f_y] held for a
 step time dt (psi_G is the global field angle the coils hold; the local psi changes as phi does).
@@ -310,9 +310,8 @@ class PairProblem:
 def hull_workspace(spec) -> object | None:
     """The workspace with every polygon obstacle replaced by its convex hull (rects and disks are
     convex already), for rejecting samples inside obstacles' hulls; None for image workspaces."""
-    from scipy.spatial import ConvexHull
-
     from rigctl.plans.workspace import ShapeWorkspace, _shape_tuple
+    from scipy.spatial import ConvexHull
 
     if not hasattr(spec, "boundary"):
         return None
@@ -819,7 +818,7 @@ def physics_of(plan) -> PairPhysics:
 
 
 def problem_of(plan, workspace=None) -> PairProblem:
-    from rigctl.plans.schema import plan_workspace
+    from rigctl.plans.checks import plan_workspace
 
     ws = workspace if workspace is not None else plan_workspace(plan)
     return PairProblem(ws, physics_of(plan), plan.r_min_bl, plan.r_max_bl, plan.max_pull_bl_s,
@@ -968,7 +967,7 @@ def _formation_arg(text: str | None, flag: str) -> list[float]:
 
 def rig_max_pull(rig, physics: PairPhysics, field_mT: float) -> float:
     """The largest pull (BL/s) the rig's coils give these agents with this field, at any angle."""
-    from rigctl.allocate import max_planar_gradient
+    from rigctl.coils import max_planar_gradient
 
     return max_planar_gradient(rig, field_mT * 1e-3) * physics.pull_bl_s_per_T_m
 
@@ -996,16 +995,17 @@ def run_cli(args) -> int:
         return EXIT_SOLVED if result["stlc"] else EXIT_NOT_SOLVED
     if not args.workspace or not args.output:
         raise PlanError("plan pair: give --workspace, --start, --goal and -o (or --check CONFIG)")
-    from rigctl.cli_plan import _WorkspaceSource
-    from rigctl.config import load_rig
+    from rigctl.plans.checks import WorkspaceSource
     from rigctl.plans.schema import dump_plan, parse_plan
+
+    from rigctl.config import load_rig
 
     start_doc = _formation_arg(args.start, "--start")
     goal_doc = _formation_arg(args.goal, "--goal")
     physics = PairPhysics(args.diameter, args.moment, args.viscosity)
     rig = load_rig(args.rig) if args.rig else default_rig()
     max_pull = PULL_MARGIN * rig_max_pull(rig, physics, args.field_mT)
-    source = _WorkspaceSource(args.workspace)
+    source = WorkspaceSource(args.workspace)
     output = Path(args.output)
     d = physics.body_diameter_mm
     base = {

@@ -28,21 +28,21 @@ from typing import Any
 
 import zmq
 
-from rigctl.errors import Disconnected, RigError
-from rigctl.keys import load_public, secure_client
-from rigctl.messages import (
+from rigctl.daemon.keys import load_public, secure_client
+from rigctl.daemon.messages import (
     DATA_TOPICS,
     DEFAULT_COMMAND_ENDPOINT,
     EVENT_TOPICS,
     Topic,
     parse_telemetry,
 )
+from rigctl.errors import Disconnected, RigError
 
 log = logging.getLogger(__name__)
 
 
 class CommandRefused(RigError):
-    """The daemon refused a request; `code` is one of `rigctl.messages.ErrorCode`'s values."""
+    """The daemon refused a request; `code` is one of `rigctl.daemon.messages.ErrorCode`'s values."""
 
     def __init__(self, code: str, message: str) -> None:
         super().__init__(f"{code}: {message}")
@@ -205,7 +205,7 @@ class Rig:
 
 class Telemetry:
     """A subscription to both telemetry sockets. Iterate, or `receive(timeout_s)`; messages are
-    the pydantic models of `rigctl.messages`. `lost` counts sequence gaps per topic."""
+    the pydantic models of `rigctl.daemon.messages`. `lost` counts sequence gaps per topic."""
 
     def __init__(self, data_endpoint: str, events_endpoint: str,
                  topics: Iterable[str] | None = None, *, context: zmq.Context | None = None,

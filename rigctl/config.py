@@ -17,11 +17,17 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import tomli_w
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
-from rigctl.calibration import Calibration
+from rigctl.camera_model import Calibration
 from rigctl.errors import ConfigError
-from rigctl.messages import DaemonSettings
 
 RigKind = Literal["six-coil", "coil-board", "depm"]
 
@@ -198,6 +204,24 @@ class Emulation(_Strict):
     field_at_robots: bool = Field(
         default=False, description="each robot feels the coils' field at its own position"
     )
+
+
+DEFAULT_COMMAND_ENDPOINT = "tcp://127.0.0.1:7810"
+DEFAULT_TELEMETRY_ENDPOINT = "tcp://127.0.0.1:7811"
+DEFAULT_EVENTS_ENDPOINT = "tcp://127.0.0.1:7812"
+
+
+class DaemonSettings(BaseModel):
+    """The `[daemon]` table of a rig file (all optional; the CLI flags override it)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    command: str = DEFAULT_COMMAND_ENDPOINT
+    telemetry: str = DEFAULT_TELEMETRY_ENDPOINT
+    events: str = DEFAULT_EVENTS_ENDPOINT
+    runs_dir: str = "runs"
+    server_key: str | None = Field(default=None, description="CURVE secret key file of the daemon")
+    allowed_keys: str | None = Field(default=None, description="folder of operators' public keys")
 
 
 class RigConfig(_Strict):

@@ -255,7 +255,7 @@ class ArmKinematics:
         staying near `q_seed` (a residual `stay_weight * (q - q_seed)`) and, when `keep_out`
         = (centre_m, radius_m) is given, on keeping five points along every link capsule at
         least radius_m + the capsule's radius from centre_m (a one-sided penalty; the exact
-        capsule test is `rigctl.depm_safety`'s). Joint ranges are hard bounds (projection).
+        capsule test is `rigctl.plans.depm_safety`'s). Joint ranges are hard bounds (projection).
         Solved by Levenberg-Marquardt on the analytic geometric Jacobian, in two passes: the
         first trades a little task error for closeness to the seed, the second pulls 1000 times
         more weakly toward that answer so the task is met exactly from near it.

@@ -4,12 +4,15 @@ Layout of `runs/<UTC time>-<plan name>/`:
 - `plan.json`: the plan as executed (with `expected` filled);
 - `rig.toml`: the rig configuration snapshot;
 - `events.jsonl`: append-only event log, one JSON object per line, `{"t": s since start, "event": ...}`;
-- `stream.csv`: the per-cycle journal: t, sample index, move index, commanded and measured currents;
+- `channels.json`: what the stream commands and measures (`rigctl.channels.Channel`: name, unit,
+  limits, group), written when the stream opens;
+- `stream.csv`: the per-cycle journal: t, sample index, move index, each channel commanded and
+  measured (columns `cmd_<name>_<unit>`, `meas_<name>_<unit>`: amps, drive units, radians);
 - `stream/part-NNNNN.parquet`: the same time series (plus the period error) in Parquet, in parts;
 - `summary.json`: written last; its absence means the run did not finish.
 
 Why Parquet: a lab opens it in one line from pandas, polars, MATLAB (`parquetread`) or R (arrow),
-with typed columns, compression and the units and coil names in the file's metadata; HDF5 would do
+with typed columns, compression and the channels (names, units, limits) in the file's metadata; HDF5 would do
 as well for reading, but a single HDF5 file being appended to is not readable after a crash
 without SWMR and `h5clear`, whereas a Parquet file is immutable once written.
 
@@ -37,6 +40,8 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from rigctl.channels import Channel, channels_from_dicts
+
 log = logging.getLogger(__name__)
 
 PART_SECONDS = 5.0
@@ -45,16 +50,16 @@ MIN_PART_ROWS = 250
 
 class StreamParquet:
     """The per-cycle series as Parquet parts in `folder`; `append` is for the stream thread and
-    does no I/O (a full part goes to the writer thread). Currents in A, times in s."""
+    does no I/O (a full part goes to the writer thread). Each channel in its unit, times in s."""
 
-    def __init__(self, folder: Path, coil_names: list[str], part_rows: int) -> None:
+    def __init__(self, folder: Path, channels: list[Channel], part_rows: int) -> None:
         # Import pyarrow now, before the stream starts: importing it on the writer thread at the
         # first part held the interpreter for ~180 ms and stalled the stream loop once per run.
         import pyarrow.parquet  # noqa: F401
 
         self.folder = folder
         self.folder.mkdir(exist_ok=True)
-        self.coil_names = list(coil_names)
+        self.channels = list(channels)
         self.part_rows = max(1, part_rows)
         self._parts = 0
         self._new_buffer()
@@ -64,7 +69,7 @@ class StreamParquet:
         self._writer.start()
 
     def _new_buffer(self) -> None:
-        n, c = self.part_rows, len(self.coil_names)
+        n, c = self.part_rows, len(self.channels)
         self._t = np.empty(n)
         self._sample = np.empty(n, dtype=np.int64)
         self._move = np.empty(n, dtype=np.int32)
@@ -100,7 +105,7 @@ class StreamParquet:
             if item is None:
                 return
             try:
-                write_stream_part(self.folder, self.coil_names, *item)
+                write_stream_part(self.folder, self.channels, *item)
             except Exception:  # the journal still has these rows; never kill the run for it
                 log.exception("writing a Parquet part failed; the rows stay in stream.csv")
 
@@ -110,22 +115,23 @@ class StreamParquet:
         self._writer.join(timeout=30)
 
 
-def write_stream_part(folder: Path, coil_names: list[str], index: int, t, sample, move, cmd, meas,
-                      period_error) -> Path:
+def write_stream_part(folder: Path, channels: list[Channel], index: int, t, sample, move, cmd,
+                      meas, period_error) -> Path:
     """Write one part atomically (temporary name, then rename); returns its path."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     columns = {"t_s": pa.array(t), "sample": pa.array(sample), "move": pa.array(move)}
-    for j, name in enumerate(coil_names):
-        columns[f"cmd_{name}_A"] = pa.array(np.ascontiguousarray(cmd[:, j]))
-    for j, name in enumerate(coil_names):
-        columns[f"meas_{name}_A"] = pa.array(np.ascontiguousarray(meas[:, j]))
+    for j, channel in enumerate(channels):
+        columns[channel.column("cmd")] = pa.array(np.ascontiguousarray(cmd[:, j]))
+    for j, channel in enumerate(channels):
+        columns[channel.column("meas")] = pa.array(np.ascontiguousarray(meas[:, j]))
     columns["period_error_s"] = pa.array(period_error)
     table = pa.table(columns).replace_schema_metadata({
-        "rigctl.coils": json.dumps(coil_names),
-        "rigctl.units": json.dumps({"t_s": "s since the run started", "cmd_*_A": "A",
-                                    "meas_*_A": "A", "period_error_s": "s (start - due)"}),
+        "rigctl.channels": json.dumps([c.as_dict() for c in channels]),
+        "rigctl.units": json.dumps({"t_s": "s since the run started",
+                                    "cmd_<name>_<unit>": "the channel's unit",
+                                    "period_error_s": "s (start - due)"}),
     })
     final = folder / f"part-{index:05d}.parquet"
     tmp = folder / f".part-{index:05d}.parquet.tmp"
@@ -156,15 +162,19 @@ class RunRecord:
             if not self._events.closed:
                 self._events.write(line)
 
-    def open_stream(self, coil_names: list[str], rate_hz: float = 100.0) -> None:
+    def open_stream(self, channels: list[Channel] | list[str], rate_hz: float = 100.0) -> None:
+        """Start the per-cycle series of `channels` (plain names: currents in A)."""
+        channels = [c if isinstance(c, Channel) else Channel(c, "A") for c in channels]
+        self.channels = channels
+        self.write_file("channels.json", json.dumps([c.as_dict() for c in channels], indent=1))
         self._stream = open(self.path / "stream.csv", "a", buffering=1)
         header = ["t_s", "sample", "move"]
-        header += [f"cmd_{n}_A" for n in coil_names] + [f"meas_{n}_A" for n in coil_names]
+        header += [c.column("cmd") for c in channels] + [c.column("meas") for c in channels]
         self._stream.write(",".join(header) + "\n")
         # one %-format per row: a generator of f-strings cost the stream thread 3x as much
-        self._row_format = "%.6f,%d,%d," + ",".join(["%.5f"] * (2 * len(coil_names))) + "\n"
+        self._row_format = "%.6f,%d,%d," + ",".join(["%.5f"] * (2 * len(channels))) + "\n"
         part_rows = max(MIN_PART_ROWS, round(PART_SECONDS * rate_hz))
-        self._parquet = StreamParquet(self.path / "stream", coil_names, part_rows)
+        self._parquet = StreamParquet(self.path / "stream", channels, part_rows)
 
     def stream_row(self, sample: int, move: int, commanded, measured,
                    period_error_s: float | None = None) -> None:
@@ -231,14 +241,19 @@ def _read_journal(path: Path) -> tuple[list[str], list[list[float]]]:
 
 
 def read_stream(run_dir: str | Path) -> dict[str, Any] | None:
-    """The run's per-cycle series as numpy arrays keyed by column name, plus `coils` (names) and
-    `source`: the Parquet parts, completed from the journal when a crash cut the last part off.
-    None when the run never streamed."""
+    """The run's per-cycle series as numpy arrays keyed by column name, plus `channels`
+    (`Channel`s), `coils` (their names) and `source`: the Parquet parts, completed from the
+    journal when a crash cut the last part off. None when the run never streamed."""
     run_dir = Path(run_dir)
     parts = sorted((run_dir / "stream").glob("part-*.parquet"))
     journal = run_dir / "stream.csv"
     columns: dict[str, np.ndarray] = {}
-    coils: list[str] = []
+    channels: list[Channel] = []
+    if (run_dir / "channels.json").is_file():
+        try:
+            channels = channels_from_dicts(json.loads((run_dir / "channels.json").read_text()))
+        except (json.JSONDecodeError, TypeError):
+            channels = []
     n_parquet = 0
     if parts:
         import pyarrow as pa
@@ -246,14 +261,17 @@ def read_stream(run_dir: str | Path) -> dict[str, Any] | None:
 
         table = pa.concat_tables([pq.read_table(p) for p in parts])
         meta = table.schema.metadata or {}
-        coils = json.loads(meta.get(b"rigctl.coils", b"[]"))
+        if not channels and b"rigctl.channels" in meta:
+            channels = channels_from_dicts(json.loads(meta[b"rigctl.channels"]))
+        elif not channels:  # a record from before channels: currents in A
+            channels = [Channel(n, "A") for n in json.loads(meta.get(b"rigctl.coils", b"[]"))]
         columns = {name: table.column(name).to_numpy() for name in table.column_names}
         n_parquet = table.num_rows
     source = "parquet"
     if journal.is_file():
         header, rows = _read_journal(journal)
-        if not coils:
-            coils = [h[4:-2] for h in header if h.startswith("cmd_")]
+        if not channels:
+            channels = [Channel(*h[4:].rsplit("_", 1)) for h in header if h.startswith("cmd_")]
         if len(rows) > n_parquet:
             tail = np.asarray(rows[n_parquet:], dtype=float)
             source = "journal" if n_parquet == 0 else "parquet+journal"
@@ -267,7 +285,8 @@ def read_stream(run_dir: str | Path) -> dict[str, Any] | None:
                                                             np.full(missing, np.nan)])
     if not columns:
         return None
-    return {**columns, "coils": coils, "source": source}
+    return {**columns, "channels": channels, "coils": [c.name for c in channels],
+            "source": source}
 
 
 def recover_stream(run_dir: str | Path) -> int:
@@ -286,12 +305,12 @@ def recover_stream(run_dir: str | Path) -> int:
     if n <= n_parquet:
         return 0
     folder.mkdir(exist_ok=True)
-    coils = data["coils"]
+    channels = data["channels"]
     sl = slice(n_parquet, n)
-    cmd = np.column_stack([data[f"cmd_{c}_A"][sl] for c in coils])
-    meas = np.column_stack([data[f"meas_{c}_A"][sl] for c in coils])
+    cmd = np.column_stack([data[c.column("cmd")][sl] for c in channels])
+    meas = np.column_stack([data[c.column("meas")][sl] for c in channels])
     error = data.get("period_error_s", np.full(n, np.nan))[sl]
-    write_stream_part(folder, coils, len(parts), data["t_s"][sl],
+    write_stream_part(folder, channels, len(parts), data["t_s"][sl],
                       data["sample"][sl].astype(np.int64), data["move"][sl].astype(np.int32),
                       cmd, meas, error)
     return n - n_parquet

@@ -82,6 +82,7 @@ class StreamStats:
     period_error_max_s: float
     overrun_cycles: int  # cycles whose own work took longer than one period
     slip_s: float = 0.0  # how far late cycles moved the schedule back, in total
+    skipped_cycles: int = 0  # late = "skip": cycles passed over because they were due while late
 
     @property
     def late_share(self) -> float:
@@ -95,6 +96,7 @@ class StreamStats:
             "late_share": self.late_share,
             "overrun_cycles": self.overrun_cycles,
             "slip_s": self.slip_s,
+            "skipped_cycles": self.skipped_cycles,
             "period_error_us": {
                 "p50": self.period_error_p50_s * 1e6,
                 "p99": self.period_error_p99_s * 1e6,
@@ -104,11 +106,17 @@ class StreamStats:
 
 
 class StreamLoop:
-    """Run `cycle(k)` for k = 0, 1, ... at `rate_hz` until it returns False."""
+    """Run `cycle(k)` for k = 0, 1, ... at `rate_hz` until it returns False. `late` is what a
+    late cycle does: "slip" moves the schedule back (a field program, see the module docstring);
+    "skip" keeps the schedule and passes over the cycles that fell due meanwhile (k jumps), for a
+    servo of positions, whose stale targets only make the arm race after the present one."""
 
-    def __init__(self, rate_hz: float, *, late_fraction: float = 0.5) -> None:
+    def __init__(self, rate_hz: float, *, late_fraction: float = 0.5, late: str = "slip") -> None:
         if rate_hz <= 0:
             raise ValueError(f"stream rate must be positive, got {rate_hz}")
+        if late not in ("slip", "skip"):
+            raise ValueError(f"late must be 'slip' or 'skip', got {late!r}")
+        self.late = late
         self.rate_hz = float(rate_hz)
         self.period_s = 1.0 / self.rate_hz
         self.late_fraction = late_fraction
@@ -118,6 +126,7 @@ class StreamLoop:
         self._late = 0
         self._overruns = 0
         self._slip_s = 0.0
+        self._skipped = 0
         self.last_error_s: float | None = None  # the period error of the cycle now running
 
     def wake(self) -> None:
@@ -135,13 +144,14 @@ class StreamLoop:
 
     def _run(self, cycle: Callable[[int], bool | None], max_cycles: int | None) -> StreamStats:
         self._errors = np.empty(max_cycles if max_cycles is not None else 4096)
-        self._count = self._late = self._overruns = 0
+        self._count = self._late = self._overruns = self._skipped = 0
         self._slip_s = 0.0
         late_after = self.late_fraction * self.period_s
         t0 = time.perf_counter() + self.period_s  # first cycle one period from now
-        k = 0
-        while max_cycles is None or k < max_cycles:
-            if k == len(self._errors):
+        k = 0  # the schedule's cycle index (jumps when late = "skip")
+        n = 0  # cycles run
+        while max_cycles is None or n < max_cycles:
+            if n == len(self._errors):
                 self._errors = np.resize(self._errors, 2 * len(self._errors))
             due = t0 + k * self.period_s
             wait = due - time.perf_counter()
@@ -153,19 +163,28 @@ class StreamLoop:
             self._wake.clear()
             start = time.perf_counter()
             error = start - due
-            self._errors[k] = error
+            self._errors[n] = error
             self.last_error_s = error
-            self._count = k + 1
+            self._count = n + 1
             if error > late_after:
                 self._late += 1
-                # late: the schedule moves back with this cycle instead of the next ones
-                # bunching up to catch up (see the module docstring)
-                t0 += error
-                self._slip_s += error
+                if self.late == "skip":
+                    if error >= self.period_s:
+                        # a servo of positions: the targets due while late are worthless
+                        # now; go on with the one due at this time (k jumps, t0 stays)
+                        skipped = int(error / self.period_s)
+                        k += skipped
+                        self._skipped += skipped
+                else:
+                    # late: the schedule moves back with this cycle instead of the next ones
+                    # bunching up to catch up (see the module docstring)
+                    t0 += error
+                    self._slip_s += error
             keep_going = cycle(k)
             if time.perf_counter() - start > self.period_s:
                 self._overruns += 1
             k += 1
+            n += 1
             if keep_going is False:
                 break
         return self.stats()
@@ -183,4 +202,5 @@ class StreamLoop:
             period_error_max_s=float(errors.max()),
             overrun_cycles=self._overruns,
             slip_s=self._slip_s,
+            skipped_cycles=self._skipped,
         )

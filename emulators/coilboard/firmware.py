@@ -32,8 +32,15 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from rigctl import coilboard_protocol as proto
-from rigctl.coilboard_protocol import Ack, ErrorReply, Frame, FrameParser, HelloReply, Status
+from rigctl.drivers import coilboard_frame as proto
+from rigctl.drivers.coilboard_frame import (
+    Ack,
+    ErrorReply,
+    Frame,
+    FrameParser,
+    HelloReply,
+    Status,
+)
 from rigctl.emulators.coilboard.syren import (
     ADDRESSES,
     AUTOBAUD,

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from rigctl.client import Rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
+
+from rigctl.client import Rig
 from rigctl.config import load_rig
 from rigctl.record import read_events, read_stream
 from rigctl.testing import plan_pair
@@ -84,7 +84,7 @@ def test_status_execute_remote_and_estop_verbs(daemon, tmp_path):
     assert status.returncode == 0, status.stderr
     assert "state: idle" in status.stdout and "x+" in status.stdout
 
-    from rigctl.cli_daemon import execute_remote
+    from rigctl.cli.daemon import execute_remote
 
     code = execute_remote(EXAMPLES / "fig4-quick.json", command, json_out=True, quiet=True)
     assert code == 0

@@ -14,15 +14,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from rigctl.cli import build_parser
-from rigctl.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.kinematics import DEFAULT_BASES, default_arms
-from rigctl.magnetics import field_vector
 from rigctl.plans.depm import EPM_MOMENT_AM2
 from rigctl.plans.schema import parse_plan
+
+from rigctl.cli.main import build_parser
+from rigctl.config import load_rig
+from rigctl.kinematics import DEFAULT_BASES, default_arms
+from rigctl.magnetics import field_vector
 from rigctl.testing import wait_for
 
 MOMENT = EPM_MOMENT_AM2  # the planner's (and the bench's) default EPM

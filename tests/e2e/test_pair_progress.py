@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.pair_run import _StageProgress
+from rigctl.rigs.six_coil.pair import _StageProgress
 from rigctl.testing import plan_pair, run_rigctl
 
 ROOT = Path(__file__).resolve().parents[2]

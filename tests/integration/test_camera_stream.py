@@ -10,14 +10,14 @@ import urllib.request
 import cv2
 import numpy as np
 import pytest
-
-from rigctl.calibration import boundary_corners_mm, calibrate_camera
 from rigctl.drivers.camera import CameraDriver, write_stamp
 from rigctl.emulators.camera import CameraModel, Renderer, Scene, serve_camera
 from rigctl.emulators.server import EmulatorServer
-from rigctl.errors import DeviceTimeout, Disconnected
 from rigctl.plans.workspace import ShapeWorkspace
-from rigctl.tracker import Tracker
+
+from rigctl.errors import DeviceTimeout, Disconnected
+from rigctl.vision.calibration import boundary_corners_mm, calibrate_camera
+from rigctl.vision.tracker import Tracker
 
 RADIUS = 5.0
 WORKSPACE = ShapeWorkspace(("rect", (0, 0, 400, 400)), [("rect", (150, 150, 60, 60))])

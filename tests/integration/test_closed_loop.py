@@ -16,13 +16,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from rigctl.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.execute import Run, execute_plan
 from rigctl.plans.schema import load_plan
-from rigctl.supervisor import SupervisorSettings
+
+from rigctl.config import load_rig
+from rigctl.rigs.six_coil.global_moves import Run, execute_plan
+from rigctl.rigs.six_coil.supervisor import SupervisorSettings
 from rigctl.testing import wait_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
@@ -115,7 +115,7 @@ def test_a_frozen_camera_suspends_the_run_with_the_field_held_and_it_resumes(tmp
         with BackdoorClient(rig.emulation.backdoor) as backdoor:
             # freeze in the middle of a roll
             start = list(plan.agents[0].start)
-            wait_for(lambda: run.sequencer.index > 150 and backdoor.request("truth")["agents"][0]
+            wait_for(lambda: run.program.sequencer.index > 150 and backdoor.request("truth")["agents"][0]
                      != start, what="the magnets to roll")
             backdoor.request("camera", kind="freeze")
             wait_for(lambda: any(e["event"] == "suspend" for e in events()), timeout_s=5,
@@ -131,7 +131,7 @@ def test_a_frozen_camera_suspends_the_run_with_the_field_held_and_it_resumes(tmp
             truth = backdoor.request("truth")
             np.testing.assert_allclose(truth["agents"], held, atol=1e-6)
             assert max(abs(c) for c in currents.values()) > 1.0
-            assert run.state.value == "paused"
+            assert run.state.value == "suspended"  # held until tracking returns
             backdoor.request("camera", kind="restore")
             wait_for(lambda: any(e["event"] == "resume" for e in events()), timeout_s=5,
                      what="the supervisor to resume")
@@ -144,9 +144,10 @@ def test_a_frozen_camera_suspends_the_run_with_the_field_held_and_it_resumes(tmp
 
 
 def test_calibrate_camera_from_markers_agrees_with_the_emulated_camera(tmp_path):
-    from rigctl.cli import main
-    from rigctl.config import dump_rig
     from rigctl.emulators.bench import SixCoilBench
+
+    from rigctl.cli.main import main
+    from rigctl.config import dump_rig
 
     markers = [[80.0, 90.0], [310.0, 70.0], [290.0, 320.0], [100.0, 300.0], [200.0, 180.0]]
     with SixCoilBench() as bench:

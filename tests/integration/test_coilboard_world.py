@@ -7,11 +7,11 @@ import math
 
 import numpy as np
 import pytest
-
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.world.coilboard import CoilBoardPhysics
+
 from rigctl.testing import wait_for
 
 DISK = {"boundary": {"disk": [0.0, 0.0, 23.0]}, "obstacles": []}
@@ -121,7 +121,7 @@ def test_the_board_watchdog_stops_the_particles_when_the_host_falls_silent(bench
 
 
 def test_the_camera_sees_the_particles_where_they_are(bench, backdoor):
-    from rigctl.supervisor import TrackingLoop
+    from rigctl.vision.tracking import TrackingLoop
 
     truth = [(-7.0, 3.0), (12.0, -9.5)]
     place(backdoor, *truth)
@@ -156,7 +156,7 @@ def test_the_real_firmware_in_simavr_drives_the_world_the_same_way():
             [axis_flight(first["agents"][0][0], V0, t), 0.0], abs=2e-3)
 
 
-# -- the run's drift model (rigctl/coilboard_run.py) against the world -----------------------------
+# -- the run's drift model (rigctl/rigs/coil_board/run.py) against the world -----------------------------
 
 
 def _translate(positions, outputs, seconds):
@@ -173,7 +173,7 @@ def test_drift_model_fitted_on_single_coils_predicts_a_two_coil_diagonal():
     """Fitted from four one-coil translations, the model's rates are the pull law's closed forms
     (k_along = n / D, k_across = 1 / D for 1/d^n from D = 200 mm) and it predicts where a diagonal
     translation with two coils on (the case a one-direction model gets wrong) leaves the gap."""
-    from rigctl.coilboard_run import RelativeDrift
+    from rigctl.rigs.coil_board.run import RelativeDrift
 
     drift = RelativeDrift()
     rng = np.random.default_rng(3)

@@ -13,12 +13,12 @@ import zmq
 
 from rigctl.client import CommandRefused, DaemonUnreachable, Rig
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
-from rigctl.daemon import TRANSITIONS, Daemon
+from rigctl.daemon.messages import MAX_REQUEST_BYTES, DaemonState, StateMsg
+from rigctl.daemon.server import TRANSITIONS, Daemon
+from rigctl.daemon.telemetry import CycleBatch
 from rigctl.errors import PlanError
-from rigctl.execute import RunState
-from rigctl.messages import MAX_REQUEST_BYTES, DaemonState, StateMsg
+from rigctl.run.control import RunState
 from rigctl.stream import StreamLoop
-from rigctl.telemetry import CycleBatch
 
 RATE_HZ = 500.0
 
@@ -163,7 +163,7 @@ def test_plain_req_socket_ping_and_status(daemon):
 
 
 def test_status_and_estop_answered_without_the_models_are_what_the_models_would_say(daemon):
-    from rigctl.messages import Reply, ok_reply
+    from rigctl.daemon.messages import Reply, ok_reply
 
     for request_id, payload in [("s", b'{"id": "s", "cmd": "status", "args": {}}'),
                                 (8, b'{"cmd": "status", "id": 8}'), (None, b'{"cmd": "status"}')]:

@@ -8,11 +8,11 @@ import pytest
 
 from rigctl.client import DaemonUnreachable, Rig, Telemetry
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
-from rigctl.daemon import Daemon
+from rigctl.daemon.keys import allow, new_keypair
+from rigctl.daemon.messages import is_loopback_endpoint
+from rigctl.daemon.sdnotify import SystemdNotifier
+from rigctl.daemon.server import Daemon
 from rigctl.errors import ConfigError
-from rigctl.keys import allow, new_keypair
-from rigctl.messages import is_loopback_endpoint
-from rigctl.sdnotify import SystemdNotifier
 
 RIG = RigConfig(rig=RigInfo(kind="six-coil", name="secure rig"), coils=default_six_coil_coils())
 LOOPBACK = dict(command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0", events="tcp://127.0.0.1:0")

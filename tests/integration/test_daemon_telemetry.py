@@ -8,8 +8,8 @@ import numpy as np
 import zmq
 
 from rigctl.client import Telemetry
-from rigctl.messages import DaemonState, Topic
-from rigctl.telemetry import CycleBatch, TelemetryPublisher
+from rigctl.daemon.messages import DaemonState, Topic
+from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
 
 
 def test_a_stalled_subscriber_loses_currents_but_no_state_and_never_slows_the_stream():

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from rigctl.drivers.hall import HallBoard, HallStream, field_vector_from_sensors
+from rigctl.drivers.hall import HallBoard, HallStream
 from rigctl.emulators.hall.board import HallBoardServer, SensorSpec
 from rigctl.emulators.server import EmulatorServer
+
 from rigctl.errors import DeviceTimeout, Disconnected
-from rigctl.magnetics import dipole_field, dipole_gradient
+from rigctl.magnetics import dipole_field, dipole_gradient, field_vector_from_sensors
 from rigctl.testing import wait_for
 
 CENTRE = np.array([0.25, 0.05, -0.1])

@@ -12,14 +12,20 @@ import math
 
 import numpy as np
 import pytest
-
-from rigctl.allocate import currents_for_u, field_and_pull_u, u_actuation_matrix
-from rigctl.devices import CoilSupplies
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.world.pair import PairWorld
-from rigctl.plans.pair import PairPhysics, agent_positions, default_rig, state_from_positions
+from rigctl.plans.pair import (
+    PairPhysics,
+    agent_positions,
+    default_rig,
+    state_from_positions,
+)
 from rigctl.plans.workspace import ShapeWorkspace
+
+from rigctl.coils import u_actuation_matrix
+from rigctl.rigs.six_coil.allocate import currents_for_u, field_and_pull_u
+from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.testing import wait_for
 
 PHYSICS = PairPhysics()
@@ -118,9 +124,20 @@ def run_closed_loop(plan_name, *, offset_bl=(0.0, 0.0), noise_bl=0.01, max_s=60.
     measured with Gaussian noise and 30 ms late, currents through the allocation."""
     from pathlib import Path
 
-    from rigctl.plans.pair import physics_of, plan_arrays, problem_of, rig_max_pull, state_of
+    from rigctl.plans.pair import (
+        physics_of,
+        plan_arrays,
+        problem_of,
+        rig_max_pull,
+        state_of,
+    )
     from rigctl.plans.schema import load_plan
-    from rigctl.pursuit import PairPursuit, PursuitSettings, distance_to_path
+
+    from rigctl.rigs.six_coil.pursuit import (
+        PairPursuit,
+        PursuitSettings,
+        distance_to_path,
+    )
 
     plan = load_plan(Path(__file__).resolve().parents[2] / "plans" / "examples" / plan_name)
     physics = physics_of(plan)
@@ -189,10 +206,11 @@ def test_a_frozen_camera_holds_the_agents_unseen_and_the_run_resumes(tmp_path):
     import threading
     from pathlib import Path
 
-    from rigctl.cli import main
-    from rigctl.config import StreamSettings
-    from rigctl.pair_run import PairRun
     from rigctl.plans.schema import load_plan
+
+    from rigctl.cli.main import main
+    from rigctl.config import StreamSettings
+    from rigctl.rigs.six_coil.pair import PairRun
     from rigctl.testing import wait_for
 
     workspace = Path(__file__).resolve().parents[2] / "plans" / "examples" / \

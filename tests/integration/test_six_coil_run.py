@@ -7,13 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from rigctl.config import FieldSettings
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
-from rigctl.errors import DeviceError, LimitError
-from rigctl.execute import execute_plan, prepare
 from rigctl.plans.schema import load_plan
+
+from rigctl.config import FieldSettings
+from rigctl.errors import DeviceError, LimitError
+from rigctl.rigs.six_coil.global_moves import execute_plan, prepare
 from rigctl.testing import wait_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
@@ -93,7 +93,7 @@ def test_an_estop_from_another_thread_latches_every_supply_at_zero_mid_stream(be
     """E-stop does not wait for the stream thread: written from another thread while the stream
     thread keeps cycling nonzero setpoints, every supply ends at 0 A with its output off, and
     stays there, because the drivers send nothing but 0 A once the e-stop is written."""
-    from rigctl.devices import CoilSupplies
+    from rigctl.rigs.six_coil.supplies import CoilSupplies
 
     supplies = CoilSupplies.connect(bench.rig)
     try:

@@ -13,10 +13,17 @@ import re
 import numpy as np
 import pytest
 
-from rigctl.allocate import CurrentProgram, actuation_matrix, allocate, currents_for_field
-from rigctl.config import Coil, FieldSettings, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.coils import actuation_matrix
+from rigctl.config import (
+    Coil,
+    FieldSettings,
+    RigConfig,
+    RigInfo,
+    default_six_coil_coils,
+)
 from rigctl.errors import ConfigError, LimitError
-from rigctl.realize import FieldProgram, realize_global_moves
+from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate, currents_for_field
+from rigctl.rigs.six_coil.realize import FieldProgram, realize_global_moves
 
 MU0 = 4e-7 * math.pi
 

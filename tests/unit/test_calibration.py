@@ -3,21 +3,21 @@
 The emulated camera's own projection (`CameraModel.project`, OpenCV's projectPoints on its pose and
 intrinsics) is the independent truth; the calibration only ever sees the picture."""
 
+import tomllib
+
 import numpy as np
 import pytest
-import tomllib
 import tomli_w
 from pydantic import ValidationError
+from rigctl.emulators.camera.render import CameraModel, Renderer, Scene
+from rigctl.plans.workspace import ShapeWorkspace
 
-from rigctl.calibration import (
-    Calibration,
-    CalibrationError,
+from rigctl.camera_model import Calibration, CalibrationError
+from rigctl.vision.calibration import (
     boundary_corners_mm,
     calibrate_picture,
     calibration_from_points,
 )
-from rigctl.emulators.camera.render import CameraModel, Renderer, Scene
-from rigctl.plans.workspace import ShapeWorkspace
 
 BOUNDARY = ("rect", (0.0, 0.0, 400.0, 300.0))
 WORKSPACE = ShapeWorkspace(BOUNDARY, [("rect", (100, 150, 80, 40)), ("disk", (280, 200, 30))])

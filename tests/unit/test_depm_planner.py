@@ -14,13 +14,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rigctl.plans import depm
+from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
+from rigctl.plans.schema import SequenceComponent, dump_plan, load_plan, parse_plan
 from scipy.interpolate import PchipInterpolator
 
-from rigctl.depm_safety import SafetyLimits, check_samples, violations
 from rigctl.errors import LimitError, PlanError
 from rigctl.magnetics import dipole_field
-from rigctl.plans import depm
-from rigctl.plans.schema import SequenceComponent, dump_plan, load_plan, parse_plan
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 # KUKA LBR iiwa 14 R820 maximum joint speeds (deg/s, KUKA specification), written out.
@@ -253,7 +253,7 @@ def test_example_plan_is_valid_and_safe():
 
 
 def test_cli_writes_a_checked_plan_and_rejects_bad_input(tmp_path, capsys):
-    from rigctl.cli import main
+    from rigctl.cli.main import main
 
     sequence = tmp_path / "seq.json"
     sequence.write_text(json.dumps([{"name": "Bz", "U": [0, 0, 8, 0, 0, 0, 0, 0], "hold_s": 0.5}]))
@@ -290,7 +290,7 @@ def test_baseline_goes_to_the_same_end_poses_in_straight_joint_moves(hybrid, agn
 
 
 def test_cli_plans_for_the_arm_bases_of_a_rig_file(tmp_path, capsys):
-    from rigctl.cli import main
+    from rigctl.cli.main import main
 
     rig = tmp_path / "rig.toml"
     rig.write_text(

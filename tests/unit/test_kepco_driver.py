@@ -228,11 +228,11 @@ def test_safe_stop_ramps_from_the_last_setpoint_then_turns_off() -> None:
             (b"CURR 1.0000\n", None),
             (b"CURR 0.5000\n", None),
             (b"CURR 0.0000\n", None),
-            (b"OUTP OFF\n", None),
+            (b"OUTP OFF;:OUTP?\n", b"0\n"),
         ]
     )
     driver.set_current(2.0)
-    driver.safe_stop(ramp_s=0.0, steps=4)
+    assert driver.safe_stop(ramp_s=0.0, steps=4) is True  # the supply confirmed output off
     script.assert_done()
     assert driver.last_setpoint_A == 0.0
 
@@ -241,7 +241,7 @@ def test_safe_stop_on_a_dead_link_logs_and_does_not_raise(caplog) -> None:
     driver, script = bop([(b"CURR -3.0000;:MEAS:CURR?\n", None)])
     driver.send_setpoint(-3.0)
     script.close()  # every further write raises Disconnected
-    driver.safe_stop(ramp_s=0.0, steps=3)
+    assert driver.safe_stop(ramp_s=0.0, steps=3) is False
     assert "x+: safe stop incomplete" in caplog.text
 
 

@@ -13,13 +13,15 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.allocate import (
-    coil_field_and_gradient, currents_for_u, field_and_pull_u, max_planar_gradient,
+from rigctl.coils import (
+    coil_field_and_gradient,
+    max_planar_gradient,
     u_actuation_matrix,
 )
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
 from rigctl.errors import LimitError
 from rigctl.magnetics import gradient_from_terms, loop_field
+from rigctl.rigs.six_coil.allocate import currents_for_u, field_and_pull_u
 
 MU0 = 4e-7 * math.pi
 RIG = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())

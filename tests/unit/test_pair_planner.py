@@ -13,15 +13,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from rigctl.cli import main
-from rigctl.errors import PlanError
 from rigctl.plans.pair import (
-    PairPhysics, PairPlannerOptions, PairProblem, agent_positions, check, goal_error, plan_pair,
-    replan_pair, rig_max_pull, default_rig,
+    PairPhysics,
+    PairPlannerOptions,
+    PairProblem,
+    agent_positions,
+    check,
+    default_rig,
+    goal_error,
+    plan_pair,
+    replan_pair,
+    rig_max_pull,
 )
 from rigctl.plans.schema import load_plan
 from rigctl.plans.workspace import ShapeWorkspace
+
+from rigctl.cli.main import main
+from rigctl.errors import PlanError
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 WS = ShapeWorkspace(("rect", (0, 0, 20, 14)), [("rect", (6, 0, 1, 8)), ("disk", (11, 5, 1.2))])

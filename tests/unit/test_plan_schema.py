@@ -8,21 +8,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from rigctl.errors import PlanError
+from rigctl.plans.checks import check_plan, contact_for_rig, plan_workspace, simulate
 from rigctl.plans.schema import (
     GlobalMovesPlan,
     ImageWorkspaceSpec,
-    check_plan,
-    contact_for_rig,
     dump_plan,
     load_plan,
     load_workspace,
     parse_plan,
     plan_json_schema,
-    plan_workspace,
-    simulate,
 )
+
+from rigctl.errors import PlanError
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 

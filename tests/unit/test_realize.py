@@ -11,9 +11,21 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.config import FieldSettings, MagnetSettings, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.config import (
+    FieldSettings,
+    MagnetSettings,
+    RigConfig,
+    RigInfo,
+    default_six_coil_coils,
+)
 from rigctl.errors import ConfigError, PlanError
-from rigctl.realize import HOLD, NO_MOVE, ROLLING, STEERING, realize_global_moves
+from rigctl.rigs.six_coil.realize import (
+    HOLD,
+    NO_MOVE,
+    ROLLING,
+    STEERING,
+    realize_global_moves,
+)
 
 B0 = 3e-3
 MOVES = np.array([[20.0, 0.0], [6.0, 8.0], [0.0, 0.0], [-30.0, 0.0]])

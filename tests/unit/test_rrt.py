@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from rigctl.errors import PlanError
 from rigctl.plans.rrt import (
     NearestNodeIndex,
     RrtOptions,
@@ -15,6 +13,7 @@ from rigctl.plans.rrt import (
     replay,
 )
 
+from rigctl.errors import PlanError
 
 # ---------------------------------------------------------------- nearest neighbours and the tree
 
@@ -282,8 +281,10 @@ def test_time_budget_stops_early(model):
 import json  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from rigctl.cli import main as plan_main  # noqa: E402
-from rigctl.plans.schema import check_plan, load_plan  # noqa: E402
+from rigctl.plans.checks import check_plan
+from rigctl.plans.schema import load_plan  # noqa: E402
+
+from rigctl.cli.main import main as plan_main  # noqa: E402
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 ROBOTS = ["--start", "60,300", "--start", "60,250", "--goal", "330,300", "--goal", "330,200"]

@@ -3,8 +3,8 @@ aborted. Sequences worked out by hand on a 10-sample, one-coil program."""
 
 import numpy as np
 
-from rigctl.allocate import CurrentProgram
-from rigctl.execute import Sequencer
+from rigctl.rigs.six_coil.allocate import CurrentProgram
+from rigctl.rigs.six_coil.sequencer import Sequencer
 
 
 def make(ramp_samples=2):

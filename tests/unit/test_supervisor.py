@@ -6,16 +6,16 @@ import math
 
 import numpy as np
 import pytest
-
-from rigctl.allocate import CurrentProgram
-from rigctl.config import FieldSettings, RigConfig, RigInfo, default_six_coil_coils
 from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
-from rigctl.errors import PlanError
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
-from rigctl.realize import realize_global_moves
-from rigctl.supervisor import SupervisedSequencer
+
+from rigctl.config import FieldSettings, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.errors import PlanError
+from rigctl.rigs.six_coil.allocate import CurrentProgram
+from rigctl.rigs.six_coil.realize import realize_global_moves
+from rigctl.rigs.six_coil.supervisor import SupervisedSequencer
 
 TURN_MM = 10.0
 R = TURN_MM / (2 * math.pi)
@@ -179,7 +179,7 @@ def test_the_replanner_process_says_when_it_is_ready_and_then_plans():
     first seconds) and then answers a re-plan: one free robot 20 mm (two turns) from its goal."""
     import json
 
-    from rigctl.supervisor import ReplanWorker
+    from rigctl.rigs.six_coil.supervisor import ReplanWorker
 
     plan = {"schema": "rigctl.plan/1", "kind": "global-moves", "rig": "six-coil", "name": "one",
             "workspace": {"boundary": {"rect": [0, 0, 200, 200]}},

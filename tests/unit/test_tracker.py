@@ -9,10 +9,10 @@ import math
 
 import numpy as np
 import pytest
-
 from rigctl.emulators.camera.render import CameraModel, Renderer, Scene
 from rigctl.plans.workspace import ShapeWorkspace
-from rigctl.tracker import Tracker, TrackerSettings, find_dark_blobs
+
+from rigctl.vision.tracker import Tracker, TrackerSettings, find_dark_blobs
 
 RADIUS = 5.0
 WORKSPACE = ShapeWorkspace(

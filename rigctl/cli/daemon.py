@@ -20,9 +20,14 @@ import time
 from contextlib import ExitStack
 from pathlib import Path
 
-from rigctl.errors import PlanError
+from rigctl.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_FAULT,
+    EXIT_NOT_REACHED,
+    EXIT_OK,
+    PlanError,
+)
 
-EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
 READY_PREFIX = "READY "
 
 log = logging.getLogger(__name__)
@@ -46,9 +51,9 @@ def _refused_exit(err) -> int:
 # -- rigctl daemon -------------------------------------------------------------------------------
 def _cmd_daemon(args: argparse.Namespace) -> int:
     from rigctl.config import load_rig
-    from rigctl.daemon import Daemon
+    from rigctl.daemon.messages import DaemonSettings
+    from rigctl.daemon.server import Daemon
     from rigctl.emulators.process import EmulatedBenchProcess
-    from rigctl.messages import DaemonSettings
 
     # a thread waiting for the GIL (the command thread answering `status`, the stream thread)
     # gets it within 0.1 ms instead of Python's default 5 ms
@@ -128,7 +133,7 @@ def _cmd_estop(args: argparse.Namespace) -> int:
 
 
 def _cmd_keys(args: argparse.Namespace) -> int:
-    from rigctl.keys import allow, load_public, new_keypair
+    from rigctl.daemon.keys import allow, load_public, new_keypair
 
     if args.keys_command == "new":
         public, secret = new_keypair(args.dir, args.name)
@@ -211,16 +216,16 @@ def execute_remote(plan_path: str | Path, endpoint: str, *, json_out: bool = Fal
 
 
 def _print_summary(summary: dict, json_out: bool):
-    """The run's summary as `rigctl execute` prints it for that kind of run; returns it."""
-    from rigctl.execute import AgentResult, RunSummary, format_summary, summary_json_line
+    """The run's summary as `rigctl execute` prints it; returns it."""
+    from rigctl.run.summary import format_summary, summary_from_dict, summary_json_line
 
-    if "tolerance_bl" in summary:  # a pair formation change (rigctl.pair_run)
-        from rigctl.pair_run import PairSummary, format_pair_summary
+    if "tolerance_bl" in summary and "plan_kind" not in summary:  # the pair run's own shape
+        from rigctl.rigs.six_coil.pair import PairSummary, format_pair_summary
 
         result = PairSummary(**summary)
         print(format_pair_summary(result))
     else:
-        result = RunSummary(**{**summary, "agents": [AgentResult(**a) for a in summary["agents"]]})
+        result = summary_from_dict(summary)
         print(format_summary(result))
     if json_out:
         print(summary_json_line(result))
@@ -261,7 +266,7 @@ def _follow(rig, out, started: dict) -> dict:
 
 # -- registration --------------------------------------------------------------------------------
 def _client_options(p: argparse.ArgumentParser) -> None:
-    from rigctl.messages import DEFAULT_COMMAND_ENDPOINT
+    from rigctl.daemon.messages import DEFAULT_COMMAND_ENDPOINT
 
     p.add_argument("--connect", default=DEFAULT_COMMAND_ENDPOINT,
                    help=f"the daemon's command endpoint (default {DEFAULT_COMMAND_ENDPOINT})")
@@ -270,8 +275,11 @@ def _client_options(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from rigctl.messages import (DEFAULT_COMMAND_ENDPOINT, DEFAULT_EVENTS_ENDPOINT,
-                                 DEFAULT_TELEMETRY_ENDPOINT)
+    from rigctl.daemon.messages import (
+        DEFAULT_COMMAND_ENDPOINT,
+        DEFAULT_EVENTS_ENDPOINT,
+        DEFAULT_TELEMETRY_ENDPOINT,
+    )
 
     p = sub.add_parser(
         "daemon", help="run the long-lived service: ZeroMQ commands and telemetry",

@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from rigctl.channels import Channel
 from rigctl.config import RigConfig
 from rigctl.drivers.kepco_bop import KepcoBop
 from rigctl.errors import RigError
@@ -96,9 +97,16 @@ class CoilSupplies:
         for supply in self.supplies:
             supply.safe_stop(ramp_s=0.0)
 
-    def stop(self, ramp_s: float, steps: int = 10) -> None:
+    @property
+    def channels(self) -> list[Channel]:
+        """One current channel per supply, in A, with its limit."""
+        return [Channel(s.name, "A", -s.current_limit_A, s.current_limit_A, "supplies")
+                for s in self.supplies]
+
+    def stop(self, ramp_s: float, steps: int = 10) -> list[str]:
         """Ramp every supply from its last setpoint to zero together over `ramp_s`, then switch
-        each off and close it. Never raises: a dead supply is logged and skipped."""
+        each off and close it. Never raises: a dead supply is logged and skipped. Returns the
+        supplies that did not confirm output off (their state is unknown)."""
         alive = list(self.supplies)
         starts = {s.name: s.last_setpoint_A for s in alive}
         t0 = time.monotonic()
@@ -111,9 +119,12 @@ class CoilSupplies:
                         log.error("safe stop: %s", err)
                         alive.remove(supply)
                 time.sleep(max(0.0, t0 + k * ramp_s / steps - time.monotonic()))
+        unconfirmed = []
         for supply in self.supplies:
-            supply.safe_stop(ramp_s=0.0)  # zero and output off, best effort
+            if not supply.safe_stop(ramp_s=0.0):  # zero and output off, best effort
+                unconfirmed.append(supply.name)
             supply.close()
+        return unconfirmed
 
 
 def zero_supplies_directly(rig: RigConfig) -> dict[str, str | None]:

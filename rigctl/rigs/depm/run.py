@@ -6,7 +6,7 @@
    the same start joints, straight joint-space moves to the plan's own end poses);
 2. without `--rig`, the emulated bench is started in its own process (nothing real can move);
 3. before anything moves, the plan's trajectories are checked densely against the *rig's* safety
-   limits (keep-out sphere, EPM-EPM distance, joint limits, 30 % speed; `rigctl.depm_safety`) and
+   limits (keep-out sphere, EPM-EPM distance, joint limits, 30 % speed; `rigctl.plans.depm_safety`) and
    against the rig's geometry (bases, EPM moment, tool); a breach refuses the run (exit 2, each
    violation printed with its time and constraint, counted in `"violations"`). The approach from
    where the arms stand to the plan's first pose is checked the same way;
@@ -24,11 +24,8 @@ plan or rig was refused (nothing moved), 3 a device fault stopped the run.
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import math
-import sys
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -38,18 +35,17 @@ from typing import TextIO
 import numpy as np
 
 from rigctl.config import RigConfig, dump_rig
-from rigctl.depm_safety import SafetyLimits, Violation, violations
-from rigctl.plans.depm import baseline_of, joint_trajectory, plan_violations, rig_from_settings
-from rigctl.drivers.hall import HallBoard, HallSample, HallStream, field_vector_from_sensors
+from rigctl.drivers.hall import HallBoard, HallSample, HallStream
 from rigctl.drivers.kuka_sunrise import KukaArm
 from rigctl.errors import ConfigError, DeviceError, RigError
 from rigctl.kinematics import ArmKinematics, base_transform
-from rigctl.magnetics import U_COMPONENTS
+from rigctl.magnetics import U_COMPONENTS, field_vector_from_sensors
+from rigctl.plans.depm import joint_trajectory, plan_violations, rig_from_settings
+from rigctl.plans.depm_safety import SafetyLimits, Violation, violations
 from rigctl.record import RunRecord
 
 log = logging.getLogger(__name__)
 
-EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
 STEADY_STATE_TOLERANCE = 0.02  # of the requested value
 FIELD_BAND_mT, GRADIENT_BAND_mT_per_m = 0.5, 5.0  # "close to 0" at the end of a fall (Sec. 4.2)
 FALL_DWELL_S = 0.5  # "a constant value close to 0": inside the band for this long
@@ -306,7 +302,7 @@ class _Csv:
         self._file.close()
 
 
-def _progress(out: TextIO | None, text: str) -> None:
+def progress_line(out: TextIO | None, text: str) -> None:
     if out is not None:
         print(text, file=out, flush=True)
 
@@ -359,7 +355,7 @@ def run_field_sequence(plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
             result.refused = "the approach to the plan's first pose breaks a safety constraint"
             record.event("refused", reason=result.refused, violations=[str(v) for v in approach])
         else:
-            _progress(progress_out, f"approach: moving the arms to the plan's first pose at "
+            progress_line(progress_out, f"approach: moving the arms to the plan's first pose at "
                                     f"{d.speed_fraction:.0%} speed")
             for arm, q in zip(kuka, q_start):
                 distance = float(np.max(np.abs(q - arm.joint_positions())))
@@ -372,7 +368,7 @@ def run_field_sequence(plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
     except RigError as err:
         result.faults.append(str(err))
         record.event("fault", reason=str(err), device=err.device)
-        _progress(progress_out, f"fault: {err}")
+        progress_line(progress_out, f"fault: {err}")
     finally:
         for arm in kuka:
             arm.close()
@@ -430,7 +426,7 @@ def _stream_plan(plan, kuka: list[KukaArm], stream: HallStream, d, record: RunRe
                 result.skipped_cycles += skipped
                 t_plan = min(n / rate, end_s)
             while announced < len(segment_starts) and segment_starts[announced][0] <= t_plan:
-                _progress(progress_out, f"t = {t_plan:6.2f} s: toward {segment_starts[announced][1]}")
+                progress_line(progress_out, f"t = {t_plan:6.2f} s: toward {segment_starts[announced][1]}")
                 record.event("segment", name=segment_starts[announced][1], t_plan_s=t_plan)
                 announced += 1
             now = time.monotonic()
@@ -579,25 +575,3 @@ def format_summary(result: RunResult) -> str:
     return "\n".join(lines)
 
 
-def execute_cli(plan, args: argparse.Namespace) -> int:
-    """`rigctl execute PLAN` for field-sequence plans (see the module docstring)."""
-    from rigctl.emulators.process import rig_for_run
-
-    out = None if args.quiet else sys.stderr
-    time_scale = float(args.time_scale or 1.0)
-    if not time_scale > 0:
-        raise ConfigError("--time-scale must be positive")
-    if args.agnostic:
-        _progress(out, "the magnetic-agnostic baseline: straight joint moves to the plan's end poses")
-        plan = baseline_of(plan)
-    with rig_for_run(args.rig, "depm", progress_out=out) as rig:
-        result = run_field_sequence(plan, rig, runs_dir=args.runs, progress_out=out,
-                                    time_scale=time_scale)
-    print(format_summary(result))
-    if args.json:
-        print(json.dumps(result.json()))
-    if result.refused:
-        return EXIT_BAD_INPUT
-    if result.faults:
-        return EXIT_FAULT
-    return EXIT_OK if result.reached else EXIT_NOT_REACHED

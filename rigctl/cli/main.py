@@ -17,89 +17,28 @@ import sys
 import threading
 from pathlib import Path
 
-from rigctl.cli_daemon import register as register_daemon
-from rigctl.cli_plan import register as register_planners
+from rigctl.cli.daemon import register as register_daemon
+from rigctl.cli.execute import _add_mismatch_flags, cmd_execute
+from rigctl.cli.plan import register as register_planners
 from rigctl.config import load_rig
-from rigctl.errors import ConfigError, LimitError, PlanError, RigError
-
-EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
+from rigctl.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_FAULT,
+    EXIT_OK,
+    ConfigError,
+    LimitError,
+    PlanError,
+    RigError,
+)
 
 log = logging.getLogger("rigctl")
 
 
-def _cmd_execute(args: argparse.Namespace) -> int:
-    if args.connect:
-        from rigctl.cli_daemon import execute_remote
-
-        return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
-    from rigctl.emulators.process import rig_for_run
-    from rigctl.execute import execute_plan, format_summary, summary_json_line
-    from rigctl.plans.schema import load_plan
-
-    plan = load_plan(args.plan)
-    runner = _RUNNERS.get((plan.kind, plan.rig))
-    if runner is not None:
-        # Rigs and plan kinds with their own execution: same flags, summary and exit codes.
-        return importlib.import_module(runner).execute_cli(plan, args)
-    out = sys.stderr if not args.quiet else None
-    closed_loop = False if args.open_loop else None  # None: whenever the rig has a camera
-    mismatch = _mismatch_args(args)
-    if args.rig is not None and mismatch:
-        raise ConfigError("--slip, --speed-spread, --drift, --noise, --seed and "
-                          "--field-at-robots set up the emulated bench that execute starts "
-                          "itself: give them to `rigctl emulate` when using --rig")
-    with rig_for_run(args.rig, plan.rig, extra_args=mismatch, progress_out=out) as rig:
-        summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out,
-                               closed_loop=closed_loop)
-    print(format_summary(summary))
-    if args.json:
-        print(summary_json_line(summary))
-    if summary.faults:
-        return EXIT_FAULT
-    return EXIT_OK if summary.reached else EXIT_NOT_REACHED
-
-
-# (plan kind, rig kind) -> the module whose `execute_cli(plan, args) -> exit code` runs it; the
-# six-coil global-moves run is the one above.
-_RUNNERS = {
-    ("global-moves", "coil-board"): "rigctl.coilboard_run",
-    ("field-sequence", "depm"): "rigctl.depm_run",
-    ("pair-formation", "six-coil"): "rigctl.pair_run",
-}
 # rig kind -> the module whose `emulate_cli(args) -> exit code` serves its emulated bench.
 _BENCHES = {
     "coil-board": "rigctl.emulators.coilboard.bench",
     "depm": "rigctl.emulators.depm",
 }
-
-_MISMATCH_FLAGS = (("slip", "--slip"), ("speed_spread", "--speed-spread"), ("drift", "--drift"),
-                   ("noise", "--noise"), ("seed", "--seed"))
-
-
-def _mismatch_args(args: argparse.Namespace) -> list[str]:
-    """The model-mismatch flags given, as `rigctl emulate` arguments."""
-    out = []
-    for name, flag in _MISMATCH_FLAGS:
-        value = getattr(args, name, None)
-        if value is not None:
-            out += [flag, str(value)]
-    if getattr(args, "field_at_robots", False):
-        out.append("--field-at-robots")
-    return out
-
-
-def _add_mismatch_flags(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("model mismatch of the emulated world (recorded in the rig file)")
-    g.add_argument("--slip", type=float, help="distance per turn x F (e.g. 0.85)")
-    g.add_argument("--speed-spread", type=float,
-                   help="each robot's distance per turn x (1 + s_i), s_i ~ N(0, F)")
-    g.add_argument("--drift", type=float, metavar="MM_PER_S",
-                   help="slow steady drift, direction drawn from --seed")
-    g.add_argument("--noise", type=float, metavar="MM",
-                   help="position jitter per turn while touching a wall or another robot")
-    g.add_argument("--seed", type=int, help="seed of the spread, drift direction and jitter")
-    g.add_argument("--field-at-robots", action="store_true",
-                   help="each robot feels the coils' field at its own position (not uniform)")
 
 
 def _add_bench_flags(p: argparse.ArgumentParser) -> None:
@@ -114,8 +53,8 @@ def _add_bench_flags(p: argparse.ArgumentParser) -> None:
 
 def _cmd_calibrate_camera(args: argparse.Namespace) -> int:
     """Calibrate the rig's camera and write the rig file back with the calibration in it."""
-    from rigctl.calibration import boundary_corners_mm, calibrate_camera
     from rigctl.config import dump_rig
+    from rigctl.vision.calibration import boundary_corners_mm, calibrate_camera
 
     rig = load_rig(args.rig)
     if rig.camera is None:
@@ -151,7 +90,8 @@ def _cmd_calibrate_camera(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from rigctl.plans.schema import check_plan, dump_plan, load_plan, simulate
+    from rigctl.plans.checks import check_plan, simulate
+    from rigctl.plans.schema import dump_plan, load_plan
 
     plan = load_plan(args.file)
     if args.simulate:
@@ -262,7 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="depm emulated bench only: run its clock K times faster than real time")
     _add_mismatch_flags(p)
     _add_bench_flags(p)
-    p.set_defaults(func=_cmd_execute)
+    p.set_defaults(func=cmd_execute)
 
     p = sub.add_parser("validate", help="check a plan file; name what is wrong",
                        description="Check a plan against the schema and the workspace (agents in free "

@@ -10,11 +10,11 @@ Threads and who does what:
   supply of the active run from its own command thread (the drivers latch at zero, so the stream
   can send nothing else after it) and answers with the supplies it could not reach; with nothing
   active the command thread starts zeroing the supplies directly;
-- plan runs and manual fields stream in the *stream process* (`rigctl.runhost`, spawned when the
+- plan runs and manual fields stream in the *stream process* (`rigctl.daemon.runhost`, spawned when the
   daemon starts), so that no Python of the daemon's competes with the stream for a GIL, nor the
   stream with a reply to a client. The daemon's *run thread* (one at a time) waits for the job
   and passes on what the stream process reports;
-- the *telemetry thread* (`rigctl.telemetry`) publishes what the runs hand it (a plan run's cycles
+- the *telemetry thread* (`rigctl.daemon.telemetry`) publishes what the runs hand it (a plan run's cycles
   arrive from the stream process in batches, on the host's reader thread).
 
 States are those of `DaemonState`; every change goes through `TRANSITIONS`, an explicit table of
@@ -43,9 +43,8 @@ import zmq
 from pydantic import ValidationError
 
 from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, LimitError, PlanError, RigError
-from rigctl.keys import CurveServer
-from rigctl.messages import (
+from rigctl.daemon.keys import CurveServer
+from rigctl.daemon.messages import (
     COMMAND_ARGS,
     HARD_MAX_MESSAGE_BYTES,
     MAX_REQUEST_BYTES,
@@ -61,7 +60,7 @@ from rigctl.messages import (
     is_loopback_endpoint,
     ok_reply,
 )
-from rigctl.runhost import (
+from rigctl.daemon.runhost import (
     DAEMON_PLANS,
     RemoteRun,
     RunHost,
@@ -71,8 +70,9 @@ from rigctl.runhost import (
     make_realtime,
     realtime_permitted,
 )
-from rigctl.sdnotify import SystemdNotifier
-from rigctl.telemetry import CycleBatch, TelemetryPublisher
+from rigctl.daemon.sdnotify import SystemdNotifier
+from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
+from rigctl.errors import ConfigError, LimitError, PlanError, RigError
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +123,7 @@ class Refusal(Exception):
 
 
 class RunLike(Protocol):
-    """What the daemon needs of a run (`rigctl.execute.Run` and the tests' stand-ins)."""
+    """What the daemon needs of a run (`rigctl.rigs.six_coil.global_moves.Run` and the tests' stand-ins)."""
 
     def execute(self) -> Any: ...
     def pause(self, immediate: bool = False) -> None: ...
@@ -153,7 +153,7 @@ class RunFactory(Protocol):
 class PlanRuns:
     """The real thing: plans from `rigctl.plans.schema` (the kinds in `DAEMON_PLANS`), prepared
     here at load (a bad plan is refused before anything else) and streamed in the stream process
-    (`rigctl.runhost`), which `start` spawns and `close` stops."""
+    (`rigctl.daemon.runhost`), which `start` spawns and `close` stops."""
 
     def __init__(self, realtime_priority: int | None = None) -> None:
         self.host = RunHost(realtime_priority)
@@ -268,7 +268,7 @@ class _TelemetryLogHandler(logging.Handler):
         self.publisher = publisher
 
     def emit(self, record: logging.LogRecord) -> None:
-        if record.name.startswith("rigctl.telemetry"):
+        if record.name.startswith("rigctl.daemon.telemetry"):
             return
         try:
             self.publisher.publish_event(Topic.LOG, level=record.levelname,
@@ -366,7 +366,7 @@ class Daemon:
     def _actuation_matrix(self) -> np.ndarray | None:
         if not self.rig.coils:
             return None
-        from rigctl.allocate import actuation_matrix
+        from rigctl.coils import actuation_matrix
 
         return actuation_matrix(self.rig)
 
@@ -809,7 +809,10 @@ class Daemon:
         return {"state": self.state.value}
 
     def _cmd_set_field(self, args: Any) -> dict:
-        from rigctl.allocate import check_current_limits, currents_for_field
+        from rigctl.rigs.six_coil.allocate import (
+            check_current_limits,
+            currents_for_field,
+        )
 
         target_T = np.asarray(args.field_mT, dtype=float) * 1e-3
         if self._actuation is None:
@@ -969,7 +972,7 @@ class Daemon:
 
     def _zero_supplies_directly(self) -> None:
         """E-stop with no run active: open each supply, zero it, switch it off; best effort."""
-        from rigctl.devices import zero_supplies_directly
+        from rigctl.rigs.six_coil.supplies import zero_supplies_directly
 
         for name, err in zero_supplies_directly(self.rig).items():
             if err is None:

@@ -23,7 +23,6 @@ the camera or the tracking ends the run with the device named (exit status 3).
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import sys
@@ -36,14 +35,19 @@ import numpy as np
 
 from rigctl.config import RigConfig, dump_rig
 from rigctl.errors import ConfigError, DeviceTimeout, PlanError, RigError
-from rigctl.execute import AgentResult, RunSummary, format_summary, summary_json_line
-from rigctl.plans.schema import GlobalMovesPlan, check_plan, dump_plan, plan_workspace
-from rigctl.plans.wall_contact import CentreRegion, DiskRegion, centre_region, plan_two_particles
+from rigctl.plans.checks import check_plan, plan_workspace
+from rigctl.plans.schema import GlobalMovesPlan, dump_plan
+from rigctl.plans.wall_contact import (
+    CentreRegion,
+    DiskRegion,
+    centre_region,
+    plan_two_particles,
+)
 from rigctl.record import RunRecord
+from rigctl.run.summary import AgentResult, RunSummary, format_summary
 
 log = logging.getLogger(__name__)
 
-EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
 
 
 @dataclass(frozen=True)
@@ -256,7 +260,7 @@ class CoilBoardRun:
     # -- the run --------------------------------------------------------------------------------
     def execute(self) -> CoilBoardSummary:
         from rigctl.drivers.coilboard import CoilBoard
-        from rigctl.supervisor import TrackingLoop
+        from rigctl.vision.tracking import TrackingLoop
 
         started = time.monotonic()
         record = self.record = RunRecord(self.runs_dir, self.plan.name or "coil-board-plan")
@@ -571,10 +575,10 @@ class CoilBoardRun:
     # -- set-up and shut-down ---------------------------------------------------------------------
     def _place_on_bench(self):
         from rigctl.emulators.backdoor import BackdoorClient
-        from rigctl.execute import _portable_workspace
+        from rigctl.run.emulated import portable_workspace
 
         backdoor = BackdoorClient(self.rig.emulation.backdoor)
-        backdoor.request("place", workspace=_portable_workspace(self.plan),
+        backdoor.request("place", workspace=portable_workspace(self.plan),
                          agents=[{"position": a.start, "radius": a.radius} for a in self.plan.agents])
         return backdoor
 
@@ -617,27 +621,3 @@ def format_coilboard_summary(summary: CoilBoardSummary) -> str:
     return "\n".join(lines)
 
 
-def execute_cli(plan: GlobalMovesPlan, args: argparse.Namespace) -> int:
-    """`rigctl execute PLAN` for a coil-board plan: exit 0 reached, 1 not, 2 bad input, 3 fault."""
-    from rigctl.emulators.process import rig_for_run
-
-    out = None if args.quiet else sys.stderr
-    if args.open_loop:
-        raise ConfigError("--open-loop: a coil-board move ends when the camera sees it done; the "
-                          "coil board runs closed loop only")
-    if getattr(args, "agnostic", False):
-        raise ConfigError("--agnostic is for the depm rig")
-    extra: list[str] = []
-    if getattr(args, "firmware", None):
-        extra += ["--firmware", args.firmware]
-    if args.rig is not None and extra:
-        raise ConfigError("--firmware chooses the emulated bench that execute starts itself: "
-                          "give it to `rigctl emulate coil-board` when using --rig")
-    with rig_for_run(args.rig, "coil-board", extra_args=extra, progress_out=out) as rig:
-        summary = execute_coilboard(plan, rig, runs_dir=args.runs, progress_out=out)
-    print(format_coilboard_summary(summary))
-    if args.json:
-        print(summary_json_line(summary))
-    if summary.faults:
-        return EXIT_FAULT
-    return EXIT_OK if summary.reached else EXIT_NOT_REACHED

@@ -41,7 +41,7 @@ from scipy.optimize import linear_sum_assignment
 from rigctl.errors import ConfigError
 
 if TYPE_CHECKING:
-    from rigctl.calibration import Calibration
+    from rigctl.camera_model import Calibration
 
 log = logging.getLogger(__name__)
 

@@ -23,11 +23,15 @@ from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from rigctl.config import (  # noqa: F401  (the rig file's [daemon] table and its defaults)
+    DEFAULT_COMMAND_ENDPOINT,
+    DEFAULT_EVENTS_ENDPOINT,
+    DEFAULT_TELEMETRY_ENDPOINT,
+    DaemonSettings,
+)
+
 PROTOCOL = "rigctl.daemon/1"
 
-DEFAULT_COMMAND_ENDPOINT = "tcp://127.0.0.1:7810"
-DEFAULT_TELEMETRY_ENDPOINT = "tcp://127.0.0.1:7811"
-DEFAULT_EVENTS_ENDPOINT = "tcp://127.0.0.1:7812"
 
 MAX_REQUEST_BYTES = 4 * 1024 * 1024
 """A request larger than this is answered with `too_large` (and not parsed)."""
@@ -273,17 +277,6 @@ def parse_telemetry(payload: bytes) -> StateMsg | CurrentsMsg | FieldMsg | Agent
 
 
 # -- daemon settings and endpoint rules ----------------------------------------------------------
-
-
-class DaemonSettings(_Message):
-    """The `[daemon]` table of a rig file (all optional; the CLI flags override it)."""
-
-    command: str = DEFAULT_COMMAND_ENDPOINT
-    telemetry: str = DEFAULT_TELEMETRY_ENDPOINT
-    events: str = DEFAULT_EVENTS_ENDPOINT
-    runs_dir: str = "runs"
-    server_key: str | None = Field(default=None, description="CURVE secret key file of the daemon")
-    allowed_keys: str | None = Field(default=None, description="folder of operators' public keys")
 
 
 def is_loopback_endpoint(endpoint: str) -> bool:

@@ -31,7 +31,7 @@ import numpy as np
 import zmq
 from pydantic import BaseModel
 
-from rigctl.messages import (
+from rigctl.daemon.messages import (
     DATA_SEND_HWM,
     EVENTS_SEND_HWM,
     TELEMETRY_BATCH_S,

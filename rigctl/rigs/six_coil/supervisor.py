@@ -43,161 +43,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rigctl.allocate import CurrentProgram, allocate
-from rigctl.config import CameraSettings, RigConfig
-from rigctl.drivers.camera import CameraDriver
-from rigctl.execute import Sequencer
-from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, PlanError, RigError
+from rigctl.config import RigConfig
+from rigctl.errors import ConfigError, PlanError, RigError
+from rigctl.plans.checks import plan_model
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.rrt import RrtOptions, plan_rrt, replay
-from rigctl.plans.schema import GlobalMovesPlan, dump_plan, parse_plan, plan_model
-from rigctl.realize import FieldProgram, realize_global_moves
+from rigctl.plans.schema import GlobalMovesPlan, dump_plan, parse_plan
 from rigctl.record import RunRecord
-from rigctl.tracker import Tracker
+from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate
+from rigctl.rigs.six_coil.realize import FieldProgram, realize_global_moves
+from rigctl.rigs.six_coil.sequencer import Sequencer
+from rigctl.vision.tracking import TrackingLoop
 
 log = logging.getLogger(__name__)
 
 _SHORTEST_MOVE_MM = 0.05  # re-planned moves shorter than this are left out (each costs a hold)
 REPLAN_ATTEMPTS = 3  # RRT runs (other seeds, longer budgets) before a re-plan that found no move fails
-LOST_AFTER_FRAMES = 3  # a robot unseen this many fresh frames in a row: tracking lost
 _GAIN_LIMITS = (0.5, 1.5)  # plausible range of the rolled distance per commanded distance
-
-
-# -- tracking ------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class TrackedState:
-    """The robots after one fresh frame. positions_mm (n, 2); lost (n,) robot not seen for
-    LOST_AFTER_FRAMES frames; t_source: monotonic s the picture was taken (stamp) or received;
-    t_tracked: monotonic s the tracker finished; frame: fresh frames tracked before this one."""
-
-    positions_mm: np.ndarray
-    lost: np.ndarray
-    t_source: float
-    t_tracked: float
-    frame: int
-
-
-class TrackingLoop:
-    """The camera and the tracker in their own thread, publishing the latest `TrackedState`.
-
-    camera: the rig's camera settings (url, stamped, timeout_s, calibration); radii_mm (n,),
-    initial_mm (n, 2) where the robots were put; roi_mm: the workspace's bounds.
-    """
-
-    def __init__(self, camera: CameraSettings, radii_mm: np.ndarray, initial_mm: np.ndarray, *,
-                 roi_mm: tuple[float, float, float, float] | None = None) -> None:
-        if camera.calibration is None:
-            raise ConfigError("the rig's camera has no calibration: run `rigctl calibrate camera`")
-        self.camera = camera
-        self.tracker = Tracker(camera.calibration, radii_mm, initial_mm, roi_mm=roi_mm)
-        self.timeout_s = camera.timeout_s
-        self.frames = 0  # fresh frames tracked
-        self.lost_frames = 0  # frames missed (dropped, repeated) or with a robot not found
-        self.failure: RigError | None = None
-        self._cond = threading.Condition()
-        self._latest: TrackedState | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._driver: CameraDriver | None = None
-
-    def start(self, acquire_timeout_s: float = 5.0) -> TrackedState:
-        """Open the camera, start tracking, and return the first state with every robot seen;
-        DeviceTimeout if that does not come within `acquire_timeout_s`."""
-        self._driver = CameraDriver(self.camera.url, stamped=self.camera.stamped,
-                                    timeout_s=self.camera.timeout_s,
-                                    reconnect_attempts=self.camera.reconnect_attempts).open()
-        self._thread = threading.Thread(target=self._run, name="tracking", daemon=True)
-        self._thread.start()
-        deadline = time.monotonic() + acquire_timeout_s
-        with self._cond:
-            while True:
-                state = self._latest
-                if state is not None and not state.lost.any() and not (
-                        self.tracker.frames_unseen > 0).any():
-                    return state
-                if self.failure is not None:
-                    raise self.failure
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceTimeout(f"the robots were not found within {acquire_timeout_s:g} s",
-                                        device="camera")
-                self._cond.wait(remaining)
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(self.timeout_s + 2.0)
-        if self._driver is not None:
-            self._driver.close()
-
-    def latest(self) -> TrackedState | None:
-        with self._cond:
-            return self._latest
-
-    def ok(self, now: float | None = None) -> bool:
-        """Tracking holds: a fresh frame within `timeout_s` and every robot found."""
-        state = self.latest()
-        now = time.monotonic() if now is None else now
-        return (self.failure is None and state is not None and not state.lost.any()
-                and now - state.t_tracked <= self.timeout_s)
-
-    def wait(self, timeout_s: float) -> None:
-        """Block until the next fresh frame is tracked or `timeout_s` passes."""
-        with self._cond:
-            self._cond.wait(timeout_s)
-
-    def captured_after(self, t_s: float, timeout_s: float) -> TrackedState | None:
-        """The first state from a picture taken after monotonic `t_s`, waiting up to `timeout_s`;
-        None if none comes or tracking is lost meanwhile."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while True:
-                state = self._latest
-                if state is not None and state.t_source > t_s and not state.lost.any():
-                    return state
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or self.failure is not None:
-                    return None
-                self._cond.wait(remaining)
-
-    def _run(self) -> None:
-        driver = self._driver
-        assert driver is not None
-        last_t: float | None = None
-        last_number: int | None = None
-        while not self._stop.is_set():
-            try:
-                frame = driver.read(timeout_s=min(0.1, self.timeout_s))
-            except DeviceTimeout:
-                with self._cond:
-                    self._cond.notify_all()  # waiters re-check staleness
-                continue
-            except (Disconnected, RigError) as err:
-                log.error("tracking: %s", err)
-                with self._cond:
-                    self.failure = err
-                    self._cond.notify_all()
-                return
-            t = frame.t_source if frame.t_source is not None else frame.t_capture
-            if frame.repeated or (last_t is not None and t <= last_t):
-                self.lost_frames += 1
-                continue
-            if frame.source_number is not None and last_number is not None:
-                self.lost_frames += max(0, frame.source_number - last_number - 1)
-            last_t, last_number = t, frame.source_number
-            robots = self.tracker.update(frame.image, t)
-            unseen = np.array([r.frames_unseen for r in robots])
-            if (unseen > 0).any():
-                self.lost_frames += 1
-            state = TrackedState(
-                positions_mm=np.array([r.position_mm for r in robots]),
-                lost=unseen >= LOST_AFTER_FRAMES,
-                t_source=t, t_tracked=time.monotonic(), frame=self.frames)
-            with self._cond:
-                self.frames += 1
-                self._latest = state
-                self._cond.notify_all()
 
 
 # -- sequencing ----------------------------------------------------------------------------------
@@ -314,7 +176,7 @@ class Supervisor:
     """Runs the closed loop for one run: see the module docstring.
 
     plan: the plan (expected filled); rig: must have a camera with a calibration; program, currents:
-    what `rigctl.execute.prepare` made; ramp_samples: the sequencer's ramp; truth: optional callable
+    what `rigctl.rigs.six_coil.global_moves.prepare` made; ramp_samples: the sequencer's ramp; truth: optional callable
     returning the emulator's true positions (n, 2) mm, to measure the tracker against.
     """
 
@@ -350,6 +212,7 @@ class Supervisor:
         self.decisions: list[Decision] = []
         self.tracking_errors_mm: list[float] = []
         self.fault: RigError | None = None
+        self.suspended: str | None = None  # why the run is held now (tracking lost), else None
         self.final_positions: np.ndarray | None = None
         self.record: RunRecord | None = None
         self._stop = threading.Event()
@@ -427,10 +290,12 @@ class Supervisor:
                         "robot(s) %s not found" % np.flatnonzero(state.lost).tolist()
                         if state is not None and state.lost.any()
                         else f"no fresh frame for {self.tracking.timeout_s:g} s")
+                    self.suspended = why
                     self._event("suspend", reason=why, sample=seq.index)
                 self.tracking.wait(0.05)
                 continue
             if held:
+                self.suspended = None
                 seq.unhold()
                 held = False
                 self._event("resume", sample=seq.index)
@@ -640,11 +505,11 @@ def replan_worker(plan_text: str, base_dir: str, start: np.ndarray, goals: np.nd
 
 
 class ReplanWorker:
-    """`replan` in a child process (`python -m rigctl.supervisor`): pickled calls over its stdin
+    """`replan` in a child process (`python -m rigctl.rigs.six_coil.supervisor`): pickled calls over its stdin
     and stdout, one at a time. Started ahead so its imports are done by the first re-plan."""
 
     def __init__(self) -> None:
-        self._proc = subprocess.Popen([sys.executable, "-m", "rigctl.supervisor"],
+        self._proc = subprocess.Popen([sys.executable, "-m", "rigctl.rigs.six_coil.supervisor"],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE)
         self._lock = threading.Lock()
         self._ready = False  # the child's "ready" (imports done) has been read

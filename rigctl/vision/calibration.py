@@ -23,144 +23,28 @@ from __future__ import annotations
 
 import itertools
 import logging
-import math
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
-from pydantic import BaseModel, ConfigDict, PrivateAttr, field_validator
 
-from rigctl.errors import ConfigError, RigError
+from rigctl.camera_model import (
+    UNDISTORT_CRITERIA,
+    Calibration,
+    CalibrationError,
+    apply_homography,
+    x_axis_angle_deg,
+)
+from rigctl.errors import ConfigError
 
 log = logging.getLogger(__name__)
-
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
-
-
-class CalibrationError(RigError, ValueError):
-    """The picture does not show what the calibration needs (corners, markers), or the fit is poor."""
-
-
-class Calibration(BaseModel):
-    """Pixel -> floor mapping of one camera (the rig file's `[camera.calibration]` table).
-
-    homography_px_to_mm: 3 x 3, undistorted pixel (u, v, 1) -> floor (x, y, 1) mm up to scale;
-    camera_matrix (3 x 3 px) and dist_coeffs (k1, k2, p1, p2, k3) when the lens distortion is
-    removed first; resolution: (width, height) px the calibration was made at; residual_mm: RMS
-    distance between the fitted and the known floor points.
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    homography_px_to_mm: list[list[float]]
-    camera_matrix: list[list[float]] | None = None
-    dist_coeffs: list[float] | None = None
-    resolution: tuple[int, int] | None = None
-    residual_mm: float | None = None
-
-    @field_validator("homography_px_to_mm")
-    @classmethod
-    def _invertible_3x3(cls, h: list[list[float]]) -> list[list[float]]:
-        matrix = np.asarray(h, dtype=float)
-        if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)):
-            raise ValueError("homography_px_to_mm must be 3 rows of 3 finite numbers")
-        if abs(np.linalg.det(matrix)) < 1e-300:
-            raise ValueError("homography_px_to_mm is singular")
-        return h
-
-    @field_validator("camera_matrix")
-    @classmethod
-    def _matrix_3x3(cls, k: list[list[float]] | None) -> list[list[float]] | None:
-        if k is not None and np.asarray(k, dtype=float).shape != (3, 3):
-            raise ValueError("camera_matrix must be 3 rows of 3 numbers")
-        return k
-
-    _cache: tuple | None = PrivateAttr(default=None)
-
-    def _arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """H, its inverse, K and the distortion as arrays, made once per set of field values.
-
-        The cache remembers which field objects it was made from: `model_copy(update=...)` copies
-        private attributes, and the copy must not reuse the original's arrays.
-        """
-        key = (id(self.homography_px_to_mm), id(self.camera_matrix), id(self.dist_coeffs))
-        if self._cache is None or self._cache[0] != key:
-            h = np.asarray(self.homography_px_to_mm, dtype=float)
-            k = None if self.camera_matrix is None else np.asarray(self.camera_matrix, dtype=float)
-            d = None
-            if self.dist_coeffs is not None:
-                d = np.zeros(max(5, len(self.dist_coeffs)))
-                d[: len(self.dist_coeffs)] = self.dist_coeffs
-            self._cache = (key, (h, np.linalg.inv(h), k, d))
-        return self._cache[1]
-
-    @property
-    def homography(self) -> np.ndarray:
-        """(3, 3) undistorted px -> mm."""
-        return self._arrays()[0]
-
-    def undistort(self, pixels: ArrayLike) -> np.ndarray:
-        """Pixels (n, 2) with the lens distortion removed (unchanged without intrinsics)."""
-        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-        _, _, k, d = self._arrays()
-        if k is None or d is None or len(px) == 0 or not np.any(d):
-            return px
-        return cv2.undistortPoints(
-            px.reshape(-1, 1, 2), k, d, P=k, criteria=_UNDISTORT_CRITERIA
-        ).reshape(-1, 2)
-
-    def to_mm(self, pixels: ArrayLike) -> np.ndarray:
-        """Floor points (n, 2) mm seen at pixels (n, 2)."""
-        return _apply(self._arrays()[0], self.undistort(pixels))
-
-    def to_px(self, points_mm: ArrayLike) -> np.ndarray:
-        """Pixels (n, 2) where floor points (n, 2) mm appear, lens distortion included."""
-        _, inverse, k, d = self._arrays()
-        px = _apply(inverse, np.asarray(points_mm, dtype=float).reshape(-1, 2))
-        if k is None or d is None or not np.any(d) or len(px) == 0:
-            return px
-        normalised = _apply(np.linalg.inv(k), px)
-        world = np.column_stack([normalised, np.ones(len(px))])
-        projected, _ = cv2.projectPoints(world, np.zeros(3), np.zeros(3), k, d)
-        return projected.reshape(-1, 2)
-
-    def mm_per_px(self, pixels: ArrayLike) -> np.ndarray:
-        """Side (mm) of the floor patch a pixel sees at pixels (n, 2): sqrt |det J| (undistorted)."""
-        px = self.undistort(pixels)
-        h = self._arrays()[0]
-        step = 0.5
-        dx = (_apply(h, px + [step, 0.0]) - _apply(h, px - [step, 0.0])) / (2 * step)
-        dy = (_apply(h, px + [0.0, step]) - _apply(h, px - [0.0, step])) / (2 * step)
-        return np.sqrt(np.abs(dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0]))
-
-    def floor_angle_deg(self) -> float:
-        """Screen angle (deg, counter-clockwise as seen) of the floor's +x at the picture centre."""
-        return _x_axis_angle_deg(self._arrays()[1], self.resolution)
-
-
-def _apply(h: np.ndarray, points: np.ndarray) -> np.ndarray:
-    p = np.asarray(points, dtype=float).reshape(-1, 2)
-    q = p @ h[:, :2].T + h[:, 2]
-    return q[:, :2] / q[:, 2:3]
-
-
-def _x_axis_angle_deg(h_mm_to_px: np.ndarray, resolution: tuple[int, int] | None) -> float:
-    """The angle in the picture of the floor's +x direction where the picture's centre looks."""
-    centre_px = (
-        np.array([[(resolution[0] - 1) / 2.0, (resolution[1] - 1) / 2.0]])
-        if resolution is not None else np.zeros((1, 2))
-    )
-    centre_mm = _apply(np.linalg.inv(h_mm_to_px), centre_px)
-    ends = _apply(h_mm_to_px, np.vstack([centre_mm, centre_mm + [1.0, 0.0]]))
-    du, dv = ends[1] - ends[0]
-    return math.degrees(math.atan2(-dv, du))  # v grows downwards: flip it for a screen angle
 
 
 def _flips_handedness(h_px_to_mm: np.ndarray, pixels: np.ndarray) -> bool:
     """True when the map turns picture handedness (v down) into floor handedness (y up), as every
     camera that does not mirror must; tested at the pixels' centroid."""
     centre = pixels.mean(axis=0)
-    a, b, c = _apply(h_px_to_mm, np.vstack([centre, centre + [1.0, 0.0], centre + [0.0, 1.0]]))
+    a, b, c = apply_homography(h_px_to_mm, np.vstack([centre, centre + [1.0, 0.0], centre + [0.0, 1.0]]))
     du, dv = b - a, c - a
     return float(du[0] * dv[1] - du[1] * dv[0]) < 0
 
@@ -206,7 +90,7 @@ def _fit(
         raise CalibrationError(
             "the points do not determine a homography (collinear?)", device="camera"
         )
-    residual = float(np.sqrt(np.mean(np.sum((_apply(h, undistorted) - mm) ** 2, axis=1))))
+    residual = float(np.sqrt(np.mean(np.sum((apply_homography(h, undistorted) - mm) ** 2, axis=1))))
     return Calibration(
         homography_px_to_mm=(h / h[2, 2]).tolist(),
         camera_matrix=lens.camera_matrix,
@@ -269,7 +153,7 @@ def find_boundary_corners(
             k = np.asarray(camera_matrix, dtype=float)
             edges = cv2.undistortPoints(
                 edges.reshape(-1, 1, 2), k, np.asarray(dist_coeffs, dtype=float), P=k,
-                criteria=_UNDISTORT_CRITERIA,
+                criteria=UNDISTORT_CRITERIA,
             ).reshape(-1, 2)
         vx, vy, x0, y0 = cv2.fitLine(edges.astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
         lines.append((np.array([x0, y0], float), np.array([vx, vy], float)))
@@ -377,8 +261,8 @@ def calibration_from_corners(
         h, _ = cv2.findHomography(rolled, mm, 0)
         if h is None:
             continue
-        error = float(np.sqrt(np.mean(np.sum((_apply(h, rolled) - mm) ** 2, axis=1))))
-        angle = _x_axis_angle_deg(np.linalg.inv(h), resolution)
+        error = float(np.sqrt(np.mean(np.sum((apply_homography(h, rolled) - mm) ** 2, axis=1))))
+        angle = x_axis_angle_deg(np.linalg.inv(h), resolution)
         candidates.append((error, _angle_gap_deg(angle, orientation_deg), shift))
     if not candidates:
         raise CalibrationError("no homography fits the corners", device="camera")
@@ -431,7 +315,7 @@ def calibration_from_markers(
         h = cv2.getPerspectiveTransform(undistorted[list(chosen)].astype(np.float32), anchors)
         if h is None or not np.all(np.isfinite(h)) or not _flips_handedness(h, undistorted):
             continue
-        placed = _apply(h, undistorted)  # every detection on the floor
+        placed = apply_homography(h, undistorted)  # every detection on the floor
         gaps = np.linalg.norm(known[:, None, :] - placed[None, :, :], axis=2)
         nearest = gaps.min(axis=1)
         inliers = int(np.sum(nearest <= tolerance))
@@ -448,7 +332,7 @@ def calibration_from_markers(
         )
     fits = []
     for h, match in best[1]:
-        angle = _x_axis_angle_deg(np.linalg.inv(h), resolution)
+        angle = x_axis_angle_deg(np.linalg.inv(h), resolution)
         fits.append((_angle_gap_deg(angle, orientation_deg), match))
     _, match = min(fits, key=lambda f: f[0])
     if len(set(match.tolist())) != len(known):
@@ -524,7 +408,7 @@ def calibrate_picture(
             dist_coeffs=dist_coeffs, resolution=resolution,
         )
     else:
-        from rigctl.tracker import find_dark_blobs
+        from rigctl.vision.tracker import find_dark_blobs
 
         markers = np.asarray(markers_mm, dtype=float).reshape(-1, 2)
         blobs = find_dark_blobs(picture, expected=len(markers))

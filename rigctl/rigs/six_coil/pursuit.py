@@ -27,8 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from rigctl.plans.pair import (
-    PairProblem, agent_positions, heading_angles, propagate_local, rank_controls, step_state,
+    PairProblem,
+    agent_positions,
+    heading_angles,
+    propagate_local,
+    rank_controls,
     state_from_positions,
+    step_state,
 )
 
 log = logging.getLogger(__name__)

@@ -55,11 +55,11 @@ import numpy as np
 
 from rigctl import errors
 from rigctl.config import RigConfig
-from rigctl.devices import zero_supplies_directly
+from rigctl.daemon.telemetry import CycleBatch
 from rigctl.errors import RigError
-from rigctl.telemetry import CycleBatch
+from rigctl.rigs.six_coil.supplies import zero_supplies_directly
 
-log = logging.getLogger("rigctl.runhost")  # also when run as `python -m rigctl.runhost`
+log = logging.getLogger("rigctl.daemon.runhost")  # also when run as `python -m rigctl.daemon.runhost`
 
 UPLINK_BATCH_S = 0.01  # the host sends cycles to the daemon at most this late
 UPLINK_MAX_QUEUED = 60_000  # cycles held for a daemon that stopped reading (a minute at 1 kHz)
@@ -86,11 +86,11 @@ def build_run(plan: Any, rig: RigConfig, *, runs_dir: str | Path, on_cycle: Any 
     to check a plan at load and by the stream process to run it."""
     closed_loop = rig.camera is not None
     if plan.kind == "pair-formation":
-        from rigctl.pair_run import PairRun, PairRunSettings
+        from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings
 
         return PairRun(plan, rig, runs_dir=runs_dir, on_cycle=on_cycle, on_state=on_state,
                        settings=PairRunSettings(closed_loop=closed_loop))
-    from rigctl.execute import Run
+    from rigctl.rigs.six_coil.global_moves import Run
 
     return Run(plan, rig, runs_dir=runs_dir, progress_out=None, closed_loop=closed_loop,
                on_cycle=on_cycle, on_state=on_state)
@@ -98,13 +98,7 @@ def build_run(plan: Any, rig: RigConfig, *, runs_dir: str | Path, on_cycle: Any 
 
 def describe_run(run: Any) -> dict:
     """What `load` and `status` tell of a prepared run: its name, size and planned duration."""
-    plan = run.plan
-    if plan.kind == "pair-formation":
-        samples = len(run.prepared.program_A)  # the open-loop program; closed loop takes its time
-        return {"name": plan.name, "segments": len(plan.segments), "samples": samples,
-                "duration_s": round(samples / run.rig.stream.rate_hz, 3)}
-    return {"name": plan.name, "moves": len(plan.moves), "samples": int(len(run.currents.t_s)),
-            "duration_s": round(float(run.field_program.duration_s), 3)}
+    return dict(run.info)
 
 
 # -- the daemon's side ----------------------------------------------------------------------------
@@ -129,7 +123,7 @@ class RunHost:
                 self._spawn()
 
     def _spawn(self) -> None:
-        # a plain `python -m rigctl.runhost` with the pipes' ends passed down, not
+        # a plain `python -m rigctl.daemon.runhost` with the pipes' ends passed down, not
         # multiprocessing's spawn, which imports the parent's main module again in the child
         # (a script embedding the daemon without an `if __name__ == "__main__"` guard would
         # start itself over)
@@ -137,7 +131,7 @@ class RunHost:
         up_read, up_write = os.pipe()
         ack_read, ack_write = os.pipe()
         process = subprocess.Popen(
-            [sys.executable, "-m", "rigctl.runhost", str(down_read), str(up_write),
+            [sys.executable, "-m", "rigctl.daemon.runhost", str(down_read), str(up_write),
              str(ack_write), str(self.realtime_priority or 0)],
             pass_fds=(down_read, up_write, ack_write), stdin=subprocess.DEVNULL)
         for fd in (down_read, up_write, ack_write):
@@ -675,7 +669,7 @@ class _Host:
         return run
 
     def _build_field(self, rig: RigConfig, currents_A: list, ramp_s: float) -> FieldHold:
-        from rigctl.devices import CoilSupplies
+        from rigctl.rigs.six_coil.supplies import CoilSupplies
 
         supplies = CoilSupplies.connect(rig)  # outputs stay off until the hold starts
         hold = FieldHold(supplies, rig.stream.rate_hz, on_cycle=lambda k, move, cmd, meas:
@@ -758,7 +752,7 @@ def realtime_permitted(priority: int) -> bool:
     return result[0]
 
 
-if __name__ == "__main__":  # python -m rigctl.runhost DOWN_FD UP_FD ACK_FD PRIORITY (RunHost._spawn)
+if __name__ == "__main__":  # python -m rigctl.daemon.runhost DOWN_FD UP_FD ACK_FD PRIORITY (RunHost._spawn)
     host_main(Connection(int(sys.argv[1]), writable=False),
               Connection(int(sys.argv[2]), readable=False),
               Connection(int(sys.argv[3]), readable=False), int(sys.argv[4]) or None)

@@ -19,11 +19,9 @@ written, and says so in its name), 2 bad input (the message names the argument).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -32,6 +30,7 @@ import numpy as np
 
 from rigctl.config import MagnetSettings, load_rig
 from rigctl.errors import ConfigError, PlanError
+from rigctl.plans.checks import WorkspaceSource
 
 log = logging.getLogger(__name__)
 
@@ -197,7 +196,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="end the output with one JSON line")
     p.set_defaults(func=_run_depm)
 
-    from rigctl.plans.pair import add_cli as add_pair_planner  # seed 002's two-agent planner
+    from rigctl.plans.pair import (
+        add_cli as add_pair_planner,  # seed 002's two-agent planner
+    )
 
     add_pair_planner(planners)
 
@@ -221,48 +222,6 @@ def _run_depm(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------- workspace documents
-
-
-class _WorkspaceSource:
-    """A workspace document read from disk: its spec, folder (for image paths) and hash."""
-
-    def __init__(self, path: str) -> None:
-        from rigctl.plans.schema import load_workspace
-
-        self.path = Path(path)
-        try:
-            self.spec = load_workspace(self.path)  # a whole plan: its workspace
-        except PlanError as err:
-            raise PlanError(f"--workspace: {err}") from None
-        self.base_dir = self.path.resolve().parent
-        self.document = self.spec.model_dump(mode="json", exclude_none=True)
-        self.image_path = None
-        if "image" in self.document:
-            self.image_path = (self.base_dir / self.document["image"]).resolve()
-        self.hash = self._hash()
-
-    def _hash(self) -> str:
-        content = dict(self.document)
-        if self.image_path is not None:
-            try:
-                content["image"] = hashlib.sha256(self.image_path.read_bytes()).hexdigest()
-            except OSError as err:
-                raise PlanError(f"--workspace: image {self.image_path}: {err.strerror}") from None
-        canonical = json.dumps(content, sort_keys=True, separators=(",", ":"))
-        return hashlib.sha256(canonical.encode()).hexdigest()
-
-    def workspace(self):
-        from rigctl.plans.workspace import Workspace
-
-        return Workspace.from_spec(self.spec, base_dir=self.base_dir)
-
-    def document_for(self, plan_path: Path) -> dict:
-        """The workspace document as a plan written at `plan_path` must spell it (image path
-        relative to the plan's folder)."""
-        document = dict(self.document)
-        if self.image_path is not None:
-            document["image"] = os.path.relpath(self.image_path, plan_path.resolve().parent)
-        return document
 
 
 # ---------------------------------------------------------------- plan rrt
@@ -390,11 +349,11 @@ def _options(args: argparse.Namespace, tree_meta: dict | None):
 
 def run_rrt(args: argparse.Namespace) -> int:
     """`rigctl plan rrt`: plan, write the plan, report. Returns the exit status."""
+    from rigctl.plans.checks import contact_for_rig
     from rigctl.plans.model import GlobalInputModel
     from rigctl.plans.rrt import RrtTree, check_tree_meta, plan_rrt, polish, tree_meta
-    from rigctl.plans.schema import contact_for_rig
 
-    source = _WorkspaceSource(args.workspace)
+    source = WorkspaceSource(args.workspace)
     starts = _points(args.start, "--start")
     goals = _points(args.goal, "--goal")
     if len(starts) != len(goals):
@@ -460,9 +419,10 @@ def run_rrt(args: argparse.Namespace) -> int:
     return EXIT_SOLVED if solved else EXIT_NOT_SOLVED
 
 
-def _write_plan(output: Path, source: _WorkspaceSource, rig: str, name: str, starts, goals, radii,
+def _write_plan(output: Path, source: WorkspaceSource, rig: str, name: str, starts, goals, radii,
                 moves, states, tolerance: float, min_separation: float) -> None:
-    from rigctl.plans.schema import check_plan, dump_plan, parse_plan
+    from rigctl.plans.checks import check_plan
+    from rigctl.plans.schema import dump_plan, parse_plan
 
     data = {
         "schema": "rigctl.plan/1",
@@ -492,7 +452,7 @@ def run_coverage(args: argparse.Namespace) -> int:
     from rigctl.plans.coverage import coverage, free_bounding_box
     from rigctl.plans.rrt import RrtTree
 
-    source = _WorkspaceSource(args.workspace)
+    source = WorkspaceSource(args.workspace)
     if not args.grid > 0:
         raise PlanError(f"--grid: must be > 0 mm, got {args.grid:g}")
     try:
@@ -522,7 +482,7 @@ def run_wall_contact(args: argparse.Namespace) -> int:
     from rigctl.plans.model import GlobalInputModel
     from rigctl.plans.wall_contact import centre_region, plan_with_model
 
-    source = _WorkspaceSource(args.workspace)
+    source = WorkspaceSource(args.workspace)
     document = source.document
     if "boundary" not in document:
         raise PlanError("--workspace: the wall-contact planner needs a shape boundary, not an image")
@@ -571,7 +531,11 @@ def run_wall_contact(args: argparse.Namespace) -> int:
 def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
     """`rigctl plan wall-contact --height H`: Sec. IV-G in a right prism or cylinder."""
     from rigctl.plans.wall_contact import centre_region
-    from rigctl.plans.wall_contact_3d import plan_document_3d, plan_wall_contact_3d, prism_region
+    from rigctl.plans.wall_contact_3d import (
+        plan_document_3d,
+        plan_wall_contact_3d,
+        prism_region,
+    )
 
     points = {}
     for flag, values in (("--start", args.start), ("--goal", args.goal)):
@@ -611,7 +575,12 @@ def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
 
 def run_reachable(args: argparse.Namespace) -> int:
     """`rigctl plan reachable`: reachable fractions of the Delta space. Returns the exit status."""
-    from rigctl.plans.wall_contact import DiskRegion, PolygonRegion, centre_region, reachable_fraction
+    from rigctl.plans.wall_contact import (
+        DiskRegion,
+        PolygonRegion,
+        centre_region,
+        reachable_fraction,
+    )
 
     if args.disk:
         region = DiskRegion(np.zeros(2), 0.5)
@@ -621,7 +590,7 @@ def run_reachable(args: argparse.Namespace) -> int:
             raise PlanError("--polygon: give at least three vertices X,Y;X,Y;X,Y")
         region = PolygonRegion(vertices)
     else:
-        source = _WorkspaceSource(args.workspace)
+        source = WorkspaceSource(args.workspace)
         if "boundary" not in source.document or source.document.get("obstacles"):
             raise PlanError("--workspace: needs a convex shape boundary without obstacles")
         region = centre_region(source.document["boundary"], 0.0)

@@ -24,10 +24,8 @@ and `hold_max_error_bl` (largest agent distance from its goal while holding).
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -37,31 +35,37 @@ from typing import TextIO
 
 import numpy as np
 
-from rigctl.allocate import check_current_limits, field_and_pull_u, u_actuation_matrix
+from rigctl.coils import u_actuation_matrix
 from rigctl.config import RigConfig, dump_rig
-from rigctl.devices import CoilSupplies
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.errors import ConfigError, DeviceTimeout, LimitError, PlanError, RigError
-from rigctl.execute import (
-    Progress,
-    RunControl,
-    RunState,
-    _EStopped,
-    _portable_workspace,
-    summary_json_line,
-)
 from rigctl.plans.pair import (
-    ZERO_RADIAL_ANGLE_RAD, PairPlannerOptions, agent_positions, check, goal_error, physics_of,
-    plan_arrays, problem_of, replan_pair, rig_max_pull, simulate, state_from_positions, state_of,
+    ZERO_RADIAL_ANGLE_RAD,
+    PairPlannerOptions,
+    agent_positions,
+    check,
+    goal_error,
+    physics_of,
+    plan_arrays,
+    problem_of,
+    replan_pair,
+    rig_max_pull,
+    simulate,
+    state_from_positions,
+    state_of,
 )
 from rigctl.plans.schema import PairFormationPlan, dump_plan
-from rigctl.pursuit import PairPursuit, PursuitSettings, distance_to_path
 from rigctl.record import RunRecord
+from rigctl.rigs.six_coil.allocate import check_current_limits, field_and_pull_u
+from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings, distance_to_path
+from rigctl.rigs.six_coil.supplies import CoilSupplies
+from rigctl.run.control import EStopped, RunControl, RunState
+from rigctl.run.emulated import portable_workspace
+from rigctl.run.progress import Progress
 from rigctl.stream import StreamLoop
 
 log = logging.getLogger(__name__)
 
-EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
 CONTROLLER_PULL_SHARE = 0.95  # of the rig's largest pull: the plan used PULL_MARGIN (0.8) of it
 VOLTAGE_SHARE = 0.9  # closed-loop current steps are limited to keep R I + L dI/dt below this
 HOLD_START_SHARE = 0.75  # the hold's clock starts when both agents are this share of the tolerance in
@@ -304,7 +308,7 @@ def expected_headings(nodes: np.ndarray, stage_of: np.ndarray) -> np.ndarray:
 
 
 class PairRun(RunControl):
-    """One pair-formation plan on one six-coil rig, with the interface of `rigctl.execute.Run`:
+    """One pair-formation plan on one six-coil rig, with the interface of `rigctl.rigs.six_coil.global_moves.Run`:
     construction refuses a bad plan without I/O; `execute()` energises, streams and returns the
     summary; `pause`, `resume`, `abort` and `estop` may be called from any thread meanwhile;
     `on_cycle(sample, move, commanded_A, measured_A)` is called from the stream thread after every
@@ -345,6 +349,9 @@ class PairRun(RunControl):
         self._abort = threading.Event()
         self._pause = _PauseRequests()
         self._truth_at_end: dict | None = None
+        samples = len(self.prepared.program_A)  # the open-loop program; closed loop takes its time
+        self.info = {"name": self.plan.name, "segments": len(self.plan.segments),
+                     "samples": samples, "duration_s": round(samples / rig.stream.rate_hz, 3)}
 
     # -- control, from any thread ---------------------------------------------------------------
     def pause(self, immediate: bool = False) -> None:
@@ -364,7 +371,7 @@ class PairRun(RunControl):
 
     # -- the run --------------------------------------------------------------------------------
     def execute(self) -> PairSummary:
-        from rigctl.supervisor import TrackingLoop
+        from rigctl.vision.tracking import TrackingLoop
 
         plan, rig, prep = self.plan, self.rig, self.prepared
         record = self.record = RunRecord(self.runs_dir, plan.name or "pair-formation")
@@ -383,7 +390,7 @@ class PairRun(RunControl):
             start_mm = agent_positions(prep.nodes[0]) * self.d_mm
             if backdoor is not None:
                 backdoor.request(
-                    "place", workspace=_portable_workspace(plan),
+                    "place", workspace=portable_workspace(plan),
                     agents=[{"position": p.tolist(), "radius": 0.5 * self.d_mm} for p in start_mm],
                     pair=plan.agents.model_dump())
                 record.event("placed", agents=start_mm.tolist())
@@ -397,14 +404,14 @@ class PairRun(RunControl):
             for name, identity in zip(supplies.names, supplies.identities):
                 record.event("connected", device=name, identity=identity)
             if self._estop.is_set():  # e-stopped while connecting: never switch on
-                raise _EStopped()
+                raise EStopped()
             supplies.energise()
             record.event("energised", devices=supplies.names)
             self._set_state(RunState.RUNNING)
             stats = self._stream(supplies, tracking, record)
         except RigError as err:
             self._stopped_by(err, record, faults)
-        except _EStopped:
+        except EStopped:
             record.event("estop", reason="before the supplies were switched on")
         except KeyboardInterrupt:
             self._abort.set()
@@ -861,35 +868,3 @@ def loopback_rig(rig: RigConfig) -> RigConfig:
         update={"reply_timeout_s": timeout})})
 
 
-def execute_cli(plan: PairFormationPlan, args: argparse.Namespace) -> int:
-    """`rigctl execute PLAN` for a pair-formation plan: exit 0 reached and held, 1 not, 3 fault
-    (bad input raises PlanError / LimitError / ConfigError: exit 2 from the CLI)."""
-    from rigctl.cli import _mismatch_args
-    from rigctl.emulators.process import rig_for_run
-
-    out = None if args.quiet else sys.stderr
-    settings = PairRunSettings(closed_loop=not args.open_loop)
-    if getattr(args, "agnostic", False):
-        raise ConfigError("--agnostic is for the depm rig")
-    if getattr(args, "world", None) not in (None, "pair"):
-        raise ConfigError("a pair-formation plan runs in the pair world (--world pair)")
-    if args.rig is not None:
-        if _mismatch_args(args):
-            raise ConfigError("--slip, --noise, --drift and --seed set up the emulated bench that "
-                              "execute starts itself: give them to `rigctl emulate` with --rig")
-    else:
-        from rigctl.plans.pair import default_rig
-
-        prepare_pair(plan, default_rig(), settings)  # refuse a bad plan before starting a bench
-    with rig_for_run(args.rig, "six-coil", extra_args=["--world", "pair", *_mismatch_args(args)],
-                     progress_out=out, world=" (pair world)") as rig:
-        if args.rig is None:
-            rig = loopback_rig(rig)
-        summary = PairRun(plan, rig, runs_dir=args.runs, progress_out=out,
-                          settings=settings).execute()
-    print(format_pair_summary(summary))
-    if args.json:
-        print(summary_json_line(summary))
-    if summary.faults:
-        return EXIT_FAULT
-    return EXIT_OK if summary.reached else EXIT_NOT_REACHED

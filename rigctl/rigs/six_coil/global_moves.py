@@ -1,0 +1,220 @@
+"""Execute a plan on a rig: validate, realize, allocate, check every limit, then energise and stream.
+
+Order matters for safety. Everything that can refuse a plan (schema, semantics, whole turns,
+current and voltage limits) runs before a single connection is opened. Only then are the supplies
+identified, configured and switched on, and the current program streamed at the rig's rate. Any
+device fault stops the stream, ramps every other supply to zero and switches it off, and is
+reported as a fault naming the device and the reason; the run record keeps everything up to it.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from rigctl.config import RigConfig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.errors import PlanError, RigError
+from rigctl.plans.checks import check_plan, contact_for_rig, simulate
+from rigctl.plans.schema import Plan
+from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate
+from rigctl.rigs.six_coil.realize import FieldProgram, realize_global_moves
+from rigctl.rigs.six_coil.sequencer import Sequencer
+from rigctl.rigs.six_coil.supervisor import Supervisor, SupervisorSettings
+from rigctl.rigs.six_coil.supplies import CoilSupplies
+from rigctl.run.control import RunState
+from rigctl.run.engine import Outcome, RunContext, Step
+from rigctl.run.engine import Run as EngineRun
+from rigctl.run.emulated import portable_workspace, truth_of
+from rigctl.run.summary import AgentResult, RunSummary
+
+log = logging.getLogger(__name__)
+
+
+def prepare(plan: Plan, rig: RigConfig) -> tuple[Plan, FieldProgram, CurrentProgram]:
+    """Everything that can refuse a plan, with no I/O: returns the plan (expected filled), its
+    field program and the allocated currents. Raises PlanError or LimitError naming what is wrong."""
+    if plan.rig != rig.rig.kind:
+        raise PlanError(
+            f"the plan is for a {plan.rig} rig but the rig file describes a {rig.rig.kind} rig"
+        )
+    if rig.rig.kind != "six-coil":
+        raise PlanError(f"executing on a {rig.rig.kind} rig is not implemented yet")
+    if plan.expected is None:
+        plan = simulate(plan)
+    check_plan(plan)
+    program = realize_global_moves(np.asarray(plan.moves, dtype=float).reshape(-1, 2), rig)
+    return plan, program, allocate(program, rig)
+
+
+class GlobalMovesProgram:
+    """A global-moves plan's current program (`prepare`), sequenced with pause, resume and abort,
+    and with `closed_loop` the camera supervisor that judges every move and re-plans. Construction
+    refuses a bad plan (PlanError, LimitError) without I/O. Pause holds the field (the magnets lie
+    still, aligned); pause now ramps it to zero and back up on resume; a late cycle slips."""
+
+    late = "slip"
+
+    def __init__(self, plan: Plan, rig: RigConfig, *, closed_loop: bool = False,
+                 supervisor_settings: SupervisorSettings | None = None) -> None:
+        self.plan, self.field_program, self.currents = prepare(plan, rig)
+        self.rig = rig
+        self.rate_hz = rig.stream.rate_hz
+        self.n_moves = len(self.plan.moves)
+        self.duration_s = float(self.field_program.duration_s)
+        self.info = {"name": self.plan.name, "moves": self.n_moves,
+                     "samples": int(len(self.currents.t_s)),
+                     "duration_s": round(self.duration_s, 3)}
+        ramp = max(1, round(rig.stream.ramp_down_s * rig.stream.rate_hz))
+        ends = [self.field_program.move_end_index(i) for i in range(self.field_program.n_moves)]
+        self.sequencer = Sequencer(self.currents, ends, ramp)
+        self._backdoor: BackdoorClient | None = None
+        self.supervisor: Supervisor | None = None
+        if closed_loop:
+            self.supervisor = Supervisor(
+                self.plan, rig, self.field_program, self.currents, ramp_samples=ramp,
+                settings=supervisor_settings or SupervisorSettings(),
+                truth=self._truth if rig.emulation else None)
+            self.sequencer = self.supervisor.sequencer
+
+    def _truth(self) -> np.ndarray:
+        """The emulator's true positions (n, 2) mm (the supervisor measures the tracker with it)."""
+        return truth_of(self._backdoor)
+
+    # -- control, from any thread ---------------------------------------------------------------
+    def pause(self, immediate: bool = False) -> None:
+        self.sequencer.request_pause(immediate)
+
+    def resume(self) -> None:
+        self.sequencer.request_resume()
+
+    def abort(self) -> None:
+        self.sequencer.request_abort()
+
+    @property
+    def aborted(self) -> bool:
+        return self.sequencer.aborted
+
+    @property
+    def paused(self) -> bool:
+        return self.sequencer.paused
+
+    @property
+    def suspended(self) -> str | None:
+        return self.supervisor.suspended if self.supervisor is not None else None
+
+    def attach_wake(self, wake: Callable[[], None]) -> None:
+        self.sequencer.wake = wake
+
+    # -- the run's phases -----------------------------------------------------------------------
+    def start(self, ctx: RunContext) -> None:
+        plan = self.plan
+        self._backdoor = ctx.backdoor
+        if ctx.backdoor is not None:
+            ctx.backdoor.request(
+                "place",
+                workspace=portable_workspace(plan),
+                agents=[{"position": list(a.start), "radius": a.radius} for a in plan.agents],
+                contact=contact_for_rig(plan.rig),
+                min_separation_mm=plan.min_separation_mm,
+            )
+            ctx.record.event("placed", agents=[list(a.start) for a in plan.agents])
+        if self.supervisor is not None:
+            self.supervisor.start(ctx.record)  # the robots are found before anything is energised
+
+    def next(self, k: int, measured: np.ndarray | None) -> Step | None:
+        step = self.sequencer.next()
+        if step is None:
+            return None
+        setpoints, sample, move = step
+        t_s = self.currents.t_s
+        return Step(setpoints, sample, move, t_s=float(t_s[min(sample, len(t_s) - 1)]))
+
+    def finish(self, ctx: RunContext) -> Outcome:
+        plan = self.plan
+        if self.supervisor is not None:
+            self.supervisor.stop()
+        agents, positions_from = _final_positions(plan, ctx.backdoor)
+        closed = {}
+        if self.supervisor is not None:
+            if self.supervisor.final_positions is not None:
+                agents, positions_from = _tracked_final_positions(
+                    agents, self.supervisor.final_positions)
+            closed = self.supervisor.summary()
+        tolerance = plan.tolerance_mm
+        reached = all(a.error_mm is not None and a.error_mm <= tolerance for a in agents)
+        return Outcome(agents=agents, reached=reached, positions_from=positions_from,
+                       tolerance_mm=tolerance, replans=closed.get("replans", 0),
+                       tracking=closed.get("tracking"),
+                       gave_up=self.supervisor.fault if self.supervisor is not None else None)
+
+    def close(self) -> None:
+        if self.supervisor is not None:
+            self.supervisor.stop()
+
+
+def Run(plan: Plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
+        progress_out: TextIO | None = None,
+        on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
+        on_state: Callable[[RunState, dict], None] | None = None, closed_loop: bool = False,
+        supervisor_settings: SupervisorSettings | None = None) -> EngineRun:
+    """The run of a global-moves plan on a six-coil rig (the one engine with this program)."""
+    program = GlobalMovesProgram(plan, rig, closed_loop=closed_loop,
+                                 supervisor_settings=supervisor_settings)
+    return EngineRun(program, rig, CoilSupplies.connect, runs_dir=runs_dir,
+                     progress_out=progress_out, on_cycle=on_cycle, on_state=on_state)
+
+
+def execute_plan(
+    plan: Plan,
+    rig: RigConfig,
+    *,
+    runs_dir: str | Path = "runs",
+    progress_out: TextIO | None = sys.stderr,
+    closed_loop: bool | None = None,
+    supervisor_settings: SupervisorSettings | None = None,
+) -> RunSummary:
+    """Run `plan` on `rig` and return the summary. Refusals (PlanError, LimitError) raise before
+    anything is opened; device faults during the run are caught, reported and recorded.
+    `closed_loop` (default: whenever the rig has a camera) runs the camera supervisor."""
+    if closed_loop is None:
+        closed_loop = rig.camera is not None
+    return Run(plan, rig, runs_dir=runs_dir, progress_out=progress_out, closed_loop=closed_loop,
+               supervisor_settings=supervisor_settings).execute()
+
+
+def _final_positions(plan: Plan, backdoor: BackdoorClient | None) -> tuple[list[AgentResult], str]:
+    goals = [list(map(float, a.goal)) for a in plan.agents]
+    if backdoor is None:
+        return [AgentResult(None, g, None) for g in goals], "unknown (no camera loop yet)"
+    try:
+        truth = backdoor.request("truth")
+    except RigError as err:
+        log.error("could not read ground truth: %s", err)
+        return [AgentResult(None, g, None) for g in goals], "unknown (backdoor failed)"
+    results = []
+    for position, goal in zip(truth["agents"], goals):
+        error = float(np.hypot(position[0] - goal[0], position[1] - goal[1]))
+        results.append(AgentResult([round(p, 4) for p in position], goal, round(error, 4)))
+    return results, "emulator ground truth (the camera loop does not exist yet)"
+
+
+def _tracked_final_positions(
+    truth: list[AgentResult], tracked: np.ndarray
+) -> tuple[list[AgentResult], str]:
+    """Final positions from the camera (closed loop); ground truth's error kept when emulated."""
+    results = []
+    for result, position in zip(truth, tracked):
+        error = float(np.hypot(position[0] - result.goal[0], position[1] - result.goal[1]))
+        results.append(AgentResult([round(float(p), 4) for p in position], result.goal,
+                                   round(error, 4), result.error_mm))
+    return results, "camera (closed loop)" + (
+        "; emulator ground truth in truth_error_mm" if any(
+            r.error_mm is not None for r in truth) else "")
+
+

@@ -1,0 +1,272 @@
+"""The one run: a rig program streamed to an actuator group, with the same control on every rig.
+
+A run is the meeting of two things that differ per rig and everything that does not:
+
+- the *program* (`RigProgram`: global moves, pair formation, wall contact, a field sequence, a
+  manual hold) says what to command each cycle, what "hold still" means when paused, and whether a
+  late cycle slips the schedule (field programs: a path must not be bunched) or skips it (the arm
+  servo: a target in the past is worthless);
+- the *actuators* (`Actuators`: six supplies, the coil board, two arms) take one setpoint per
+  channel each cycle and report what they did, drop everything on an e-stop from any thread, and
+  ramp down and confirm their safe state at the end.
+
+The engine owns the rest, once for every rig: the run record (plan, rig, events, the channel-typed
+stream), the order of start-up (the program finds its agents and opens its sensors before anything
+is energised), the stream loop, the states (`RunState`), pause / pause now / resume / abort /
+e-stop from any thread, Ctrl-C and SIGTERM as an abort, faults named by device, the safe end (the
+record says `safe` only when every device confirmed it, and names each one that did not), progress
+and one summary shape.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, TextIO
+
+import numpy as np
+
+from rigctl.channels import Channel
+from rigctl.config import RigConfig, dump_rig
+from rigctl.errors import RigError
+from rigctl.record import RunRecord
+from rigctl.run.control import EStopped, RunControl, RunState
+from rigctl.run.summary import RunSummary
+from rigctl.stream import StreamLoop, StreamStats
+
+log = logging.getLogger(__name__)
+
+
+class Actuators(Protocol):
+    """One rig's actuator group. `cycle` writes every setpoint, then reads every device."""
+
+    names: list[str]  # device names, as faults and the record name them
+    channels: list[Channel]
+
+    def energise(self) -> None: ...
+
+    def cycle(self, setpoints: np.ndarray) -> np.ndarray: ...
+
+    def emergency_zero(self) -> list[str]:
+        """Any thread, latched, never raises: the devices the e-stop could not be sent to."""
+
+    def zero_now(self) -> None:
+        """On the stream thread after an e-stop: zero again, best effort."""
+
+    def stop(self, ramp_s: float) -> list[str]:
+        """Ramp down, make safe, close; never raises: the devices whose safe state is not
+        confirmed."""
+
+
+@dataclass
+class Step:
+    """One cycle's command: setpoints (n_channels,), the program sample it belongs to, and the
+    move (plan step) being driven, -1 while ramping, holding or paused."""
+
+    setpoints: np.ndarray
+    sample: int
+    move: int
+    stage: str | None = None  # what the progress line shows (None: "move k/n")
+    t_s: float | None = None  # the program's time of this sample (None: the stream's)
+
+
+@dataclass
+class Outcome:
+    """What the program reports once the actuators are safe: each agent's result, whether the
+    goal was reached, where the positions came from, and the rig's own metrics."""
+
+    agents: list = field(default_factory=list)
+    reached: bool = False
+    positions_from: str = "unknown"
+    tolerance_mm: float | None = None
+    metrics: dict = field(default_factory=dict)
+    replans: int = 0  # closed loop: re-plans from the camera
+    tracking: dict | None = None  # closed loop: frames, lost frames, tracker against truth
+    tolerance_unit: str = "mm"
+    details: list[str] = field(default_factory=list)  # lines the summary shows of the metrics
+    gave_up: RigError | None = None  # the closed loop gave up (a fault of the run, not a device)
+
+
+@dataclass
+class RunContext:
+    """What a program gets from the engine at `start`: the record, the bench's backdoor (emulated
+    rigs), and a line on the operator's terminal."""
+
+    rig: RigConfig
+    record: RunRecord
+    backdoor: Any
+    say: Callable[[str], None]
+
+
+class RigProgram(Protocol):
+    plan: Any
+    info: dict  # what `load` and `status` tell of it: name, size, planned duration
+    rate_hz: float
+    late: str  # "slip" or "skip"
+    n_moves: int
+    duration_s: float
+    paused: bool
+    suspended: str | None  # why the run cannot go on by itself now (tracking lost), else None
+
+    def start(self, ctx: RunContext) -> None: ...
+
+    def next(self, k: int, measured: np.ndarray | None) -> Step | None: ...
+
+    def pause(self, immediate: bool) -> None: ...
+
+    def resume(self) -> None: ...
+
+    def abort(self) -> None: ...
+
+    @property
+    def aborted(self) -> bool: ...
+
+    def finish(self, ctx: RunContext) -> Outcome: ...
+
+    def close(self) -> None: ...
+
+
+class Run(RunControl):
+    """One program on one rig. `execute()` records, starts the program, energises, streams and
+    returns the summary; `pause`, `resume`, `abort` and `estop` may be called from any thread.
+    `connect` opens the rig's actuators (outputs off)."""
+
+    def __init__(self, program: RigProgram, rig: RigConfig, connect: Callable[[RigConfig], Actuators],
+                 *, runs_dir: str | Path = "runs", progress_out: TextIO | None = None,
+                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
+                 on_state: Callable[[RunState, dict], None] | None = None) -> None:
+        self.program = program
+        self.plan = program.plan
+        self.info = program.info
+        self.rig = rig
+        self.connect = connect
+        self.runs_dir = Path(runs_dir)
+        self.progress_out = progress_out
+        self.on_cycle = on_cycle
+        self._init_control(on_state)
+        self._abort_reason: str | None = None
+
+    # -- control, from any thread ---------------------------------------------------------------
+    def pause(self, immediate: bool = False) -> None:
+        self.program.pause(immediate)
+
+    def resume(self) -> None:
+        self.program.resume()
+
+    def abort(self, reason: str = "aborted by the operator") -> None:
+        self._abort_reason = reason
+        self.program.abort()
+
+    # -- the run --------------------------------------------------------------------------------
+    def execute(self) -> RunSummary:
+        from rigctl.emulators.backdoor import BackdoorClient
+        from rigctl.plans.schema import dump_plan
+        from rigctl.run.progress import Progress
+
+        program, rig = self.program, self.rig
+        record = self.record = RunRecord(self.runs_dir, getattr(program.plan, "name", None) or "plan")
+        record.write_file("plan.json", dump_plan(program.plan))
+        record.write_file("rig.toml", dump_rig(rig))
+        record.event("prepared", rate_hz=program.rate_hz, duration_s=program.duration_s,
+                     **{k: v for k, v in program.info.items() if k not in ("duration_s",)})
+        started = time.monotonic()
+        faults: list[dict] = []
+        stats: StreamStats | None = None
+        backdoor = BackdoorClient(rig.emulation.backdoor) if rig.emulation else None
+        ctx = RunContext(rig, record, backdoor, self._say)
+        actuators: Actuators | None = None
+        unconfirmed: list[str] | None = None
+        self.progress = Progress(self.progress_out, program.n_moves, program.duration_s)
+        try:
+            try:
+                program.start(ctx)  # agents placed and found, sensors open: nothing energised
+                actuators = self._supplies = self.connect(rig)
+                for name in actuators.names:
+                    record.event("connected", device=name)
+                if self._estop.is_set():  # e-stopped while connecting: never switch on
+                    raise EStopped()
+                actuators.energise()
+                record.event("energised", devices=actuators.names)
+                self._set_state(RunState.RUNNING)
+                stats = self._stream(actuators)
+            except KeyboardInterrupt:
+                self.abort("operator interrupt (Ctrl-C)")
+                record.event("abort", reason=self._abort_reason)
+        except RigError as err:
+            self._stopped_by(err, record, faults)
+        except EStopped:
+            record.event("estop", reason="before the outputs were switched on")
+        finally:
+            if actuators is not None:
+                # an e-stop during this ramp cuts it short (the drivers latch at zero)
+                unconfirmed = actuators.stop(0.0 if self._estop.is_set() else rig.stream.ramp_down_s)
+                self._supplies = None  # off and closed: nothing left for an e-stop to write to
+                if unconfirmed:
+                    record.event("unsafe", devices=unconfirmed,
+                                 reason="not confirmed safe: check these by hand")
+                else:
+                    record.event("safe", devices=actuators.names)
+            self.progress.done()
+        try:
+            outcome = program.finish(ctx)
+        finally:
+            program.close()
+            if backdoor is not None:
+                backdoor.close()
+        aborted = program.aborted or self._abort_reason is not None
+        self._end_state(faults, aborted=aborted, gave_up=outcome.gave_up,
+                        abort_reason=self._abort_reason)
+        summary = RunSummary(
+            reached=outcome.reached and not faults, agents=outcome.agents, run=str(record.path),
+            duration_s=time.monotonic() - started, positions_from=outcome.positions_from,
+            tolerance_mm=outcome.tolerance_mm, faults=faults,
+            stream=None if stats is None else stats.as_dict(),
+            safe=actuators is None or not unconfirmed,
+            unsafe_devices=list(unconfirmed or []), metrics=outcome.metrics,
+            replans=outcome.replans, tracking=outcome.tracking,
+            tolerance_unit=outcome.tolerance_unit, details=outcome.details,
+            state=self.state.value, rig_kind=rig.rig.kind, plan_kind=program.plan.kind)
+        record.finish(summary.as_dict())
+        return summary
+
+    def _stream(self, actuators: Actuators) -> StreamStats:
+        record, program = self.record, self.program
+        assert record is not None
+        record.open_stream(actuators.channels, rate_hz=program.rate_hz)
+        loop = self.stream_loop = StreamLoop(program.rate_hz, late=program.late)
+        wake = getattr(program, "attach_wake", None)
+        if wake is not None:
+            wake(loop.wake)
+        measured: np.ndarray | None = None
+
+        def cycle(k: int) -> bool:
+            nonlocal measured
+            if self._estop.is_set():
+                self._finish_estop(actuators, record)
+                return False
+            step = program.next(k, measured)
+            if step is None:
+                return False
+            if program.suspended is not None:
+                self._set_state(RunState.SUSPENDED, reason=program.suspended)
+            else:
+                self._set_state(RunState.PAUSED if program.paused else RunState.RUNNING)
+            measured = actuators.cycle(step.setpoints)
+            record.stream_row(step.sample, step.move, step.setpoints, measured, loop.last_error_s)
+            if self.on_cycle is not None:
+                self.on_cycle(step.sample, step.move, step.setpoints, measured)
+            self.progress.update(step.move, k / program.rate_hz if step.t_s is None else step.t_s,
+                                 step.stage)
+            return True
+
+        try:
+            return loop.run(cycle)
+        finally:
+            record.event("stream_stats", **loop.stats().as_dict())
+
+    def _say(self, text: str) -> None:
+        if self.progress_out is not None:
+            print(f"  {text}", file=self.progress_out, flush=True)

@@ -1,0 +1,1 @@
+"""The camera side of the closed loop: tracker, calibration, the tracking loop."""

@@ -1,0 +1,159 @@
+"""The tracking loop: the camera and the tracker in their own thread, publishing the robots'
+latest positions. Tracking is *lost* when no fresh frame came for `camera.timeout_s` (a frozen,
+dropped or stalled stream) or a robot was not found in `LOST_AFTER_FRAMES` frames in a row
+(black-out, occlusion). Every camera rig's run reads it."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from rigctl.config import CameraSettings
+from rigctl.drivers.camera import CameraDriver
+from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, RigError
+from rigctl.vision.tracker import Tracker
+
+log = logging.getLogger(__name__)
+
+LOST_AFTER_FRAMES = 3  # a robot unseen this many fresh frames in a row: tracking lost
+
+
+@dataclass(frozen=True)
+class TrackedState:
+    """The robots after one fresh frame. positions_mm (n, 2); lost (n,) robot not seen for
+    LOST_AFTER_FRAMES frames; t_source: monotonic s the picture was taken (stamp) or received;
+    t_tracked: monotonic s the tracker finished; frame: fresh frames tracked before this one."""
+
+    positions_mm: np.ndarray
+    lost: np.ndarray
+    t_source: float
+    t_tracked: float
+    frame: int
+
+
+class TrackingLoop:
+    """The camera and the tracker in their own thread, publishing the latest `TrackedState`.
+
+    camera: the rig's camera settings (url, stamped, timeout_s, calibration); radii_mm (n,),
+    initial_mm (n, 2) where the robots were put; roi_mm: the workspace's bounds.
+    """
+
+    def __init__(self, camera: CameraSettings, radii_mm: np.ndarray, initial_mm: np.ndarray, *,
+                 roi_mm: tuple[float, float, float, float] | None = None) -> None:
+        if camera.calibration is None:
+            raise ConfigError("the rig's camera has no calibration: run `rigctl calibrate camera`")
+        self.camera = camera
+        self.tracker = Tracker(camera.calibration, radii_mm, initial_mm, roi_mm=roi_mm)
+        self.timeout_s = camera.timeout_s
+        self.frames = 0  # fresh frames tracked
+        self.lost_frames = 0  # frames missed (dropped, repeated) or with a robot not found
+        self.failure: RigError | None = None
+        self._cond = threading.Condition()
+        self._latest: TrackedState | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._driver: CameraDriver | None = None
+
+    def start(self, acquire_timeout_s: float = 5.0) -> TrackedState:
+        """Open the camera, start tracking, and return the first state with every robot seen;
+        DeviceTimeout if that does not come within `acquire_timeout_s`."""
+        self._driver = CameraDriver(self.camera.url, stamped=self.camera.stamped,
+                                    timeout_s=self.camera.timeout_s,
+                                    reconnect_attempts=self.camera.reconnect_attempts).open()
+        self._thread = threading.Thread(target=self._run, name="tracking", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + acquire_timeout_s
+        with self._cond:
+            while True:
+                state = self._latest
+                if state is not None and not state.lost.any() and not (
+                        self.tracker.frames_unseen > 0).any():
+                    return state
+                if self.failure is not None:
+                    raise self.failure
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceTimeout(f"the robots were not found within {acquire_timeout_s:g} s",
+                                        device="camera")
+                self._cond.wait(remaining)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(self.timeout_s + 2.0)
+        if self._driver is not None:
+            self._driver.close()
+
+    def latest(self) -> TrackedState | None:
+        with self._cond:
+            return self._latest
+
+    def ok(self, now: float | None = None) -> bool:
+        """Tracking holds: a fresh frame within `timeout_s` and every robot found."""
+        state = self.latest()
+        now = time.monotonic() if now is None else now
+        return (self.failure is None and state is not None and not state.lost.any()
+                and now - state.t_tracked <= self.timeout_s)
+
+    def wait(self, timeout_s: float) -> None:
+        """Block until the next fresh frame is tracked or `timeout_s` passes."""
+        with self._cond:
+            self._cond.wait(timeout_s)
+
+    def captured_after(self, t_s: float, timeout_s: float) -> TrackedState | None:
+        """The first state from a picture taken after monotonic `t_s`, waiting up to `timeout_s`;
+        None if none comes or tracking is lost meanwhile."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                state = self._latest
+                if state is not None and state.t_source > t_s and not state.lost.any():
+                    return state
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self.failure is not None:
+                    return None
+                self._cond.wait(remaining)
+
+    def _run(self) -> None:
+        driver = self._driver
+        assert driver is not None
+        last_t: float | None = None
+        last_number: int | None = None
+        while not self._stop.is_set():
+            try:
+                frame = driver.read(timeout_s=min(0.1, self.timeout_s))
+            except DeviceTimeout:
+                with self._cond:
+                    self._cond.notify_all()  # waiters re-check staleness
+                continue
+            except (Disconnected, RigError) as err:
+                log.error("tracking: %s", err)
+                with self._cond:
+                    self.failure = err
+                    self._cond.notify_all()
+                return
+            t = frame.t_source if frame.t_source is not None else frame.t_capture
+            if frame.repeated or (last_t is not None and t <= last_t):
+                self.lost_frames += 1
+                continue
+            if frame.source_number is not None and last_number is not None:
+                self.lost_frames += max(0, frame.source_number - last_number - 1)
+            last_t, last_number = t, frame.source_number
+            robots = self.tracker.update(frame.image, t)
+            unseen = np.array([r.frames_unseen for r in robots])
+            if (unseen > 0).any():
+                self.lost_frames += 1
+            state = TrackedState(
+                positions_mm=np.array([r.position_mm for r in robots]),
+                lost=unseen >= LOST_AFTER_FRAMES,
+                t_source=t, t_tracked=time.monotonic(), frame=self.frames)
+            with self._cond:
+                self.frames += 1
+                self._latest = state
+                self._cond.notify_all()
+
+
