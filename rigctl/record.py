@@ -151,6 +151,7 @@ class RunRecord:
         self._events: TextIO = open(self.path / "events.jsonl", "a", buffering=1)
         self._stream: TextIO | None = None
         self._parquet: StreamParquet | None = None
+        self._series: list[Series] = []
 
     def write_file(self, name: str, text: str) -> None:
         (self.path / name).write_text(text)
@@ -185,11 +186,24 @@ class RunRecord:
         if self._parquet is not None:
             self._parquet.append(t, sample, move, commanded, measured, period_error_s)
 
+    def open_series(self, name: str, columns: list[str], units: dict[str, str]) -> "Series":
+        """A side series of the run beside the stream (`series/<name>.csv`, line-buffered, with
+        `series/<name>.units.json`): what a sensor measured at its own rate (the Hall board's
+        fields and gradients), in the units given per column."""
+        folder = self.path / "series"
+        folder.mkdir(exist_ok=True)
+        (folder / f"{name}.units.json").write_text(json.dumps(units, indent=1))
+        series = Series(folder / f"{name}.csv", columns)
+        self._series.append(series)
+        return series
+
     def finish(self, summary: dict) -> None:
         self.close()
         self.write_file("summary.json", json.dumps(summary, indent=2, default=_jsonable) + "\n")
 
     def close(self) -> None:
+        for series in self._series:
+            series.close()
         if self._parquet is not None:
             self._parquet.close()
             self._parquet = None
@@ -197,6 +211,41 @@ class RunRecord:
             for f in (self._events, self._stream):
                 if f is not None and not f.closed:
                     f.close()
+
+
+class Series:
+    """One side series: `row(values)` appends a line (thread-safe), flushed as it is written."""
+
+    def __init__(self, path: Path, columns: list[str]) -> None:
+        self.columns = list(columns)
+        self._lock = threading.Lock()
+        self._file: TextIO = open(path, "a", buffering=1)
+        self._file.write(",".join(self.columns) + "\n")
+        self._format = ",".join(["%.9g"] * len(self.columns)) + "\n"
+
+    def row(self, values: Any) -> None:
+        line = self._format % tuple(_floats(values))
+        with self._lock:
+            if not self._file.closed:
+                self._file.write(line)
+
+    def close(self) -> None:
+        with self._lock:
+            self._file.close()
+
+
+def read_series(run_dir: str | Path, name: str) -> dict[str, Any] | None:
+    """A side series (`RunRecord.open_series`) as arrays keyed by column, plus `units`; None if
+    the run has none of that name. A line cut off by a crash is skipped."""
+    path = Path(run_dir) / "series" / f"{name}.csv"
+    if not path.is_file():
+        return None
+    header, rows = _read_journal(path)
+    data = np.asarray(rows, dtype=float).reshape(-1, len(header))
+    out: dict[str, Any] = {c: data[:, j] for j, c in enumerate(header)}
+    units_path = path.with_suffix(".units.json")
+    out["units"] = json.loads(units_path.read_text()) if units_path.is_file() else {}
+    return out
 
 
 def _floats(values: Any) -> list:

@@ -111,7 +111,13 @@ class RigProgram(Protocol):
     paused: bool
     suspended: str | None  # why the run cannot go on by itself now (tracking lost), else None
 
-    def start(self, ctx: RunContext) -> None: ...
+    def start(self, ctx: RunContext) -> None:
+        """Before anything is connected: place the agents (emulated bench), find them with the
+        camera, open the program's sensors. Nothing may be energised here."""
+
+    def connected(self, actuators: Actuators) -> None:
+        """The actuators are open, outputs still off: read where they are (the arms' joints) and
+        refuse (LimitError) what cannot start from there."""
 
     def next(self, k: int, measured: np.ndarray | None) -> Step | None: ...
 
@@ -186,6 +192,7 @@ class Run(RunControl):
                 actuators = self._supplies = self.connect(rig)
                 for name in actuators.names:
                     record.event("connected", device=name)
+                program.connected(actuators)
                 if self._estop.is_set():  # e-stopped while connecting: never switch on
                     raise EStopped()
                 actuators.energise()

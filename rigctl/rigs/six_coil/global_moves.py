@@ -127,6 +127,9 @@ class GlobalMovesProgram:
         if self.supervisor is not None:
             self.supervisor.start(ctx.record)  # the robots are found before anything is energised
 
+    def connected(self, actuators) -> None:
+        pass  # supplies start from 0 A: nothing to read
+
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
         step = self.sequencer.next()
         if step is None:
