@@ -33,11 +33,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
 
 from rigctl.client import Rig, Telemetry
 from rigctl.config import dump_rig, load_rig
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.record import read_events
 
 RATE_HZ = 1000.0
@@ -73,14 +73,14 @@ class Subscriber(threading.Thread):
     def __init__(self, endpoints: dict, stop: threading.Event) -> None:
         super().__init__(daemon=True)
         self.feed = Telemetry(endpoints["telemetry"], endpoints["events"],
-                              ["currents", "state", "fault"])
+                              ["actuators", "state", "fault"])
         self.stop_event = stop
         self.arrivals: list[tuple[float, int]] = []  # (time received, cycles in the message)
 
     def run(self) -> None:
         while not self.stop_event.is_set():
             msg = self.feed.receive(timeout_s=0.2)
-            if msg is not None and msg.topic == "currents":
+            if msg is not None and msg.topic == "actuators":
                 self.arrivals.append((time.monotonic(), len(msg.samples)))
         self.feed.close()
 
@@ -92,7 +92,7 @@ def delivered_rate(subscribers: list[Subscriber], window: tuple[float, float],
     rates = [sum(n for t, n in s.arrivals if window[0] <= t <= window[1]) / span
              for s in subscribers]
     lost = {topic: sum(s.feed.lost.get(topic, 0) for s in subscribers) for topic in
-            ("currents", "state", "fault")}
+            ("actuators", "state", "fault")}
     return {"subscribers": len(subscribers),
             "stream_cycles_per_s": round(stream["cycles_per_s"], 1),
             "stream_late_share": round(stream["late_share"], 4),

@@ -8,7 +8,7 @@ repeated id from its cache of recent replies, so a retried `execute` cannot star
     with Rig("tcp://127.0.0.1:7810") as rig:
         plan_id = rig.load(json.load(open("plan.json")))
         rig.execute(plan_id)
-        with rig.telemetry(["state", "currents"]) as feed:
+        with rig.telemetry(["state", "actuators"]) as feed:
             for msg in feed:
                 ...
 

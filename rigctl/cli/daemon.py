@@ -25,6 +25,7 @@ from rigctl.errors import (
     EXIT_FAULT,
     EXIT_NOT_REACHED,
     EXIT_OK,
+    ConfigError,
     PlanError,
 )
 
@@ -60,13 +61,16 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
     sys.setswitchinterval(1e-4)
     with ExitStack() as stack:
         if args.rig is not None:
+            if args.bench is not None:
+                raise ConfigError("--bench starts an emulated bench; with --rig the rig file "
+                                  "says which rig it is: give one of them")
             rig = load_rig(args.rig)
         else:
+            kind = args.bench or "six-coil"
             tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="rigctl-daemon-bench-"))
-            print("no --rig given: starting the emulated six-coil bench on loopback "
+            print(f"no --rig given: starting the emulated {kind} bench on loopback "
                   "(nothing real is energised)", file=sys.stderr)
-            rig = load_rig(stack.enter_context(EmulatedBenchProcess("six-coil",
-                                                                    Path(tmp) / "bench.toml")))
+            rig = load_rig(stack.enter_context(EmulatedBenchProcess(kind, Path(tmp) / "bench.toml")))
         settings = _rig_daemon_settings(rig) or DaemonSettings()
         daemon = Daemon(
             rig,
@@ -128,7 +132,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
 def _cmd_estop(args: argparse.Namespace) -> int:
     with _client(args.connect, args.server_key, args.client_key, timeout_s=1.0) as rig:
         reply = rig.estop()
-    print(f"EMERGENCY STOP: state {reply['state']}; supplies zeroed {reply['zeroing']}")
+    print(f"EMERGENCY STOP: state {reply['state']}; {reply['zeroing']}")
     return EXIT_OK
 
 
@@ -287,7 +291,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "docs/daemon-protocol.md) and telemetry. Without --rig it starts the emulated six-coil "
         "bench. Binds loopback unless told otherwise; anything else needs CURVE keys. Prints "
         "`READY command=... telemetry=... events=...` when serving. SIGTERM ramps down and exits 0.")
-    p.add_argument("--rig", help="rig file (TOML); default: the emulated six-coil bench")
+    p.add_argument("--rig", help="rig file (TOML) of any rig kind; default: an emulated bench")
+    p.add_argument("--bench", choices=["six-coil", "coil-board", "depm"],
+                   help="without --rig: which emulated bench to start (default six-coil)")
     p.add_argument("--command", help=f"command endpoint (default {DEFAULT_COMMAND_ENDPOINT})")
     p.add_argument("--telemetry", help=f"telemetry (data) endpoint (default {DEFAULT_TELEMETRY_ENDPOINT})")
     p.add_argument("--events", help=f"telemetry events endpoint (default {DEFAULT_EVENTS_ENDPOINT})")

@@ -97,7 +97,7 @@ class DaemonState(str, Enum):
 class Topic(str, Enum):
     STATE = "state"
     AGENTS = "agents"
-    CURRENTS = "currents"
+    ACTUATORS = "actuators"
     FIELD = "field"
     STREAM = "stream"
     FAULT = "fault"
@@ -210,16 +210,19 @@ class StateMsg(_Telemetry):
     reason: str | None = None
 
 
-class CurrentsMsg(_Telemetry):
-    """Every stream cycle since the previous message (k cycles, at the stream rate)."""
+class ActuatorsMsg(_Telemetry):
+    """Every stream cycle since the previous message (k cycles, at the stream rate): each of the
+    rig's actuator channels commanded and measured in its own unit (A for the supplies, SyRen
+    drive units for the coil board, rad for the arms' joints)."""
 
-    topic: Literal["currents"] = "currents"
-    coils: list[str]
+    topic: Literal["actuators"] = "actuators"
+    channels: list[str] = Field(description="channel names, in column order")
+    units: list[str] = Field(description="each channel's unit")
     times: list[float] = Field(description="(k,) s since the daemon started, per cycle")
     samples: list[int] = Field(description="(k,) program sample index per cycle")
     moves: list[int] = Field(description="(k,) plan move per cycle, -1 during ramps and holds")
-    commanded_A: list[list[float]] = Field(description="(k, n_coils) setpoints")
-    measured_A: list[list[float]] = Field(description="(k, n_coils) measured currents")
+    commanded: list[list[float]] = Field(description="(k, n_channels) setpoints")
+    measured: list[list[float]] = Field(description="(k, n_channels) what the devices reported")
 
 
 class FieldMsg(_Telemetry):
@@ -262,7 +265,7 @@ class LogMsg(_Telemetry):
 
 
 TelemetryMessage = Annotated[
-    StateMsg | CurrentsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg,
+    StateMsg | ActuatorsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg,
     Field(discriminator="topic"),
 ]
 
@@ -271,7 +274,7 @@ class _TelemetryEnvelope(_Message):
     message: TelemetryMessage
 
 
-def parse_telemetry(payload: bytes) -> StateMsg | CurrentsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg:
+def parse_telemetry(payload: bytes) -> StateMsg | ActuatorsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg:
     """A telemetry message from its JSON frame (pydantic ValidationError if it is not one)."""
     return _TelemetryEnvelope.model_validate_json(b'{"message":' + payload + b"}").message
 

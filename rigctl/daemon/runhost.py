@@ -75,25 +75,17 @@ class HostGone(RigError):
 
 TERMINAL_STATES = {"done", "aborted", "faulted", "estopped"}  # RunState values that end a stream
 
-DAEMON_PLANS = {("global-moves", "six-coil"), ("pair-formation", "six-coil")}
-"""(plan kind, rig kind) the daemon runs; `rigctl execute` runs the others."""
-
 
 def build_run(plan: Any, rig: RigConfig, *, runs_dir: str | Path, on_cycle: Any = None,
               on_state: Any = None) -> Any:
-    """The runner for one of `DAEMON_PLANS`, prepared (a bad plan is refused here, before any
-    I/O), closed loop whenever the rig has a camera, as `rigctl execute` does. Used by the daemon
-    to check a plan at load and by the stream process to run it."""
-    closed_loop = rig.camera is not None
-    if plan.kind == "pair-formation":
-        from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings
+    """The engine's run of `plan` on `rig`, prepared (a plan the rig cannot run is refused here,
+    before any I/O), closed loop whenever the rig has a camera, as `rigctl execute` does. Used by
+    the daemon to check a plan at load and by the stream process to run it."""
+    from rigctl.rigs import rig_kind
 
-        return PairRun(plan, rig, runs_dir=runs_dir, on_cycle=on_cycle, on_state=on_state,
-                       settings=PairRunSettings(closed_loop=closed_loop))
-    from rigctl.rigs.six_coil.global_moves import Run
-
-    return Run(plan, rig, runs_dir=runs_dir, progress_out=None, closed_loop=closed_loop,
-               on_cycle=on_cycle, on_state=on_state)
+    builder = rig_kind(rig.rig.kind).builder(plan.kind)
+    return builder(plan, rig, runs_dir=runs_dir, progress_out=None, on_cycle=on_cycle,
+                   on_state=on_state)
 
 
 def describe_run(run: Any) -> dict:
@@ -424,13 +416,15 @@ class RemoteRun:
 
     def _host_lost(self, exitcode: int | None) -> None:
         """The process died with this run on it: make the supplies safe, say so, end the run."""
-        zeroed = zero_supplies_directly(self.rig)
+        from rigctl.rigs import rig_kind
+
+        zeroed = rig_kind(self.rig.rig.kind).make_safe(self.rig)
         unreached = [name for name, err in zeroed.items() if err]
         what = ("stopped answering while streaming and was killed" if self.hung
                 else f"died (exit code {exitcode})")
-        reason = (f"the stream process {what} during the run; every supply "
+        reason = (f"the stream process {what} during the run; every device "
                   + (f"but {', '.join(unreached)} " if unreached else "")
-                  + "was told 0 A and output off over a new connection")
+                  + "was made safe over a new connection")
         log.error("%s", reason)
         if self.record is not None:
             line = {"t": round(time.monotonic() - self.record.t0, 6), "event": "fault",

@@ -61,7 +61,6 @@ from rigctl.daemon.messages import (
     ok_reply,
 )
 from rigctl.daemon.runhost import (
-    DAEMON_PLANS,
     RemoteRun,
     RunHost,
     build_run,
@@ -73,6 +72,7 @@ from rigctl.daemon.runhost import (
 from rigctl.daemon.sdnotify import SystemdNotifier
 from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
 from rigctl.errors import ConfigError, LimitError, PlanError, RigError
+from rigctl.rigs import rig_kind
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +151,7 @@ class RunFactory(Protocol):
 
 
 class PlanRuns:
-    """The real thing: plans from `rigctl.plans.schema` (the kinds in `DAEMON_PLANS`), prepared
+    """The real thing: plans from `rigctl.plans.schema` (any kind the rig's `RigKind` runs), prepared
     here at load (a bad plan is refused before anything else) and streamed in the stream process
     (`rigctl.daemon.runhost`), which `start` spawns and `close` stops."""
 
@@ -171,18 +171,16 @@ class PlanRuns:
     def parse_plan(self, data: dict) -> Any:
         from rigctl.plans.schema import parse_plan
 
-        plan = parse_plan(data, "plan")
-        if (plan.kind, plan.rig) not in DAEMON_PLANS:
-            runs = ", ".join(f"{kind} plans on a {rig} rig" for kind, rig in sorted(DAEMON_PLANS))
-            raise PlanError(f"plan: the daemon runs {runs}; this is a {plan.kind} plan for a "
-                            f"{plan.rig} rig: run it with `rigctl execute PLAN --rig RIG.toml` "
-                            "(with the daemon stopped: it holds the devices)")
-        return plan
+        return parse_plan(data, "plan")
 
     def prepare(self, plan, rig, *, runs_dir, on_cycles, on_state) -> RunLike:
         """The first time: the run built here refuses a bad plan before anything else happens and
         tells the plan's size. The stream process builds its own from the same prepared plan and
         rig (deterministic, so the same program) and streams that."""
+        if plan.rig != rig.rig.kind:
+            raise PlanError(f"plan: rig: the plan is for a {plan.rig} rig; this daemon drives a "
+                            f"{rig.rig.kind} rig")
+        rig_kind(rig.rig.kind).builder(plan.kind)  # refuses a plan kind this rig does not run
         with self._lock:
             known = self._checked.get(id(plan))
         if known is None or known[0] is not plan:
@@ -348,8 +346,14 @@ class Daemon:
         self._router: zmq.Socket | None = None
         self._log_handler: _TelemetryLogHandler | None = None
         self._agents_stop = threading.Event()
-        self.devices = {c.name: {"name": c.name, "url": c.url, "health": "unknown", "detail": ""}
-                        for c in rig.coils}
+        self.kind = rig_kind(rig.rig.kind)
+        actuators = self.kind.channels(rig)
+        if not actuators:
+            raise ConfigError(f"the rig file describes a {rig.rig.kind} rig with no actuators "
+                              "(a [[coils]], [board] or [depm] table): there is nothing to drive")
+        self.channels = actuators
+        self.devices = {d.name: {"name": d.name, "url": d.url, "kind": d.kind, "health": "unknown",
+                                 "detail": ""} for d in self.kind.devices(rig)}
         self.manual_field_mT: list[float] | None = None
         self.last_run: dict | None = None
         self._actuation = self._actuation_matrix()
@@ -387,7 +391,7 @@ class Daemon:
         try:
             router.bind(command)
             self.publisher = TelemetryPublisher(
-                self.context, telemetry, events, coil_names=[c.name for c in self.rig.coils],
+                self.context, telemetry, events, channels=self.channels,
                 actuation_matrix_T_per_A=self._actuation, currents_hz=self.currents_hz,
                 secure=secure, clock_origin=self.t0)
         except zmq.ZMQError as err:
@@ -748,7 +752,7 @@ class Daemon:
             active.thread = threading.Thread(target=self._run_thread, args=(active,),
                                              name="daemon-run")
             active.thread.start()
-        if self.rig.emulated:
+        if self.rig.emulated and getattr(loaded.plan, "agents", None) is not None:
             threading.Thread(target=self._sample_agents, args=(active,), name="daemon-agents",
                              daemon=True).start()
         return {"plan_id": loaded.plan_id, "state": self.state.value, **loaded.info}
@@ -787,15 +791,15 @@ class Daemon:
                 self._device(name, "fault", "e-stop could not be sent: link down (its own "
                              "watchdog or interlock must stop it)")
         if active is None:
-            threading.Thread(target=self._zero_supplies_directly, name="daemon-estop").start()
+            threading.Thread(target=self._make_safe_directly, name="daemon-estop").start()
         log.warning("EMERGENCY STOP")
         if active is None:
             zeroing = "directly (no run active)"
         elif unreached:
-            zeroing = (f"sent to every supply but {', '.join(unreached)} (link down: check that "
+            zeroing = (f"sent to every device but {', '.join(unreached)} (link down: check that "
                        "supply by hand)")
         else:
-            zeroing = "done: every supply told 0 A and output off"
+            zeroing = "done: every device told to stop (supplies 0 A and off, coils off, arms held)"
         return {"state": self.state.value, "zeroing": zeroing, "unreached": unreached}
 
     def _cmd_reset(self, _: Any) -> dict:
@@ -970,13 +974,15 @@ class Daemon:
         except (RigError, OSError, ValueError) as err:
             log.info("agent sampling stopped: %s", err)
 
-    def _zero_supplies_directly(self) -> None:
-        """E-stop with no run active: open each supply, zero it, switch it off; best effort."""
-        from rigctl.rigs.six_coil.supplies import zero_supplies_directly
-
-        for name, err in zero_supplies_directly(self.rig).items():
+    def _make_safe_directly(self) -> None:
+        """E-stop with no run active: open every actuator anew and make it safe (the rig kind's
+        `make_safe`: supplies to 0 A and off, the board's coils stopped, the arms held); best
+        effort."""
+        for name, err in self.kind.make_safe(self.rig).items():
+            if name not in self.devices:
+                continue
             if err is None:
-                self._device(name, "off", "e-stop: told 0 A and output off")
+                self._device(name, "off", "e-stop: made safe directly")
             else:
                 self._device(name, "fault", f"e-stop could not reach it: {err}")
 

@@ -4,7 +4,7 @@ The stream must never wait on a subscriber, nor on the publisher. Its cycles arr
 (`CycleBatch`, about every 10 ms from the stream process), and `offer_cycles` appends each to a
 bounded in-memory queue (a deque append: no lock, no wake-up; when the queue is full the oldest
 batch goes and its cycles are counted as dropped) and returns. The publisher thread wakes every
-`TELEMETRY_BATCH_S`, takes every queued cycle, and sends them as one `currents` message (every
+`TELEMETRY_BATCH_S`, takes every queued cycle, and sends them as one `actuators` message (every
 cycle, at the stream rate, unless `currents_hz` decimates), the latest `field` (from the
 actuation matrix) and, at `stream_hz`, period-error statistics, a few short bursts of Python a
 second. Sends use `zmq.NOBLOCK`; a PUB socket never blocks anyway, it drops for a subscriber
@@ -13,7 +13,7 @@ whose queue (`DATA_SEND_HWM` messages) is full.
 `state`, `fault` and `log` are never dropped on our side: they go into their own queue, which
 wakes the publisher at once and is emptied before any sample, and out through a second PUB
 socket (the events socket) whose per-subscriber queues hold `EVENTS_SEND_HWM` messages, so a
-subscriber drowning in currents still has room for every state change. That queue is bounded too
+subscriber drowning in samples still has room for every state change. That queue is bounded too
 (memory never grows without bound); reaching it would mean a subscriber that has read nothing
 for hours, and the sequence numbers let it see the gap and ask `status` for the present.
 """
@@ -31,12 +31,13 @@ import numpy as np
 import zmq
 from pydantic import BaseModel
 
+from rigctl.channels import Channel
 from rigctl.daemon.messages import (
     DATA_SEND_HWM,
     EVENTS_SEND_HWM,
     TELEMETRY_BATCH_S,
+    ActuatorsMsg,
     AgentsMsg,
-    CurrentsMsg,
     FaultMsg,
     FieldMsg,
     LogMsg,
@@ -51,14 +52,14 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class CycleBatch:
     """Stream cycles, a row each: `t` (n,) s on the publisher's clock, `sample` and `move` (n,),
-    `commanded_A` and `measured_A` (n, n_coils), `period_error_s` (n,), NaN where unknown. How a
+    `commanded` and `measured` (n, n_channels), `period_error_s` (n,), NaN where unknown. How a
     run in another process hands its cycles over (`offer_cycles`)."""
 
     t: np.ndarray
     sample: np.ndarray
     move: np.ndarray
-    commanded_A: np.ndarray
-    measured_A: np.ndarray
+    commanded: np.ndarray
+    measured: np.ndarray
     period_error_s: np.ndarray
 
     def __len__(self) -> int:
@@ -69,7 +70,7 @@ class CycleBatch:
         if len(batches) == 1:
             return batches[0]
         return CycleBatch(*(np.concatenate([getattr(b, f) for b in batches])
-                            for f in ("t", "sample", "move", "commanded_A", "measured_A",
+                            for f in ("t", "sample", "move", "commanded", "measured",
                                       "period_error_s")))
 
 
@@ -93,7 +94,7 @@ class TelemetryPublisher:
         data_endpoint: str,
         events_endpoint: str,
         *,
-        coil_names: list[str],
+        channels: list[Channel],
         actuation_matrix_T_per_A: np.ndarray | None = None,
         currents_hz: float = 0.0,
         field_hz: float = 100.0,
@@ -104,7 +105,8 @@ class TelemetryPublisher:
         clock_origin: float | None = None,
     ) -> None:
         self.context = context
-        self.coil_names = list(coil_names)
+        self.channel_names = [c.name for c in channels]
+        self.channel_units = [c.unit for c in channels]
         self.actuation = actuation_matrix_T_per_A
         self.currents_period = 1.0 / currents_hz if currents_hz > 0 else 0.0
         self.field_period = 1.0 / field_hz if field_hz > 0 else 0.0
@@ -125,7 +127,7 @@ class TelemetryPublisher:
         self._seq: dict[str, int] = {t.value: 0 for t in Topic}
         self._seq_lock = threading.Lock()
         self.stats = PublisherStats(sent={t.value: 0 for t in Topic})
-        self._last_sent = {"currents": -1e9, "field": -1e9, "stream": -1e9}
+        self._last_sent = {"actuators": -1e9, "field": -1e9, "stream": -1e9}
         self._errors: deque[float] = deque(maxlen=1000)
         self._late = 0
         self._cycles = 0
@@ -239,18 +241,19 @@ class TelemetryPublisher:
         if self.currents_period > 0:
             chosen = []
             for i, t in enumerate(batch.t.tolist()):
-                if t - self._last_sent["currents"] >= self.currents_period:
-                    self._last_sent["currents"] = t
+                if t - self._last_sent["actuators"] >= self.currents_period:
+                    self._last_sent["actuators"] = t
                     chosen.append(i)
             kept = np.array(chosen, dtype=int)
         if kept.size:
-            self._send("currents", CurrentsMsg.model_construct(
-                seq=self._next_seq(Topic.CURRENTS), t=float(batch.t[kept[-1]]), topic="currents",
-                coils=self.coil_names, times=batch.t[kept].round(6).tolist(),
+            self._send("actuators", ActuatorsMsg.model_construct(
+                seq=self._next_seq(Topic.ACTUATORS), t=float(batch.t[kept[-1]]),
+                topic="actuators", channels=self.channel_names, units=self.channel_units,
+                times=batch.t[kept].round(6).tolist(),
                 samples=batch.sample[kept].tolist(), moves=batch.move[kept].tolist(),
-                commanded_A=batch.commanded_A[kept].round(5).tolist(),
-                measured_A=batch.measured_A[kept].round(5).tolist()))
-        t_last, commanded, measured = float(batch.t[-1]), batch.commanded_A[-1], batch.measured_A[-1]
+                commanded=batch.commanded[kept].round(5).tolist(),
+                measured=batch.measured[kept].round(5).tolist()))
+        t_last, commanded, measured = float(batch.t[-1]), batch.commanded[-1], batch.measured[-1]
         if self.actuation is not None and t_last - self._last_sent["field"] >= self.field_period:
             self._last_sent["field"] = t_last
             self._send("field", FieldMsg(

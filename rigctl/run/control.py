@@ -17,7 +17,7 @@ from rigctl.record import RunRecord
 from rigctl.stream import StreamLoop
 
 if TYPE_CHECKING:
-    from rigctl.run.engine import Actuators
+    from rigctl.run.actuators import Actuators
 
 log = logging.getLogger(__name__)
 

@@ -29,36 +29,15 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
-from rigctl.channels import Channel
 from rigctl.config import RigConfig, dump_rig
 from rigctl.errors import RigError
 from rigctl.record import RunRecord
+from rigctl.run.actuators import Actuators
 from rigctl.run.control import EStopped, RunControl, RunState
 from rigctl.run.summary import RunSummary
 from rigctl.stream import StreamLoop, StreamStats
 
 log = logging.getLogger(__name__)
-
-
-class Actuators(Protocol):
-    """One rig's actuator group. `cycle` writes every setpoint, then reads every device."""
-
-    names: list[str]  # device names, as faults and the record name them
-    channels: list[Channel]
-
-    def energise(self) -> None: ...
-
-    def cycle(self, setpoints: np.ndarray) -> np.ndarray: ...
-
-    def emergency_zero(self) -> list[str]:
-        """Any thread, latched, never raises: the devices the e-stop could not be sent to."""
-
-    def zero_now(self) -> None:
-        """On the stream thread after an e-stop: zero again, best effort."""
-
-    def stop(self, ramp_s: float) -> list[str]:
-        """Ramp down, make safe, close; never raises: the devices whose safe state is not
-        confirmed."""
 
 
 @dataclass

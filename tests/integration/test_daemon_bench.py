@@ -87,8 +87,9 @@ def test_a_plan_through_the_client_reaches_its_goal_with_telemetry(rig, daemon):
                 states.append(msg.state.value)
                 if msg.state.value == "idle" and "running" in states:
                     break
-    assert {"state", "currents", "field", "stream", "agents"} <= set(seen)
-    assert seen["currents"].coils == ["x+", "x-", "y+", "y-", "z+", "z-"]
+    assert {"state", "actuators", "field", "stream", "agents"} <= set(seen)
+    assert seen["actuators"].channels == ["x+", "x-", "y+", "y-", "z+", "z-"]
+    assert seen["actuators"].units == ["A"] * 6
     assert seen["agents"].source == "emulator ground truth"
     status = wait_run_over(rig)
     assert status["state"] == "idle"
@@ -219,7 +220,7 @@ def test_the_stream_process_dying_mid_run_leaves_the_supplies_off_and_the_daemon
     run_dir = daemon.runs_dir / newest["id"]
     assert status["last_fault"]["run"] == newest["id"]
     died = [e for e in read_events(run_dir) if e.get("kind") == "StreamProcessDied"]
-    assert died and "0 A and output off" in died[0]["reason"]
+    assert died and "every device was made safe over a new connection" in died[0]["reason"]
     # a new stream process runs the next plan
     assert rig.reset()["state"] == "idle"
     rig.execute(plan_id)
@@ -269,13 +270,13 @@ def test_an_estop_the_stream_process_cannot_answer_is_carried_out_by_the_daemon(
     assert rig.reset()["state"] == "idle"
 
 
-def test_a_plan_the_daemon_cannot_run_is_refused_at_load_naming_its_kind(rig):
-    for name, kind, rig_kind in [("depm-plan.json", "field-sequence", "depm"),
-                                 ("coilboard-disk.json", "global-moves", "coil-board")]:
+def test_a_plan_for_another_rig_is_refused_at_load_naming_both_rigs(rig):
+    for name, rig_kind in [("depm-plan.json", "depm"), ("coilboard-disk.json", "coil-board")]:
         with pytest.raises(CommandRefused) as refused:
             rig.load(plan(name))
         assert refused.value.code == "plan_invalid"
-        assert f"{kind} plan for a {rig_kind} rig" in str(refused.value)
+        assert f"the plan is for a {rig_kind} rig; this daemon drives a six-coil rig" \
+            in str(refused.value)
     assert rig.status()["state"] == "idle"
 
 

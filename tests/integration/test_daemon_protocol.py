@@ -361,18 +361,18 @@ def test_telemetry_currents_and_states_arrive_with_sequence_numbers(daemon, rig_
             if msg is None:
                 continue
             topics[msg.topic] = topics.get(msg.topic, 0) + (
-                len(msg.samples) if msg.topic == "currents" else 1)
+                len(msg.samples) if msg.topic == "actuators" else 1)
             if msg.topic == "state":
                 states.append(msg.state.value)
             # state goes out at once, the last cycles with the next batch (20 ms later)
             if states and states[-1] == "idle" and "running" in states \
-                    and topics.get("currents", 0) >= 499:
+                    and topics.get("actuators", 0) >= 499:
                 break
         assert "running" in states and states[-1] == "idle"
         # the stand-in streams 499 cycles (samples 1..499); currents carry every one of them
-        assert topics.get("currents", 0) == 499
+        assert topics.get("actuators", 0) == 499
         assert topics.get("field", 0) > 10
-        assert feed.lost.get("state", 0) == 0 and feed.lost.get("currents", 0) == 0
+        assert feed.lost.get("state", 0) == 0 and feed.lost.get("actuators", 0) == 0
 
 
 def test_a_retried_request_is_answered_once(daemon):

@@ -7,6 +7,7 @@ import time
 import numpy as np
 import zmq
 
+from rigctl.channels import Channel
 from rigctl.client import Telemetry
 from rigctl.daemon.messages import DaemonState, Topic
 from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
@@ -15,7 +16,7 @@ from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
 def test_a_stalled_subscriber_loses_currents_but_no_state_and_never_slows_the_stream():
     context = zmq.Context()
     publisher = TelemetryPublisher(context, "tcp://127.0.0.1:0", "tcp://127.0.0.1:0",
-                                   coil_names=[f"c{i}" for i in range(6)],
+                                   channels=[Channel(f"c{i}", "A") for i in range(6)],
                                    actuation_matrix_T_per_A=np.ones((3, 6)) * 1e-4,
                                    queue_batches=100, batch_s=0.005)
     publisher.start()
@@ -63,7 +64,7 @@ def test_a_stalled_subscriber_loses_currents_but_no_state_and_never_slows_the_st
         while (msg := stalled.receive(timeout_s=1.0)) is not None:
             if msg.topic == "state" and msg.seq >= first_state_seq:
                 stalled_states.append(msg.seq)
-            elif msg.topic == "currents":
+            elif msg.topic == "actuators":
                 currents_cycles += len(msg.samples)
         assert stalled_states == states
         assert currents_cycles < 100_000

@@ -1,1 +1,56 @@
 """The Arduino coil board (seed 004): two particles placed by wall contacts, closed loop."""
+
+from __future__ import annotations
+
+from rigctl.channels import Channel
+from rigctl.config import RigConfig
+from rigctl.rigs.base import Device, RigKind, camera_devices
+
+
+def _global_moves(plan, rig: RigConfig, **options):
+    from rigctl.rigs.coil_board.run import CoilBoardRun
+
+    options.pop("closed_loop", None)  # always closed loop: a move ends when the camera sees it
+    return CoilBoardRun(plan, rig, **options)
+
+
+def _channels(rig: RigConfig) -> list[Channel]:
+    board = rig.board
+    if board is None:
+        return []
+    return [Channel(name, "drive", -board.max_command, board.max_command, "board")
+            for name in board.coil_names]
+
+
+def _devices(rig: RigConfig) -> list[Device]:
+    board = [Device("coil board", rig.board.url, "board")] if rig.board is not None else []
+    return board + camera_devices(rig)
+
+
+def _make_safe(rig: RigConfig) -> dict[str, str | None]:
+    """Every coil off (STOP, acknowledged with all outputs zero); the board's own 200 ms link
+    watchdog zeroes them anyway once nobody talks to it."""
+    from rigctl.drivers.coilboard import CoilBoard
+    from rigctl.errors import RigError
+
+    if rig.board is None:
+        return {}
+    try:
+        board = CoilBoard.from_settings(rig.board)
+        try:
+            ack = board.stop()
+        finally:
+            board.close()
+        outputs = list(getattr(ack, "outputs", []) or [])
+        if any(outputs):
+            return {"coil board": f"STOP acknowledged with outputs {outputs}"}
+        return {"coil board": None}
+    except RigError as err:
+        return {"coil board": str(err)}
+
+
+KIND = RigKind(
+    name="coil-board",
+    description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",
+    plans={"global-moves": _global_moves},
+    channels=_channels, devices=_devices, make_safe=_make_safe)

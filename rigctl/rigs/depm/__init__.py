@@ -1,1 +1,63 @@
 """The dual-EPM rig (seed 003): two KUKA arms carrying permanent magnets and a Hall board."""
+
+from __future__ import annotations
+
+import math
+
+from rigctl.channels import Channel
+from rigctl.config import RigConfig
+from rigctl.rigs.base import Device, RigKind
+
+
+def _field_sequence(plan, rig: RigConfig, **options):
+    from rigctl.rigs.depm.run import FieldSequenceRun
+
+    options.pop("closed_loop", None)  # the Hall board always measures
+    return FieldSequenceRun(plan, rig, **options)
+
+
+def _channels(rig: RigConfig) -> list[Channel]:
+    from rigctl.kinematics import LBR_IIWA_14_R820
+
+    if rig.depm is None:
+        return []
+    model = LBR_IIWA_14_R820
+    return [Channel(f"{arm}_q{j + 1}", "rad", float(model.lower_rad[j]), float(model.upper_rad[j]), arm)
+            for arm in rig.depm.arm_names for j in range(len(model.lower_rad))]
+
+
+def _devices(rig: RigConfig) -> list[Device]:
+    if rig.depm is None:
+        return []
+    arms = [Device(name, url, "arm") for name, url in zip(rig.depm.arm_names, rig.depm.arm_urls)]
+    return arms + [Device("hall board", rig.depm.hall_url, "hall board")]
+
+
+def _make_safe(rig: RigConfig) -> dict[str, str | None]:
+    """Each arm reached anew: out of direct servo, holding where it is (a KUKA arm holds its
+    pose with its brakes and drives when no motion is commanded; the Sunrise servo's own timeout
+    stops it when targets stop coming)."""
+    from rigctl.drivers.kuka_sunrise import KukaArm
+    from rigctl.errors import RigError
+
+    result: dict[str, str | None] = {}
+    if rig.depm is None:
+        return result
+    for name, url in zip(rig.depm.arm_names, rig.depm.arm_urls):
+        try:
+            arm = KukaArm.open(url, name=name, timeout_s=rig.depm.reply_timeout_s)
+            try:
+                q = arm.joint_positions()
+                result[name] = None if all(math.isfinite(v) for v in q) else "no joint reading"
+            finally:
+                arm.close()
+        except RigError as err:
+            result[name] = str(err)
+    return result
+
+
+KIND = RigKind(
+    name="depm",
+    description="two KUKA LBR iiwa arms carrying permanent magnets, a three-sensor Hall board",
+    plans={"field-sequence": _field_sequence},
+    channels=_channels, devices=_devices, make_safe=_make_safe)

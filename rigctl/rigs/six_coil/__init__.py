@@ -1,2 +1,43 @@
 """The six-coil manipulator (seeds 000 and 002): realize, allocate, the Kepco supplies, global
 moves with their camera supervisor, and pair formation with pure pursuit."""
+
+from __future__ import annotations
+
+from rigctl.channels import Channel
+from rigctl.config import RigConfig
+from rigctl.rigs.base import Device, RigKind, camera_devices
+
+
+def _global_moves(plan, rig: RigConfig, **options):
+    from rigctl.rigs.six_coil.global_moves import Run
+
+    options.setdefault("closed_loop", rig.camera is not None)
+    return Run(plan, rig, **options)
+
+
+def _pair_formation(plan, rig: RigConfig, **options):
+    from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings
+
+    closed = options.pop("closed_loop", rig.camera is not None)
+    return PairRun(plan, rig, settings=PairRunSettings(closed_loop=closed), **options)
+
+
+def _channels(rig: RigConfig) -> list[Channel]:
+    return [Channel(c.name, "A", -c.current_limit_A, c.current_limit_A, "supplies") for c in rig.coils]
+
+
+def _devices(rig: RigConfig) -> list[Device]:
+    return [Device(c.name, c.url, "supply") for c in rig.coils] + camera_devices(rig)
+
+
+def _make_safe(rig: RigConfig) -> dict[str, str | None]:
+    from rigctl.rigs.six_coil.supplies import zero_supplies_directly
+
+    return zero_supplies_directly(rig)
+
+
+KIND = RigKind(
+    name="six-coil",
+    description="six air-core coils fed by Kepco BOP supplies, overhead camera",
+    plans={"global-moves": _global_moves, "pair-formation": _pair_formation},
+    channels=_channels, devices=_devices, make_safe=_make_safe)

@@ -28,9 +28,9 @@ from rigctl.rigs.six_coil.sequencer import Sequencer
 from rigctl.rigs.six_coil.supervisor import Supervisor, SupervisorSettings
 from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.run.control import RunState
+from rigctl.run.emulated import portable_workspace, truth_of
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
-from rigctl.run.emulated import portable_workspace, truth_of
 from rigctl.run.summary import AgentResult, RunSummary
 
 log = logging.getLogger(__name__)

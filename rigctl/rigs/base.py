@@ -1,0 +1,56 @@
+"""What a rig kind is to the rest of rigctl: one registry entry instead of a switch per place.
+
+A `RigKind` names the plan kinds it runs (each a builder of the one engine `Run`), the channels
+its actuators stream, its devices (for `status` and the direct make-safe), and how to make every
+device safe with no run to ask (the e-stop with nothing active, a stream process that died). The
+builders import their rig's modules when called, so `rigctl --help` does not load every rig.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from rigctl.channels import Channel
+from rigctl.config import RigConfig
+
+RunBuilder = Callable[..., Any]
+"""build(plan, rig, *, runs_dir, progress_out=None, on_cycle=None, on_state=None, **options)
+-> rigctl.run.engine.Run, prepared: a plan the rig cannot run is refused here, with no I/O."""
+
+
+@dataclass(frozen=True)
+class Device:
+    """One device of a rig as `status` lists it: its name, where it is, what it is."""
+
+    name: str
+    url: str
+    kind: str  # "supply", "board", "arm", "hall board", "camera"
+
+
+@dataclass(frozen=True)
+class RigKind:
+    name: str
+    description: str
+    plans: dict[str, RunBuilder]  # plan kind -> builder
+    channels: Callable[[RigConfig], list[Channel]]
+    devices: Callable[[RigConfig], list[Device]]
+    make_safe: Callable[[RigConfig], dict[str, str | None]]
+    """Open every actuator anew and make it safe; never raises: device name -> None when done,
+    else why it could not be reached."""
+
+    def builder(self, plan_kind: str) -> RunBuilder:
+        from rigctl.errors import PlanError
+
+        try:
+            return self.plans[plan_kind]
+        except KeyError:
+            runs = ", ".join(sorted(self.plans))
+            raise PlanError(f"plan: a {self.name} rig runs {runs} plans, not {plan_kind}") from None
+
+
+def camera_devices(rig: RigConfig) -> list[Device]:
+    if rig.camera is None:
+        return []
+    return [Device("camera", str(rig.camera.url), "camera")]
