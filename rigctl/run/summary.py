@@ -97,7 +97,8 @@ def summary_from_dict(data: dict) -> RunSummary:
 def format_summary(summary: RunSummary) -> str:
     """The summary as a person reads it: where the record is, timing, each agent, the rig's own
     figures, faults, whether every device is safe, the verdict."""
-    lines = [f"run record: {summary.run}", f"duration: {summary.duration_s:.1f} s"]
+    lines = [f"run record: {summary.run}", f"duration: {summary.duration_s:.1f} s"
+             + (f"; ended {summary.state}" if summary.state else "")]
     if summary.stream:
         s = summary.stream
         e = s["period_error_us"]

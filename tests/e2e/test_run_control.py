@@ -1,0 +1,241 @@
+"""One run-control suite for the three rigs, on their emulated benches (each in its own process):
+pause at the end of a step and pause now, resume, abort, e-stop, a device fault mid-run, and lost
+sensing (the camera frozen; the Hall board stalled) -> suspended -> running again. Once through
+the daemon (`rigctl daemon`, the `Rig` client) and once through `rigctl execute` (SIGINT: an abort
+with one line, exit 3, a finished record). The coil board runs through the daemon on both its
+Python firmware emulator and the real firmware in simavr.
+
+Physical safety is read from each emulator's ground truth, not from rigctl: supply currents under
+50 mA, the SyRen outputs the board's wire carries at zero, the arms' joint speeds at rest.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from rigctl.client import Rig
+from rigctl.config import load_rig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
+from rigctl.record import read_events
+from rigctl.testing import wait_for
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLES = ROOT / "plans" / "examples"
+
+
+def six_coil_safe(truth: dict, but: str | None = None) -> bool:
+    return all(abs(a) < 0.05 for name, a in truth["currents_A"].items() if name != but)
+
+
+def coil_board_safe(truth: dict, but: str | None = None) -> bool:
+    return all(v == 0 for v in truth["outputs"])
+
+
+def depm_safe(truth: dict, but: str | None = None) -> bool:
+    return all(max(abs(v) for v in arm["qd"]) < 1e-3 for name, arm in truth["arms"].items())
+
+
+def six_coil_active(truth: dict) -> bool:
+    return max(abs(a) for a in truth["currents_A"].values()) > 0.5
+
+
+def coil_board_active(truth: dict) -> bool:
+    return any(v != 0 for v in truth["outputs"])
+
+
+def depm_active(truth: dict) -> bool:
+    return any(max(abs(v) for v in arm["qd"]) > 1e-3 for arm in truth["arms"].values())
+
+
+@dataclass
+class RigCase:
+    kind: str
+    plan: str
+    safe: object
+    active: object
+    fault: dict  # a backdoor request that breaks one device for good
+    fault_device: str
+    suspend: dict  # a backdoor request that takes the run's sensing away ...
+    restore: dict  # ... and one that gives it back
+    bench_args: list[str] = field(default_factory=list)
+
+
+CASES = {
+    "six-coil": RigCase("six-coil", "fig4-two-magnets.json", six_coil_safe, six_coil_active,
+                        {"cmd": "fault", "device": "x+", "kind": "drop_link"}, "x+",
+                        {"cmd": "camera", "kind": "freeze"}, {"cmd": "camera", "kind": "restore"}),
+    "coil-board": RigCase("coil-board", "coilboard-disk.json", coil_board_safe, coil_board_active,
+                          {"cmd": "fault", "device": "board", "kind": "unplug"}, "coil board",
+                          {"cmd": "camera", "kind": "freeze"},
+                          {"cmd": "camera", "kind": "restore"}),
+    "coil-board-simavr": RigCase("coil-board", "coilboard-disk.json", coil_board_safe,
+                                 coil_board_active,
+                                 {"cmd": "camera", "kind": "drop_link"}, "camera",
+                                 {"cmd": "camera", "kind": "freeze"},
+                                 {"cmd": "camera", "kind": "restore"},
+                                 bench_args=["--firmware", "simavr"]),
+    "depm": RigCase("depm", "depm-plan.json", depm_safe, depm_active,
+                    {"cmd": "fault", "device": "left", "kind": "drop_link"}, "left",
+                    {"cmd": "fault", "device": "hall", "kind": "stall"},
+                    {"cmd": "fault", "device": "hall", "kind": "restore"}),
+}
+
+
+class Daemon:
+    def __init__(self, rig_path: Path, runs: Path, log_path: Path) -> None:
+        self.log = open(log_path, "w")
+        self.log_path = log_path
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "rigctl", "daemon", "--rig", str(rig_path), "--runs", str(runs),
+             "--command", "tcp://127.0.0.1:0", "--telemetry", "tcp://127.0.0.1:0",
+             "--events", "tcp://127.0.0.1:0"],
+            stdout=subprocess.PIPE, stderr=self.log, text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        for line in self.proc.stdout:  # readiness: the READY line
+            if line.startswith("READY "):
+                self.endpoints = dict(f.split("=", 1) for f in line[6:].split())
+                return
+        raise AssertionError(f"daemon did not start: {log_path.read_text()[-3000:]}")
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.proc.stdout.close()
+        self.log.close()
+
+
+@pytest.fixture(params=list(CASES))
+def case(request) -> RigCase:
+    return CASES[request.param]
+
+
+@pytest.fixture
+def rig_on_bench(case, tmp_path):
+    """(case, rig file, a backdoor, a Rig client of a daemon on that bench)."""
+    with EmulatedBenchProcess(case.kind, tmp_path / "bench.toml",
+                              extra_args=case.bench_args) as rig_path:
+        daemon = Daemon(rig_path, tmp_path / "runs", tmp_path / "daemon.log")
+        try:
+            with BackdoorClient(load_rig(rig_path).emulation.backdoor) as backdoor, \
+                    Rig(daemon.endpoints["command"]) as rig:
+                yield case, rig_path, backdoor, rig
+        finally:
+            daemon.close()
+
+
+def start(rig: Rig, case: RigCase, backdoor) -> None:
+    plan = json.loads((EXAMPLES / case.plan).read_text())
+    rig.execute(rig.load(plan))
+    rig.wait_state("running", timeout_s=60)
+    wait_for(lambda: case.active(backdoor.request("truth")), 60, "the actuators to act")
+
+
+def wait_state(rig: Rig, *states: str, timeout_s: float = 30.0) -> dict:
+    status: dict = {}
+
+    def reached() -> bool:
+        nonlocal status
+        status = rig.status()
+        return status["state"] in states
+
+    wait_for(reached, timeout_s, f"state {' or '.join(states)}")
+    return status
+
+
+def test_status_lists_every_device_of_the_rig(rig_on_bench):
+    case, rig_path, backdoor, rig = rig_on_bench
+    names = {d["name"] for d in rig.status()["devices"]}
+    loaded = load_rig(rig_path)
+    expected = {"six-coil": {c.name for c in loaded.coils} | {"camera"},
+                "coil-board": {"coil board", "camera"},
+                "depm": set(loaded.depm.arm_names if loaded.depm else []) | {"hall board"}}
+    assert names == expected[case.kind]
+
+
+def test_pause_resume_pause_now_and_abort(rig_on_bench):
+    case, _, backdoor, rig = rig_on_bench
+    start(rig, case, backdoor)
+    rig.pause(immediate=True)
+    wait_state(rig, "paused")
+    rig.resume()
+    wait_state(rig, "running")
+    rig.pause()  # at the end of the step being driven
+    wait_state(rig, "paused", timeout_s=90)
+    rig.resume()
+    wait_state(rig, "running")
+    rig.abort()
+    status = wait_state(rig, "idle", timeout_s=60)
+    assert any(f["kind"] == "Abort" for f in status["last_run"]["faults"])
+    wait_for(lambda: case.safe(backdoor.request("truth")), 10, "every device safe")
+
+
+def test_estop_from_a_running_rig_makes_every_device_safe(rig_on_bench):
+    case, _, backdoor, rig = rig_on_bench
+    start(rig, case, backdoor)
+    reply = rig.estop()
+    assert reply["state"] == "estopped" and reply["unreached"] == []
+    wait_for(lambda: case.safe(backdoor.request("truth")), 5, "every device safe")
+    wait_for(lambda: rig.status()["run"] is None, 30, "the run to end")
+    assert rig.reset()["state"] == "idle"
+
+
+def test_a_device_fault_mid_run_names_the_device(rig_on_bench):
+    case, _, backdoor, rig = rig_on_bench
+    start(rig, case, backdoor)
+    fault = dict(case.fault)
+    backdoor.request(fault.pop("cmd"), **fault)
+    status = wait_state(rig, "faulted", timeout_s=60)
+    assert status["last_fault"]["device"] == case.fault_device, status["last_fault"]
+    # every other device was made safe (the broken one cannot be reached)
+    wait_for(lambda: case.safe(backdoor.request("truth"), but=case.fault_device), 10,
+             "the other devices safe")
+
+
+def test_lost_sensing_suspends_the_run_and_it_resumes(rig_on_bench):
+    case, _, backdoor, rig = rig_on_bench
+    start(rig, case, backdoor)
+    suspend, restore = dict(case.suspend), dict(case.restore)
+    backdoor.request(suspend.pop("cmd"), **suspend)
+    status = wait_state(rig, "suspended", timeout_s=30)
+    assert status["reason"], status  # what the run waits for, named
+    backdoor.request(restore.pop("cmd"), **restore)
+    wait_state(rig, "running", "idle", timeout_s=30)
+    rig.abort()
+    wait_state(rig, "idle", timeout_s=60)
+
+
+def test_sigint_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(case, tmp_path):
+    cmd = [sys.executable, "-m", "rigctl", "execute", str(EXAMPLES / case.plan), "--runs",
+           str(tmp_path / "runs"), *case.bench_args]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
+    try:
+        wait_for(lambda: any(e.get("event") == "energised"
+                             for p in (tmp_path / "runs").glob("*/events.jsonl")
+                             for e in read_events(p.parent)), 90, "the run to energise")
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 3, err
+    assert "Traceback" not in err
+    run_dir = next((tmp_path / "runs").iterdir())
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["state"] == "aborted" and summary["safe"] is True
+    assert any(e["event"] == "abort" for e in read_events(run_dir))
+    assert "aborted" in out
