@@ -159,10 +159,12 @@ def bench_runs(names, noise):
             out[name] = {"error": (result.stderr or result.stdout)[-500:]}
             continue
         plan = json.loads((EXAMPLES / file).read_text())
-        out[name] = {k: s.get(k) for k in ("reached", "rms_tracking_error_bl",
-                                           "max_tracking_error_bl", "hold_max_error_bl",
-                                           "min_separation_bl", "truth_min_separation_bl",
-                                           "frames", "lost_frames", "replans", "duration_s")}
+        metrics, tracking = s.get("metrics") or {}, s.get("tracking") or {}
+        out[name] = {k: s.get(k) for k in ("reached", "replans", "duration_s")}
+        out[name].update({k: metrics.get(k) for k in (
+            "rms_tracking_error_bl", "max_tracking_error_bl", "hold_max_error_bl",
+            "min_separation_bl", "truth_min_separation_bl")})
+        out[name].update({k: tracking.get(k) for k in ("frames", "lost_frames")})
         out[name]["r_min_bl"] = plan["r_min_bl"]
         out[name]["faults"] = [f["reason"] for f in s.get("faults", [])]
         out[name]["stream_late_share"] = (s.get("stream") or {}).get("late_share")

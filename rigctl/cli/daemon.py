@@ -223,14 +223,8 @@ def _print_summary(summary: dict, json_out: bool):
     """The run's summary as `rigctl execute` prints it; returns it."""
     from rigctl.run.summary import format_summary, summary_from_dict, summary_json_line
 
-    if "tolerance_bl" in summary and "plan_kind" not in summary:  # the pair run's own shape
-        from rigctl.rigs.six_coil.pair import PairSummary, format_pair_summary
-
-        result = PairSummary(**summary)
-        print(format_pair_summary(result))
-    else:
-        result = summary_from_dict(summary)
-        print(format_summary(result))
+    result = summary_from_dict(summary)
+    print(format_summary(result))
     if json_out:
         print(summary_json_line(result))
     return result

@@ -78,10 +78,10 @@ def _execute_pair(plan, args: argparse.Namespace) -> int:
     from rigctl.rigs.six_coil.pair import (
         PairRun,
         PairRunSettings,
-        format_pair_summary,
         loopback_rig,
         prepare_pair,
     )
+    from rigctl.run.summary import exit_code
 
     out = None if args.quiet else sys.stderr
     settings = PairRunSettings(closed_loop=not args.open_loop)
@@ -101,12 +101,10 @@ def _execute_pair(plan, args: argparse.Namespace) -> int:
             rig = loopback_rig(rig)
         summary = PairRun(plan, rig, runs_dir=args.runs, progress_out=out,
                           settings=settings).execute()
-    print(format_pair_summary(summary))
+    print(format_summary(summary))
     if args.json:
         print(summary_json_line(summary))
-    if summary.faults:
-        return EXIT_FAULT
-    return EXIT_OK if summary.reached else EXIT_NOT_REACHED
+    return exit_code(summary)
 
 
 _MISMATCH_FLAGS = (("slip", "--slip"), ("speed_spread", "--speed-spread"), ("drift", "--drift"),

@@ -50,6 +50,10 @@ class Step:
     move: int
     stage: str | None = None  # what the progress line shows (None: "move k/n")
     t_s: float | None = None  # the program's time of this sample (None: the stream's)
+    # the progress line's stage when it is not `move` (None: `move`): off a terminal a line is
+    # printed per new stage, and a pair run's stages (the furthest segment reached, the hold) are
+    # not the record's moves (the segment driven now, -1 while holding)
+    stage_key: int | None = None
 
 
 @dataclass
@@ -244,8 +248,8 @@ class Run(RunControl):
             record.stream_row(step.sample, step.move, step.setpoints, measured, loop.last_error_s)
             if self.on_cycle is not None:
                 self.on_cycle(step.sample, step.move, step.setpoints, measured)
-            self.progress.update(step.move, k / program.rate_hz if step.t_s is None else step.t_s,
-                                 step.stage)
+            self.progress.update(step.move if step.stage_key is None else step.stage_key,
+                                 k / program.rate_hz if step.t_s is None else step.t_s, step.stage)
             return True
 
         try:

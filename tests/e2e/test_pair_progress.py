@@ -14,10 +14,10 @@ import sys
 import threading
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from rigctl.rigs.six_coil.pair import _StageProgress
+from rigctl.rigs.six_coil.pair import PairStages
+from rigctl.run.progress import Progress
 from rigctl.testing import plan_pair, run_rigctl
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -129,12 +129,17 @@ def test_a_re_planned_path_counts_as_the_plan_segment_it_rejoins():
     agents stray, and a 3-node re-plan rejoins plan node 3 (the end of segment 3). The line does
     not step back to segment 3, and the spliced path's nodes after the join are the plan's."""
     out = io.StringIO()
-    stages = _StageProgress(out, 6, np.zeros((8, 4)), planned_s=10.0)
+    progress = Progress(out, 6, 10.0)  # the run engine shows each step's (stage_key, stage) so
+    stages = PairStages(6, n_nodes=8)
+
+    def show(key_stage, t_s):
+        progress.update(key_stage[0], t_s, key_stage[1])
+
     for node in (1, 2, 3, 4, 5):
-        stages.closed_loop(node, holding=False, ramp=None)
+        show(stages.closed_loop(node, holding=False, ramp=None), 1.0)
     stages.spliced(3, joined=3)  # nodes now: 3 re-planned ones, then plan nodes 4..7
     for node in (1, 2, 3, 4, 5, 6):  # pursuit node 3 is plan node 4, node 6 the goal
-        stages.closed_loop(node, holding=False, ramp=None)
-    stages.closed_loop(6, holding=True, ramp=None)
+        show(stages.closed_loop(node, holding=False, ramp=None), 2.0)
+    show(stages.closed_loop(6, holding=True, ramp=None), 3.0)
     shown = [m[1] for m in map(PROGRESS.search, out.getvalue().splitlines())]
     assert shown == [f"segment {k}/6" for k in (1, 2, 3, 4, 5, 6)] + ["to goal", "holding goal"]

@@ -7,7 +7,7 @@ supplies), the bench's ground truth (where the agents are, the supplies' own mod
 file's segment times, and seed 002's eq. 1 for the hold angles. At zero current the agents would
 not stay still: their permanent moments turn along each other (psi = 0) and they close at
 dr/dt = -2 K / r^4, so r^5 = r0^5 - 10 K t: from 2 BL apart (K = 10 BL/s for these agents) they
-touch after (32 - 1) / (10 K) = 0.31 s. So a pause holds the field (see `PairRun`), and "still"
+touch after (32 - 1) / (10 K) = 0.31 s. So a pause holds the field (see `PairProgram`), and "still"
 below means within twice the closed loop's tolerance over a pause of 1.2 s.
 """
 
@@ -206,7 +206,7 @@ def test_open_loop_pause_waits_for_the_segment_end_and_resume_plays_the_rest(pla
     # every program sample was sent exactly once, in order, the pause's repeats aside
     sent = stream["sample"][~during]
     assert sent.tolist() == list(range(len(sent)))
-    assert len(sent) == len(run.run.prepared.program_A)
+    assert len(sent) == len(run.run.program.prepared.program_A)
 
 
 def test_abort_ramps_down_and_ends_aborted(plan_file, bench, tmp_path):
@@ -223,7 +223,7 @@ def test_abort_ramps_down_and_ends_aborted(plan_file, bench, tmp_path):
     ramp = round(PairRunSettings().ramp_s * summary.stream["rate_hz"])
     tail = peaks[-ramp:]
     assert tail[-1] == 0.0 and (np.diff(tail) <= 1e-12).all()  # down to zero, never up
-    assert len(peaks) < len(run.run.prepared.program_A)  # stopped early
+    assert len(peaks) < len(run.run.program.prepared.program_A)  # stopped early
     assert all(not s.model.output_on for s in bench.supplies)
 
 

@@ -246,4 +246,4 @@ def test_a_frozen_camera_holds_the_agents_unseen_and_the_run_resumes(tmp_path):
     assert not summary.faults and summary.reached
     seen = events()
     assert seen.index("suspend") < seen.index("resume")
-    assert summary.truth_min_separation_bl >= plan.r_min_bl - 0.15
+    assert summary.metrics["truth_min_separation_bl"] >= plan.r_min_bl - 0.15

@@ -1,25 +1,30 @@
 """Run a pair-formation plan (seed 002) on the six-coil rig: field angle + pull streamed as currents,
 the loop closed through the camera with pure pursuit and the proximity controller.
 
-Before anything is opened: the plan is checked (its own model, every constraint), its pull bound is
-compared with what this rig's coils make, and the open-loop program (every segment as the 8-vector
-U -> six currents at the stream rate, then the hold) is allocated with every current and voltage
-limit checked. Then the agents are placed (emulated bench), found by the camera, and the supplies
-switched on.
+`PairProgram` is the pair's `RigProgram` for the one run engine (`rigctl.run.engine.Run`), which
+owns the record, the start-up order, the stream loop, the states, e-stop and the summary; `PairRun`
+builds that run. Before anything is opened: the plan is checked (its own model, every constraint),
+its pull bound is compared with what this rig's coils make, and the open-loop program (every
+segment as the 8-vector U -> six currents at the stream rate, then the hold) is allocated with
+every current and voltage limit checked. Then the agents are placed (emulated bench), found by the
+camera, and the supplies switched on.
 
 Closed loop (default whenever the rig has a camera): on every fresh frame the measured formation is
 carried forward over the camera's latency and `PairPursuit` picks the control; its currents go out
 on the next stream cycle, rate-limited so no supply needs more than 90 % of its compliance
-voltage. While tracking is lost the agents are held unseen (no pull, the field flipped about the
-zero-radial angle of their last heading); lost for `lost_after_s` is a fault. When the agents stay
-off the path (proximity mode) longer than `replan_after_s`, the path
-is re-planned from the measured state onto the rest of the path in a worker thread and spliced in.
-At the last node the goal formation is held for the plan's `hold_s`. `--open-loop` plays the plan's
-controls back (the paper's open-loop mode); the camera, if any, still measures.
+voltage. While tracking is lost the run is suspended and the agents are held unseen (no pull, the
+field flipped about the zero-radial angle of their last heading); lost for `lost_after_s` is a
+fault of the camera. When the agents stay off the path (proximity mode) longer than
+`replan_after_s`, the path is re-planned from the measured state onto the rest of the path in a
+worker thread and spliced in. At the last node the goal formation is held for the plan's `hold_s`.
+`--open-loop` plays the plan's controls back (the paper's open-loop mode); the camera, if any,
+still measures.
 
-The summary adds `rms_tracking_error_bl` (each measured agent's distance to its planned path, RMS
-over frames and agents, in body lengths), `min_separation_bl` (smallest measured centre distance)
-and `hold_max_error_bl` (largest agent distance from its goal while holding).
+The summary is the runs' one shape (`RunSummary`), errors in body lengths (`unit="bl"`); its
+`metrics` add `rms_tracking_error_bl` (each measured agent's distance to its planned path, RMS
+over frames and agents), `max_tracking_error_bl`, `min_separation_bl` (smallest measured centre
+distance; `truth_min_separation_bl` the emulator's), `hold_max_error_bl` (largest agent distance
+from its goal while holding), `held_s`, `replan_ms` and `mode`.
 """
 
 from __future__ import annotations
@@ -29,14 +34,14 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TextIO
 
 import numpy as np
 
 from rigctl.coils import u_actuation_matrix
-from rigctl.config import RigConfig, dump_rig
+from rigctl.config import RigConfig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.errors import ConfigError, DeviceTimeout, LimitError, PlanError, RigError
 from rigctl.plans.pair import (
@@ -54,15 +59,16 @@ from rigctl.plans.pair import (
     state_from_positions,
     state_of,
 )
-from rigctl.plans.schema import PairFormationPlan, dump_plan
+from rigctl.plans.schema import PairFormationPlan
 from rigctl.record import RunRecord
 from rigctl.rigs.six_coil.allocate import check_current_limits, field_and_pull_u
 from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings, distance_to_path
 from rigctl.rigs.six_coil.supplies import CoilSupplies
-from rigctl.run.control import EStopped, RunControl, RunState
+from rigctl.run.control import RunState
 from rigctl.run.emulated import portable_workspace
-from rigctl.run.progress import Progress
-from rigctl.stream import StreamLoop
+from rigctl.run.engine import Outcome, RunContext, Step
+from rigctl.run.engine import Run as EngineRun
+from rigctl.run.summary import AgentResult
 
 log = logging.getLogger(__name__)
 
@@ -84,40 +90,6 @@ class PairRunSettings:
     replan_after_s: float = 2.0
     lost_after_s: float = 2.0  # tracking lost this long: a fault
     stale_s: float = 0.25  # no fresh frame this long: hold the agents unseen (a frozen camera)
-
-
-@dataclass
-class PairSummary:
-    reached: bool
-    agents: list[dict]
-    run: str
-    duration_s: float
-    positions_from: str
-    tolerance_bl: float
-    mode: str
-    faults: list[dict] = field(default_factory=list)
-    stream: dict | None = None
-    rms_tracking_error_bl: float | None = None
-    max_tracking_error_bl: float | None = None
-    min_separation_bl: float | None = None
-    truth_min_separation_bl: float | None = None
-    hold_max_error_bl: float | None = None
-    held_s: float = 0.0
-    frames: int = 0
-    lost_frames: int = 0
-    replans: int = 0
-    replan_ms: list[float] = field(default_factory=list)
-
-    def as_dict(self) -> dict:
-        out = dict(self.__dict__)
-        out["duration_s"] = round(self.duration_s, 3)
-        for key in ("rms_tracking_error_bl", "max_tracking_error_bl", "min_separation_bl",
-                    "truth_min_separation_bl", "hold_max_error_bl"):
-            if out[key] is not None:
-                out[key] = round(float(out[key]), 4)
-        out["held_s"] = round(self.held_s, 3)
-        out["replan_ms"] = [round(v, 2) for v in self.replan_ms]
-        return out
 
 
 @dataclass
@@ -307,17 +279,18 @@ def expected_headings(nodes: np.ndarray, stage_of: np.ndarray) -> np.ndarray:
     return phi
 
 
-class PairRun(RunControl):
-    """One pair-formation plan on one six-coil rig, with the interface of `rigctl.rigs.six_coil.global_moves.Run`:
-    construction refuses a bad plan without I/O; `execute()` energises, streams and returns the
-    summary; `pause`, `resume`, `abort` and `estop` may be called from any thread meanwhile;
-    `on_cycle(sample, move, commanded_A, measured_A)` is called from the stream thread after every
-    cycle and `on_state(state, info)` on every change of `state`.
+class PairProgram:
+    """One pair-formation plan on one six-coil rig, as the run engine's `RigProgram`:
+    construction refuses a bad plan without I/O (`prepare_pair`); `start` places the agents on
+    the emulated bench and finds them with the camera; `next` is one stream cycle's currents;
+    `finish` the outcome in body lengths. `pause`, `resume` and `abort` may be called from any
+    thread.
 
-    `move` is the plan segment being driven (0-based; the closed loop's last approach to the goal
-    itself counts as the last segment), and -1 while the field ramps, while paused, while the
-    camera has lost the agents and while the goal formation is held. `sample` is the open-loop
-    program's sample index (it stays put while paused), the stream cycle's index closed loop.
+    A step's `move` is the plan segment being driven (0-based; the closed loop's last approach to
+    the goal itself counts as the last segment), and -1 while the field ramps, while paused, while
+    the camera has lost the agents and while the goal formation is held. Its `sample` is the
+    open-loop program's sample index (it stays put while paused), the stream cycle's index closed
+    loop. Its `stage` and `stage_key` are what the progress line shows (`PairStages`).
 
     A pause holds the agents where they are rather than switching the coils off: these agents
     are permanent magnets, and with no field each turns along the other's and they pull together
@@ -326,32 +299,64 @@ class PairRun(RunControl):
     heading, flipped every `HOLD_DITHER_S` so the transverse force cancels too (`hold_field_angle`).
     """
 
-    def __init__(self, plan: PairFormationPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-                 progress_out: TextIO | None = None,
-                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-                 on_state: Callable[[RunState, dict], None] | None = None,
-                 closed_loop: bool | None = None,
+    late = "slip"  # a field program: a late cycle shifts the rest, it must not bunch the path
+
+    def __init__(self, plan: PairFormationPlan, rig: RigConfig,
                  settings: PairRunSettings = PairRunSettings()) -> None:
-        if closed_loop is not None:
-            settings = replace(settings, closed_loop=closed_loop)
         if settings.closed_loop and rig.camera is None:
             raise ConfigError("closed loop needs the rig's camera; this rig has none "
                               "(use --open-loop)")
-        self.prepared = prepare_pair(plan, rig, settings)
-        self.plan = self.prepared.plan
+        prep = self.prepared = prepare_pair(plan, rig, settings)
+        self.plan = prep.plan
         self.rig = rig
         self.settings = settings
-        self.runs_dir = Path(runs_dir)
-        self.out = progress_out
-        self.on_cycle = on_cycle
-        self._init_control(on_state)
-        self.d_mm = self.plan.agents.body_diameter_mm
-        self._abort = threading.Event()
-        self._pause = _PauseRequests()
-        self._truth_at_end: dict | None = None
-        samples = len(self.prepared.program_A)  # the open-loop program; closed loop takes its time
+        self.rate_hz = rig.stream.rate_hz
+        self.n_moves = len(self.plan.segments)
+        samples = len(prep.program_A)  # the open-loop program; closed loop takes its time
+        self.duration_s = samples / self.rate_hz
         self.info = {"name": self.plan.name, "segments": len(self.plan.segments),
                      "samples": samples, "duration_s": round(samples / rig.stream.rate_hz, 3)}
+        self.d_mm = self.plan.agents.body_diameter_mm
+        self.metrics = _Metrics(prep.nodes)
+        self._abort = threading.Event()
+        self._pause = _PauseRequests()
+        self._record: RunRecord | None = None
+        self._backdoor: BackdoorClient | None = None
+        self._tracking = None  # TrackingLoop, once started
+        self._tracking_stopped = False
+        self._truth_at_end: dict | None = None
+        self._truth_read = False
+        # the stream thread's from here on
+        self._ramp = max(1, round(settings.ramp_s * self.rate_hz))
+        self._slew = CoilSlew(rig)
+        self._pursuit_settings = replace(settings.pursuit, max_pull=prep.controller_pull)
+        self._pursuit = PairPursuit(prep.problem, prep.nodes, self._pursuit_settings)
+        self._dts = plan_arrays(self.plan)[2]
+        self._timeout_s = (settings.timeout_factor * float(np.sum(self._dts)) + self.plan.hold_s
+                           + settings.timeout_extra_s)
+        self._stages = PairStages(len(self.plan.segments), len(prep.nodes))
+        self._final_ramp = samples - self._ramp  # open loop: the program's own ramp down
+        self._headings = expected_headings(prep.nodes, prep.stage_of)
+        self._closed = False  # closed loop with a camera: decided in `start`
+        self._last = np.zeros(prep.program_A.shape[1])  # the currents sent last cycle
+        self._target: np.ndarray | None = None  # the pursuit's currents from the last frame
+        self._frame = -1
+        self._started_at: float | None = None
+        self._seen_at = 0.0
+        self._lost_since: float | None = None
+        self._phi = float(prep.nodes[0][3])  # the pair's heading, last seen (or expected)
+        self._phi_seen = False
+        self._j = 0  # open loop: the next program sample
+        self._ramp_down: int | None = None  # cycles into the final ramp down
+        self._hold_from: float | None = None  # the goal hold's clock
+        self._off_since: float | None = None  # in proximity mode since
+        self._replan: threading.Thread | None = None
+        self._worker: dict = {}  # the re-plan thread's result
+        self._pause_asked: tuple[float, int] | None = None  # (when, node or stage)
+        self._held_from: float | None = None  # paused since
+        self._awaiting_frame = False  # resumed: the pursuit decides on the next frame
+        self._pause_hold: PairPursuit | None = None  # the pause's own hold of the formation
+        self._pause_target: np.ndarray | None = None
 
     # -- control, from any thread ---------------------------------------------------------------
     def pause(self, immediate: bool = False) -> None:
@@ -369,299 +374,236 @@ class PairRun(RunControl):
         """Ramp the field down and end; the summary reports the abort."""
         self._abort.set()
 
-    # -- the run --------------------------------------------------------------------------------
-    def execute(self) -> PairSummary:
+    @property
+    def aborted(self) -> bool:
+        return self._abort.is_set()
+
+    @property
+    def paused(self) -> bool:
+        return self._pause.paused
+
+    @property
+    def suspended(self) -> str | None:
+        return "tracking lost" if self._lost_since is not None else None
+
+    # -- the run's phases -----------------------------------------------------------------------
+    def start(self, ctx: RunContext) -> None:
         from rigctl.vision.tracking import TrackingLoop
 
-        plan, rig, prep = self.plan, self.rig, self.prepared
-        record = self.record = RunRecord(self.runs_dir, plan.name or "pair-formation")
-        record.write_file("plan.json", dump_plan(plan))
-        record.write_file("rig.toml", dump_rig(rig))
-        record.event("prepared", samples=len(prep.program_A), rate_hz=rig.stream.rate_hz,
-                     closed_loop=self.settings.closed_loop)
-        started = time.monotonic()
-        faults: list[dict] = []
-        stats = None
-        backdoor = BackdoorClient(rig.emulation.backdoor) if rig.emulation else None
-        tracking = None
-        supplies = None
-        self.metrics = _Metrics(prep.nodes)
-        try:
-            start_mm = agent_positions(prep.nodes[0]) * self.d_mm
-            if backdoor is not None:
-                backdoor.request(
-                    "place", workspace=portable_workspace(plan),
-                    agents=[{"position": p.tolist(), "radius": 0.5 * self.d_mm} for p in start_mm],
-                    pair=plan.agents.model_dump())
-                record.event("placed", agents=start_mm.tolist())
-            if rig.camera is not None:
-                bounds = prep.problem.workspace.bounds
-                tracking = TrackingLoop(rig.camera, np.full(2, 0.5 * self.d_mm), start_mm,
-                                        roi_mm=bounds)
-                first = tracking.start()
-                record.event("tracking", positions_mm=first.positions_mm.tolist())
-            supplies = self._supplies = CoilSupplies.connect(rig)
-            for name, identity in zip(supplies.names, supplies.identities):
-                record.event("connected", device=name, identity=identity)
-            if self._estop.is_set():  # e-stopped while connecting: never switch on
-                raise EStopped()
-            supplies.energise()
-            record.event("energised", devices=supplies.names)
-            self._set_state(RunState.RUNNING)
-            stats = self._stream(supplies, tracking, record)
-        except RigError as err:
-            self._stopped_by(err, record, faults)
-        except EStopped:
-            record.event("estop", reason="before the supplies were switched on")
-        except KeyboardInterrupt:
-            self._abort.set()
-            record.event("abort", reason="operator interrupt")
-        finally:
-            if supplies is not None and self._estop.is_set():
-                supplies.stop(ramp_s=0.0)  # already zero and latched; closed before anything else
-                self._supplies = None
-            # ground truth as the run leaves the agents, before the field goes: with no field
-            # the magnets still attract each other, and that is not the run's doing
-            self._truth_at_end = self._read_truth(backdoor)
-            if supplies is not None:
-                if self._supplies is not None:  # an e-stop during this ramp cuts it short
-                    supplies.stop(ramp_s=0.0 if self._estop.is_set() else rig.stream.ramp_down_s)
-                    self._supplies = None  # off and closed: nothing left for an e-stop to write to
-                record.event("safe", supplies=supplies.names)
-            if tracking is not None:
-                tracking.stop()
-        self._end_state(faults, aborted=self._abort.is_set())
-        summary = self._summary(record, backdoor, tracking, faults, stats, started)
-        if backdoor is not None:
-            backdoor.close()
-        record.finish(summary.as_dict())
-        return summary
+        plan, prep, d = self.plan, self.prepared, self.d_mm
+        self._record, self._backdoor = ctx.record, ctx.backdoor
+        ctx.record.event("pair", closed_loop=self.settings.closed_loop,
+                         timeout_s=round(self._timeout_s, 3))
+        start_mm = agent_positions(prep.nodes[0]) * d
+        if ctx.backdoor is not None:
+            ctx.backdoor.request(
+                "place", workspace=portable_workspace(plan),
+                agents=[{"position": p.tolist(), "radius": 0.5 * d} for p in start_mm],
+                pair=plan.agents.model_dump())
+            ctx.record.event("placed", agents=start_mm.tolist())
+        if self.rig.camera is not None:  # the agents are found before anything is energised
+            self._tracking = TrackingLoop(self.rig.camera, np.full(2, 0.5 * d), start_mm,
+                                          roi_mm=prep.problem.workspace.bounds)
+            first = self._tracking.start()
+            ctx.record.event("tracking", positions_mm=first.positions_mm.tolist())
+        self._closed = self.settings.closed_loop and self._tracking is not None
 
-    # -- the stream ----------------------------------------------------------------------------
-    def _stream(self, supplies: CoilSupplies, tracking, record: RunRecord):
-        rig, prep, s = self.rig, self.prepared, self.settings
-        rate = rig.stream.rate_hz
-        record.open_stream(supplies.names, rate_hz=rate)
-        loop = self.stream_loop = StreamLoop(rate)
-        slew = CoilSlew(rig)
-        ramp = max(1, round(s.ramp_s * rate))
-        closed = s.closed_loop and tracking is not None
-        pursuit_settings = replace(s.pursuit, max_pull=prep.controller_pull)
-        pursuit = PairPursuit(prep.problem, prep.nodes, pursuit_settings)
-        dts = plan_arrays(self.plan)[2]
-        n_segments = len(dts)
-        timeout_s = s.timeout_factor * float(np.sum(dts)) + self.plan.hold_s + s.timeout_extra_s
-        stream_started = time.monotonic()
-        stages = self._stages = _StageProgress(self.out, len(self.plan.segments), prep.nodes,
-                                               len(prep.program_A) / rate)
-        program, stage_of = prep.program_A, prep.stage_of
-        final_ramp = len(program) - ramp  # open loop: the program's own ramp down starts here
-        headings = None if closed else expected_headings(prep.nodes, stage_of)
-        pause = self._pause
-        state = {"last": np.zeros(len(supplies.names)), "target": None, "frame": -1,
-                 "hold_from": None, "off_since": None, "replan": None, "ramp_down": None,
-                 "lost_since": None, "phi": float(prep.nodes[0][3]), "seen_at": time.monotonic(),
-                 "j": 0, "pause_asked": None, "held_from": None, "awaiting_frame": False,
-                 "phi_seen": False, "pause_hold": None, "pause_target": None}
-        worker: dict = {}
+    def connected(self, actuators) -> None:
+        pass  # the supplies start from 0 A, as the program does: nothing to read
 
-        def replan_async(q: np.ndarray, k: int) -> None:
-            t0 = time.perf_counter()
-            try:
-                path, joined = replan_pair(prep.problem, q, pursuit.nodes, max(k - 1, 0),
-                                           PairPlannerOptions(time_s=0.3),
-                                           seed=len(self.metrics.replan_ms))
-                worker["result"] = (path, joined, q)
-            except PlanError as err:
-                worker["result"] = err
-            worker["ms"] = (time.perf_counter() - t0) * 1e3
+    def next(self, k: int, measured: np.ndarray | None) -> Step | None:
+        now = time.monotonic()
+        if self._started_at is None:
+            self._started_at = self._seen_at = now
+        record = self._record
+        assert record is not None
+        stopping = self._abort.is_set() or \
+            now - self._started_at - self._pause.paused_s(now) > self._timeout_s
+        if stopping and self._ramp_down is None:
+            record.event("stop", reason="abort" if self._abort.is_set() else "timeout")
+            self._ramp_down = 0
+        self._update_pause(now)
+        sample = k if self._closed else self._j
+        if self._closed:  # the camera is read on every cycle, the ramp down included
+            target, move = self._closed_loop_target(k, now)
+        elif self._ramp_down is None:
+            planned = self._open_loop_target(now)
+            if planned is None:
+                return self._end()
+            target, move = planned
+        if self._ramp_down is not None:
+            self._ramp_down += 1
+            if self._ramp_down > self._ramp:
+                return self._end()
+            target, move = self._last * max(0.0, 1.0 - self._ramp_down / self._ramp), -1
+        key, stage = self._stage(k, sample)
+        self._last = self._slew.step(self._last, target)
+        return Step(self._last, sample, move, stage=stage, t_s=now - self._started_at,
+                    stage_key=key)
 
-        def held(since: float, now: float) -> np.ndarray:
-            """Currents that keep the agents where they are (the class docstring): no pull, the
-            field at 54.74 and 125.26 deg to their heading in turn (`hold_field_angle`)."""
-            flipped = int((now - since) / HOLD_DITHER_S) % 2 == 1
-            u = np.array([hold_field_angle(state["phi"], flipped), 0.0, 0.0])
-            return prep.u_to_currents @ u_of(self.plan, u)
+    def _end(self) -> None:
+        """The program is over: ground truth as it leaves the agents, before the supplies are
+        stopped (with no field the magnets still attract each other, and that is not the run's
+        doing)."""
+        self._truth_at_end = _read_truth(self._backdoor)
+        self._truth_read = True
+        return None
 
-        def segment_of_node(node: int) -> int:
-            """The plan segment that ends at pursuit node `node` (the goal: the last one)."""
-            plan_node = stages.plan_node[min(node, len(stages.plan_node) - 1)]
-            return int(min(max(plan_node - 1, 0), n_segments - 1))
+    def _stage(self, k: int, sample: int) -> tuple[int, str]:
+        if self._pause.paused:
+            return self._stages.paused()
+        if self._closed:
+            ramp = ("ramp down" if self._ramp_down is not None
+                    else "ramp up" if k < self._ramp else None)
+            return self._stages.closed_loop(self._pursuit.k, holding=self._hold_from is not None,
+                                            ramp=ramp)
+        stage_of = self.prepared.stage_of
+        return self._stages.open_loop(int(stage_of[min(sample, len(stage_of) - 1)])
+                                      if self._ramp_down is None else RAMP)
 
-        def at_segment_end(mark: int, asked_mark: int, waited_s: float) -> bool:
-            """Whether a plain pause asked at `asked_mark` (pursuit node or program stage) takes
-            effect now that the run is at `mark`."""
-            if closed:
-                return (mark != asked_mark or pursuit.mode == "hold"
-                        or state["hold_from"] is not None
-                        or waited_s >= dts[segment_of_node(asked_mark)])
-            return mark != asked_mark or mark < 0  # a new stage, or in a ramp or the hold
+    # -- holding still --------------------------------------------------------------------------
+    def _held(self, since: float, now: float) -> np.ndarray:
+        """Currents that keep the agents where they are (the class docstring): no pull, the field
+        at 54.74 and 125.26 deg to their heading in turn (`hold_field_angle`)."""
+        flipped = int((now - since) / HOLD_DITHER_S) % 2 == 1
+        u = np.array([hold_field_angle(self._phi, flipped), 0.0, 0.0])
+        return self.prepared.u_to_currents @ u_of(self.plan, u)
 
-        def update_pause(now: float) -> None:
-            wanted, immediate = pause.wanted()
-            finishing = state["ramp_down"] is not None or (not closed and state["j"] >= final_ramp)
-            if wanted and not pause.paused and not finishing:
-                mark = pursuit.k if closed else int(stage_of[state["j"]])
-                if state["pause_asked"] is None:
-                    state["pause_asked"] = (now, mark)
-                asked_at, asked_mark = state["pause_asked"]
-                if immediate or at_segment_end(mark, asked_mark, now - asked_at):
-                    pause.hold(now)
-                    state["held_from"], state["pause_asked"] = now, None
-                    if not closed and not state["phi_seen"]:
-                        state["phi"] = float(headings[max(state["j"] - 1, 0)])
-                    record.event("pause", immediate=immediate, sample=state["j"],
-                                 node=pursuit.k if closed else None)
-            elif not wanted:
-                state["pause_asked"] = None
-                if pause.paused:
-                    record.event("pause_end", paused_s=round(now - state["held_from"], 3),
-                                 sample=state["j"])
-                    pause.release(now)
-                    state["pause_hold"] = state["pause_target"] = None
-                    if closed:  # the pursuit goes on from the next frame; a goal hold restarts
-                        state["awaiting_frame"] = True
-                        state["hold_from"] = state["off_since"] = None
-                        pursuit.last_u = np.array([hold_field_angle(state["phi"], False), 0.0, 0.0])
+    def _segment_of_node(self, node: int) -> int:
+        """The plan segment that ends at pursuit node `node` (the goal: the last one)."""
+        plan_node = self._stages.plan_node[min(node, len(self._stages.plan_node) - 1)]
+        return int(min(max(plan_node - 1, 0), len(self._dts) - 1))
 
-        def closed_loop_target(k: int, now: float) -> tuple[np.ndarray, int]:
-            latest = tracking.latest()
-            if latest is not None and latest.frame != state["frame"] and not latest.lost.any():
-                state["frame"] = latest.frame
-                state["seen_at"] = now
-                if state["lost_since"] is not None:
-                    record.event("resume", after_s=round(now - state["lost_since"], 3))
-                    state["lost_since"] = None
-                q = state_from_positions(latest.positions_mm / self.d_mm)
-                state["phi"] = float(q[3])
-                self.metrics.measure(q, pursuit)
-                if pause.paused:  # the formation held where the first frame saw it
-                    if state["pause_hold"] is None:
-                        state["pause_hold"] = PairPursuit(prep.problem, np.vstack([q, q]),
-                                                          pursuit_settings)
-                    hold = state["pause_hold"]
-                    u = hold.decide(hold.carry_forward(q, now - latest.t_source))
-                    state["pause_target"] = prep.u_to_currents @ u_of(self.plan, u)
-                    record.event("track", frame=latest.frame, q=np.round(q, 5).tolist(),
-                                 mode="paused", node=pursuit.k, u=np.round(u, 5).tolist())
-                else:
-                    self._decide(pursuit, q, now, latest, state, worker, replan_async, record)
-            elif not tracking.ok(now) or now - state["seen_at"] > s.stale_s:
-                if state["lost_since"] is None:
-                    state["lost_since"] = now
-                    record.event("suspend", reason="tracking lost")
-                elif now - state["lost_since"] > s.lost_after_s:
-                    raise DeviceTimeout(f"tracking lost for {s.lost_after_s:g} s",
-                                        device="camera")
-            if state["lost_since"] is not None:
-                # unseen, the agents are held where they were last seen (a held field would
-                # keep moving them, and they could collide unseen)
-                return held(state["lost_since"], now), -1
+    def _at_segment_end(self, mark: int, asked_mark: int, waited_s: float) -> bool:
+        """Whether a plain pause asked at `asked_mark` (pursuit node or program stage) takes
+        effect now that the run is at `mark`."""
+        if self._closed:
+            return (mark != asked_mark or self._pursuit.mode == "hold"
+                    or self._hold_from is not None
+                    or waited_s >= self._dts[self._segment_of_node(asked_mark)])
+        return mark != asked_mark or mark < 0  # a new stage, or in a ramp or the hold
+
+    def _update_pause(self, now: float) -> None:
+        """Pause and resume take effect here, on the stream thread (`_PauseRequests`)."""
+        pause, record, closed = self._pause, self._record, self._closed
+        wanted, immediate = pause.wanted()
+        finishing = self._ramp_down is not None or (not closed and self._j >= self._final_ramp)
+        if wanted and not pause.paused and not finishing:
+            mark = self._pursuit.k if closed else int(self.prepared.stage_of[self._j])
+            if self._pause_asked is None:
+                self._pause_asked = (now, mark)
+            asked_at, asked_mark = self._pause_asked
+            if immediate or self._at_segment_end(mark, asked_mark, now - asked_at):
+                pause.hold(now)
+                self._held_from, self._pause_asked = now, None
+                if not closed and not self._phi_seen:
+                    self._phi = float(self._headings[max(self._j - 1, 0)])
+                record.event("pause", immediate=immediate, sample=self._j,
+                             node=self._pursuit.k if closed else None)
+        elif not wanted:
+            self._pause_asked = None
             if pause.paused:
-                if state["pause_target"] is not None:
-                    return state["pause_target"], -1
-                return held(state["held_from"], now), -1  # until the first frame
-            if state["awaiting_frame"]:  # resumed; the pursuit decides on the next frame
-                return held(state["held_from"], now), -1
-            target = state["target"]
-            if target is None:  # no frame decided yet: nothing to pull with
-                target = np.zeros_like(state["last"])
-            if k < ramp:
-                return target * (k + 1) / ramp, -1
-            return target, -1 if state["hold_from"] is not None else segment_of_node(pursuit.k)
+                record.event("pause_end", paused_s=round(now - self._held_from, 3),
+                             sample=self._j)
+                pause.release(now)
+                self._pause_hold = self._pause_target = None
+                if closed:  # the pursuit goes on from the next frame; a goal hold restarts
+                    self._awaiting_frame = True
+                    self._hold_from = self._off_since = None
+                    self._pursuit.last_u = np.array([hold_field_angle(self._phi, False), 0.0, 0.0])
 
-        def open_loop_target(now: float) -> tuple[np.ndarray, int] | None:
-            if tracking is not None:
-                latest = tracking.latest()
-                if latest is not None and latest.frame != state["frame"]:
-                    state["frame"] = latest.frame
-                    q = state_from_positions(latest.positions_mm / self.d_mm)
-                    self.metrics.measure(q, None)
-                    if not latest.lost.any():
-                        state["phi"], state["phi_seen"] = float(q[3]), True
-            if pause.paused:
-                return held(state["held_from"], now), -1
-            j = state["j"]
-            if j >= len(program):
-                return None
-            state["j"] = j + 1
-            return program[j], max(int(stage_of[j]), -1)
-
-        def cycle(k: int) -> bool:
-            if self._estop.is_set():
-                self._finish_estop(supplies, record)
-                return False
-            now = time.monotonic()
-            stopping = self._abort.is_set() or \
-                now - stream_started - pause.paused_s(now) > timeout_s
-            if stopping and state["ramp_down"] is None:
-                record.event("stop", reason="abort" if self._abort.is_set() else "timeout")
-                state["ramp_down"] = 0
-            update_pause(now)
-            sample = k if closed else state["j"]
-            if closed:
-                target, move = closed_loop_target(k, now)
-            elif state["ramp_down"] is None:
-                planned = open_loop_target(now)
-                if planned is None:
-                    return False
-                target, move = planned
-            if state["ramp_down"] is not None:
-                state["ramp_down"] += 1
-                if state["ramp_down"] > ramp:
-                    return False
-                target, move = state["last"] * max(0.0, 1.0 - state["ramp_down"] / ramp), -1
-            self._set_state(RunState.PAUSED if pause.paused else RunState.RUNNING)
-            if pause.paused:
-                stages.paused()
-            elif closed:
-                stages.closed_loop(pursuit.k, holding=state["hold_from"] is not None,
-                                   ramp="ramp down" if state["ramp_down"] is not None
-                                   else "ramp up" if k < ramp else None)
+    # -- the closed loop ------------------------------------------------------------------------
+    def _closed_loop_target(self, k: int, now: float) -> tuple[np.ndarray, int]:
+        prep, s, record = self.prepared, self.settings, self._record
+        latest = self._tracking.latest()
+        if latest is not None and latest.frame != self._frame and not latest.lost.any():
+            self._frame = latest.frame
+            self._seen_at = now
+            if self._lost_since is not None:
+                record.event("resume", after_s=round(now - self._lost_since, 3))
+                self._lost_since = None
+            q = state_from_positions(latest.positions_mm / self.d_mm)
+            self._phi = float(q[3])
+            self.metrics.measure(q, self._pursuit)
+            if self._pause.paused:  # the formation held where the first frame saw it
+                if self._pause_hold is None:
+                    self._pause_hold = PairPursuit(prep.problem, np.vstack([q, q]),
+                                                   self._pursuit_settings)
+                hold = self._pause_hold
+                u = hold.decide(hold.carry_forward(q, now - latest.t_source))
+                self._pause_target = prep.u_to_currents @ u_of(self.plan, u)
+                record.event("track", frame=latest.frame, q=np.round(q, 5).tolist(),
+                             mode="paused", node=self._pursuit.k, u=np.round(u, 5).tolist())
             else:
-                stages.open_loop(int(stage_of[min(sample, len(stage_of) - 1)])
-                                 if state["ramp_down"] is None else RAMP)
-            setpoints = slew.step(state["last"], target)
-            measured = supplies.cycle(setpoints)
-            state["last"] = setpoints
-            record.stream_row(sample, move, setpoints, measured, loop.last_error_s)
-            if self.on_cycle is not None:
-                self.on_cycle(sample, move, setpoints, measured)
-            return True
+                self._decide(q, now, latest)
+        elif not self._tracking.ok(now) or now - self._seen_at > s.stale_s:
+            if self._lost_since is None:
+                self._lost_since = now
+                record.event("suspend", reason="tracking lost")
+            elif now - self._lost_since > s.lost_after_s:
+                raise DeviceTimeout(f"tracking lost for {s.lost_after_s:g} s", device="camera")
+        if self._lost_since is not None:
+            # unseen, the agents are held where they were last seen (a held field would keep
+            # moving them, and they could collide unseen)
+            return self._held(self._lost_since, now), -1
+        if self._pause.paused:
+            if self._pause_target is not None:
+                return self._pause_target, -1
+            return self._held(self._held_from, now), -1  # until the first frame
+        if self._awaiting_frame:  # resumed; the pursuit decides on the next frame
+            return self._held(self._held_from, now), -1
+        target = self._target
+        if target is None:  # no frame decided yet: nothing to pull with
+            target = np.zeros_like(self._last)
+        if k < self._ramp:
+            return target * (k + 1) / self._ramp, -1
+        return target, -1 if self._hold_from is not None else self._segment_of_node(self._pursuit.k)
 
-        try:
-            return loop.run(cycle)
-        finally:
-            stages.done()
-            record.event("stream_stats", **loop.stats().as_dict())
+    def _open_loop_target(self, now: float) -> tuple[np.ndarray, int] | None:
+        """The program's next sample (or the pause's hold); the camera, if any, only measures."""
+        if self._tracking is not None:
+            latest = self._tracking.latest()
+            if latest is not None and latest.frame != self._frame:
+                self._frame = latest.frame
+                q = state_from_positions(latest.positions_mm / self.d_mm)
+                self.metrics.measure(q, None)
+                if not latest.lost.any():
+                    self._phi, self._phi_seen = float(q[3]), True
+        if self._pause.paused:
+            return self._held(self._held_from, now), -1
+        j, program = self._j, self.prepared.program_A
+        if j >= len(program):
+            return None
+        self._j = j + 1
+        return program[j], max(int(self.prepared.stage_of[j]), -1)
 
-    def _decide(self, pursuit: PairPursuit, q: np.ndarray, now: float, latest, state: dict,
-                worker: dict, replan_async, record: RunRecord) -> None:
+    def _decide(self, q: np.ndarray, now: float, latest) -> None:
         """A fresh frame while running: the pursuit's control for where the agents will be once
         it acts (carried over the camera's latency), re-planning, and the goal hold's clock."""
-        prep = self.prepared
+        prep, pursuit, record = self.prepared, self._pursuit, self._record
         q_now = pursuit.carry_forward(q, now - latest.t_source)
         u = pursuit.decide(q_now)
-        state["target"] = prep.u_to_currents @ u_of(self.plan, u)
-        state["awaiting_frame"] = False
+        self._target = prep.u_to_currents @ u_of(self.plan, u)
+        self._awaiting_frame = False
         record.event("track", frame=latest.frame, q=np.round(q, 5).tolist(),
                      mode=pursuit.mode, node=pursuit.k, u=np.round(u, 5).tolist())
-        self._watch_path(pursuit, q, now, state, worker, replan_async, record)
+        self._watch_path(q, now)
         settled = goal_error(q, prep.nodes[-1]) <= HOLD_START_SHARE * self.plan.tolerance_bl
-        if pursuit.mode == "hold" and (settled or state["hold_from"] is not None):
-            if state["hold_from"] is None:
-                state["hold_from"] = now
+        if pursuit.mode == "hold" and (settled or self._hold_from is not None):
+            if self._hold_from is None:
+                self._hold_from = now
                 record.event("holding", node=pursuit.k)
-            self.metrics.held(q, now - state["hold_from"])
-            if now - state["hold_from"] >= self.plan.hold_s and state["ramp_down"] is None:
-                state["ramp_down"] = 0
+            self.metrics.held(q, now - self._hold_from)
+            if now - self._hold_from >= self.plan.hold_s and self._ramp_down is None:
+                self._ramp_down = 0
 
-    def _watch_path(self, pursuit: PairPursuit, q, now, state, worker, replan_async, record) -> None:
+    def _watch_path(self, q: np.ndarray, now: float) -> None:
         """Re-plan when the proximity controller has not brought the agents back in time."""
+        pursuit, worker, record = self._pursuit, self._worker, self._record
         if "result" in worker:
             result = worker.pop("result")
             self.metrics.replan_ms.append(worker.pop("ms"))
-            state["replan"] = None
+            self._replan = None
             if isinstance(result, PlanError):
                 record.event("replan_failed", reason=str(result))
             else:
@@ -673,126 +615,184 @@ class PairRun(RunControl):
                     record.event("replan", joined=joined, segments=len(path.dts),
                                  ms=round(self.metrics.replan_ms[-1], 2))
         if pursuit.mode != "proximity":
-            state["off_since"] = None
+            self._off_since = None
             return
-        if state["off_since"] is None:
-            state["off_since"] = now
-        if now - state["off_since"] > self.settings.replan_after_s and state["replan"] is None:
-            state["replan"] = threading.Thread(target=replan_async, args=(q.copy(), pursuit.k),
-                                               name="pair-replan", daemon=True)
-            state["replan"].start()
-            state["off_since"] = now
+        if self._off_since is None:
+            self._off_since = now
+        if now - self._off_since > self.settings.replan_after_s and self._replan is None:
+            self._replan = threading.Thread(target=self._replan_async, args=(q.copy(), pursuit.k),
+                                            name="pair-replan", daemon=True)
+            self._replan.start()
+            self._off_since = now
 
-    # -- the summary ---------------------------------------------------------------------------
-    @staticmethod
-    def _read_truth(backdoor: BackdoorClient | None) -> dict | None:
-        if backdoor is None:
-            return None
+    def _replan_async(self, q: np.ndarray, k: int) -> None:
+        """On the re-plan thread: a path from `q` onto the rest of the pursuit's, for
+        `_watch_path` to splice in on a later frame."""
+        t0 = time.perf_counter()
         try:
-            return backdoor.request("truth")
-        except RigError as err:
-            log.error("could not read ground truth: %s", err)
-            return None
+            path, joined = replan_pair(self.prepared.problem, q, self._pursuit.nodes, max(k - 1, 0),
+                                       PairPlannerOptions(time_s=0.3),
+                                       seed=len(self.metrics.replan_ms))
+            self._worker["result"] = (path, joined, q)
+        except PlanError as err:
+            self._worker["result"] = err
+        self._worker["ms"] = (time.perf_counter() - t0) * 1e3
 
-    def _summary(self, record, backdoor, tracking, faults, stats, started) -> PairSummary:
-        plan, d = self.plan, self.d_mm
-        goal = state_of(plan.goal, d)
-        goal_mm = agent_positions(goal) * d
+    # -- the end --------------------------------------------------------------------------------
+    def finish(self, ctx: RunContext) -> Outcome:
+        """Each agent's final position (the camera's last frame, else ground truth) against the
+        goal formation, in body lengths; reached closed loop only when the goal was also held
+        for the plan's `hold_s` within its tolerance."""
+        self._stop_tracking()
+        if not self._truth_read:  # a fault or an e-stop ended the stream
+            self._truth_at_end = _read_truth(ctx.backdoor)
+        plan, d, m = self.plan, self.d_mm, self.metrics
+        goal_mm = agent_positions(state_of(plan.goal, d)) * d
         truth = self._truth_at_end
-        m = self.metrics
         final = m.last_q
         positions_from = "camera" if final is not None else "unknown"
         if final is None and truth is not None:
             final = state_from_positions(np.array(truth["agents"]) / d)
             positions_from = "emulator ground truth"
+        elif final is not None and truth is not None:
+            positions_from += "; emulator ground truth in truth_error_bl"
         agents = []
         for i in range(2):
-            entry = {"goal_mm": goal_mm[i].round(4).tolist(), "final_mm": None, "error_bl": None}
+            final_mm = error = truth_error = None
             if final is not None:
                 p = agent_positions(final)[i] * d
-                entry["final_mm"] = p.round(4).tolist()
-                entry["error_bl"] = round(float(np.hypot(*(p - goal_mm[i])) / d), 4)
+                final_mm = p.round(4).tolist()
+                error = round(float(np.hypot(*(p - goal_mm[i])) / d), 4)
             if truth is not None:
                 t = np.array(truth["agents"][i])
-                entry["truth_error_bl"] = round(float(np.hypot(*(t - goal_mm[i])) / d), 4)
-            agents.append(entry)
+                truth_error = round(float(np.hypot(*(t - goal_mm[i])) / d), 4)
+            agents.append(AgentResult(final_mm, goal_mm[i].round(4).tolist(), error, truth_error,
+                                      unit="bl"))
         tol = plan.tolerance_bl
-        errors = [a.get("truth_error_bl", a["error_bl"]) if not self.settings.closed_loop
-                  else a["error_bl"] for a in agents]
-        reached = not faults and all(e is not None and e <= tol for e in errors)
-        if self.settings.closed_loop:
+        closed = self.settings.closed_loop
+        # open loop judges by ground truth where there is one: the camera only watched
+        errors = [a.error_mm if closed or a.truth_error_mm is None else a.truth_error_mm
+                  for a in agents]
+        reached = all(e is not None and e <= tol for e in errors)
+        if closed:
             reached = reached and m.held_s >= plan.hold_s - 0.05 and (
                 m.hold_max is not None and m.hold_max <= tol)
+        truth_sep = None
         if truth is not None and truth.get("min_separation_mm") is not None:
             truth_sep = truth["min_separation_mm"] / d
-        else:
-            truth_sep = None
-        return PairSummary(
-            reached=reached, agents=agents, run=str(record.path),
-            duration_s=time.monotonic() - started, positions_from=positions_from,
-            tolerance_bl=tol, mode="closed loop" if self.settings.closed_loop else "open loop",
-            faults=faults, stream=None if stats is None else stats.as_dict(),
-            rms_tracking_error_bl=m.rms(), max_tracking_error_bl=m.max_error(),
-            min_separation_bl=m.min_sep, truth_min_separation_bl=truth_sep,
-            hold_max_error_bl=m.hold_max, held_s=m.held_s, frames=m.frames,
-            lost_frames=0 if tracking is None else tracking.lost_frames,
-            replans=len(m.replan_ms), replan_ms=list(m.replan_ms))
+        mode = "closed loop" if closed else "open loop"
+        metrics = {
+            "mode": mode, "rms_tracking_error_bl": _round(m.rms()),
+            "max_tracking_error_bl": _round(m.max_error()), "min_separation_bl": _round(m.min_sep),
+            "truth_min_separation_bl": _round(truth_sep), "hold_max_error_bl": _round(m.hold_max),
+            "held_s": round(m.held_s, 3), "replan_ms": [round(v, 2) for v in m.replan_ms]}
+        tracking = None
+        if self._tracking is not None:
+            tracking = {"frames": m.frames, "lost_frames": self._tracking.lost_frames}
+        return Outcome(agents=agents, reached=reached, positions_from=positions_from,
+                       tolerance_mm=tol, tolerance_unit="bl", metrics=metrics,
+                       replans=len(m.replan_ms), tracking=tracking,
+                       details=_details(metrics))
+
+    def close(self) -> None:
+        self._stop_tracking()
+
+    def _stop_tracking(self) -> None:
+        tracking = self._tracking
+        if tracking is not None and not self._tracking_stopped:
+            self._tracking_stopped = True
+            tracking.stop()
 
 
-class _StageProgress:
-    """What the operator sees of a pair run, through the runs' one `Progress` line: the plan
-    segment the agents are on out of how many, the approach to the goal, the hold, elapsed time.
-    Closed loop, the furthest segment reached is shown (the proximity controller may head back a
-    node, and a line per step back off a terminal would flood the log); re-planned nodes count as
-    the plan node their path rejoins."""
+def _round(value: float | None) -> float | None:
+    return None if value is None else round(float(value), 4)
 
-    def __init__(self, out: TextIO | None, n_segments: int, nodes: np.ndarray,
-                 planned_s: float) -> None:
+
+def _details(metrics: dict) -> list[str]:
+    """The summary's lines about the pair's own figures (frames and re-plans have their own)."""
+    lines = [f"mode: {metrics['mode']}"]
+    if metrics["rms_tracking_error_bl"] is not None:
+        lines.append(f"tracking: RMS {metrics['rms_tracking_error_bl']:.3f} BL, max "
+                     f"{metrics['max_tracking_error_bl']:.3f} BL from the planned path")
+    if metrics["min_separation_bl"] is not None:
+        truth = metrics["truth_min_separation_bl"]
+        extra = "" if truth is None else f" (ground truth {truth:.3f} BL)"
+        lines.append(f"closest approach: {metrics['min_separation_bl']:.3f} BL{extra}")
+    if metrics["hold_max_error_bl"] is not None:
+        lines.append(f"hold: {metrics['held_s']:.1f} s, worst agent error "
+                     f"{metrics['hold_max_error_bl']:.3f} BL")
+    return lines
+
+
+def _read_truth(backdoor: BackdoorClient | None) -> dict | None:
+    if backdoor is None:
+        return None
+    try:
+        return backdoor.request("truth")
+    except RigError as err:
+        log.error("could not read ground truth: %s", err)
+        return None
+
+
+def PairRun(plan: PairFormationPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
+            progress_out: TextIO | None = None,
+            on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
+            on_state: Callable[[RunState, dict], None] | None = None,
+            closed_loop: bool | None = None,
+            settings: PairRunSettings = PairRunSettings()) -> EngineRun:
+    """The run of a pair-formation plan on a six-coil rig (the one engine with `PairProgram`);
+    `closed_loop`, if given, overrides the settings'. Refuses a bad plan without I/O."""
+    if closed_loop is not None:
+        settings = replace(settings, closed_loop=closed_loop)
+    return EngineRun(PairProgram(plan, rig, settings), rig, CoilSupplies.connect,
+                     runs_dir=runs_dir, progress_out=progress_out, on_cycle=on_cycle,
+                     on_state=on_state)
+
+
+class PairStages:
+    """What the operator sees of a pair run on the runs' one progress line, as a step's
+    (`stage_key`, `stage`): the plan segment the agents are on out of how many, the approach to
+    the goal, the hold. Off a terminal a line is printed per new key, ramps and pauses (key -1)
+    not. Closed loop, the furthest segment reached is shown (the proximity controller may head
+    back a node, and a line per step back off a terminal would flood the log); re-planned nodes
+    count as the plan node their path rejoins."""
+
+    def __init__(self, n_segments: int, n_nodes: int) -> None:
         self.n = n_segments
-        self.progress = Progress(out, n_segments, planned_s)
         # pursuit node -> plan node (0 start, k the end of segment k, n + 1 the goal itself)
-        self.plan_node = np.arange(len(nodes))
+        self.plan_node = np.arange(n_nodes)
         self.reached = 0
-        self.started = time.monotonic()
 
     def spliced(self, n_new: int, joined: int) -> None:
         """The pursuit's path re-planned: `n_new` nodes that rejoin its node `joined`."""
         self.plan_node = np.concatenate([np.full(n_new, self.plan_node[joined]),
                                          self.plan_node[joined + 1:]])
 
-    def closed_loop(self, node: int, *, holding: bool, ramp: str | None) -> None:
+    def closed_loop(self, node: int, *, holding: bool, ramp: str | None) -> tuple[int, str]:
         """Heading for pursuit node `node`; `ramp` names a field ramp going on."""
         if ramp is not None:
-            self._show(-1, ramp)
-        elif holding:
-            self._show(self.n + 1, "holding goal")
-        else:
-            node = min(node, len(self.plan_node) - 1)  # a display never stops a run
-            self.reached = max(self.reached, int(self.plan_node[node]))
-            self._segment(self.reached - 1)
+            return -1, ramp
+        if holding:
+            return self.n + 1, "holding goal"
+        node = min(node, len(self.plan_node) - 1)  # a display never stops a run
+        self.reached = max(self.reached, int(self.plan_node[node]))
+        return self._segment(self.reached - 1)
 
-    def open_loop(self, stage: int) -> None:
+    def open_loop(self, stage: int) -> tuple[int, str]:
         if stage == HOLD:
-            self._show(self.n + 1, "holding goal")
-        elif stage == RAMP:
-            self._show(-1, "ramp up" if self.reached == 0 else "ramp down")
-        else:
-            self._segment(stage)
+            return self.n + 1, "holding goal"
+        if stage == RAMP:
+            return -1, "ramp up" if self.reached == 0 else "ramp down"
+        return self._segment(stage)
 
-    def _segment(self, index: int) -> None:
+    def paused(self) -> tuple[int, str]:
+        return -1, "paused"
+
+    def _segment(self, index: int) -> tuple[int, str]:
         """On segment `index` (0-based; n: heading for the goal itself)."""
         index = max(index, 0)
         self.reached = max(self.reached, index + 1)
-        self._show(index, f"segment {index + 1}/{self.n}" if index < self.n else "to goal")
-
-    def paused(self) -> None:
-        self._show(-1, "paused")
-
-    def _show(self, key: int, what: str) -> None:
-        self.progress.update(key, time.monotonic() - self.started, what)
-
-    def done(self) -> None:
-        self.progress.done()
+        return index, f"segment {index + 1}/{self.n}" if index < self.n else "to goal"
 
 
 class _Metrics:
@@ -831,31 +831,6 @@ class _Metrics:
         return max(self.errors) if self.errors else None
 
 
-def format_pair_summary(summary: PairSummary) -> str:
-    lines = [f"run record: {summary.run}", f"duration: {summary.duration_s:.1f} s ({summary.mode})"]
-    if summary.stream:
-        st = summary.stream
-        lines.append(f"stream: {st['cycles']} cycles at {st['rate_hz']:g} Hz; late {st['late_cycles']}")
-    if summary.rms_tracking_error_bl is not None:
-        lines.append(f"tracking: RMS {summary.rms_tracking_error_bl:.3f} BL, max "
-                     f"{summary.max_tracking_error_bl:.3f} BL over {summary.frames} frames "
-                     f"({summary.lost_frames} lost); re-plans {summary.replans}")
-    if summary.min_separation_bl is not None:
-        extra = "" if summary.truth_min_separation_bl is None else \
-            f" (ground truth {summary.truth_min_separation_bl:.3f} BL)"
-        lines.append(f"closest approach: {summary.min_separation_bl:.3f} BL{extra}")
-    if summary.hold_max_error_bl is not None:
-        lines.append(f"hold: {summary.held_s:.1f} s, worst agent error "
-                     f"{summary.hold_max_error_bl:.3f} BL")
-    lines.append(f"positions from: {summary.positions_from}")
-    for i, a in enumerate(summary.agents):
-        err = "?" if a["error_bl"] is None else f"{a['error_bl']:.3f} BL"
-        lines.append(f"  agent {i}: final {a['final_mm']} mm, goal {a['goal_mm']} mm, error {err}")
-    for f in summary.faults:
-        lines.append(f"FAULT: {f['reason']}")
-    lines.append(f"REACHED and held: both agents within {summary.tolerance_bl:g} BL"
-                 if summary.reached else f"NOT REACHED (tolerance {summary.tolerance_bl:g} BL)")
-    return "\n".join(lines)
 
 
 def loopback_rig(rig: RigConfig) -> RigConfig:
