@@ -33,9 +33,9 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 import threading
 import time
-import struct
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 

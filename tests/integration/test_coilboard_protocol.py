@@ -27,10 +27,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.emulators.coilboard.firmware import FirmwareEmulator
 from rigctl.emulators.coilboard.syren import SyrenBus, SyrenWireReader
+
 from rigctl.errors import DeviceTimeout, Disconnected
 from rigctl.stream import StreamLoop
 from rigctl.testing import wait_for
@@ -77,7 +77,8 @@ class SimavrBoard:
     kind = "simavr"
 
     def __init__(self, directory: Path) -> None:
-        from rigctl.emulators.coilboard.simavr import SimavrBoard as Harness, SimavrUnavailable
+        from rigctl.emulators.coilboard.simavr import SimavrBoard as Harness
+        from rigctl.emulators.coilboard.simavr import SimavrUnavailable
 
         try:
             self.harness = Harness()
