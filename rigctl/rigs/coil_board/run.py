@@ -448,6 +448,7 @@ class CoilBoardProgram:
                 yield ZERO
         finally:
             self._holding = False
+        self._stage = "measuring"  # where the particles stand now: the run goes on from there
         self._say("resumed")
 
     def _replan(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
