@@ -154,7 +154,7 @@ def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Gener
             truth = [a.truth_error_mm for a in summary.agents]
             results.append({
                 "delivered": not summary.faults and all(t is not None and t <= epsilon for t in truth),
-                "truth_error_mm": truth, "moves": summary.moves, "planned_moves": len(result.moves),
+                "truth_error_mm": truth, "moves": summary.metrics["moves"], "planned_moves": len(result.moves),
                 "replans": summary.replans, "seconds": round(time.perf_counter() - started, 2),
                 "faults": [f["reason"] for f in summary.faults]})
     delivered = sum(r["delivered"] for r in results)

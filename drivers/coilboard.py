@@ -5,10 +5,13 @@ Usage:
     board = CoilBoard.open("serial:///dev/ttyACM0?baud=115200")   # or a pty path, or tcp://host:port
     board.set((60, 0, -30, 0))       # coils +x, -x, +y, -y; -127..127; returns the board's ACK
     board.status()                   # flags, uptime, outputs, counters
-    board.stream(lambda k: program[k] if k < len(program) else None, rate_hz=50)
     board.stop(); board.close()      # close() stops the coils first
+    board.emergency_stop()           # any thread, at once; latched: only zeros leave afterwards
 
     CoilBoard.from_settings(rig.board)   # the [board] table of a rig file (CoilBoardSettings)
+
+The driver owns no loop: a caller streams with `rigctl.stream.StreamLoop` (a run through
+`rigctl.rigs.coil_board.actuators.BoardActuators`).
 
 The link: every request carries a fresh SEQ; a reply counts only with a good CRC, the same SEQ and
 the expected type and length, so a late reply to an earlier attempt is never taken for the answer.
@@ -18,12 +21,19 @@ While open, a heartbeat thread sends STATUS whenever nothing was sent for 100 ms
 200 ms watchdog only fires when the host is really gone. When the link drops (an unplug), the driver
 re-opens the same URL and handshakes again for up to `reconnect_s`; after that every call raises
 `Disconnected` naming the board, and the board's own watchdog has already zeroed the coils.
+
+E-stop does not wait for whoever holds the link (a SET waiting for its reply, a reconnect):
+`emergency_stop` writes a STOP frame straight away under a lock of its own that only guards the
+wire (the SEQ counter and the bytes of one frame), and latches, so every later SET leaves as all
+zeros, until `connect` starts afresh. Its ACK carries a SEQ nobody waits for and is dropped as
+stale; a SET written just before it is overridden by it, one written after it is zeros.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -48,7 +58,6 @@ from rigctl.errors import (
     ProtocolError,
     RigError,
 )
-from rigctl.stream import StreamLoop, StreamStats
 from rigctl.transport import DEFAULT_BAUD, Transport, open_transport
 
 if TYPE_CHECKING:
@@ -61,6 +70,8 @@ RETRIES = 2
 RECONNECT_S = 3.0
 CONNECT_S = 3.0  # an Arduino Uno resets when its port opens; its bootloader takes up to ~2 s
 _BACKOFF_S = (0.01, 0.02, 0.05, 0.1, 0.2)
+
+_ZERO_COMMANDS = proto.encode_commands((0,) * proto.CHANNELS)
 
 _EXPECTED_REPLY = {
     proto.HELLO: proto.HELLO_REPLY,
@@ -132,7 +143,10 @@ class CoilBoard:
         # reads them, and a busy host must not throw away a reply it was merely slow to read.
         self._parser = FrameParser(stale_s=math.inf)
         self._seq = 0
-        self._lock = threading.RLock()
+        self._lock = threading.RLock()  # one request (with its retries, reconnects) at a time
+        self._wire = threading.Lock()  # one frame's SEQ and bytes at a time (e-stop takes only this)
+        self._estopped = False  # latched by emergency_stop: every SET leaves as all zeros
+        self._sent_commands = _ZERO_COMMANDS  # the SET payload last written (under _lock)
         self._last_sent = 0.0
         self.hello: HelloReply | None = None
         self.last_status: Status | None = None
@@ -180,6 +194,7 @@ class CoilBoard:
         with self._lock:
             self._closed = False
             self.fault = None
+            self._estopped = False
             hello = self._reopen(self.connect_s, why="open")
         if self.heartbeat_s and (self._heartbeat is None or not self._heartbeat.is_alive()):
             self._stop_heartbeat.clear()
@@ -257,11 +272,17 @@ class CoilBoard:
     def _request_once(self, frame_type: int, payload: bytes) -> Frame:
         """One attempt: send, read the matching reply. Raises DeviceTimeout for a lost reply,
         Disconnected for a dead link, DeviceError for an ERROR reply."""
-        if self._transport is None:
+        transport = self._transport
+        if transport is None:
             raise Disconnected(f"link to {self.url} is not open")
-        seq = self._next_seq()
-        self._parser.reset()
-        self._transport.write(proto.encode_frame(seq, frame_type, payload))
+        with self._wire:
+            if frame_type == proto.SET:
+                # checked with the wire held: an e-stop written before this frame stays in force
+                payload = _ZERO_COMMANDS if self._estopped else payload
+                self._sent_commands = payload
+            seq = self._next_seq()
+            self._parser.reset()
+            transport.write(proto.encode_frame(seq, frame_type, payload))
         now = time.monotonic()
         if self.link_up:
             self.max_gap_s = max(self.max_gap_s, now - self._last_sent)
@@ -388,19 +409,29 @@ class CoilBoard:
                                  f"+-{self.max_command}; nothing was sent", device=self.name)
         return proto.encode_commands([int(v) * d for v, d in zip(commands, self.directions)])
 
-    def _applied(self, ack: Ack) -> tuple[int, ...]:
+    def applied(self, ack: Ack) -> tuple[int, ...]:
+        """The coil commands an ACK reports applied, in the caller's sense (each coil's pull:
+        `directions` undone)."""
         return tuple(v * d for v, d in zip(ack.outputs, self.directions))
+
+    @property
+    def estopped(self) -> bool:
+        """An e-stop latched: every SET leaves as all zeros until `connect`."""
+        return self._estopped
 
     def set(self, commands: Sequence[int]) -> Ack:
         """Apply four coil commands (-max_command..max_command; +x, -x, +y, -y); returns the ACK.
+        After an e-stop the board is sent all zeros instead (the ACK says so).
 
         LimitError before any I/O for a value out of range; DeviceError if the board applied
         something else than was sent."""
         payload = self._encode(commands)
-        ack = Ack.decode(self._request(proto.SET, payload).payload)
-        if self._applied(ack) != tuple(int(v) for v in commands):
-            raise DeviceError(f"board applied {list(self._applied(ack))} for SET {list(commands)}",
-                              device=self.name)
+        with self._lock:  # the payload written and its ACK belong to this request
+            ack = Ack.decode(self._request(proto.SET, payload).payload)
+            sent = struct.unpack("<4b", self._sent_commands)
+        if tuple(ack.outputs) != sent:
+            raise DeviceError(f"board applied {list(self.applied(ack))} for SET "
+                              f"{[v * d for v, d in zip(sent, self.directions)]}", device=self.name)
         self.last_ack = ack
         return ack
 
@@ -423,22 +454,6 @@ class CoilBoard:
         self.last_status = status
         return status
 
-    def stream(self, commands: Callable[[int], Sequence[int] | None], rate_hz: float,
-               max_cycles: int | None = None) -> StreamStats:
-        """Send `commands(k)` at `rate_hz` (cycle k due at k / rate_hz) until it returns None.
-
-        A fault (the board gone after reconnecting, an error reply) ends the stream and is raised."""
-        loop = StreamLoop(rate_hz)
-
-        def cycle(k: int) -> bool:
-            values = commands(k)
-            if values is None:
-                return False
-            self.set(values)
-            return True
-
-        return loop.run(cycle, max_cycles=max_cycles)
-
     # -- heartbeat ------------------------------------------------------------------------------
 
     def _heartbeat_loop(self) -> None:
@@ -456,6 +471,26 @@ class CoilBoard:
                 if self.fault is None:
                     self.fault = err
                 return
+
+    # -- e-stop ---------------------------------------------------------------------------------
+
+    def emergency_stop(self) -> bool:
+        """All coils off now, from any thread, without waiting for a request in progress: writes
+        a STOP frame and latches (every later SET leaves as all zeros, until `connect`). Never
+        raises; False if the frame could not be written (no link: the board's watchdog zeroes the
+        coils within its 200 ms by itself)."""
+        self._estopped = True
+        transport = self._transport
+        if transport is None:
+            log.error("%s: e-stop: no link to write STOP to", self.name)
+            return False
+        try:
+            with self._wire:
+                transport.write(proto.encode_frame(self._next_seq(), proto.STOP, b""))
+        except Exception as err:  # a dead or closing link: the latch still holds
+            log.error("%s: e-stop: STOP could not be written: %s", self.name, err)
+            return False
+        return True
 
     # -- closing --------------------------------------------------------------------------------
 

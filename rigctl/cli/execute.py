@@ -21,7 +21,8 @@ from rigctl.run.summary import format_summary, summary_json_line
 
 def _execute_coil_board(plan, args: argparse.Namespace) -> int:
     """A coil-board plan: exit 0 reached, 1 not, 2 bad input, 3 fault."""
-    from rigctl.rigs.coil_board.run import execute_coilboard, format_coilboard_summary
+    from rigctl.rigs.coil_board.run import CoilBoardRun
+    from rigctl.run.summary import exit_code
 
     out = None if args.quiet else sys.stderr
     if args.open_loop:
@@ -36,13 +37,11 @@ def _execute_coil_board(plan, args: argparse.Namespace) -> int:
         raise ConfigError("--firmware chooses the emulated bench that execute starts itself: "
                           "give it to `rigctl emulate coil-board` when using --rig")
     with rig_for_run(args.rig, "coil-board", extra_args=extra, progress_out=out) as rig:
-        summary = execute_coilboard(plan, rig, runs_dir=args.runs, progress_out=out)
-    print(format_coilboard_summary(summary))
+        summary = CoilBoardRun(plan, rig, runs_dir=args.runs, progress_out=out).execute()
+    print(format_summary(summary))
     if args.json:
         print(summary_json_line(summary))
-    if summary.faults:
-        return EXIT_FAULT
-    return EXIT_OK if summary.reached else EXIT_NOT_REACHED
+    return exit_code(summary)
 
 
 def _execute_depm(plan, args: argparse.Namespace) -> int:

@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
@@ -44,11 +43,21 @@ def test_execute_delivers_both_particles_within_the_tolerance(tmp_path):
         assert agent["error_mm"] <= plan.tolerance_mm
         assert agent["truth_error_mm"] <= plan.tolerance_mm
         assert abs(np.hypot(*(np.array(agent["final"]) - goal)) - agent["error_mm"]) < 1e-3
-    assert summary["moves"] >= len(plan.moves)
+    assert summary["state"] == "done" and summary["safe"]  # the board's STOP ACK: all zero
+    moves = summary["metrics"]["moves"]
+    assert moves >= len(plan.moves)
     events = [json.loads(line) for line in
               (Path(summary["run"]) / "events.jsonl").read_text().splitlines()]
-    assert events[0]["event"] == "start" and events[-1]["event"] == "end"
-    assert sum(e["event"] == "move" for e in events) == summary["moves"]
+    names = [e["event"] for e in events]
+    assert names[0] == "prepared"
+    # The particles are found before the board is energised, and it is safe before the end.
+    assert names.index("found") < names.index("energised") < names.index("safe")
+    assert events[-1] == {**events[-1], "event": "state", "state": "done"}
+    assert sum(name == "move" for name in names) == moves
+    # Every command in the record is within the board's drive, in the board's own channels.
+    channels = json.loads((Path(summary["run"]) / "channels.json").read_text())
+    assert [(c["name"], c["unit"], c["high"]) for c in channels] == [
+        (name, "drive", 127) for name in ("+x", "-x", "+y", "-y")]
 
 
 def test_execute_refuses_open_loop_before_anything_starts(tmp_path):

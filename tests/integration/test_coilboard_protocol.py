@@ -21,16 +21,18 @@ from __future__ import annotations
 import binascii
 import os
 import struct
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.emulators.coilboard.firmware import FirmwareEmulator
 from rigctl.emulators.coilboard.syren import SyrenBus, SyrenWireReader
+
 from rigctl.errors import DeviceTimeout, Disconnected
+from rigctl.stream import StreamLoop
 from rigctl.testing import wait_for
 from rigctl.transport import Transport, open_transport
 
@@ -75,7 +77,8 @@ class SimavrBoard:
     kind = "simavr"
 
     def __init__(self, directory: Path) -> None:
-        from rigctl.emulators.coilboard.simavr import SimavrBoard as Harness, SimavrUnavailable
+        from rigctl.emulators.coilboard.simavr import SimavrBoard as Harness
+        from rigctl.emulators.coilboard.simavr import SimavrUnavailable
 
         try:
             self.harness = Harness()
@@ -301,10 +304,58 @@ def test_driver_round_trip_and_heartbeats_keep_the_watchdog_quiet(board) -> None
 def test_driver_streams_commands_at_a_fixed_rate(board) -> None:
     program = [(k, 0, -k, 0) for k in range(0, 40, 4)]  # ten SETs
     with CoilBoard.open(board.url, reply_timeout_s=1.0) as driver:
-        stats = driver.stream(lambda k: program[k] if k < len(program) else None, rate_hz=50.0)
+        # The driver owns no loop: the caller runs the stream loop and the driver sends.
+        def cycle(k: int) -> bool:
+            if k >= len(program):
+                return False
+            driver.set(program[k])
+            return True
+
+        stats = StreamLoop(50.0).run(cycle)
         assert stats.cycles == len(program) + 1  # the last cycle finds the program ended
         assert driver.status().outputs == program[-1]
         assert driver.lost_replies == 0
+
+
+def test_emergency_stop_from_another_thread_zeroes_the_coils_and_latches(board) -> None:
+    with CoilBoard.open(board.url, reply_timeout_s=1.0) as driver:
+        wait_for(lambda: driver.status().syren_ready, timeout_s=10.0, what="SYREN_READY")
+        driver.set((90, 0, 0, -60))
+        wait_for(lambda: board.bus.outputs() == pytest.approx((90 / 127, 0.0, 0.0, -60 / 127)),
+                 timeout_s=5.0, what="the SyRens at the commanded drive")
+        sets = threading.Event()
+        stop_streaming = threading.Event()
+        errors: list[BaseException] = []
+
+        def cycle(k: int) -> bool:
+            driver.set((90, 0, 0, -60))
+            sets.set()
+            return not stop_streaming.is_set()
+
+        def stream() -> None:  # a stream thread that keeps commanding the pull
+            try:
+                StreamLoop(100.0).run(cycle)
+            except BaseException as err:  # noqa: BLE001 - reported by the test
+                errors.append(err)
+
+        streamer = threading.Thread(target=stream)
+        streamer.start()
+        try:
+            assert sets.wait(5.0)
+            assert driver.emergency_stop()  # this thread, while the other one is mid-request
+            assert driver.estopped
+            # Every SET after the e-stop leaves as zeros: the board reports them applied.
+            sent = driver.requests
+            wait_for(lambda: driver.requests >= sent + 5, timeout_s=5.0, what="five more requests")
+            wait_for(lambda: board.bus.outputs() == pytest.approx((0.0, 0.0, 0.0, 0.0)),
+                     timeout_s=5.0, what="every SyRen at zero")
+            assert driver.last_ack.outputs == (0, 0, 0, 0)
+            assert driver.status().outputs == (0, 0, 0, 0)
+        finally:
+            stop_streaming.set()
+            streamer.join(5.0)
+        assert errors == []
+        assert driver.set((10, 0, 0, 0)).outputs == (0, 0, 0, 0)  # still latched
 
 
 def test_driver_reconnects_after_unplug_and_replug(own_board) -> None:

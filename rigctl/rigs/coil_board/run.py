@@ -8,13 +8,24 @@ on with the new moves. It stops when both particles are within the plan's tolera
 (reached), or after `max_moves` moves (not reached), or on a fault.
 
 A move is driven, not timed: the coils pull along the move's direction (the +x/-x and +y/-y coils
-in the ratio of its components, the larger at full drive), and the stream loop watches the tracked
-particles: a move meant to bring a particle to a wall ends when it is there (or held); any other
-when the particles that should end it in free space are, on average, where it puts them (a
-particle meant to be pinned stays on its wall by itself). The
-drive is ramped down over the last `slow_zone_mm` and the stop is anticipated by the tracking
-latency, so a particle that moves fast near a coil does not overshoot much. What the field's
-non-uniformity does to the other particle is measured after the move and corrected by re-planning.
+in the ratio of its components, the larger at full drive), and every stream cycle looks at the
+tracked particles: a move meant to bring a particle to a wall ends when it is there (or held); any
+other when the particles that should end it in free space are, on average, where it puts them (a
+particle meant to be pinned stays on its wall by itself). The drive is ramped down over the last
+`slow_zone_mm` and the stop is anticipated by the tracking latency, so a particle that moves fast
+near a coil does not overshoot much. What the field's non-uniformity does to the other particle is
+measured after the move and corrected by re-planning.
+
+On the one run engine (`rigctl.run.engine`) this is a `CoilBoardProgram`: the whole of Alg. 1's
+loop is one generator that yields the four coil commands of each stream cycle (zeros while the
+particles settle, while a frame is awaited, while paused or while tracking is lost; re-planning
+inline, with the coils at zero), and `next()` advances it by one cycle. The engine owns the record,
+the board (`BoardActuators`), the states, pause / abort / e-stop and the safe end. Particles in a
+viscous fluid stop when the pull stops, so "hold still" is simply zero drive: a pause lets the
+current move finish and holds zeros; a pause now ends the move at once, and on resume the run goes
+on from the measured positions (re-planning if the move was left short). Lost tracking suspends
+the run (zeros) until the particles are seen again; it is a fault of the camera only if it stays
+lost for `lost_limit_s`.
 
 Safety as everywhere: the plan is checked before the board is opened; the board's watchdog zeroes
 the coils if this process stops talking; every exit path stops the coils; a fault of the board,
@@ -23,31 +34,41 @@ the camera or the tracking ends the run with the device named (exit status 3).
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import sys
+import threading
 import time
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
 import numpy as np
 
-from rigctl.config import RigConfig, dump_rig
+from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, DeviceTimeout, PlanError, RigError
 from rigctl.plans.checks import check_plan, plan_workspace
-from rigctl.plans.schema import GlobalMovesPlan, dump_plan
+from rigctl.plans.schema import GlobalMovesPlan
 from rigctl.plans.wall_contact import (
     CentreRegion,
     DiskRegion,
     centre_region,
     plan_two_particles,
 )
-from rigctl.record import RunRecord
-from rigctl.run.summary import AgentResult, RunSummary, format_summary
+from rigctl.rigs.coil_board.actuators import BoardActuators
+from rigctl.run.control import RunState
+from rigctl.run.engine import Outcome, RunContext, Step
+from rigctl.run.engine import Run as EngineRun
+from rigctl.run.summary import AgentResult, RunSummary
 
 log = logging.getLogger(__name__)
 
+ZERO = (0, 0, 0, 0)  # every coil off: the particles stop (viscous fluid)
+
+# The commands of a run: one per stream cycle; returns when the run is over.
+Commands = Generator[tuple[int, ...], None, None]
 
 
 @dataclass(frozen=True)
@@ -76,7 +97,10 @@ class CoilBoardRunSettings:
     normal direction (Alg. 1's `push`), so that the pinned one is pushed, not grazed;
     keep_apart_mm: re-planned relative moves keep this gap between the particles (the camera
     sees touching particles as one blob); learn_min_mm: only moves at least this long teach the
-    `RelativeDrift`.
+    `RelativeDrift`; syren_ready_timeout_s: the board's SyRens must report ready within this
+    long; acquire_timeout_s: the camera must find both particles within this long; lost_limit_s:
+    tracking lost (the run suspended, coils at zero) this long is a fault of the camera (None:
+    the camera's `timeout_s`, the bound of a lost frame).
     """
 
     drive: int = 127
@@ -104,6 +128,7 @@ class CoilBoardRunSettings:
     lean_lag_cycles: int = 3
     syren_ready_timeout_s: float = 5.0
     acquire_timeout_s: float = 10.0
+    lost_limit_s: float | None = None
 
 
 def planning_region(plan: GlobalMovesPlan, radius_mm: float) -> CentreRegion:
@@ -203,21 +228,18 @@ class RelativeDrift:
         return goal_delta / self.growth(start_mean, goal_mean - start_mean)
 
 
-@dataclass
-class CoilBoardSummary(RunSummary):
-    """A run summary with the moves driven (a coil-board run's move count is not the plan's)."""
-
-    moves: int = 0
-
-    def as_dict(self) -> dict:
-        return {**super().as_dict(), "moves": self.moves}
 
 
-class CoilBoardRun:
-    """One run: `execute()` returns the summary; device faults are reported, not raised."""
+class CoilBoardProgram:
+    """Alg. 1 closed through the camera, as the engine's program (see the module docstring).
 
-    def __init__(self, plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-                 progress_out: TextIO | None = sys.stderr,
+    Construction refuses what cannot run (PlanError, ConfigError) without I/O. `start` places the
+    particles (emulated bench), starts tracking and takes the first measurement; `next` gives each
+    stream cycle's four coil commands; `finish` takes the camera's last look."""
+
+    late = "slip"  # a late cycle only holds the pull a little longer; a move ends on the camera
+
+    def __init__(self, plan: GlobalMovesPlan, rig: RigConfig, *,
                  settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> None:
         if plan.kind != "global-moves" or plan.rig != "coil-board":
             raise PlanError(f"{plan.source}: a coil-board run takes a coil-board global-moves plan")
@@ -236,8 +258,11 @@ class CoilBoardRun:
         self.plan = plan
         self.rig = rig
         self.settings = settings
-        self.out = progress_out
-        self.runs_dir = runs_dir
+        self.rate_hz = settings.rate_hz
+        self.planned_moves = np.array(plan.moves, dtype=float).reshape(-1, 2)
+        self.n_moves = len(self.planned_moves)
+        self.duration_s = 0.0  # unknown: a move lasts until the camera sees it done
+        self.info = {"name": plan.name, "moves": self.n_moves, "duration_s": None}
         self.radii = np.array([a.radius for a in plan.agents], dtype=float)
         self.starts = np.array([a.start for a in plan.agents], dtype=float)
         self.goals = np.array([a.goal for a in plan.agents], dtype=float)
@@ -248,91 +273,163 @@ class CoilBoardRun:
         self.coils_centre = np.zeros(2)
         # Particles that touch make one blob on the camera: re-planned moves keep them apart.
         self.reach = float(self.radii.sum() + max(plan.min_separation_mm, settings.keep_apart_mm))
+        self.lost_limit_s = (settings.lost_limit_s if settings.lost_limit_s is not None
+                             else rig.camera.timeout_s)
         self.replans = 0
         self.moves_done = 0
         self.drift = RelativeDrift()
-        self.lost_holds = 0  # moves held while the tracker had lost a particle
-        self.board = None
-        self.tracking = None
-        self.record: RunRecord | None = None
-        self._sample = 0
+        self.lost_holds = 0  # times the run held (suspended) while the tracker had lost a particle
+        self.tracking = None  # TrackingLoop, from `start`
+        self.record = None
+        self.suspended: str | None = None
+        self.reached = False
+        self._say: Callable[[str], None] = lambda text: None
+        self._commands: Commands | None = None
+        self._position: np.ndarray | None = None
+        self._move = -1  # the move being driven (0-based, as the record's `move`), -1 between
+        self._stage = "starting"
+        self._wake: Callable[[], None] = lambda: None
+        # control, from any thread
+        self._lock = threading.Lock()
+        self._pause_requested = False
+        self._pause_now = False
+        self._abort_requested = False
+        self._holding = False
+        self._aborted = False
+        self._tracking_stopped = False
 
-    # -- the run --------------------------------------------------------------------------------
-    def execute(self) -> CoilBoardSummary:
-        from rigctl.drivers.coilboard import CoilBoard
+    # -- control, from any thread ---------------------------------------------------------------
+    def pause(self, immediate: bool = False) -> None:
+        """Hold zeros at the end of the current move, or (`immediate`) end the move now."""
+        with self._lock:
+            self._pause_requested = True
+            self._pause_now = self._pause_now or immediate
+
+    def resume(self) -> None:
+        with self._lock:
+            self._pause_requested = False
+            self._pause_now = False
+        self._wake()  # a hold of zeros: the next command may as well leave now
+
+    def abort(self) -> None:
+        with self._lock:
+            self._abort_requested = True
+        self._wake()
+
+    @property
+    def aborted(self) -> bool:
+        return self._aborted
+
+    @property
+    def paused(self) -> bool:
+        """Holding still at a pause (the coils at zero), or ending the move for a pause now."""
+        return self._holding or (self._pause_requested and self._pause_now)
+
+    def attach_wake(self, wake: Callable[[], None]) -> None:
+        self._wake = wake
+
+    # -- the run's phases -----------------------------------------------------------------------
+    def start(self, ctx: RunContext) -> None:
+        """Place the particles (emulated bench), start tracking them and take the first
+        measurement; nothing is energised yet."""
+        from rigctl.run.emulated import portable_workspace
         from rigctl.vision.tracking import TrackingLoop
 
-        started = time.monotonic()
-        record = self.record = RunRecord(self.runs_dir, self.plan.name or "coil-board-plan")
-        record.write_file("plan.json", dump_plan(self.plan))
-        record.write_file("rig.toml", dump_rig(self.rig))
-        record.event("start", plan=self.plan.source, rig=self.rig.rig.name,
-                     tolerance_mm=self.tolerance, emulated=self.rig.emulated)
-        record.open_stream(list(self.rig.board.coil_names), self.settings.rate_hz)
-        faults: list[dict] = []
-        backdoor = None
+        self.record, self._say = ctx.record, ctx.say
+        if ctx.backdoor is not None:
+            ctx.backdoor.request("place", workspace=portable_workspace(self.plan), agents=[
+                {"position": a.start, "radius": a.radius} for a in self.plan.agents])
+            ctx.record.event("placed", agents=self.starts.tolist())
+        xmin, ymin, xmax, ymax = self.workspace.bounds
+        self.tracking = TrackingLoop(self.rig.camera, self.radii, self.starts,
+                                     roi_mm=(xmin, ymin, xmax, ymax))
+        self.tracking.start(self.settings.acquire_timeout_s)
+        self._position = self._measure_now()
+        ctx.record.event("found", positions=self._position.tolist(),
+                         tolerance_mm=self.tolerance)
+        self._commands = self._run_moves()
+
+    def connected(self, actuators) -> None:
+        pass  # the board starts with every coil off: nothing to read
+
+    def next(self, k: int, measured: np.ndarray | None) -> Step | None:
+        if self._abort_requested:
+            if self._aborted:
+                return None
+            self._aborted = True  # one cycle of zeros, then the end (the engine stops the coils)
+            self._holding, self.suspended, self._move = False, None, -1
+            return Step(np.zeros(4), k, -1, stage="aborting")
+        if self._commands is None:
+            return None
         try:
-            if self.rig.emulation is not None:
-                backdoor = self._place_on_bench()
-            self._say(f"opening the board at {self.rig.board.url}")
-            self.board = CoilBoard.from_settings(self.rig.board)
-            self._wait_syren_ready()
-            xmin, ymin, xmax, ymax = plan_workspace(self.plan).bounds
-            self.tracking = TrackingLoop(self.rig.camera, self.radii, self.starts,
-                                         roi_mm=(xmin, ymin, xmax, ymax))
-            self.tracking.start(self.settings.acquire_timeout_s)
-            self._loop()
-        except RigError as err:
-            log.error("coil-board run: %s", err)
-            faults.append({"device": err.device or "rig", "reason": str(err)})
-            record.event("fault", device=err.device, reason=str(err))
-        finally:
-            measured = self._final_measurement()
-            self._shut_down(faults)
-        agents, source = self._results(measured, backdoor)
-        if backdoor is not None:
-            backdoor.close()
+            values = next(self._commands)
+        except StopIteration:
+            return None
+        return Step(np.array(values, dtype=float), k, self._move, stage=self._stage)
+
+    def finish(self, ctx: RunContext) -> Outcome:
+        """The camera's last look (the coils are off) against the goals, with ground truth's
+        error beside it on an emulated bench."""
+        measured = self._final_measurement()
+        self._stop_tracking()
+        agents, source = self._results(measured, ctx.backdoor)
         # Reached: the camera's last look, after the coils were stopped, has both within tolerance.
-        reached = not faults and all(a.error_mm is not None and a.error_mm <= self.tolerance
-                                     for a in agents)
+        reached = all(a.error_mm is not None and a.error_mm <= self.tolerance for a in agents)
         tracking = None
         if self.tracking is not None:
             tracking = {"frames": self.tracking.frames, "lost_frames": self.tracking.lost_frames,
                         "holds": self.lost_holds}
-        summary = CoilBoardSummary(
-            reached=reached, agents=agents, run=str(record.path),
-            duration_s=time.monotonic() - started, positions_from=source,
-            tolerance_mm=self.tolerance, faults=faults, replans=self.replans, tracking=tracking,
-            moves=self.moves_done)
-        record.event("end", reached=reached, moves=self.moves_done, replans=self.replans)
-        record.finish(summary.as_dict())
-        return summary
+        ctx.record.event("closed_loop", reached=reached, moves=self.moves_done,
+                         replans=self.replans, drift_k=self.drift.k.tolist())
+        return Outcome(
+            agents=agents, reached=reached, positions_from=source, tolerance_mm=self.tolerance,
+            metrics={"moves": self.moves_done, "drift_k": [round(float(v), 6) for v in self.drift.k]},
+            replans=self.replans, tracking=tracking,
+            details=[f"moves: {self.moves_done} driven, {self.replans} re-plans from the camera"])
 
-    def _loop(self) -> bool:
-        """Moves until both particles are within the tolerance; True if they got there."""
+    def close(self) -> None:
+        if self._commands is not None:
+            self._commands.close()
+        self._stop_tracking()
+
+    def _stop_tracking(self) -> None:
+        if self.tracking is not None and not self._tracking_stopped:
+            self._tracking_stopped = True
+            self.tracking.stop()
+
+    # -- Alg. 1's loop, one command per stream cycle --------------------------------------------
+    def _run_moves(self) -> Commands:
+        """Moves until both particles are within the tolerance (`reached`), or Alg. 1 finds
+        nothing better, or `max_moves` moves were driven."""
         s = self.settings
-        moves = np.array(self.plan.moves, dtype=float).reshape(-1, 2)
+        moves = self.planned_moves
         expected = np.array(self.plan.expected, dtype=float).reshape(-1, 2, 2) \
             if self.plan.expected is not None else None
         index = 0
-        position = self._measure()
+        position = self._position
+        assert position is not None
         while True:
+            if self._pause_requested:
+                yield from self._hold()
+                position = yield from self._measure(time.monotonic(), "a frame after the pause")
             error = float(np.max(np.hypot(*(position - self.goals).T)))
             if error <= self.tolerance:
                 self._say(f"both particles within {self.tolerance:g} mm (worst {error:.3f} mm)")
-                return True
+                self.reached = True
+                return
             if self.moves_done >= s.max_moves:
                 self._say(f"stopping after {self.moves_done} moves: worst error {error:.3f} mm")
-                return False
+                return
             follow = (expected is not None and index < len(moves) and (index == 0 or float(np.max(
                 np.hypot(*(position - expected[index - 1]).T))) <= s.follow_fraction * self.tolerance))
             if not follow:
+                # inline, on the stream thread: the coils are at zero and the particles still
                 moves, expected = self._replan(position)
                 index = 0
                 if not len(moves) or np.hypot(*moves.T).max() < s.skip_mm:
                     self._say(f"Alg. 1 finds no move the rig can make that improves on "
                               f"{error:.3f} mm")
-                    return False
+                    return
             move, end = moves[index], expected[index]
             index += 1
             if math.hypot(*move) < s.skip_mm:
@@ -340,7 +437,19 @@ class CoilBoardRun:
             self.moves_done += 1
             self._say(f"move {self.moves_done}: ({move[0]:+.2f}, {move[1]:+.2f}) mm"
                       + ("" if follow else " (re-planned)"))
-            position = self._drive(move, position, end)
+            position = yield from self._drive(move, position, end)
+
+    def _hold(self) -> Commands:
+        """A pause: zeros until resumed (or aborted: `next` ends the run)."""
+        self._holding, self._move, self._stage = True, -1, "paused"
+        self._say("paused: every coil at zero")
+        try:
+            while self._pause_requested:
+                yield ZERO
+        finally:
+            self._holding = False
+        self._stage = "measuring"  # where the particles stand now: the run goes on from there
+        self._say("resumed")
 
     def _replan(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Alg. 1 from the measured positions (2, 2): moves (m, 2) and the states it expects.
@@ -395,14 +504,15 @@ class CoilBoardRun:
         return inside
 
     # -- one move -------------------------------------------------------------------------------
-    def _drive(self, move: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    def _drive(self, move: np.ndarray, start: np.ndarray,
+               end: np.ndarray) -> Generator[tuple[int, ...], None, np.ndarray]:
         """Pull along `move` until the particles that should end it in free space are, on average,
         where the move puts them; then stop the coils and measure. Returns positions (2, 2).
 
         The pull is steered (within `max_steer_deg` of the move's direction) towards the watched
         particles' mean target, and turned against the measured difference between the direction
         the coils were asked to pull in and the direction the particles went (the field leans
-        towards the active coils' centres)."""
+        towards the active coils' centres). A pause now ends the move at once."""
         s = self.settings
         u = move / math.hypot(*move)
         planned = (end - start) @ u  # (2,) planned advance along u
@@ -435,28 +545,29 @@ class CoilBoardRun:
         lost_since: float | None = None  # tracking lost since (monotonic s)
         began = time.monotonic()
         tracking = self.tracking
-        assert tracking is not None and self.board is not None
-        move_number = self.moves_done
+        assert tracking is not None
+        number = self.moves_done
+        self._move, self._stage = number - 1, f"move {number}"
         max_steer = math.radians(s.max_steer_deg)
         base = math.atan2(u[1], u[0])
+        interrupted = False
 
-        def command(_: int) -> list[int] | None:
-            nonlocal lean, lost_since
+        while True:
+            if self._pause_requested and self._pause_now:
+                interrupted = True  # pause now: the coils go to zero in this very cycle
+                break
             now = time.monotonic()
             state = tracking.latest()
             if not tracking.ok(now):
-                # Hold (coils off) while the tracker looks for them; give up after the camera's
-                # timeout.
-                lost_since = now if lost_since is None else lost_since
-                if tracking.failure is not None or now - lost_since > self.rig.camera.timeout_s:
-                    raise DeviceTimeout("tracking lost during a move (no fresh frame with both "
-                                        "particles); the coils were stopped", device="camera")
+                # Suspended (coils off) while the tracker looks for them.
+                lost_since = self._lost(lost_since, now, "tracking lost during a move (no fresh "
+                                        "frame with both particles); the coils were stopped")
                 history.clear()
-                self._log_row(move_number, [0, 0, 0, 0])
-                return [0, 0, 0, 0]
+                yield ZERO
+                continue
             if lost_since is not None:
-                self.lost_holds += 1
-                self.record.event("tracking_regained", after_s=now - lost_since)
+                self._regained(lost_since, now)
+                began += now - lost_since  # the hold is not the move's time
                 lost_since = None
             if not history or history[-1][0] != state.t_source:
                 history.append((state.t_source, state.positions_mm))
@@ -473,7 +584,7 @@ class CoilBoardRun:
             offset = target - np.mean(state.positions_mm[watched], axis=0) - velocity * lead
             if offset @ u <= 0 or now - began > s.move_timeout_s or self._stalled(
                     history, now, began, watched):
-                return None
+                break
             speed = math.hypot(*velocity)
             if speed > s.lean_speed_mm_s and len(sent) > s.lean_lag_cycles:
                 seen = math.atan2(velocity[1], velocity[0]) - sent[-1 - s.lean_lag_cycles]
@@ -491,21 +602,19 @@ class CoilBoardRun:
                 angle = wall + max(-pin_limit, min(pin_limit, off))
             if pinned.any() and float(np.max(np.hypot(*(state.positions_mm - start)[pinned].T))) \
                     > s.pin_slip_mm:
-                return None  # a pinned particle slipped: stop and re-plan from here
+                break  # a pinned particle slipped: stop and re-plan from here
             sent.append(angle)
             direction = np.array([math.cos(angle), math.sin(angle)])
             direction /= max(abs(direction[0]), abs(direction[1]))
             pulls = (max(direction[0], 0), max(-direction[0], 0), max(direction[1], 0),
                      max(-direction[1], 0))
             fraction = min(1.0, max(s.min_drive_fraction, (offset @ u) / s.slow_zone_mm))
-            values = [int(round(s.drive * fraction * p)) for p in pulls]
-            self._log_row(move_number, values)
-            return values
+            yield tuple(int(round(s.drive * fraction * p)) for p in pulls)
 
-        self.board.stream(command, self.settings.rate_hz)
-        self.board.stop()
-        self._log_row(move_number, [0, 0, 0, 0])
-        measured = self._measure(after=time.monotonic() + s.settle_s)
+        # The coils go to zero from this cycle on; the first frame taken `settle_s` later is the
+        # measurement.
+        measured = yield from self._measure(time.monotonic() + s.settle_s,
+                                            "no frame with both particles after the move")
         # A move both particles made freely (neither held, neither stopped by a wall) shows how
         # a translation changes their relative position here.
         advances = (measured - start) @ u
@@ -515,9 +624,10 @@ class CoilBoardRun:
             self.drift.observe(start.mean(axis=0) - self.coils_centre,
                                measured.mean(axis=0) - start.mean(axis=0),
                                start[1] - start[0], measured[1] - measured[0])
-        self.record.event("move", number=move_number, move=move.tolist(), expected=end.tolist(),
+        self.record.event("move", number=number, move=move.tolist(), expected=end.tolist(),
                           measured=measured.tolist(), lean_deg=math.degrees(lean),
-                          seconds=time.monotonic() - began)
+                          seconds=time.monotonic() - began, interrupted=interrupted)
+        self._move = -1
         return measured
 
     def _stalled(self, history: list, now: float, began: float, watched: np.ndarray) -> bool:
@@ -530,27 +640,61 @@ class CoilBoardRun:
             return False
         return float(np.max(np.hypot(*(recent[-1] - recent[0])[watched].T))) < s.stall_mm
 
-    def _log_row(self, move: int, values: list[int]) -> None:
-        applied = list(self.board.last_ack.outputs) if self.board.last_ack is not None else [0] * 4
-        self.record.stream_row(self._sample, move, values, applied)
-        self._sample += 1
-
     # -- measuring --------------------------------------------------------------------------------
-    def _measure(self, after: float | None = None) -> np.ndarray:
-        """Positions (2, 2) mm from the first frame taken after monotonic `after` (default: now)."""
+    def _measure(self, after: float, what: str) -> Generator[tuple[int, ...], None, np.ndarray]:
+        """Zeros until a frame taken after monotonic `after` shows both particles; returns their
+        positions (2, 2) mm. No such frame within the camera's timeout (or the tracker lost
+        them): suspended until there is one."""
         assert self.tracking is not None
-        after = time.monotonic() if after is None else after
-        timeout = self.rig.camera.timeout_s + max(0.0, after - time.monotonic())
-        state = self.tracking.captured_after(after, timeout)
+        tracking = self.tracking
+        lost_since: float | None = None
+        while True:
+            now = time.monotonic()
+            state = tracking.latest()
+            if state is not None and state.t_source > after and not state.lost.any():
+                if lost_since is not None:
+                    self._regained(lost_since, now)
+                return state.positions_mm.copy()
+            if not tracking.ok(now) or now > after + tracking.timeout_s:
+                lost_since = self._lost(lost_since, now, f"tracking lost: {what}")
+            yield ZERO
+
+    def _lost(self, since: float | None, now: float, reason: str) -> float:
+        """Tracking is lost now: suspend (the first time), and give up as a fault of the camera
+        once it has been lost for `lost_limit_s` or the camera itself failed. Returns since when."""
+        failure = self.tracking.failure
+        if failure is not None:
+            raise DeviceTimeout(f"{reason}: the camera failed ({failure}); the coils were stopped",
+                                device="camera")
+        if since is None:
+            self.suspended = reason
+            self.record.event("tracking_lost", reason=reason)
+            self._say(f"suspended: {reason}")
+            return now
+        if now - since > self.lost_limit_s:
+            raise DeviceTimeout(f"{reason}, for {self.lost_limit_s:g} s", device="camera")
+        return since
+
+    def _regained(self, since: float, now: float) -> None:
+        self.lost_holds += 1
+        self.suspended = None
+        self.record.event("tracking_regained", after_s=now - since)
+        self._say(f"tracking regained after {now - since:.2f} s")
+
+    def _measure_now(self) -> np.ndarray:
+        """Positions (2, 2) mm from the first frame taken from now on (blocking: nothing is
+        being streamed); DeviceTimeout naming the camera if none comes in its timeout."""
+        assert self.tracking is not None
+        state = self.tracking.captured_after(time.monotonic(), self.rig.camera.timeout_s)
         if state is None:
-            raise DeviceTimeout("no frame with both particles after the move", device="camera")
+            raise DeviceTimeout("no frame with both particles", device="camera")
         return state.positions_mm.copy()
 
     def _final_measurement(self) -> np.ndarray | None:
-        if self.tracking is None or self.tracking.latest() is None:
+        if self.tracking is None or self._tracking_stopped or self.tracking.latest() is None:
             return None
         try:
-            return self._measure(after=time.monotonic())
+            return self._measure_now()
         except RigError:
             state = self.tracking.latest()
             return state.positions_mm.copy() if state is not None else None
@@ -572,52 +716,25 @@ class CoilBoardRun:
                                            if truth is not None else "")
         return agents, source
 
-    # -- set-up and shut-down ---------------------------------------------------------------------
-    def _place_on_bench(self):
-        from rigctl.emulators.backdoor import BackdoorClient
-        from rigctl.run.emulated import portable_workspace
 
-        backdoor = BackdoorClient(self.rig.emulation.backdoor)
-        backdoor.request("place", workspace=portable_workspace(self.plan),
-                         agents=[{"position": a.start, "radius": a.radius} for a in self.plan.agents])
-        return backdoor
-
-    def _wait_syren_ready(self) -> None:
-        """The board sends to the SyRens only after their start-up (2 s after power-on)."""
-        deadline = time.monotonic() + self.settings.syren_ready_timeout_s
-        while not self.board.status().syren_ready:
-            if time.monotonic() > deadline:
-                raise DeviceTimeout("the board never reported its SyRen drivers ready "
-                                    f"(SYREN_READY) within {self.settings.syren_ready_timeout_s:g} s",
-                                    device=self.board.name)
-            time.sleep(0.05)  # a bounded poll of the board's own state, not of a server
-
-    def _shut_down(self, faults: list[dict]) -> None:
-        if self.board is not None:
-            try:
-                self.board.close()  # stops the coils first
-            except RigError as err:
-                if not faults:
-                    faults.append({"device": err.device or "coil board", "reason": str(err)})
-        if self.tracking is not None:
-            self.tracking.stop()
-
-    def _say(self, text: str) -> None:
-        if self.out is not None:
-            print(f"  {text}", file=self.out, flush=True)
+def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
+                 progress_out: TextIO | None = None,
+                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
+                 on_state: Callable[[RunState, dict], None] | None = None,
+                 settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> EngineRun:
+    """The run of a two-particle plan on a coil board (the one engine with `CoilBoardProgram`).
+    Refusals (PlanError, ConfigError) raise here, before anything is opened."""
+    program = CoilBoardProgram(plan, rig, settings=settings)
+    connect = functools.partial(BoardActuators.connect,
+                                syren_ready_timeout_s=settings.syren_ready_timeout_s)
+    return EngineRun(program, rig, connect, runs_dir=runs_dir, progress_out=progress_out,
+                     on_cycle=on_cycle, on_state=on_state)
 
 
 def execute_coilboard(plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
                       progress_out: TextIO | None = sys.stderr,
-                      settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> CoilBoardSummary:
-    """Run `plan` on the coil board `rig`; refusals raise before anything is opened."""
+                      settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> RunSummary:
+    """Run `plan` on the coil board `rig` and return the summary; refusals raise before anything
+    is opened, device faults are reported in the summary."""
     return CoilBoardRun(plan, rig, runs_dir=runs_dir, progress_out=progress_out,
                         settings=settings).execute()
-
-
-def format_coilboard_summary(summary: CoilBoardSummary) -> str:
-    lines = format_summary(summary).splitlines()
-    lines.insert(2, f"moves: {summary.moves} driven, {summary.replans} re-plans from the camera")
-    return "\n".join(lines)
-
-
