@@ -232,11 +232,12 @@ def test_device_fault_stops_the_run_naming_the_device(tmp_path, capsys, fault, n
         assert "suspended" in states and states[-1] == "faulted"
 
 
-def run_in_thread(plan: Path, rig_path: Path, tmp_path: Path, states: list):
+def run_in_thread(plan: Path, rig_path: Path, tmp_path: Path, states: list,
+                  time_scale: float = TIME_SCALE):
     """A FieldSequenceRun on its own thread; `states` collects its state changes."""
     run = FieldSequenceRun(load_plan(plan), load_rig(rig_path), runs_dir=tmp_path / "runs",
                            on_state=lambda state, info: states.append(state),
-                           time_scale=TIME_SCALE)
+                           time_scale=time_scale)
     result: dict = {}
     thread = threading.Thread(target=lambda: result.update(summary=run.execute()))
     thread.start()
@@ -247,7 +248,8 @@ def test_hall_board_lost_suspends_the_run_until_it_is_back(tmp_path, bench):
     rig_path, backdoor = bench
     plan = write_plan(tmp_path, hand_plan())
     states: list = []
-    run, thread, result = run_in_thread(plan, rig_path, tmp_path, states)
+    # at half speed, so the plan is still running when the link is dropped on a loaded computer
+    run, thread, result = run_in_thread(plan, rig_path, tmp_path, states, time_scale=2.0)
     wait_for(lambda: run.program.timeline is not None and not run.program.timeline.in_approach,
              60.0, "the plan streaming")
     backdoor.request("fault", device="hall", kind="drop_link")
@@ -290,7 +292,12 @@ def test_pause_now_holds_the_arms_and_resume_finishes_the_plan(tmp_path, bench):
     metrics = summary.metrics
     # the clock went on from where it stopped: the whole plan was streamed, after a rejoin
     assert metrics["completed"] and metrics["duration_s"] == pytest.approx(doc["t_s"][-1])
-    assert metrics["rejoins"] == 1 and metrics["held_samples"] > 0
+    assert metrics["held_samples"] > 0
+    # paused while the wrist turned, the arms stopped off the path and rejoined it first
+    turn_start, turn_end = doc["segments"][0]["start_s"], doc["segments"][0]["reached_s"]
+    if turn_start + 0.2 < paused_at < turn_end - 0.2:  # a loaded computer may pause it later
+        assert metrics["rejoins"] == 1
+    assert metrics["rejoins"] <= 1
     final = np.array([arm["joints_rad"][-1] for arm in doc["arms"]])
     arms = arms_state(backdoor)
     for name, q in zip(("left", "right"), final):
@@ -303,7 +310,8 @@ def test_abort_and_estop_stop_the_arms_where_they_are(tmp_path, bench, stop):
     rig_path, backdoor = bench
     plan = write_plan(tmp_path, hand_plan())
     states: list = []
-    run, thread, result = run_in_thread(plan, rig_path, tmp_path, states)
+    # in real time: the left arm's approach takes seconds, the stop comes well inside it
+    run, thread, result = run_in_thread(plan, rig_path, tmp_path, states, time_scale=1.0)
     # during the approach: the left arm moving, the right one still parked (it goes second)
     wait_for(lambda: any(arms_state(backdoor)["left"]["qd"]), 60.0, "the left arm moving")
     if stop == "abort":

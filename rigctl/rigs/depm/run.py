@@ -388,7 +388,7 @@ class FieldSequenceProgram:
                 self.suspended = f"Hall board: {reason}; the arms hold their pose"
                 record.event("hall_lost", device=HALL_NAME, reason=reason)
                 log.warning("%s: %s; run suspended", HALL_NAME, reason)
-            elif now - self._hall_trouble_since > HALL_LOST_FAULT_S:
+            elif now - self._hall_trouble_since > HALL_LOST_FAULT_S and not self._want_abort:
                 raise DeviceError(f"no samples for {now - self._hall_trouble_since:.1f} s "
                                   f"({reason}); the run stopped", device=HALL_NAME)
         elif self._hall_trouble_since is not None:
@@ -495,8 +495,7 @@ def summary_lines(m: dict) -> list[str]:
     `metrics` (the summary's `details`)."""
     lines = [f"field sequence: {m['plan']} ({m['planner']} planner); violations: {m['violations']}"]
     if m.get("refused"):
-        lines.append(f"refused: {m['refused']}")
-        lines += [f"  {v}" for v in m["violation_list"][:MAX_LISTED]]
+        lines.append(f"refused: {m['refused']} (each one in the fault below)")
         return lines
     table = m.get("table1")
     if table is not None:
