@@ -211,8 +211,11 @@ class HallStream:
         if self._error is not None:
             raise self._error
 
-    def drain(self) -> list[HallSample]:
-        self.check()
+    def drain(self, *, check: bool = True) -> list[HallSample]:
+        """The samples read so far (oldest first). `check=False`: also after the reader ended
+        with a fault (`error`), so the samples read before it are not lost with it."""
+        if check:
+            self.check()
         with self._lock:
             out = list(self._samples)
             self._samples.clear()

@@ -16,12 +16,25 @@ Angles in rad, sent with full double precision. Every reply is checked; a silent
 `Disconnected`, a `nak` `DeviceError`, garbage `ProtocolError`; all name the arm. After a timeout the
 next command first discards whatever is pending, so a late reply is never taken for a new answer.
 `close()` stops a running servo stream and ends the session; it never raises.
+
+A servo cycle of two arms overlaps their round trips: `send_servo` to each, then `read_servo` from
+each (`servo` is the two in one).
+
+E-stop does not wait for the stream thread: `emergency_stop` may be called from any thread, even
+while the stream thread waits for a servo reply. KST has no "stop now" of its own beyond ending the
+servo motion, so that is what it sends (`stopDirectServoJoints`: the robot brakes and holds where
+it is); it latches, so no further target, PTP move or servo start leaves this driver. The `done`
+that answers it is owed: whichever read comes next skips it. A lock keeps the two threads' lines
+from interleaving on the wire. KST has no speed query either: `wait_at_rest` confirms rest by
+reading the joints until two reads a moment apart agree.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import threading
+import time
 
 import numpy as np
 
@@ -44,6 +57,9 @@ TERMINATOR = b"\n"
 MAX_REPLY_BYTES = 512
 ACK, NAK = "done", "nak"
 MAX_LATE_REPLIES = 4
+AT_REST_RAD = 1e-5  # two joint reads this close (every joint): the arm is at rest
+AT_REST_INTERVAL_S = 0.05
+MOTION_COMMANDS = ("jp_", "jpJP_", "jf_", "doPTPinJS", "startDirectServoJoints", "jRelVel_")
 
 
 def format_joint_command(command: str, q: np.ndarray) -> str:
@@ -82,6 +98,10 @@ class KukaArm:
         self._stale = False
         self._servoing = False
         self._closed = False
+        self._wire = threading.Lock()  # the e-stop thread's line and the stream's never interleave
+        self._estopped = False  # latched by emergency_stop: no motion command leaves any more
+        self._owed_acks = 0  # `done`s answering e-stops, not yet read
+        self._awaiting_servo = False
 
     @classmethod
     def open(cls, url: str, *, name: str, timeout_s: float = 1.0,
@@ -103,16 +123,31 @@ class KukaArm:
     def _write(self, command: str) -> None:
         if self._closed:
             raise Disconnected("the arm's session is closed", device=self.name)
-        if self._stale:
-            self._transport.discard_input()
-            self._stale = False
-        try:
-            self._transport.write(command.encode("ascii") + TERMINATOR)
-        except Disconnected as err:
-            raise Disconnected(f"link to the KST server lost ({err})", device=self.name) from None
-        except DeviceTimeout as err:
-            self._stale = True
-            raise DeviceTimeout(str(err), device=self.name) from None
+        with self._wire:
+            if self._estopped and command.startswith(MOTION_COMMANDS):
+                raise DeviceError(f"e-stop latched: {command.split('_')[0]!r} not sent (the arm "
+                                  "stays stopped; connect again to move it)", device=self.name)
+            if self._stale:
+                self._transport.discard_input()
+                self._stale = False
+                self._owed_acks = 0  # gone with the discarded input, or a stray `done` later
+            try:
+                self._transport.write(command.encode("ascii") + TERMINATOR)
+            except Disconnected as err:
+                raise Disconnected(f"link to the KST server lost ({err})", device=self.name) from None
+            except DeviceTimeout as err:
+                self._stale = True
+                raise DeviceTimeout(str(err), device=self.name) from None
+
+    def _reply(self, timeout_s: float | None = None, what: str = "a reply") -> str:
+        """The next reply, past the `done`s that answered e-stops sent meanwhile."""
+        while True:
+            reply = self._read(timeout_s, what)
+            with self._wire:
+                if reply == ACK and self._owed_acks > 0:
+                    self._owed_acks -= 1
+                    continue
+            return reply
 
     def _read(self, timeout_s: float | None = None, what: str = "a reply") -> str:
         timeout = self.timeout_s if timeout_s is None else timeout_s
@@ -143,10 +178,16 @@ class KukaArm:
 
     def _command(self, command: str) -> None:
         self._write(command)
-        self._expect_ack(command, self._read(what="acknowledgement"))
+        self._expect_ack(command, self._reply(what="acknowledgement"))
 
     def _joints_reply(self, command: str) -> np.ndarray:
-        reply = self._read(what="joint positions")
+        reply = self._reply(what="joint positions")
+        for _ in range(MAX_LATE_REPLIES):
+            if reply != ACK:
+                break
+            # a stray acknowledgement (an e-stop's, after its owed count was lost with
+            # discarded input): never a joint position
+            reply = self._reply(what="joint positions")
         if reply == NAK:
             raise DeviceError(f"the robot refused {command.split('_')[0]!r} (nak)", device=self.name)
         try:
@@ -197,7 +238,7 @@ class KukaArm:
             self.set_relative_velocity(relative_velocity)
         self._command(format_joint_command("jp", q))
         self._command("doPTPinJS")
-        reply = self._read(timeout_s, what="arrival")
+        reply = self._reply(timeout_s, what="arrival")
         if reply == NAK:
             raise DeviceError(
                 "the robot refused or aborted the move (nak): target outside its joint limits, "
@@ -211,18 +252,33 @@ class KukaArm:
 
     def servo(self, q: np.ndarray) -> np.ndarray:
         """Send one servo target and return the measured joints (one round trip)."""
+        self.send_servo(q)
+        return self.read_servo()
+
+    def send_servo(self, q: np.ndarray) -> None:
+        """Send one servo target; `read_servo` takes its answer (another arm's round trip may
+        run in between)."""
         if not self._servoing:
             raise DeviceError("servo stream not started (start_servo)", device=self.name)
+        if self._awaiting_servo:
+            raise RuntimeError(f"{self.name}: read_servo() must follow each send_servo()")
         q = self._check_target(q)
-        command = format_joint_command("jpJP", q)
-        self._write(command)
+        self._write(format_joint_command("jpJP", q))
+        self._awaiting_servo = True
+
+    def read_servo(self) -> np.ndarray:
+        """The measured joints (7,) rad answering the last `send_servo`."""
+        if not self._awaiting_servo:
+            raise RuntimeError(f"{self.name}: read_servo() without send_servo()")
         try:
-            return self._joints_reply(command)
+            return self._joints_reply("jpJP")
         except DeviceError as err:
             self._servoing = False
             raise DeviceError(f"{err.args[0]}: the robot is no longer servoing (its stream "
                               "watchdog stopped it, or the target was refused)",
                               device=self.name) from None
+        finally:
+            self._awaiting_servo = False
 
     def stop_servo(self) -> None:
         """Leave direct-servo mode (the arm holds where it is).
@@ -230,9 +286,10 @@ class KukaArm:
         A servo reply that came too late for its cycle may still be on the line: joint-position
         lines before the acknowledgement are skipped (at most a few)."""
         self._servoing = False
+        self._awaiting_servo = False
         self._write("stopDirectServoJoints")
         for _ in range(MAX_LATE_REPLIES):
-            reply = self._read(what="acknowledgement")
+            reply = self._reply(what="acknowledgement")
             try:
                 parse_joints(reply)
             except ValueError:
@@ -242,6 +299,52 @@ class KukaArm:
     @property
     def servoing(self) -> bool:
         return self._servoing
+
+    @property
+    def estopped(self) -> bool:
+        return self._estopped
+
+    def emergency_stop(self) -> bool:
+        """E-stop, from any thread: end the servo motion now (the robot brakes and holds where it
+        is) and latch (no further target, move or servo start is sent). Never raises; returns
+        False when the line could not be sent (a dead link, logged: the robot's own stream
+        watchdog, or its safety controller, must stop it then)."""
+        try:
+            with self._wire:
+                self._estopped = True
+                self._servoing = False
+                if self._closed:
+                    return False
+                try:
+                    self._transport.write(b"stopDirectServoJoints" + TERMINATOR)
+                except (RigError, OSError) as err:
+                    log.error("%s: e-stop could not be sent (%s)", self.name, err)
+                    return False
+                self._owed_acks += 1
+            return True
+        except Exception:  # never raise on the e-stop path
+            log.exception("%s: e-stop failed", self.name)
+            return False
+
+    def wait_at_rest(self, timeout_s: float = 5.0) -> bool:
+        """Whether the arm is at rest: the joints read twice, AT_REST_INTERVAL_S apart, agree
+        within AT_REST_RAD, within `timeout_s`. Never raises (a dead link: False, logged)."""
+        deadline = time.monotonic() + timeout_s
+        try:
+            previous = self.joint_positions()
+            while True:
+                time.sleep(AT_REST_INTERVAL_S)
+                q = self.joint_positions()
+                if np.max(np.abs(q - previous)) <= AT_REST_RAD:
+                    return True
+                if time.monotonic() > deadline:
+                    log.error("%s: still moving %.3g rad after %g s", self.name,
+                              float(np.max(np.abs(q - previous))), timeout_s)
+                    return False
+                previous = q
+        except RigError as err:
+            log.error("%s: rest not confirmed: %s", self.name, err)
+            return False
 
     def close(self) -> None:
         """Stop a servo stream, end the session and close the link; never raises."""

@@ -932,6 +932,7 @@ def plan_sequence(
     name: str | None = None,
     stats: PlanStats | None = None,
     end_poses: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+    end_joints: Sequence[np.ndarray] | None = None,
 ) -> FieldSequencePlan:
     """Plan a whole sequence and return the `field-sequence` plan (with `expected` filled).
 
@@ -939,7 +940,9 @@ def plan_sequence(
     component come from inverse magnetics. "hybrid" joins them with the planned transitions;
     "agnostic" plans the hybrid first and then moves to the very same EPM end poses by straight
     joint-space moves (the baseline, `baseline_of`). `end_poses` (per component: EPM positions
-    (A, 3) and moment directions (A, 3)) replaces inverse magnetics for the agnostic planner.
+    (A, 3) and moment directions (A, 3)) replaces inverse magnetics for the agnostic planner;
+    `end_joints` (per component (A, 7)), joints known to make those poses, are where an arm goes
+    when its own solve from where it stands finds none (`_controller_joints`).
     Timing goes into `stats` if given.
     """
     if planner not in ("hybrid", "agnostic"):
@@ -966,8 +969,10 @@ def plan_sequence(
             # The arm's own controller: joints for the commanded EPM pose from where it stands,
             # knowing nothing of the keep-out sphere or the magnets.
             positions, directions = end_poses[len(segments)]
+            taught = None if end_joints is None else end_joints[len(segments)]
             q_end = np.array([
-                arm.solve_or_raise(positions[a], directions[a], q_now[a])
+                _controller_joints(arm, positions[a], directions[a], q_now[a],
+                                   None if taught is None else taught[a])
                 for a, arm in enumerate(rig.arms)
             ])
         else:
@@ -1052,18 +1057,34 @@ def plan_sequence(
 def baseline_of(plan: FieldSequencePlan, name: str | None = None) -> FieldSequencePlan:
     """The magnetic-agnostic baseline of a plan (seed 003 Sec. 4.2): from the same start joints
     to the same EPM end pose of every component (so the same U), each arm solving its own joints
-    for the commanded pose from where it stands, by a straight joint-space move at the same speed
-    limit, as an arm's point-to-point controller does; the holds are kept."""
+    for the commanded pose from where it stands (or, where that solve finds none, taking the
+    plan's own joints for it: `_controller_joints`), by a straight joint-space move at the same
+    speed limit, as an arm's point-to-point controller does; the holds are kept."""
     rig = rig_for_plan(plan)
     knots = np.asarray(plan.t_s)
     joints = np.array([arm.joints_rad for arm in plan.arms], dtype=float)  # (A, K, 7)
-    ends = [rig.epm_poses(joints[:, int(np.argmin(np.abs(knots - s.reached_s)))])
-            for s in plan.segments]
+    reached = [joints[:, int(np.argmin(np.abs(knots - s.reached_s)))] for s in plan.segments]
     return plan_sequence(
         plan.sequence, rig, waypoints=plan.waypoints, k=plan.k,
-        planner="agnostic", q_start=joints[:, 0], end_poses=ends,
+        planner="agnostic", q_start=joints[:, 0], end_poses=[rig.epm_poses(q) for q in reached],
+        end_joints=reached,
         name=name or (f"{plan.name} (agnostic baseline)" if plan.name else None),
     )
+
+
+def _controller_joints(arm: ArmKinematics, position: np.ndarray, direction: np.ndarray,
+                       q_from: np.ndarray, taught: np.ndarray | None) -> np.ndarray:
+    """The joints an arm's own controller takes for a commanded EPM pose: its inverse kinematics
+    from where it stands. A local solve can end in a minimum that misses a pose the arm does
+    reach (a far move, a wrist flip); a controller is then given the pose as a frame taught with
+    its redundancy (KUKA: status, turn and elbow angle), which names the joints: `taught`, the
+    joints the plan itself reached the pose with. LimitError if there are none."""
+    result = arm.solve(position, direction, q_from)
+    if result.ok:
+        return result.q
+    if taught is not None:
+        return np.asarray(taught, dtype=float)
+    return arm.solve_or_raise(position, direction, q_from)
 
 
 def _rpy_deg(rotation: np.ndarray) -> tuple[float, float, float]:

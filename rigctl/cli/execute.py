@@ -4,7 +4,6 @@ names, and print the summary. Each (plan kind, rig kind) has its runner; the opt
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from rigctl.emulators.process import rig_for_run
@@ -45,29 +44,31 @@ def _execute_coil_board(plan, args: argparse.Namespace) -> int:
 
 
 def _execute_depm(plan, args: argparse.Namespace) -> int:
-    """A field-sequence plan on the dual-EPM rig: exit 0 reached, 1 not, 2 refused, 3 fault."""
+    """A field-sequence plan on the dual-EPM rig: exit 0 reached, 1 not, 2 refused (nothing
+    moved: a plan or an approach that breaks a safety constraint raises SafetyRefusal, a
+    LimitError), 3 fault."""
     from rigctl.plans.depm import baseline_of
-    from rigctl.rigs.depm.run import format_summary as format_depm_summary
-    from rigctl.rigs.depm.run import progress_line, run_field_sequence
+    from rigctl.rigs.depm.run import FieldSequenceRun
+    from rigctl.run.summary import exit_code
 
     out = None if args.quiet else sys.stderr
     time_scale = float(args.time_scale or 1.0)
     if not time_scale > 0:
         raise ConfigError("--time-scale must be positive")
     if args.agnostic:
-        progress_line(out, "the magnetic-agnostic baseline: straight joint moves to the plan's end poses")
+        if out is not None:
+            print("the magnetic-agnostic baseline: straight joint moves to the plan's end poses",
+                  file=out, flush=True)
         plan = baseline_of(plan)
     with rig_for_run(args.rig, "depm", progress_out=out) as rig:
-        result = run_field_sequence(plan, rig, runs_dir=args.runs, progress_out=out,
-                                    time_scale=time_scale)
-    print(format_depm_summary(result))
+        summary = FieldSequenceRun(plan, rig, runs_dir=args.runs, progress_out=out,
+                                   time_scale=time_scale).execute()
+    print(format_summary(summary))
     if args.json:
-        print(json.dumps(result.json()))
-    if result.refused:
+        print(summary_json_line(summary))
+    if summary.metrics.get("refused"):  # the approach from where the arms stand: nothing moved
         return EXIT_BAD_INPUT
-    if result.faults:
-        return EXIT_FAULT
-    return EXIT_OK if result.reached else EXIT_NOT_REACHED
+    return exit_code(summary)
 
 
 def _execute_pair(plan, args: argparse.Namespace) -> int:

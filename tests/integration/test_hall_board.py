@@ -1,4 +1,5 @@
-"""The Hall-board driver against the emulated board streaming on a real TCP socket."""
+"""The Hall-board driver against the emulated board streaming on a real TCP socket, and the run's
+watch over it (`HallWatch`: a lost board reported, opened again, samples back)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from rigctl.emulators.server import EmulatorServer
 
 from rigctl.errors import DeviceTimeout, Disconnected
 from rigctl.magnetics import dipole_field, dipole_gradient, field_vector_from_sensors
+from rigctl.rigs.depm.sensors import HallWatch
 from rigctl.testing import wait_for
 
 CENTRE = np.array([0.25, 0.05, -0.1])
@@ -72,3 +74,40 @@ def test_link_faults_reach_the_reader(board_server):
         for _ in range(1000):
             board.read()
     board.close()
+
+
+def test_watch_reports_a_lost_board_and_opens_it_again(board_server):
+    """What a run sees: samples; the link dropped (reason given, no samples, new connections
+    refused meanwhile); the link restored: samples again on a connection of its own."""
+    server, emulated = board_server
+    watch = HallWatch(emulated.url, timeout_s=0.5).open()
+    np.testing.assert_allclose(watch.offsets_m, np.array(OFFSETS_MM) * 1e-3)
+
+    def polled(condition):
+        return condition(*watch.poll())
+
+    wait_for(lambda: polled(lambda s, r: len(s) > 0 and r is None), 5.0, "samples")
+    emulated.endpoint.drop_link()
+    wait_for(lambda: polled(lambda s, r: r is not None and "link lost" in r), 5.0,
+             "the loss reported")
+    assert watch.outages == 1
+    _, reason = watch.poll()
+    assert reason is not None  # still away: the board refuses connections until restored
+    emulated.endpoint.restore()
+    wait_for(lambda: polled(lambda s, r: len(s) > 0 and r is None), 10.0, "samples again")
+    assert watch.outages == 1
+    watch.close()
+    wait_for(lambda: server.call(lambda: len(emulated.sessions)) == 0, 5.0,
+             "the watch's link closed")
+
+
+def test_watch_reports_silence_before_the_reader_times_out(board_server):
+    server, emulated = board_server
+    watch = HallWatch(emulated.url, timeout_s=30.0).open()  # the reader itself waits long
+    wait_for(lambda: len(watch.poll()[0]) > 0, 5.0, "samples")
+    emulated.endpoint.stall()
+    wait_for(lambda: (watch.poll()[1] or "").startswith("no samples for"), 5.0, "silence noticed")
+    emulated.endpoint.restore()
+    wait_for(lambda: watch.poll()[1] is None, 5.0, "samples again on the same link")
+    assert watch.outages == 0
+    watch.close()

@@ -1,16 +1,20 @@
-"""The KST driver against the emulated arm on a real TCP socket."""
+"""The KST driver against the emulated arm on a real TCP socket, and the two arms as the run
+engine's actuator group (`ArmPair`) against the emulated dEPM bench."""
 
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import pytest
-
 from rigctl.drivers.kuka_sunrise import KukaArm
+from rigctl.emulators.depm import DepmBench
 from rigctl.emulators.kuka.arm import EmulatedArm, SimClock
 from rigctl.emulators.server import EmulatorServer
+
 from rigctl.errors import DeviceError, Disconnected
+from rigctl.rigs.depm.actuators import ArmPair
 from rigctl.testing import wait_for
 
 SPEED = 4.0  # simulated seconds per real second: moves finish quickly, nothing else changes
@@ -147,3 +151,92 @@ def test_silence_while_the_emulator_itself_was_starved_is_not_the_clients():
         assert server.call(ticks, 30) == ("servo", False)  # 0.15 s of silence
         mode, tripped = server.call(ticks, 12)  # 0.21 s
         assert tripped and mode in ("stopping", "idle")
+
+
+def test_emergency_stop_from_another_thread_stops_the_servo_and_latches(bench):
+    """The e-stop line goes out while a servo reply is still on its way; the reply is read as
+    usual, the e-stop's own `done` is skipped, and nothing that moves the arm leaves again."""
+    server, emulated = bench
+    arm = connect(emulated)
+    arm.start_servo()
+    target = np.zeros(7)
+    for k in range(30):
+        target[1] = math.radians(0.5 * k)
+        arm.servo(target)
+    arm.send_servo(target)  # its reply is pending when the e-stop is written
+    sender = threading.Thread(target=lambda: sent.append(arm.emergency_stop()))
+    sent: list[bool] = []
+    sender.start()
+    sender.join()
+    assert sent == [True]
+    assert arm.read_servo().shape == (7,)
+    wait_for(lambda: truth(server, emulated)["mode"] == "idle", 5.0, "the arm at rest")
+    with pytest.raises(DeviceError, match="e-stop latched"):
+        arm.start_servo()
+    with pytest.raises(DeviceError, match="servo stream not started"):
+        arm.send_servo(target)
+    assert arm.wait_at_rest(2.0)
+    np.testing.assert_allclose(arm.joint_positions(), truth(server, emulated)["q"], atol=1e-12)
+    assert truth(server, emulated)["q"][1] > 0.0  # it stopped where it was, part of the way
+    arm.close()
+
+
+@pytest.fixture
+def depm_bench():
+    with DepmBench(speed=SPEED) as emulated:
+        yield emulated
+
+
+def arm_truth(emulated: DepmBench) -> dict:
+    return {a.name: emulated.server.call(a.truth) for a in emulated.arms}
+
+
+def test_arm_pair_channels_and_a_servo_cycle(depm_bench):
+    pair = ArmPair.connect(depm_bench.rig)
+    try:
+        names = [c.name for c in pair.channels]
+        assert names == [f"{arm}_q{j}" for arm in ("left", "right") for j in range(1, 8)]
+        first = pair.channels[0]
+        assert (first.unit, first.group) == ("rad", "left")
+        assert first.low == pytest.approx(-math.radians(170)) and \
+            first.high == pytest.approx(math.radians(170))
+        assert pair.channels[8].high == pytest.approx(math.radians(120))  # right A2
+        np.testing.assert_allclose(pair.joint_positions(), 0.0)
+        pair.energise()
+        target = np.zeros(14)
+        for k in range(40):
+            target[7 + 3] = -math.radians(0.25 * k)  # right A4 moves, everything else holds
+            measured = pair.cycle(target)
+        assert measured.shape == (14,)
+        assert measured[10] < 0 and not np.any(measured[:10]) and not np.any(measured[11:])
+        truth_now = arm_truth(depm_bench)
+        assert truth_now["right"]["mode"] == "servo" and truth_now["left"]["q"] == [0.0] * 7
+    finally:
+        assert pair.stop(0.5) == []  # both confirmed at rest
+    wait_for(lambda: all(t["connections"] == 0 for t in arm_truth(depm_bench).values()), 5.0,
+             "both sessions closed")
+    assert all(t["mode"] == "idle" for t in arm_truth(depm_bench).values())
+
+
+def test_arm_pair_emergency_zero_stops_both_and_sends_nothing_after(depm_bench):
+    pair = ArmPair.connect(depm_bench.rig)
+    pair.energise()
+    target = np.zeros(14)
+    for k in range(40):
+        target[1] = target[8] = math.radians(0.3 * k)  # both A2 moving
+        pair.cycle(target)
+    unreached: list = []
+    stopper = threading.Thread(target=lambda: unreached.extend(pair.emergency_zero()))
+    stopper.start()
+    stopper.join()
+    assert unreached == []
+    wait_for(lambda: all(t["mode"] == "idle" for t in arm_truth(depm_bench).values()), 5.0,
+             "both arms at rest")
+    at_rest = {name: t["q"] for name, t in arm_truth(depm_bench).items()}
+    last = pair.cycle(target + 0.1)  # latched: nothing is sent, the last measurement comes back
+    assert last.shape == (14,)
+    pair.zero_now()
+    assert pair.stop(0.0) == []
+    after = arm_truth(depm_bench)
+    assert {name: t["q"] for name, t in after.items()} == at_rest  # nothing moved them since
+    assert all(0.0 < t["q"][1] < math.radians(0.3 * 39) + 1e-9 for t in after.values())

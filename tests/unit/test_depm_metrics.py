@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigctl.rigs.depm.run import Window, cross_activation, table1
+from rigctl.rigs.depm.metrics import Window, cross_activation, table1
 
 T = np.round(np.arange(0.0, 12.0 + 1e-9, 0.01), 2)
 

@@ -20,6 +20,7 @@ from rigctl.plans.schema import SequenceComponent, dump_plan, load_plan, parse_p
 from scipy.interpolate import PchipInterpolator
 
 from rigctl.errors import LimitError, PlanError
+from rigctl.kinematics import default_arms
 from rigctl.magnetics import dipole_field
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
@@ -417,3 +418,33 @@ def test_too_sharp_an_acceleration_is_refused():
     found = violations(t, q, None, arms, SafetyLimits(), qddot)
     assert [(v.arm, v.part) for v in found] == [("right", "joint A4")]
     assert found[0].time_s == pytest.approx(0.40) and "accelerat" in found[0].constraint
+
+
+def test_baseline_arm_controller_takes_the_taught_joints_when_its_own_solve_misses():
+    """The agnostic baseline's arm solves the commanded EPM pose from where it stands; where that
+    local solve misses a pose the arm does reach (a far move), it takes the joints the pose was
+    taught with (the hybrid plan's), which make exactly that pose."""
+    arm = default_arms()[0]
+    rng = np.random.default_rng(0)
+    low, high = arm.model.lower_rad * 0.8, arm.model.upper_rad * 0.8
+    missed = solved = None
+    for _ in range(400):
+        taught, start = rng.uniform(low, high), rng.uniform(low, high)
+        position, direction = arm.epm_pose(taught)
+        ok = arm.solve(position, direction, start).ok
+        if not ok and missed is None:
+            missed = (taught, start, position, direction)
+        if ok and solved is None:
+            solved = (taught, start, position, direction)
+        if missed is not None and solved is not None:
+            break
+    assert missed is not None and solved is not None
+    taught, start, position, direction = missed
+    np.testing.assert_array_equal(
+        depm._controller_joints(arm, position, direction, start, taught), taught)
+    with pytest.raises(LimitError, match="no joint solution"):
+        depm._controller_joints(arm, position, direction, start, None)
+    taught, start, position, direction = solved
+    q = depm._controller_joints(arm, position, direction, start, taught)
+    reached, pointing = arm.epm_pose(q)
+    assert np.linalg.norm(reached - position) < 1e-3 and pointing @ direction > np.cos(1e-2)

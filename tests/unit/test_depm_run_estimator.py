@@ -3,7 +3,7 @@ matrix of seed 003 eq. 24 written out by hand for the paper's board, and exact o
 
 import numpy as np
 
-from rigctl.rigs.depm.run import sensor_estimator
+from rigctl.rigs.depm.sensors import sensor_estimator
 
 
 def test_is_eq24_written_as_a_matrix_on_the_papers_board():
