@@ -1,7 +1,11 @@
 """The tracking loop: the camera and the tracker in their own thread, publishing the robots'
 latest positions. Tracking is *lost* when no fresh frame came for `camera.timeout_s` (a frozen,
 dropped or stalled stream) or a robot was not found in `LOST_AFTER_FRAMES` frames in a row
-(black-out, occlusion). Every camera rig's run reads it."""
+(black-out, occlusion). Every camera rig's run reads it.
+
+`record_to(record)` also writes the tracked positions into the run record (`tracked` events, at
+most `hz` a second, from a thread of its own): the stream thread must not pay for a JSON line per
+frame, and the report draws the measured paths from them on every camera rig."""
 
 from __future__ import annotations
 
@@ -57,6 +61,49 @@ class TrackingLoop:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._driver: CameraDriver | None = None
+        self._record = None
+        self._record_period_s = 0.1
+        self._recorder: threading.Thread | None = None
+
+    def record_to(self, record, hz: float = 10.0) -> None:
+        """From now on, write the tracked positions into `record` (a `RunRecord`) as `tracked`
+        events: `{"event": "tracked", "positions_mm": [[x, y], ...], "lost": [bool, ...],
+        "frame": n, "t_frame_s": s}`, at most `hz` a second and only for a fresh frame;
+        `t_frame_s` is when the picture was taken, on the record's clock. Before or after
+        `start`; `stop` ends it. Called again, it writes to the new record."""
+        if hz <= 0:
+            raise ConfigError(f"tracked events need a positive rate, got {hz:g} Hz")
+        with self._cond:
+            self._record = record
+            self._record_period_s = 1.0 / hz
+        if self._recorder is None:
+            self._recorder = threading.Thread(target=self._record_run, name="tracking-record",
+                                              daemon=True)
+            self._recorder.start()
+
+    def _record_run(self) -> None:
+        # Its own thread, not the tracker's: a slow disk must not delay the next frame, and the
+        # stream thread never sees any of it.
+        last_frame: int | None = None
+        last_written = -float("inf")
+        while not self._stop.is_set():
+            with self._cond:
+                record, period = self._record, self._record_period_s
+                state = self._latest
+                if state is None or state.frame == last_frame or self.failure is not None:
+                    self._cond.wait(0.1)  # woken by the next frame (or stop)
+                    continue
+            wait = last_written + period - time.monotonic()
+            if wait > 0:
+                self._stop.wait(wait)  # not more than hz a second: take the newest frame then
+                continue
+            last_frame, last_written = state.frame, time.monotonic()
+            try:
+                record.event("tracked", positions_mm=np.round(state.positions_mm, 4).tolist(),
+                             lost=[bool(x) for x in state.lost], frame=int(state.frame),
+                             t_frame_s=round(state.t_source - record.t0, 4))
+            except Exception:  # a record closed under us: the run is over, tracking goes on
+                log.debug("tracked event not written", exc_info=True)
 
     def start(self, acquire_timeout_s: float = 5.0) -> TrackedState:
         """Open the camera, start tracking, and return the first state with every robot seen;
@@ -83,8 +130,12 @@ class TrackingLoop:
 
     def stop(self) -> None:
         self._stop.set()
+        with self._cond:
+            self._cond.notify_all()  # the recorder waits on it
         if self._thread is not None:
             self._thread.join(self.timeout_s + 2.0)
+        if self._recorder is not None:
+            self._recorder.join(2.0)
         if self._driver is not None:
             self._driver.close()
 
