@@ -29,7 +29,8 @@ class Progress:
         new_move = move != self._last_move
         self._last_move, self._last_draw = move, now
         what = what or self._move_name(move)
-        line = f"  {what:<14} {t_s:6.1f} s / {self.duration_s:.1f} s planned"
+        planned = f" / {self.duration_s:.1f} s planned" if self.duration_s else ""  # 0: unknown
+        line = f"  {what:<14} {t_s:6.1f} s{planned}"
         if self.tty:
             self.out.write("\r" + line.ljust(50))
             self.out.flush()

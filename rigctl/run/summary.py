@@ -73,6 +73,7 @@ class RunSummary:
             "faults": self.faults,
             "stream": self.stream,
             "metrics": self.metrics,
+            "details": self.details,
         }
 
 
@@ -91,7 +92,7 @@ def summary_from_dict(data: dict) -> RunSummary:
         stream=data.get("stream"), replans=data.get("replans") or 0, tracking=data.get("tracking"),
         safe=data.get("safe", True), unsafe_devices=data.get("unsafe_devices") or [],
         metrics=data.get("metrics") or {}, state=data.get("state"), rig_kind=data.get("rig"),
-        plan_kind=data.get("plan_kind"), tolerance_unit=unit)
+        plan_kind=data.get("plan_kind"), tolerance_unit=unit, details=data.get("details") or [])
 
 
 def format_summary(summary: RunSummary) -> str:
@@ -110,8 +111,8 @@ def format_summary(summary: RunSummary) -> str:
         )
     if summary.tracking is not None or summary.replans:
         t = summary.tracking or {}
-        lines.append(f"closed loop: {summary.replans} re-plans; camera frames {t.get('frames', '?')}"
-                     f" ({t.get('lost_frames', '?')} lost)")
+        lines.append(f"camera: {t.get('frames', '?')} frames ({t.get('lost_frames', '?')} lost); "
+                     f"{summary.replans} re-plans")
     lines += summary.details
     unit, tol = summary.tolerance_unit, summary.tolerance_mm
     if summary.agents:

@@ -228,6 +228,8 @@ class Supervisor:
         self._planner = ReplanWorker()  # imports numpy, scipy and the planner while we go on
         if self.truth is not None:
             self._truth_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="truth")
+        if record is not None:
+            self.tracking.record_to(record)  # the camera's positions, in the run record
         first = self.tracking.start(acquire_timeout_s=max(5.0, 2 * self.rig.camera.timeout_s))
         self._measured_at[0] = first.positions_mm
         self._event("tracking", frame=first.frame, positions=first.positions_mm.round(3).tolist())
