@@ -272,6 +272,19 @@ class RunHost:
                             process.pid, process.returncode)
 
 
+def device_patience_s(rig: RigConfig) -> float:
+    """The longest a healthy stream cycle may wait on the rig's own devices before the run itself
+    faults: a supply's reply timeout; the coil board's retries and its reconnect after an unplug;
+    an arm's or the Hall board's reply timeout. A stream process silent for twice this is hung."""
+    patience = rig.stream.reply_timeout_s
+    if rig.board is not None:
+        board = rig.board
+        patience = max(patience, board.reconnect_s + (board.retries + 1) * board.reply_timeout_s)
+    if rig.depm is not None:
+        patience = max(patience, rig.depm.reply_timeout_s)
+    return patience
+
+
 class _RecordView:
     """The run record as the daemon sees it: where it is, and events appended by the host."""
 
@@ -303,7 +316,7 @@ class RemoteRun:
         self.record: _RecordView | None = None
         # streaming: cycles come every UPLINK_BATCH_S; longer than a supply's own reply timeout
         # (which the run itself turns into a fault) plus the ramp down, and it is hung
-        self.silence_limit_s = max(SILENCE_MIN_S, 2.0 * self.rig.stream.reply_timeout_s
+        self.silence_limit_s = max(SILENCE_MIN_S, 2.0 * device_patience_s(rig)
                                    + self.rig.stream.ramp_down_s)
         self._last_cycles: float | None = None  # when cycles last came; None when not streaming
         self.hung = False

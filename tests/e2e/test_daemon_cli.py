@@ -189,7 +189,7 @@ def test_a_pair_plan_submitted_to_a_daemon_on_the_pair_bench(tmp_path):
     assert result.returncode == 0, result.stdout + result.stderr
     summary = json.loads(result.stdout.strip().splitlines()[-1])
     assert summary["reached"] is True and summary["tolerance_bl"] > 0
-    assert summary["mode"] == "closed loop"
+    assert summary["metrics"]["mode"] == "closed loop"
     run_dir = Path(summary["run"])
     assert run_dir.parent == tmp_path / "runs"
     # the report draws both agents, planned from the plan's states and measured from the camera
