@@ -18,10 +18,6 @@ class AgentResult:
     truth_error_mm: float | None = None  # closed loop on an emulator: ground truth's error too
     unit: str = "mm"
 
-    @property
-    def error(self) -> float | None:
-        return self.error_mm
-
     def as_dict(self) -> dict:
         out = {"final": self.final, "goal": self.goal, f"error_{self.unit}": self.error_mm}
         if self.truth_error_mm is not None:
