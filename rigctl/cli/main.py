@@ -29,6 +29,7 @@ from rigctl.errors import (
     LimitError,
     PlanError,
     RigError,
+    interrupt_name,
 )
 
 log = logging.getLogger("rigctl")
@@ -103,13 +104,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             Path(args.output).write_text(text)
         else:
             print(text)
-    if plan.kind == "field-sequence":
-        size = f"{len(plan.sequence)} components, {plan.t_s[-1]:.1f} s"
-    elif plan.kind == "pair-formation":
-        size = f"2 agents, {len(plan.segments)} segments"
-    else:
-        size = f"{len(plan.agents)} agents, {len(plan.moves)} moves"
-    print(f"OK: {args.file}: {plan.kind} plan for a {plan.rig} rig, {size}",
+    print(f"OK: {args.file}: {plan.kind} plan for a {plan.rig} rig, {plan.size}",
           file=sys.stderr if args.simulate and not args.output else sys.stdout)
     return EXIT_OK
 
@@ -261,6 +256,9 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except RigError as err:
         print(f"fault: {err}", file=sys.stderr)
+        return EXIT_FAULT
+    except KeyboardInterrupt as interrupt:  # outside a run (a run ends as an abort, summarised)
+        print(f"interrupted ({interrupt_name(interrupt)}): nothing is running", file=sys.stderr)
         return EXIT_FAULT
 
 

@@ -16,8 +16,14 @@ from rigctl.channels import Channel
 from rigctl.config import RigConfig
 
 RunBuilder = Callable[..., Any]
-"""build(plan, rig, *, runs_dir, progress_out=None, on_cycle=None, on_state=None, **options)
--> rigctl.run.engine.Run, prepared: a plan the rig cannot run is refused here, with no I/O."""
+"""build(plan, rig, *, runs_dir, progress_out=None, on_cycle=None, on_state=None, <options>)
+-> rigctl.run.engine.Run, prepared: a plan the rig cannot run is refused here, with no I/O.
+The options a builder names as keywords (closed_loop, agnostic, time_scale) are the only ones
+`rigctl execute` passes it; any other flag is refused by name."""
+
+
+def no_bench_args(plan: Any) -> list[str]:
+    return []
 
 
 @dataclass(frozen=True)
@@ -39,6 +45,11 @@ class RigKind:
     make_safe: Callable[[RigConfig], dict[str, str | None]]
     """Open every actuator anew and make it safe; never raises: device name -> None when done,
     else why it could not be reached."""
+    bench_args: Callable[[Any], list[str]] = no_bench_args
+    """The `rigctl emulate` flags a plan needs of the emulated bench (a pair plan: its world)."""
+    bench_rig: Callable[[], RigConfig] | None = None
+    """The rig its emulated bench serves, known without starting it: `rigctl execute` refuses a
+    plan against it before a bench is started."""
 
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.errors import PlanError

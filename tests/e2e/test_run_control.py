@@ -218,7 +218,9 @@ def test_lost_sensing_suspends_the_run_and_it_resumes(rig_on_bench):
     wait_state(rig, "idle", timeout_s=60)
 
 
-def test_sigint_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(case, tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(case, sig,
+                                                                               tmp_path):
     cmd = [sys.executable, "-m", "rigctl", "execute", str(EXAMPLES / case.plan), "--runs",
            str(tmp_path / "runs"), *case.bench_args]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -227,7 +229,7 @@ def test_sigint_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(cas
         wait_for(lambda: any(e.get("event") == "energised"
                              for p in (tmp_path / "runs").glob("*/events.jsonl")
                              for e in read_events(p.parent)), 90, "the run to energise")
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -237,5 +239,7 @@ def test_sigint_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(cas
     run_dir = next((tmp_path / "runs").iterdir())
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["state"] == "aborted" and summary["safe"] is True
-    assert any(e["event"] == "abort" for e in read_events(run_dir))
+    aborts = [e for e in read_events(run_dir) if e["event"] == "abort"]
+    name = "Ctrl-C" if sig == signal.SIGINT else "SIGTERM"
+    assert aborts and name in aborts[0]["reason"], aborts
     assert "aborted" in out

@@ -7,11 +7,11 @@ from rigctl.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
 
 
-def _global_moves(plan, rig: RigConfig, **options):
+def _global_moves(plan, rig: RigConfig, **run):
+    """Always closed loop (no `closed_loop` option): a move ends when the camera sees it done."""
     from rigctl.rigs.coil_board.run import CoilBoardRun
 
-    options.pop("closed_loop", None)  # always closed loop: a move ends when the camera sees it
-    return CoilBoardRun(plan, rig, **options)
+    return CoilBoardRun(plan, rig, **run)
 
 
 def _channels(rig: RigConfig) -> list[Channel]:

@@ -32,13 +32,12 @@ SYREN_READY_TIMEOUT_S = 5.0  # the SyRens start 2 s after power-on; a board just
 class BoardActuators:
     """The connected coil board of a rig (`connect`), as one actuator group of four channels."""
 
-    def __init__(self, board: CoilBoard, *, syren_ready_timeout_s: float = SYREN_READY_TIMEOUT_S
-                 ) -> None:
+    def __init__(self, board: CoilBoard, channels: list[Channel], *,
+                 syren_ready_timeout_s: float = SYREN_READY_TIMEOUT_S) -> None:
         self.board = board
         self.names = [board.name]
         self.syren_ready_timeout_s = syren_ready_timeout_s
-        self.channels = [Channel(name, "drive", -board.max_command, board.max_command, "board")
-                         for name in board.coil_names]
+        self.channels = channels  # the rig kind's: each coil's drive in SyRen units
         self.measured = np.zeros(len(self.channels))
 
     @classmethod
@@ -48,7 +47,10 @@ class BoardActuators:
         naming the board if it cannot be opened."""
         if rig.board is None:
             raise ConfigError("the rig has no [board] table: it is not a coil board")
-        return cls(CoilBoard.from_settings(rig.board), syren_ready_timeout_s=syren_ready_timeout_s)
+        from rigctl.rigs.coil_board import KIND
+
+        return cls(CoilBoard.from_settings(rig.board), KIND.channels(rig),
+                   syren_ready_timeout_s=syren_ready_timeout_s)
 
     def energise(self) -> None:
         """Wait until the board reports its SyRen drivers ready (SYREN_READY), which it does once

@@ -15,19 +15,26 @@ from rigctl.config import RigConfig
 from rigctl.rigs.base import Device, RigKind
 
 
-def _field_sequence(plan, rig: RigConfig, **options):
+def _field_sequence(plan, rig: RigConfig, *, agnostic: bool = False, time_scale: float = 1.0,
+                    **run):
     from rigctl.rigs.depm.run import FieldSequenceRun
 
-    options.pop("closed_loop", None)  # the Hall board always measures
-    return FieldSequenceRun(plan, rig, **options)
+    if agnostic:
+        from rigctl.plans.depm import baseline_of
+
+        if run.get("progress_out") is not None:
+            print("the magnetic-agnostic baseline: straight joint moves to the plan's end poses",
+                  file=run["progress_out"], flush=True)
+        plan = baseline_of(plan)
+    return FieldSequenceRun(plan, rig, time_scale=time_scale, **run)
 
 
 def _channels(rig: RigConfig) -> list[Channel]:
-    from rigctl.kinematics import LBR_IIWA_14_R820
+    from rigctl.plans.depm import rig_from_settings
 
     if rig.depm is None:
         return []
-    model = LBR_IIWA_14_R820
+    model = rig_from_settings(rig.depm).arms[0].model
     return [Channel(f"{arm}_q{j + 1}", "rad", float(model.lower_rad[j]), float(model.upper_rad[j]), arm)
             for arm in rig.depm.arm_names for j in range(len(model.lower_rad))]
 

@@ -35,8 +35,9 @@ REST_TIMEOUT_S = 5.0  # an arm that still moves this long after its servo ended 
 class ArmPair:
     """Both arms of a depm rig, in the rig file's order; `cycle` takes and returns (14,) rad."""
 
-    def __init__(self, arms: list[KukaArm]) -> None:
+    def __init__(self, arms: list[KukaArm], channels: list[Channel]) -> None:
         self.arms = arms
+        self.channels = channels  # the rig kind's: seven joint angles per arm, rad
         self.names = [arm.name for arm in arms]
         self.measured = np.zeros(len(arms) * N_JOINTS)
         self._latched = False
@@ -59,18 +60,9 @@ class ArmPair:
             for arm in arms:
                 arm.close()
             raise
-        return cls(arms)
+        from rigctl.rigs.depm import KIND
 
-    @property
-    def channels(self) -> list[Channel]:
-        out = []
-        for arm in self.arms:
-            limits = arm.joint_limits_rad
-            for j in range(N_JOINTS):
-                low, high = (None, None) if limits is None else (float(limits[j, 0]),
-                                                                 float(limits[j, 1]))
-                out.append(Channel(f"{arm.name}_q{j + 1}", "rad", low, high, arm.name))
-        return out
+        return cls(arms, KIND.channels(rig))
 
     def joint_positions(self) -> np.ndarray:
         """Both arms' measured joints (A, 7) rad."""

@@ -8,18 +8,30 @@ from rigctl.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
 
 
-def _global_moves(plan, rig: RigConfig, **options):
+def _global_moves(plan, rig: RigConfig, *, closed_loop: bool | None = None, **run):
     from rigctl.rigs.six_coil.global_moves import Run
 
-    options.setdefault("closed_loop", rig.camera is not None)
-    return Run(plan, rig, **options)
+    return Run(plan, rig, closed_loop=rig.camera is not None if closed_loop is None else closed_loop,
+               **run)
 
 
-def _pair_formation(plan, rig: RigConfig, **options):
-    from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings
+def _pair_formation(plan, rig: RigConfig, *, closed_loop: bool | None = None, **run):
+    from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings, loopback_rig
 
-    closed = options.pop("closed_loop", rig.camera is not None)
-    return PairRun(plan, rig, settings=PairRunSettings(closed_loop=closed), **options)
+    closed = rig.camera is not None if closed_loop is None else closed_loop
+    if rig.emulation is not None:
+        rig = loopback_rig(rig)
+    return PairRun(plan, rig, settings=PairRunSettings(closed_loop=closed), **run)
+
+
+def _bench_rig() -> RigConfig:
+    from rigctl.plans.pair import default_rig
+
+    return default_rig()
+
+
+def _bench_args(plan) -> list[str]:
+    return ["--world", "pair"] if plan.kind == "pair-formation" else []
 
 
 def _channels(rig: RigConfig) -> list[Channel]:
@@ -40,4 +52,5 @@ KIND = RigKind(
     name="six-coil",
     description="six air-core coils fed by Kepco BOP supplies, overhead camera",
     plans={"global-moves": _global_moves, "pair-formation": _pair_formation},
-    channels=_channels, devices=_devices, make_safe=_make_safe)
+    channels=_channels, devices=_devices, make_safe=_make_safe, bench_args=_bench_args,
+    bench_rig=_bench_rig)

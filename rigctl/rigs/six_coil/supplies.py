@@ -29,8 +29,10 @@ class CoilSupplies:
     """The connected supplies of a rig, in the rig file's coil order."""
 
     def __init__(self, supplies: list[KepcoBop], *, identities: list[str] | None = None,
-                 health_period_s: float = 1.0, rate_hz: float = 100.0) -> None:
+                 health_period_s: float = 1.0, rate_hz: float = 100.0,
+                 channels: list[Channel] | None = None) -> None:
         self.supplies = supplies
+        self.channels = channels or []  # the rig kind's: one current channel per supply, in A
         self.identities = identities or []
         self.names = [s.name for s in supplies]
         self.measured_A = np.zeros(len(supplies))
@@ -63,7 +65,10 @@ class CoilSupplies:
             group = cls(supplies)
             group.stop(ramp_s=0.0)
             raise
-        return cls(supplies, identities=identities, rate_hz=rig.stream.rate_hz)
+        from rigctl.rigs.six_coil import KIND
+
+        return cls(supplies, identities=identities, rate_hz=rig.stream.rate_hz,
+                   channels=KIND.channels(rig))
 
     def energise(self) -> None:
         for supply in self.supplies:
@@ -96,12 +101,6 @@ class CoilSupplies:
                 log.error("e-stop: %s", err)
         for supply in self.supplies:
             supply.safe_stop(ramp_s=0.0)
-
-    @property
-    def channels(self) -> list[Channel]:
-        """One current channel per supply, in A, with its limit."""
-        return [Channel(s.name, "A", -s.current_limit_A, s.current_limit_A, "supplies")
-                for s in self.supplies]
 
     def stop(self, ramp_s: float, steps: int = 10) -> list[str]:
         """Ramp every supply from its last setpoint to zero together over `ramp_s`, then switch
