@@ -23,7 +23,6 @@ from pathlib import Path
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError
 
-
 TRIES = 5
 
 
