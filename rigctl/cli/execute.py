@@ -8,11 +8,12 @@ import argparse
 import inspect
 import sys
 
+from rigctl.daemon.local import LocalControl
 from rigctl.emulators.process import rig_for_run
 from rigctl.errors import ConfigError, abort_on_sigterm
-from rigctl.owner import RigLock
 from rigctl.plans.schema import load_plan
 from rigctl.rigs import rig_kind
+from rigctl.rigs.owner import RigLock
 from rigctl.run.summary import exit_code, format_summary, summary_json_line
 
 # run options: CLI flag -> the builder's keyword (a builder takes only those it names)
@@ -92,9 +93,12 @@ def cmd_execute(args: argparse.Namespace) -> int:
     world = f" ({bench[bench.index('--world') + 1]} world)" if "--world" in bench else ""
     out = None if args.quiet else sys.stderr
     abort_on_sigterm()  # SIGTERM ends a run as Ctrl-C does: an abort, recorded and summarised
-    with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig, \
-            RigLock(rig, "rigctl execute"):  # one owner per rig: a second is refused, exit 2
-        summary = build(plan, rig, runs_dir=args.runs, progress_out=out, **options).execute()
+    with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig:
+        run = build(plan, rig, runs_dir=args.runs, progress_out=out, **options)
+        # one owner per rig (a second is refused, exit 2); the lock names where this run answers
+        # `rigctl estop --rig` and the other control requests
+        with LocalControl(run) as control, RigLock(rig, "rigctl execute", control.endpoint):
+            summary = run.execute()
     print(format_summary(summary))
     if args.json:
         print(summary_json_line(summary))

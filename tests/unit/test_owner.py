@@ -1,4 +1,4 @@
-"""One owner per rig: the device locks of `rigctl.owner`, across real processes."""
+"""One owner per rig: the device locks of `rigctl.rigs.owner`, across real processes."""
 
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ import time
 import pytest
 
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils, dump_rig
-from rigctl.owner import RigInUse, RigLock, holder_of
+from rigctl.rigs.owner import RigInUse, RigLock, holder_of
 
 HOLD = textwrap.dedent("""
     import sys, time
     from rigctl.config import load_rig
-    from rigctl.owner import RigLock
+    from rigctl.rigs.owner import RigLock
     with RigLock(load_rig(sys.argv[1]), "rigctl daemon"):
         print("held", flush=True)
         time.sleep(60)

@@ -15,11 +15,9 @@ def _global_moves(plan, rig: RigConfig, **run):
 
 
 def _channels(rig: RigConfig) -> list[Channel]:
-    board = rig.board
-    if board is None:
-        return []
-    return [Channel(name, "drive", -board.max_command, board.max_command, "board")
-            for name in board.coil_names]
+    from rigctl.rigs.coil_board.actuators import board_channels
+
+    return board_channels(rig)
 
 
 def _devices(rig: RigConfig) -> list[Device]:

@@ -30,13 +30,9 @@ def _field_sequence(plan, rig: RigConfig, *, agnostic: bool = False, time_scale:
 
 
 def _channels(rig: RigConfig) -> list[Channel]:
-    from rigctl.plans.depm import rig_from_settings
+    from rigctl.rigs.depm.actuators import arm_channels
 
-    if rig.depm is None:
-        return []
-    model = rig_from_settings(rig.depm).arms[0].model
-    return [Channel(f"{arm}_q{j + 1}", "rad", float(model.lower_rad[j]), float(model.upper_rad[j]), arm)
-            for arm in rig.depm.arm_names for j in range(len(model.lower_rad))]
+    return arm_channels(rig)
 
 
 def _devices(rig: RigConfig) -> list[Device]:

@@ -46,7 +46,7 @@ class _Leg:
 
     @classmethod
     def timed(cls, start_s: float, q_from: np.ndarray, q_to: np.ndarray, speed_caps: np.ndarray,
-              accel_caps: np.ndarray) -> "_Leg | None":
+              accel_caps: np.ndarray) -> _Leg | None:
         delta = np.abs(q_to - q_from)
         moving = delta > 1e-12
         if not moving.any():

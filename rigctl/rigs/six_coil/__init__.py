@@ -35,7 +35,9 @@ def _bench_args(plan) -> list[str]:
 
 
 def _channels(rig: RigConfig) -> list[Channel]:
-    return [Channel(c.name, "A", -c.current_limit_A, c.current_limit_A, "supplies") for c in rig.coils]
+    from rigctl.rigs.six_coil.supplies import supply_channels
+
+    return supply_channels(rig)
 
 
 def _devices(rig: RigConfig) -> list[Device]:

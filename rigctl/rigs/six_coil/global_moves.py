@@ -68,7 +68,7 @@ class GlobalMovesProgram:
         self.n_moves = len(self.plan.moves)
         self.duration_s = float(self.field_program.duration_s)
         self.info = {"name": self.plan.name, "moves": self.n_moves,
-                     "samples": int(len(self.currents.t_s)),
+                     "samples": len(self.currents.t_s),
                      "duration_s": round(self.duration_s, 3)}
         ramp = max(1, round(rig.stream.ramp_down_s * rig.stream.rate_hz))
         ends = [self.field_program.move_end_index(i) for i in range(self.field_program.n_moves)]

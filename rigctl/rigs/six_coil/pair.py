@@ -448,7 +448,6 @@ class PairProgram:
         doing)."""
         self._truth_at_end = _read_truth(self._backdoor)
         self._truth_read = True
-        return None
 
     def _stage(self, k: int, sample: int) -> tuple[int, str]:
         if self._pause.paused:

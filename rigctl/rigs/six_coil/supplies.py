@@ -25,6 +25,11 @@ from rigctl.transport import open_transport
 log = logging.getLogger(__name__)
 
 
+def supply_channels(rig: RigConfig) -> list[Channel]:
+    """One current channel per supply, in A, within its limit: the six-coil rig's channels."""
+    return [Channel(c.name, "A", -c.current_limit_A, c.current_limit_A, "supplies") for c in rig.coils]
+
+
 class CoilSupplies:
     """The connected supplies of a rig, in the rig file's coil order."""
 
@@ -32,7 +37,7 @@ class CoilSupplies:
                  health_period_s: float = 1.0, rate_hz: float = 100.0,
                  channels: list[Channel] | None = None) -> None:
         self.supplies = supplies
-        self.channels = channels or []  # the rig kind's: one current channel per supply, in A
+        self.channels = channels or []  # `supply_channels`
         self.identities = identities or []
         self.names = [s.name for s in supplies]
         self.measured_A = np.zeros(len(supplies))
@@ -41,7 +46,7 @@ class CoilSupplies:
         self._cycles = 0
 
     @classmethod
-    def connect(cls, rig: RigConfig) -> "CoilSupplies":
+    def connect(cls, rig: RigConfig) -> CoilSupplies:
         """Open, identify and configure every supply (outputs stay off). On any failure the ones
         already opened are switched off and closed, and the error is raised."""
         supplies: list[KepcoBop] = []
@@ -65,10 +70,8 @@ class CoilSupplies:
             group = cls(supplies)
             group.stop(ramp_s=0.0)
             raise
-        from rigctl.rigs.six_coil import KIND
-
         return cls(supplies, identities=identities, rate_hz=rig.stream.rate_hz,
-                   channels=KIND.channels(rig))
+                   channels=supply_channels(rig))
 
     def energise(self) -> None:
         for supply in self.supplies:
