@@ -111,6 +111,10 @@ class LocalControl:
 
     def status(self) -> dict:
         run = self.run
-        return {"state": run.state.value, "owner": self.owner, "rig": run.rig.rig.kind,
-                "plan": getattr(run.plan, "name", None), "uptime_s": round(time.monotonic() -
-                                                                           self.started, 3)}
+        state, info = run.state.value, run.state_info
+        ended = state in ("faulted", "estopped", "aborted", "done")
+        fault = {"device": info.get("device"), "reason": info.get("reason")} if state == "faulted" \
+            else None
+        return {"state": state, "reason": info.get("reason"), "owner": self.owner,
+                "rig": run.rig.rig.kind, "run": None if ended else dict(run.info),
+                "last_fault": fault, "uptime_s": round(time.monotonic() - self.started, 3)}

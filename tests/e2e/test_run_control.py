@@ -1,8 +1,9 @@
 """One run-control suite for the three rigs, on their emulated benches (each in its own process):
 pause at the end of a step and pause now, resume, abort, e-stop, a device fault mid-run, and lost
 sensing (the camera frozen; the Hall board stalled) -> suspended -> running again. Once through
-the daemon (`rigctl daemon`, the `Rig` client) and once through `rigctl execute` (SIGINT: an abort
-with one line, exit 3, a finished record). The coil board runs through the daemon on both its
+the daemon (`rigctl daemon`, the `Rig` client) and once through `rigctl execute --rig` (the same
+requests to the control endpoint its rig lock names; SIGINT and SIGTERM: an abort with one line,
+exit 3, a finished record). The coil board runs through the daemon on both its
 Python firmware emulator and the real firmware in simavr.
 
 Physical safety is read from each emulator's ground truth, not from rigctl: supply currents under
@@ -21,11 +22,12 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.client import Rig
+from rigctl.client import DaemonUnreachable, Rig
 from rigctl.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.record import read_events
+from rigctl.rigs.owner import holder_of
 from rigctl.testing import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -123,24 +125,81 @@ def case(request) -> RigCase:
     return CASES[request.param]
 
 
-@pytest.fixture
-def rig_on_bench(case, tmp_path):
-    """(case, rig file, a backdoor, a Rig client of a daemon on that bench)."""
+class LocalRun:
+    """`rigctl execute PLAN --rig RIG` driven as the daemon is: through the control endpoint its
+    rig lock names (the same requests), while it runs; once its process ended, what its record's
+    summary says, in the daemon's terms (a run that ended without a fault leaves the rig idle)."""
+
+    def __init__(self, case: RigCase, rig_path: Path, runs: Path) -> None:
+        self.case, self.rig_path, self.runs = case, rig_path, runs
+        self.proc: subprocess.Popen | None = None
+        self.client: Rig | None = None
+
+    def execute(self) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "rigctl", "execute", str(EXAMPLES / self.case.plan), "--rig",
+             str(self.rig_path), "--runs", str(self.runs), "-q"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        rig = load_rig(self.rig_path)
+        wait_for(lambda: holder_of(rig) is not None, 60, "rigctl execute to own the rig")
+        self.client = Rig(holder_of(rig).control, timeout_s=1.0, retries=1)
+
+    def __getattr__(self, name: str):  # pause, resume, abort, estop: the Rig client's own
+        if name in ("pause", "resume", "abort", "estop"):
+            return getattr(self.client, name)
+        raise AttributeError(name)
+
+    def status(self) -> dict:
+        if self.proc.poll() is None:
+            try:
+                return self.client.request("status")
+            except DaemonUnreachable:
+                if self.proc.poll() is None:
+                    raise
+        summary = json.loads(next(self.runs.glob("*/summary.json")).read_text())
+        faulted = summary["state"] in ("faulted", "estopped")
+        return {"state": summary["state"] if faulted else "idle", "run": None,
+                "last_run": summary, "last_fault": (summary["faults"] or [None])[-1]}
+
+    def close(self) -> None:
+        if self.client is not None:
+            self.client.close()
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+@pytest.fixture(params=["daemon", "execute"])
+def rig_on_bench(case, request, tmp_path):
+    """(case, rig file, a backdoor, the run's control: a Rig client of a daemon on that bench, or
+    a `rigctl execute` on it)."""
+    if request.param == "execute" and case.bench_args:
+        pytest.skip("through rigctl execute once per rig kind (the simavr board: the daemon)")
     with EmulatedBenchProcess(case.kind, tmp_path / "bench.toml",
                               extra_args=case.bench_args) as rig_path:
+        backdoor = BackdoorClient(load_rig(rig_path).emulation.backdoor)
+        if request.param == "execute":
+            local = LocalRun(case, rig_path, tmp_path / "runs")
+            try:
+                yield case, rig_path, backdoor, local
+            finally:
+                local.close()
+                backdoor.close()
+            return
         daemon = Daemon(rig_path, tmp_path / "runs", tmp_path / "daemon.log")
         try:
-            with BackdoorClient(load_rig(rig_path).emulation.backdoor) as backdoor, \
-                    Rig(daemon.endpoints["command"]) as rig:
+            with backdoor, Rig(daemon.endpoints["command"]) as rig:
                 yield case, rig_path, backdoor, rig
         finally:
             daemon.close()
 
 
-def start(rig: Rig, case: RigCase, backdoor) -> None:
-    plan = json.loads((EXAMPLES / case.plan).read_text())
-    rig.execute(rig.load(plan))
-    rig.wait_state("running", timeout_s=60)
+def start(rig: Rig | LocalRun, case: RigCase, backdoor) -> None:
+    if isinstance(rig, LocalRun):
+        rig.execute()
+    else:
+        rig.execute(rig.load(json.loads((EXAMPLES / case.plan).read_text())))
+    wait_state(rig, "running", timeout_s=60)
     wait_for(lambda: case.active(backdoor.request("truth")), 60, "the actuators to act")
 
 
@@ -158,6 +217,8 @@ def wait_state(rig: Rig, *states: str, timeout_s: float = 30.0) -> dict:
 
 def test_status_lists_every_device_of_the_rig(rig_on_bench):
     case, rig_path, backdoor, rig = rig_on_bench
+    if isinstance(rig, LocalRun):
+        pytest.skip("a daemon's status (a local run's devices are its summary's)")
     names = {d["name"] for d in rig.status()["devices"]}
     loaded = load_rig(rig_path)
     expected = {"six-coil": {c.name for c in loaded.coils} | {"camera"},
@@ -190,7 +251,11 @@ def test_estop_from_a_running_rig_makes_every_device_safe(rig_on_bench):
     assert reply["state"] == "estopped" and reply["unreached"] == []
     wait_for(lambda: case.safe(backdoor.request("truth")), 5, "every device safe")
     wait_for(lambda: rig.status()["run"] is None, 30, "the run to end")
-    assert rig.reset()["state"] == "idle"
+    if isinstance(rig, LocalRun):
+        assert rig.proc.wait(30) == 3  # the README's exit status of an e-stopped run
+        assert rig.status()["last_run"]["state"] == "estopped"
+    else:
+        assert rig.reset()["state"] == "idle"
 
 
 def test_a_device_fault_mid_run_names_the_device(rig_on_bench):
