@@ -55,6 +55,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
     from rigctl.daemon.messages import DaemonSettings
     from rigctl.daemon.server import Daemon
     from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.rigs.owner import RigLock
 
     # a thread waiting for the GIL (the command thread answering `status`, the stream thread)
     # gets it within 0.1 ms instead of Python's default 5 ms
@@ -72,6 +73,8 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
                   "(nothing real is energised)", file=sys.stderr)
             rig = load_rig(stack.enter_context(EmulatedBenchProcess(kind, Path(tmp) / "bench.toml")))
         settings = _rig_daemon_settings(rig) or DaemonSettings()
+        # one owner per rig: refused (exit 2) before anything connects if another process has it
+        lock = stack.enter_context(RigLock(rig, "rigctl daemon"))
         daemon = Daemon(
             rig,
             command=args.command or settings.command,
@@ -84,6 +87,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
             currents_hz=args.currents_hz,
         )
         endpoints = daemon.start()
+        lock.name_control(endpoints.command)  # where `rigctl estop --rig` finds this daemon
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: daemon.request_shutdown())
         print(f"{READY_PREFIX}command={endpoints.command} telemetry={endpoints.telemetry} "
@@ -130,10 +134,44 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 
 def _cmd_estop(args: argparse.Namespace) -> int:
+    if args.rig is not None:
+        return _estop_rig(args)
     with _client(args.connect, args.server_key, args.client_key, timeout_s=1.0) as rig:
         reply = rig.estop()
     print(f"EMERGENCY STOP: state {reply['state']}; {reply['zeroing']}")
     return EXIT_OK
+
+
+def _estop_rig(args: argparse.Namespace) -> int:
+    """`rigctl estop --rig RIG.toml`: the rig's owner (daemon or local run, as its lock names it)
+    stops; if none answers, every device of the rig is made safe directly."""
+    from rigctl.client import Rig
+    from rigctl.config import load_rig
+    from rigctl.errors import RigError
+    from rigctl.rigs import rig_kind
+    from rigctl.rigs.owner import holder_of
+
+    rig = load_rig(args.rig)
+    holder = holder_of(rig)
+    if holder is not None and holder.control:
+        try:
+            with Rig(holder.control, timeout_s=0.3, retries=0) as owner:
+                reply = owner.estop()
+            unreached = reply.get("unreached") or []
+            print(f"EMERGENCY STOP: {holder.describe()} took it; state {reply['state']}"
+                  + (f"; NOT REACHED: {', '.join(unreached)}" if unreached else
+                     f"; {reply.get('zeroing') or 'every device told to stop'}"))
+            return EXIT_FAULT if unreached else EXIT_OK
+        except RigError as err:
+            print(f"{holder.describe()} did not answer ({err}): making every device safe "
+                  "directly", file=sys.stderr)
+    result = rig_kind(rig.rig.kind).make_safe(rig)
+    for name, why in result.items():
+        print(f"  {name:<12} {'safe' if why is None else 'NOT REACHED: ' + why}")
+    reached = all(why is None for why in result.values())
+    print("EMERGENCY STOP: " + ("every device made safe directly" if reached else
+                                "some devices could not be reached: check them by hand"))
+    return EXIT_OK if reached else EXIT_FAULT
 
 
 def _cmd_keys(args: argparse.Namespace) -> int:
@@ -305,8 +343,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the raw status as JSON")
     p.set_defaults(func=_cmd_status)
 
-    p = sub.add_parser("estop", help="emergency stop: every supply to zero at once")
+    p = sub.add_parser(
+        "estop", help="emergency stop: every output of the rig to zero at once",
+        description="Stop the rig now: supplies to 0 A and output off, board outputs to zero, "
+        "arms stopped where they are. With --rig, whichever process owns the rig (a daemon or a "
+        "`rigctl execute`) is told; if none answers, every device is made safe directly and "
+        "each one is named. Without --rig, the daemon at --connect. Exit 0 when every device "
+        "was reached, 3 otherwise.")
     _client_options(p)
+    p.add_argument("--rig", help="the rig file: reach its owner, or else its devices directly")
     p.set_defaults(func=_cmd_estop)
 
     p = sub.add_parser("keys", help="CURVE keys for the daemon and its operators")

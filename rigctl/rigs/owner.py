@@ -17,7 +17,7 @@ import hashlib
 import json
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from rigctl.config import RigConfig
@@ -98,9 +98,18 @@ class RigLock:
                     raise RigInUse(f"rig in use by {who} (device {key}); stop it first, or "
                                    "make it safe with `rigctl estop`") from None
                 time.sleep(0.01)
-        os.ftruncate(fd, 0)
-        os.write(fd, json.dumps({**self.holder.__dict__, "device": key}).encode())
         self._files.append(fd)
+        self._write(fd, key)
+
+    def _write(self, fd: int, key: str) -> None:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps({**self.holder.__dict__, "device": key}).encode(), 0)
+
+    def name_control(self, endpoint: str) -> None:
+        """Where the owner answers control requests, once it knows (a daemon binds first)."""
+        self.holder = replace(self.holder, control=endpoint)
+        for fd, key in zip(self._files, device_keys(self.rig)):
+            self._write(fd, key)
 
     def release(self) -> None:
         while self._files:

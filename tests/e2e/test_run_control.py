@@ -21,11 +21,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
 
 from rigctl.client import DaemonUnreachable, Rig
 from rigctl.config import load_rig
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.record import read_events
 from rigctl.rigs.owner import holder_of
 from rigctl.testing import wait_for
@@ -308,3 +308,54 @@ def test_a_signal_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(c
     name = "Ctrl-C" if sig == signal.SIGINT else "SIGTERM"
     assert aborts and name in aborts[0]["reason"], aborts
     assert "aborted" in out
+
+
+def estop_with_rig_file(rig_path: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rigctl", "estop", "--rig", str(rig_path)],
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_estop_with_the_rig_file_reaches_the_run_that_owns_the_rig(rig_on_bench):
+    case, rig_path, backdoor, rig = rig_on_bench
+    start(rig, case, backdoor)
+    done = estop_with_rig_file(rig_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    owner = "rigctl execute" if isinstance(rig, LocalRun) else "rigctl daemon"
+    assert f"EMERGENCY STOP: {owner}, pid" in done.stdout
+    wait_for(lambda: case.safe(backdoor.request("truth")), 5, "every device safe")
+    if isinstance(rig, LocalRun):
+        assert rig.proc.wait(30) == 3
+        assert rig.status()["last_run"]["state"] == "estopped"
+    else:
+        wait_state(rig, "estopped", timeout_s=30)
+
+
+@pytest.mark.parametrize("kind", ["six-coil", "coil-board", "depm"])
+def test_estop_with_the_rig_file_and_no_owner_reaches_every_device_directly(kind, tmp_path):
+    from rigctl.rigs import rig_kind
+
+    with EmulatedBenchProcess(kind, tmp_path / "bench.toml") as rig_path:
+        rig = load_rig(rig_path)
+        supplies = None
+        if kind == "six-coil":  # left energised by something that is gone: 2 A on every coil
+            from rigctl.rigs.six_coil.supplies import CoilSupplies
+
+            supplies = CoilSupplies.connect(rig)
+            supplies.energise()
+            supplies.cycle([2.0] * len(rig.coils))
+            with BackdoorClient(rig.emulation.backdoor) as backdoor:
+                wait_for(lambda: six_coil_active(backdoor.request("truth")), 5, "current")
+        try:
+            done = estop_with_rig_file(rig_path)
+            assert done.returncode == 0, done.stdout + done.stderr
+            actuators = [d.name for d in rig_kind(kind).devices(rig)
+                         if d.kind in ("supply", "board", "arm")]
+            for name in actuators:
+                assert any(line.split()[:1] == name.split()[:1] and line.rstrip().endswith("safe")
+                           for line in done.stdout.splitlines()), (name, done.stdout)
+            if supplies is not None:
+                with BackdoorClient(rig.emulation.backdoor) as backdoor:
+                    wait_for(lambda: six_coil_safe(backdoor.request("truth")), 5, "0 A")
+        finally:
+            if supplies is not None:
+                supplies.stop(0.0)
