@@ -142,6 +142,33 @@ def _cmd_estop(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_control(args: argparse.Namespace) -> int:
+    """`rigctl pause [--now] | resume | abort | reset`, to the daemon at --connect or to whichever
+    process owns the rig of --rig (a daemon or a `rigctl execute`)."""
+    from rigctl.client import CommandRefused
+
+    endpoint = args.connect
+    if args.rig is not None:
+        from rigctl.config import load_rig
+        from rigctl.rigs.owner import holder_of
+
+        holder = holder_of(load_rig(args.rig))
+        if holder is None or not holder.control:
+            raise ConfigError(f"{args.rig}: no process owns this rig (nothing is running on it)")
+        endpoint = holder.control
+    with _client(endpoint, args.server_key, args.client_key) as rig:
+        try:
+            if args.verb == "pause":
+                reply = rig.pause(immediate=args.now)
+            else:
+                reply = getattr(rig, args.verb)()
+        except CommandRefused as err:
+            return _refused_exit(err)
+    print(f"{args.verb}: state {reply.get('state')}"
+          + (" (pausing at the end of this step)" if reply.get("pending") else ""))
+    return EXIT_OK
+
+
 def _estop_rig(args: argparse.Namespace) -> int:
     """`rigctl estop --rig RIG.toml`: the rig's owner (daemon or local run, as its lock names it)
     stops; if none answers, every device of the rig is made safe directly."""
@@ -352,6 +379,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         "was reached, 3 otherwise.")
     _client_options(p)
     p.add_argument("--rig", help="the rig file: reach its owner, or else its devices directly")
+
+    verbs = {"pause": "pause the run at the end of the step it drives (--now: at once)",
+             "resume": "resume a paused run", "abort": "end the run: ramp down cleanly",
+             "reset": "after an e-stop or a fault: back to idle (the daemon)"}
+    for verb, text in verbs.items():
+        p = sub.add_parser(verb, help=text, description=text[0].upper() + text[1:] + ". To the "
+                           "daemon at --connect, or with --rig to whichever process owns the rig "
+                           "(a daemon or a `rigctl execute`).")
+        _client_options(p)
+        p.add_argument("--rig", help="the rig file: reach the process that owns it")
+        if verb == "pause":
+            p.add_argument("--now", action="store_true",
+                           help="pause at once (the field ramps down; the arms brake)")
+        p.set_defaults(func=_cmd_control, verb=verb)
     p.set_defaults(func=_cmd_estop)
 
     p = sub.add_parser("keys", help="CURVE keys for the daemon and its operators")

@@ -359,3 +359,23 @@ def test_estop_with_the_rig_file_and_no_owner_reaches_every_device_directly(kind
         finally:
             if supplies is not None:
                 supplies.stop(0.0)
+
+
+def test_the_cli_verbs_control_the_run_that_owns_the_rig(rig_on_bench):
+    case, rig_path, backdoor, rig = rig_on_bench
+    if case.kind != "six-coil":
+        pytest.skip("the verbs are the same requests on every rig (the suite above): once")
+    start(rig, case, backdoor)
+
+    def verb(*words: str) -> None:
+        done = subprocess.run([sys.executable, "-m", "rigctl", *words, "--rig", str(rig_path)],
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stdout + done.stderr
+
+    verb("pause", "--now")
+    wait_state(rig, "paused")
+    verb("resume")
+    wait_state(rig, "running")
+    verb("abort")
+    status = wait_state(rig, "idle", timeout_s=60)
+    assert any(f["kind"] == "Abort" for f in status["last_run"]["faults"])
