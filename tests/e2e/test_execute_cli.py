@@ -79,3 +79,11 @@ def test_schema_plan_is_json_schema(tmp_path):
     assert result.returncode == 0
     schema = json.loads(result.stdout)
     assert "global-moves" in json.dumps(schema)
+
+
+def test_version_is_the_installed_package_version(tmp_path):
+    from importlib.metadata import version
+
+    done = run_rigctl("--version", cwd=tmp_path)
+    assert done.returncode == 0
+    assert done.stdout.strip() == f"rigctl {version('rigctl')}"
