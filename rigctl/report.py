@@ -69,11 +69,22 @@ RUN_CLOCK, PLAN_CLOCK = "run", "plan"
 
 
 def find_run(run: str | Path, runs_dir: str | Path = "runs") -> Path:
-    """A run given as a path, or as a run id inside `runs_dir`."""
+    """A run given as a path, as a run id inside `runs_dir`, as the start of one (a unique
+    prefix), or as `latest` (the newest there)."""
     for candidate in (Path(run), Path(runs_dir) / str(run)):
         if (candidate / "events.jsonl").is_file():
             return candidate
-    raise ConfigError(f"no run record at {run} (nor {Path(runs_dir) / str(run)})")
+    root = Path(runs_dir)
+    ids = sorted(p.name for p in root.iterdir() if (p / "events.jsonl").is_file()) \
+        if root.is_dir() else []
+    found = ids[-1:] if str(run) == "latest" else [i for i in ids if i.startswith(str(run))]
+    if len(found) == 1:
+        return root / found[0]
+    if found:
+        raise ConfigError(f"run {run!r} is the start of {len(found)} runs in {root}: "
+                          f"{', '.join(found[:3])}{', ...' if len(found) > 3 else ''}; give more")
+    raise ConfigError(f"no run record at {run} (nor in {root}: `rigctl runs --runs {root}` lists "
+                      "them)")
 
 
 # -- reading the record ---------------------------------------------------------------------------

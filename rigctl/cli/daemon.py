@@ -415,7 +415,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_runs)
 
     p = sub.add_parser("report", help="draw a run: planned vs measured paths, currents (PNG)")
-    p.add_argument("run", help="run record folder, or a run id inside --runs")
+    p.add_argument("run", help="run record folder, a run id inside --runs (or its start), or "
+                   "`latest`")
     p.add_argument("--runs", default="runs", help="run records folder (default ./runs)")
     p.add_argument("-o", "--output", help="PNG to write (default RUN/report.png)")
     p.set_defaults(func=_cmd_report)
