@@ -286,12 +286,10 @@ def execute_remote(plan_path: str | Path, endpoint: str, *, json_out: bool = Fal
 
 def _print_summary(summary: dict, json_out: bool):
     """The run's summary as `rigctl execute` prints it; returns it."""
-    from rigctl.run.summary import format_summary, summary_from_dict, summary_json_line
+    from rigctl.run.summary import print_summary, summary_from_dict
 
     result = summary_from_dict(summary)
-    print(format_summary(result))
-    if json_out:
-        print(summary_json_line(result))
+    print_summary(result, json_out)
     return result
 
 

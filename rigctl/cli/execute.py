@@ -14,7 +14,7 @@ from rigctl.errors import ConfigError, abort_on_sigterm
 from rigctl.plans.schema import load_plan
 from rigctl.rigs import rig_kind
 from rigctl.rigs.owner import RigLock
-from rigctl.run.summary import exit_code, format_summary, summary_json_line
+from rigctl.run.summary import exit_code, print_summary
 
 # run options: CLI flag -> the builder's keyword (a builder takes only those it names)
 _RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-scale": "time_scale"}
@@ -99,7 +99,5 @@ def cmd_execute(args: argparse.Namespace) -> int:
         # `rigctl estop --rig` and the other control requests
         with LocalControl(run) as control, RigLock(rig, "rigctl execute", control.endpoint):
             summary = run.execute()
-    print(format_summary(summary))
-    if args.json:
-        print(summary_json_line(summary))
+    print_summary(summary, args.json)
     return exit_code(summary)

@@ -262,14 +262,20 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (PlanError, ConfigError, LimitError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return _failed(args, "bad_input", f"error: {err}", EXIT_BAD_INPUT)
     except RigError as err:
-        print(f"fault: {err}", file=sys.stderr)
-        return EXIT_FAULT
+        return _failed(args, "fault", f"fault: {err}", EXIT_FAULT)
     except KeyboardInterrupt as interrupt:  # outside a run (a run ends as an abort, summarised)
-        print(f"interrupted ({interrupt_name(interrupt)}): nothing is running", file=sys.stderr)
-        return EXIT_FAULT
+        return _failed(args, "interrupted",
+                       f"interrupted ({interrupt_name(interrupt)}): nothing is running", EXIT_FAULT)
+
+
+def _failed(args: argparse.Namespace, code: str, line: str, status: int) -> int:
+    """One line on stderr; with --json also the error as the one JSON document on stdout."""
+    print(line, file=sys.stderr)
+    if getattr(args, "json", False):
+        print(json.dumps({"error": {"code": code, "message": line.split(": ", 1)[-1]}}))
+    return status
 
 
 if __name__ == "__main__":

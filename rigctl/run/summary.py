@@ -159,6 +159,16 @@ def exit_code(summary: RunSummary) -> int:
     return EXIT_OK if summary.reached else EXIT_NOT_REACHED
 
 
+def print_summary(summary: RunSummary, json_out: bool = False) -> None:
+    """The summary as `rigctl execute` prints it: the text on stdout; with `json_out` the text on
+    stderr and stdout holds the one JSON document and nothing else."""
+    import sys
+
+    print(format_summary(summary), file=sys.stderr if json_out else sys.stdout)
+    if json_out:
+        print(summary_json_line(summary), flush=True)
+
+
 def summary_json_line(summary: RunSummary | Any) -> str:
     """Any run's summary (anything with `as_dict`) as the one JSON line `--json` prints."""
     return json.dumps(summary.as_dict(), separators=(",", ":"))
