@@ -5,7 +5,7 @@ where it was, and an e-stop during a hold ends it with the record's `safe` event
 hold (`set_field`) is tested in test_daemon_bench.py."""
 
 import math
-import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -20,37 +20,32 @@ from rigctl.record import read_events
 from rigctl.testing import wait_for
 
 
-def serve(rig_config, runs):
-    daemon = Daemon(rig_config, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
-                    events="tcp://127.0.0.1:0", runs_dir=runs)
-    daemon.start_thread()
-    return daemon
+@contextmanager
+def daemon_on(bench, runs: Path):
+    """(client, backdoor, runs folder) of a daemon on `bench`, started here."""
+    with bench:
+        daemon = Daemon(bench.rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
+                        events="tcp://127.0.0.1:0", runs_dir=runs)
+        daemon.start_thread()
+        try:
+            with Rig(daemon.endpoints.command, timeout_s=10.0) as rig, \
+                    BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
+                yield rig, backdoor, runs
+        finally:
+            daemon.stop()
 
 
 @pytest.fixture
 def board(tmp_path):
-    """(client, backdoor, runs folder) of a daemon on the coil-board bench."""
-    with CoilBoardBench(syren_startup_s=0.05) as bench:
-        daemon = serve(bench.rig, tmp_path / "runs")
-        try:
-            with Rig(daemon.endpoints.command, timeout_s=10.0) as rig, \
-                    BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
-                yield rig, backdoor, tmp_path / "runs"
-        finally:
-            daemon.stop()
+    with daemon_on(CoilBoardBench(syren_startup_s=0.05), tmp_path / "runs") as served:
+        yield served
 
 
 @pytest.fixture
 def arms(tmp_path):
-    """(client, backdoor, runs folder) of a daemon on the dual-EPM bench (arms parked at 0)."""
-    with DepmBench() as bench:
-        daemon = serve(bench.rig, tmp_path / "runs")
-        try:
-            with Rig(daemon.endpoints.command, timeout_s=10.0) as rig, \
-                    BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
-                yield rig, backdoor, tmp_path / "runs"
-        finally:
-            daemon.stop()
+    """The dual-EPM bench, its arms parked at 0."""
+    with daemon_on(DepmBench(), tmp_path / "runs") as served:
+        yield served
 
 
 def hold_over(rig, timeout_s=30.0) -> Path:
