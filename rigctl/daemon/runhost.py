@@ -88,11 +88,6 @@ def build_run(plan: Any, rig: RigConfig, *, runs_dir: str | Path, on_cycle: Any 
                    on_state=on_state)
 
 
-def describe_run(run: Any) -> dict:
-    """What `load` and `status` tell of a prepared run: its name, size and planned duration."""
-    return dict(run.info)
-
-
 # -- the daemon's side ----------------------------------------------------------------------------
 
 class RunHost:

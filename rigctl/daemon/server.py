@@ -66,7 +66,6 @@ from rigctl.daemon.runhost import (
     RemoteRun,
     RunHost,
     build_run,
-    describe_run,
     make_realtime,
     realtime_permitted,
 )
@@ -185,7 +184,7 @@ class PlanRuns:
             known = self._checked.get(id(plan))
         if known is None or known[0] is not plan:
             local = build_run(plan, rig, runs_dir=runs_dir)
-            known = (plan, local.plan, describe_run(local))
+            known = (plan, local.plan, dict(local.info))  # its name, size, planned duration
             with self._lock:
                 self._checked[id(plan)] = known
                 while len(self._checked) > MAX_PLANS:
@@ -748,16 +747,20 @@ class Daemon:
         if run is None:  # executed before: prepare again (the plan was checked at load)
             run = self._prepare(loaded.plan)
         active = _ActiveRun("plan", run, loaded.plan_id, dict(loaded.info))
-        with self._lock:
-            self._active = active
-            self._transition("execute")
-            active.thread = threading.Thread(target=self._run_thread, args=(active,),
-                                             name="daemon-run")
-            active.thread.start()
+        self._activate(active, "execute")
         if self.rig.emulated and getattr(loaded.plan, "agents", None) is not None:
             threading.Thread(target=self._sample_agents, args=(active,), name="daemon-agents",
                              daemon=True).start()
         return {"plan_id": loaded.plan_id, "state": self.state.value, **loaded.info}
+
+    def _activate(self, active: _ActiveRun, event: str) -> None:
+        """`active` becomes the daemon's run (an e-stop reaches it from now on), on its thread."""
+        with self._lock:
+            self._active = active
+            self._transition(event)
+            active.thread = threading.Thread(target=self._run_thread, args=(active,),
+                                             name=f"daemon-{active.kind}")
+            active.thread.start()
 
     def _cmd_pause(self, args: Any) -> dict:
         with self._lock:
@@ -864,12 +867,8 @@ class Daemon:
         with self._lock:
             if self.state != S.IDLE or self._active is not None or self._stop.is_set():
                 raise Refusal(ErrorCode.WRONG_STATE, f"state changed to {self.state.value}")
-            self._active = active  # from now on an e-stop reaches it
             self.held = request.target
-            self._transition("hold")
-            active.thread = threading.Thread(target=self._run_thread, args=(active,),
-                                             name="daemon-hold")
-            active.thread.start()
+            self._activate(active, "hold")
         if not job.started.wait(HOLD_START_TIMEOUT_S):
             job.estop()  # still connecting: it must not switch on after hold has failed
         if not job.streaming:  # it could not start (a device, a limit at the arms): say why
