@@ -1,10 +1,12 @@
 """The manual hold through the daemon on the coil board's and the arms' emulated benches (in this
 process, the devices on real ptys and TCP sockets): what is held is read from the emulators' ground
 truth (the SyRen outputs the board's wire carries, the arms' joints), refusals leave everything
-where it was, and an e-stop during a hold ends it with the record's `safe` event. The six-coil
-hold (`set_field`) is tested in test_daemon_bench.py."""
+where it was, and an e-stop during a hold ends it with the record's `safe` event; `rigctl hold` on
+the six coils. The six-coil hold through the client (`set_field`): test_daemon_bench.py."""
 
 import math
+import subprocess
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -12,6 +14,7 @@ import numpy as np
 import pytest
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.coilboard.bench import CoilBoardBench
+from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.depm import DepmBench
 
 from rigctl.client import CommandRefused, Rig
@@ -186,3 +189,25 @@ def test_an_estop_during_an_arm_hold_ends_it_safe(arms):
     wait_for(lambda: at_rest(backdoor), 5.0, "the arms at rest")
     assert np.max(np.abs(truth_q(backdoor) - POSE)) > 0.01  # stopped on the way, not at the pose
     assert rig.reset()["state"] == "idle"
+
+
+# -- rigctl hold -------------------------------------------------------------------------------------
+
+def test_rigctl_hold_holds_refuses_with_exit_2_and_releases(tmp_path):
+    with daemon_on(SixCoilBench(), tmp_path / "runs") as (rig, backdoor, _):
+        endpoint = rig.endpoint
+
+        def hold(*args):
+            return subprocess.run([sys.executable, "-m", "rigctl", "hold", "--connect", endpoint,
+                                   *args], capture_output=True, text=True, timeout=60)
+
+        held = hold("--field-mT", "1", "0", "0", "--ramp-s", "0.05")
+        assert held.returncode == 0 and held.stdout.startswith("holding {'field_mT': [1.0, 0.0, 0.0]}")
+        wait_for(lambda: backdoor.request("truth")["currents_A"]["x+"] > 0.1, 5.0, "x+ driven")
+        refused = hold("--field-mT", "0", "0", "10")  # 32.6 A per z coil, over its 20 A
+        assert refused.returncode == 2 and refused.stderr.startswith("refused: ")
+        assert len(refused.stderr.strip().splitlines()) == 1
+        released = hold("--release")
+        assert released.returncode == 0 and released.stdout.startswith("released")
+        hold_over(rig)
+        assert all(abs(a) < 0.05 for a in backdoor.request("truth")["currents_A"].values())
