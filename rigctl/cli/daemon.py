@@ -1,5 +1,5 @@
-"""The daemon's verbs of the `rigctl` command line: `daemon`, `status`, `estop`, `keys`, `runs`,
-`report`, and `execute_remote` behind `rigctl execute PLAN --connect ENDPOINT`.
+"""The daemon's verbs of the `rigctl` command line: `daemon`, `status`, `hold`, `estop`, `keys`,
+`runs`, `report`, and `execute_remote` behind `rigctl execute PLAN --connect ENDPOINT`.
 
 Client verbs find the daemon with `--connect` (default: the loopback command endpoint) and, for a
 daemon with CURVE keys, take `--server-key` / `--client-key` or the environment variables
@@ -123,13 +123,37 @@ def _cmd_status(args: argparse.Namespace) -> int:
     if run:
         print(f"run: {run.get('id')} plan {run.get('plan_id')} sample {run['sample']}"
               f"/{run.get('samples', '?')} {_step(run)}")
-    if status.get("manual_field_mT"):
-        print(f"manual field: {status['manual_field_mT']} mT")
+    if status.get("hold"):
+        print(f"manual hold: {status['hold']}")
     for device in status["devices"]:
         print(f"  {device['name']:<4} {device['health']:<8} {device['url']}  {device['detail']}")
     if status.get("last_fault"):
         fault = status["last_fault"]
         print(f"last fault: {fault['device']}: {fault['reason']}")
+    return EXIT_OK
+
+
+def _cmd_hold(args: argparse.Namespace) -> int:
+    from rigctl.client import CommandRefused
+
+    with _client(args.connect, args.server_key, args.client_key, timeout_s=35.0) as rig:
+        try:
+            if args.release:
+                reply = rig.release(args.ramp_s)
+            elif args.joints_rad is not None:
+                q = args.joints_rad
+                reply = rig.hold({"joints_rad": [q[:7], q[7:]]}, args.ramp_s)
+            else:
+                key = "field_mT" if args.field_mT is not None else "drive"
+                reply = rig.hold({key: getattr(args, key)}, args.ramp_s)
+        except CommandRefused as err:
+            return _refused_exit(err)
+    if reply["hold"] is None:
+        print("released: ramping to the rest" if reply["released"] else "nothing was held")
+    else:
+        setpoints = ", ".join(f"{name} {value:g}"
+                              for name, value in zip(reply["channels"], reply["setpoints"]))
+        print(f"holding {reply['hold']}: {setpoints}")
     return EXIT_OK
 
 
@@ -367,6 +391,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     _client_options(p)
     p.add_argument("--json", action="store_true", help="print the raw status as JSON")
     p.set_defaults(func=_cmd_status)
+
+    p = sub.add_parser(
+        "hold", help="hold the rig at a manual setpoint (a field, drive values, a pose), or release",
+        description="Ask a running daemon to hold the rig's actuators: ramp straight from what is "
+        "held now to the target over --ramp-s, then hold it until released; again while holding "
+        "retargets. Every limit is checked before anything moves (refused: exit 2). --release "
+        "ramps the supplies or the board to zero and ends the hold; the arms stay where they are.")
+    _client_options(p)
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--field-mT", nargs=3, type=float, metavar=("BX", "BY", "BZ"),
+                      help="six-coil: the field at the workspace centre, mT (0 0 0 releases)")
+    what.add_argument("--drive", nargs="+", type=float, metavar="V",
+                      help="coil board: one SyRen drive value per coil, whole units within "
+                      "+-max_command, in the rig file's coil order")
+    what.add_argument("--joints-rad", nargs=14, type=float, metavar="Q",
+                      help="depm: both arms' joints q1..q7, rad, the first arm's then the second's")
+    what.add_argument("--release", action="store_true", help="end the hold (ramp to the rest)")
+    p.add_argument("--ramp-s", type=float, default=0.1,
+                   help="the ramp's duration, s (default 0.1; the arms need their joints' speed "
+                   "limits respected: the refusal says how long)")
+    p.set_defaults(func=_cmd_hold)
 
     p = sub.add_parser(
         "estop", help="emergency stop: every output of the rig to zero at once",

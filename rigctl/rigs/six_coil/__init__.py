@@ -50,9 +50,38 @@ def _make_safe(rig: RigConfig) -> dict[str, str | None]:
     return zero_supplies_directly(rig)
 
 
+def _hold(rig: RigConfig, target: dict):
+    """`{"field_mT": [bx, by, bz]}` at the workspace centre: the minimum-norm currents, each
+    within its coil's limit, and the supplies' compliance R I + L dI/dt over the ramp to them."""
+    import numpy as np
+
+    from rigctl.coils import actuation_matrix
+    from rigctl.rigs.six_coil.allocate import check_current_limits, currents_for_field
+    from rigctl.rigs.six_coil.supplies import CoilSupplies
+    from rigctl.run.hold import HoldRequest, ramp, target_values
+
+    field_mT = target_values(target, "field_mT", (3,), KIND.name, "mT")
+    currents = currents_for_field(actuation_matrix(rig), field_mT * 1e-3)
+    rate = rig.stream.rate_hz
+    asked = f"{field_mT.tolist()} mT"
+
+    def check_ramp(start: np.ndarray, ramp_s: float) -> None:
+        samples = ramp(start, currents, ramp_s, rate)
+        check_current_limits(
+            np.vstack([samples, currents]), rig, rate,
+            lambda k: f"{asked} ({'held' if k == len(samples) else 'ramping'})",
+            current_advice="ask for a weaker field", start_A=start,
+            voltage_advice="ramp more slowly (a longer ramp_s) or ask for a weaker field")
+
+    check_current_limits(currents[None], rig, None, lambda _: asked,
+                         current_advice="ask for a weaker field")
+    return HoldRequest({"field_mT": field_mT.tolist()}, currents, CoilSupplies.connect, rate,
+                       "slip", check_ramp)
+
+
 KIND = RigKind(
     name="six-coil",
     description="six air-core coils fed by Kepco BOP supplies, overhead camera",
     plans={"global-moves": _global_moves, "pair-formation": _pair_formation},
-    channels=_channels, devices=_devices, make_safe=_make_safe, bench_args=_bench_args,
-    bench_rig=_bench_rig)
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold,
+    bench_args=_bench_args, bench_rig=_bench_rig)
