@@ -1019,6 +1019,8 @@ def _abort_quietly(active: _ActiveRun) -> None:
 def _start_error(summary: Any) -> RigError:
     """Why a hold that never streamed ended, from its summary's first fault (as the error class
     the stream process named, so a limit is answered as a limit)."""
+    if summary is not None and summary.refused:  # a limit where the actuators stand (the arms)
+        return errors.LimitError(summary.refused)
     fault = summary.faults[0] if summary is not None and summary.faults else None
     if fault is None:
         return RigError(f"the manual hold did not start within {HOLD_START_TIMEOUT_S:g} s")
