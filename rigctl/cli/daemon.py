@@ -166,6 +166,27 @@ def _cmd_estop(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from rigctl.config import load_rig
+    from rigctl.rigs.doctor import probe_rig
+
+    rig = load_rig(args.rig)
+    results = probe_rig(rig)
+    healthy = all(p.ok for p in results)
+    if args.json:
+        print(json.dumps({"rig": rig.rig.kind, "ok": healthy,
+                          "devices": [p.as_dict() for p in results]}))
+        return EXIT_OK if healthy else EXIT_FAULT
+    print(f"{rig.rig.name} ({rig.rig.kind}): nothing is energised by this check")
+    print(f"  {'device':<12} {'kind':<10} {'':<4} {'ms':>6}  detail")
+    for p in results:
+        print(f"  {p.device:<12} {p.kind:<10} {'ok' if p.ok else 'FAIL':<4} {p.ms:>6.0f}  "
+              f"{p.detail}")
+    print("every device answered" if healthy else
+          "NOT READY: " + ", ".join(p.device for p in results if not p.ok))
+    return EXIT_OK if healthy else EXIT_FAULT
+
+
 def _cmd_control(args: argparse.Namespace) -> int:
     """`rigctl pause [--now] | resume | abort | reset`, to the daemon at --connect or to whichever
     process owns the rig of --rig (a daemon or a `rigctl execute`)."""
@@ -422,6 +443,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         "was reached, 3 otherwise.")
     _client_options(p)
     p.add_argument("--rig", help="the rig file: reach its owner, or else its devices directly")
+
+    p = sub.add_parser(
+        "doctor", help="reach every device of a rig without energising anything",
+        description="Check a rig before a run: every supply's *IDN? and error queue, the coil "
+        "board's handshake and outputs, each arm's joints, a Hall board sample, a camera frame. "
+        "Nothing is switched on. Exit 0 when every device answered, 3 otherwise, 2 for a bad "
+        "rig file.")
+    p.add_argument("--rig", required=True, help="the rig file (TOML)")
+    p.add_argument("--json", action="store_true", help="print the table as one JSON document")
+    p.set_defaults(func=_cmd_doctor)
 
     verbs = {"pause": "pause the run at the end of the step it drives (--now: at once)",
              "resume": "resume a paused run", "abort": "end the run: ramp down cleanly",
