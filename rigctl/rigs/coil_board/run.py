@@ -38,7 +38,6 @@ import functools
 import logging
 import math
 import sys
-import threading
 import time
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
@@ -58,10 +57,12 @@ from rigctl.plans.wall_contact import (
     plan_two_particles,
 )
 from rigctl.rigs.coil_board.actuators import BoardActuators
+from rigctl.run.agents import agent_results, place_agents, read_truth
 from rigctl.run.control import RunState
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
-from rigctl.run.summary import AgentResult, RunSummary
+from rigctl.run.requests import RequestedControl, Requests
+from rigctl.run.summary import RunSummary
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +231,7 @@ class RelativeDrift:
 
 
 
-class CoilBoardProgram:
+class CoilBoardProgram(RequestedControl):
     """Alg. 1 closed through the camera, as the engine's program (see the module docstring).
 
     Construction refuses what cannot run (PlanError, ConfigError) without I/O. `start` places the
@@ -288,33 +289,9 @@ class CoilBoardProgram:
         self._position: np.ndarray | None = None
         self._move = -1  # the move being driven (0-based, as the record's `move`), -1 between
         self._stage = "starting"
-        self._wake: Callable[[], None] = lambda: None
-        # control, from any thread
-        self._lock = threading.Lock()
-        self._pause_requested = False
-        self._pause_now = False
-        self._abort_requested = False
+        self.requests = Requests()
         self._holding = False
         self._aborted = False
-        self._tracking_stopped = False
-
-    # -- control, from any thread ---------------------------------------------------------------
-    def pause(self, immediate: bool = False) -> None:
-        """Hold zeros at the end of the current move, or (`immediate`) end the move now."""
-        with self._lock:
-            self._pause_requested = True
-            self._pause_now = self._pause_now or immediate
-
-    def resume(self) -> None:
-        with self._lock:
-            self._pause_requested = False
-            self._pause_now = False
-        self._wake()  # a hold of zeros: the next command may as well leave now
-
-    def abort(self) -> None:
-        with self._lock:
-            self._abort_requested = True
-        self._wake()
 
     @property
     def aborted(self) -> bool:
@@ -323,23 +300,20 @@ class CoilBoardProgram:
     @property
     def paused(self) -> bool:
         """Holding still at a pause (the coils at zero), or ending the move for a pause now."""
-        return self._holding or (self._pause_requested and self._pause_now)
+        return self._holding or (self.requests.pause_wanted and self.requests.immediate)
 
     def attach_wake(self, wake: Callable[[], None]) -> None:
-        self._wake = wake
+        self.requests.wake = wake  # a hold of zeros: the next command may as well leave now
 
     # -- the run's phases -----------------------------------------------------------------------
     def start(self, ctx: RunContext) -> None:
         """Place the particles (emulated bench), start tracking them and take the first
         measurement; nothing is energised yet."""
-        from rigctl.run.emulated import portable_workspace
         from rigctl.vision.tracking import TrackingLoop
 
         self.record, self._say = ctx.record, ctx.say
-        if ctx.backdoor is not None:
-            ctx.backdoor.request("place", workspace=portable_workspace(self.plan), agents=[
-                {"position": a.start, "radius": a.radius} for a in self.plan.agents])
-            ctx.record.event("placed", agents=self.starts.tolist())
+        place_agents(ctx, self.plan, [{"position": a.start, "radius": a.radius}
+                                      for a in self.plan.agents])
         xmin, ymin, xmax, ymax = self.workspace.bounds
         self.tracking = TrackingLoop(self.rig.camera, self.radii, self.starts,
                                      roi_mm=(xmin, ymin, xmax, ymax))
@@ -354,7 +328,7 @@ class CoilBoardProgram:
         pass  # the board starts with every coil off: nothing to read
 
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
-        if self._abort_requested:
+        if self.requests.abort_wanted:
             if self._aborted:
                 return None
             self._aborted = True  # one cycle of zeros, then the end (the engine stops the coils)
@@ -372,10 +346,11 @@ class CoilBoardProgram:
         """The camera's last look (the coils are off) against the goals, with ground truth's
         error beside it on an emulated bench."""
         measured = self._final_measurement()
-        self._stop_tracking()
-        agents, source = self._results(measured, ctx.backdoor)
+        if self.tracking is not None:
+            self.tracking.stop()
+        agents, source = agent_results(self.goals, measured, read_truth(ctx.backdoor))
         # Reached: the camera's last look, after the coils were stopped, has both within tolerance.
-        reached = all(a.error_mm is not None and a.error_mm <= self.tolerance for a in agents)
+        reached = measured is not None and all(a.error_mm <= self.tolerance for a in agents)
         tracking = None
         if self.tracking is not None:
             tracking = {"frames": self.tracking.frames, "lost_frames": self.tracking.lost_frames,
@@ -391,11 +366,7 @@ class CoilBoardProgram:
     def close(self) -> None:
         if self._commands is not None:
             self._commands.close()
-        self._stop_tracking()
-
-    def _stop_tracking(self) -> None:
-        if self.tracking is not None and not self._tracking_stopped:
-            self._tracking_stopped = True
+        if self.tracking is not None:
             self.tracking.stop()
 
     # -- Alg. 1's loop, one command per stream cycle --------------------------------------------
@@ -410,7 +381,7 @@ class CoilBoardProgram:
         position = self._position
         assert position is not None
         while True:
-            if self._pause_requested:
+            if self.requests.pause_wanted:
                 yield from self._hold()
                 position = yield from self._measure(time.monotonic(), "a frame after the pause")
             error = float(np.max(np.hypot(*(position - self.goals).T)))
@@ -445,7 +416,7 @@ class CoilBoardProgram:
         self._holding, self._move, self._stage = True, -1, "paused"
         self._say("paused: every coil at zero")
         try:
-            while self._pause_requested:
+            while self.requests.pause_wanted:
                 yield ZERO
         finally:
             self._holding = False
@@ -554,7 +525,7 @@ class CoilBoardProgram:
         interrupted = False
 
         while True:
-            if self._pause_requested and self._pause_now:
+            if self.requests.pause_wanted and self.requests.immediate:
                 interrupted = True  # pause now: the coils go to zero in this very cycle
                 break
             now = time.monotonic()
@@ -692,30 +663,13 @@ class CoilBoardProgram:
         return state.positions_mm.copy()
 
     def _final_measurement(self) -> np.ndarray | None:
-        if self.tracking is None or self._tracking_stopped or self.tracking.latest() is None:
+        if self.tracking is None or self.tracking.latest() is None:
             return None
         try:
             return self._measure_now()
         except RigError:
             state = self.tracking.latest()
             return state.positions_mm.copy() if state is not None else None
-
-    def _results(self, measured: np.ndarray | None, backdoor) -> tuple[list[AgentResult], str]:
-        truth = None
-        if backdoor is not None:
-            try:
-                truth = np.array(backdoor.request("truth")["agents"], dtype=float)
-            except RigError as err:
-                log.error("could not read ground truth: %s", err)
-        agents = []
-        for i, goal in enumerate(self.goals):
-            final = None if measured is None else [round(float(v), 4) for v in measured[i]]
-            error = None if measured is None else round(float(np.hypot(*(measured[i] - goal))), 4)
-            truth_error = None if truth is None else round(float(np.hypot(*(truth[i] - goal))), 4)
-            agents.append(AgentResult(final, goal.tolist(), error, truth_error))
-        source = "camera (closed loop)" + ("; emulator ground truth in truth_error_mm"
-                                           if truth is not None else "")
-        return agents, source
 
 
 def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",

@@ -43,7 +43,7 @@ import numpy as np
 from rigctl.coils import u_actuation_matrix
 from rigctl.config import RigConfig
 from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.errors import ConfigError, DeviceTimeout, LimitError, PlanError, RigError
+from rigctl.errors import ConfigError, DeviceTimeout, LimitError, PlanError
 from rigctl.plans.pair import (
     ZERO_RADIAL_ANGLE_RAD,
     PairPlannerOptions,
@@ -64,11 +64,11 @@ from rigctl.record import RunRecord
 from rigctl.rigs.six_coil.allocate import check_current_limits, field_and_pull_u
 from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings, distance_to_path
 from rigctl.rigs.six_coil.supplies import CoilSupplies
+from rigctl.run.agents import agent_results, place_agents, read_truth
 from rigctl.run.control import RunState
-from rigctl.run.emulated import portable_workspace
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
-from rigctl.run.summary import AgentResult
+from rigctl.run.requests import RequestedControl, Requests
 
 log = logging.getLogger(__name__)
 
@@ -225,32 +225,16 @@ def slew_limited(program: np.ndarray, rig: RigConfig) -> np.ndarray:
     return out
 
 
-class _PauseRequests:
-    """Pause and resume as asked from any thread. The stream thread decides when a pause takes
-    effect (`hold`) and when it ends (`release`), and counts the time spent paused: it counts
-    towards neither the run's timeout nor the goal hold."""
+class _PauseRequests(Requests):
+    """The operator's requests, and the time spent paused: the stream thread decides when a
+    pause takes effect (`hold`) and when it ends (`release`); paused time counts towards neither
+    the run's timeout nor the goal hold."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._wanted = False
-        self._immediate = False
+        super().__init__()
         self.paused = False  # the stream thread's: holding now
         self._since: float | None = None
         self._paused_s = 0.0
-
-    def request(self, immediate: bool) -> None:
-        with self._lock:
-            self._wanted = True
-            self._immediate = self._immediate or immediate
-
-    def cancel(self) -> None:
-        with self._lock:
-            self._wanted = self._immediate = False
-
-    def wanted(self) -> tuple[bool, bool]:
-        """(a pause is wanted, at once)."""
-        with self._lock:
-            return self._wanted, self._immediate
 
     def hold(self, now: float) -> None:
         self.paused, self._since = True, now
@@ -279,7 +263,7 @@ def expected_headings(nodes: np.ndarray, stage_of: np.ndarray) -> np.ndarray:
     return phi
 
 
-class PairProgram:
+class PairProgram(RequestedControl):
     """One pair-formation plan on one six-coil rig, as the run engine's `RigProgram`:
     construction refuses a bad plan without I/O (`prepare_pair`); `start` places the agents on
     the emulated bench and finds them with the camera; `next` is one stream cycle's currents;
@@ -318,14 +302,11 @@ class PairProgram:
                      "samples": samples, "duration_s": round(samples / rig.stream.rate_hz, 3)}
         self.d_mm = self.plan.agents.body_diameter_mm
         self.metrics = _Metrics(prep.nodes)
-        self._abort = threading.Event()
-        self._pause = _PauseRequests()
+        self.requests = self._pause = _PauseRequests()
         self._record: RunRecord | None = None
         self._backdoor: BackdoorClient | None = None
         self._tracking = None  # TrackingLoop, once started
-        self._tracking_stopped = False
         self._truth_at_end: dict | None = None
-        self._truth_read = False
         # the stream thread's from here on
         self._ramp = max(1, round(settings.ramp_s * self.rate_hz))
         self._slew = CoilSlew(rig)
@@ -358,25 +339,14 @@ class PairProgram:
         self._pause_hold: PairPursuit | None = None  # the pause's own hold of the formation
         self._pause_target: np.ndarray | None = None
 
-    # -- control, from any thread ---------------------------------------------------------------
-    def pause(self, immediate: bool = False) -> None:
-        """Hold the agents where they are, at the end of the segment being driven (closed loop:
-        when the pursuit reaches its next node, or after the segment's planned time), or at once
-        with `immediate`."""
-        self._pause.request(immediate)
-
-    def resume(self) -> None:
-        """Go on from where the agents are: closed loop, the pursuit from the next camera frame;
-        open loop, the program from the sample where it stopped."""
-        self._pause.cancel()
-
-    def abort(self) -> None:
-        """Ramp the field down and end; the summary reports the abort."""
-        self._abort.set()
-
+    # -- control: `pause` holds the agents where they are, at the end of the segment being
+    # driven (closed loop: when the pursuit reaches its next node, or after the segment's planned
+    # time), or at once; `resume` goes on from where they are (closed loop, the pursuit from the
+    # next camera frame; open loop, the program from the sample where it stopped); `abort` ramps
+    # the field down and ends.
     @property
     def aborted(self) -> bool:
-        return self._abort.is_set()
+        return self._pause.abort_wanted
 
     @property
     def paused(self) -> bool:
@@ -395,12 +365,8 @@ class PairProgram:
         ctx.record.event("pair", closed_loop=self.settings.closed_loop,
                          timeout_s=round(self._timeout_s, 3))
         start_mm = agent_positions(prep.nodes[0]) * d
-        if ctx.backdoor is not None:
-            ctx.backdoor.request(
-                "place", workspace=portable_workspace(plan),
-                agents=[{"position": p.tolist(), "radius": 0.5 * d} for p in start_mm],
-                pair=plan.agents.model_dump())
-            ctx.record.event("placed", agents=start_mm.tolist())
+        place_agents(ctx, plan, [{"position": p.tolist(), "radius": 0.5 * d} for p in start_mm],
+                     pair=plan.agents.model_dump())
         if self.rig.camera is not None:  # the agents are found before anything is energised
             self._tracking = TrackingLoop(self.rig.camera, np.full(2, 0.5 * d), start_mm,
                                           roi_mm=prep.problem.workspace.bounds)
@@ -418,10 +384,10 @@ class PairProgram:
             self._started_at = self._seen_at = now
         record = self._record
         assert record is not None
-        stopping = self._abort.is_set() or \
+        stopping = self._pause.abort_wanted or \
             now - self._started_at - self._pause.paused_s(now) > self._timeout_s
         if stopping and self._ramp_down is None:
-            record.event("stop", reason="abort" if self._abort.is_set() else "timeout")
+            record.event("stop", reason="abort" if self._pause.abort_wanted else "timeout")
             self._ramp_down = 0
         self._update_pause(now)
         sample = k if self._closed else self._j
@@ -446,9 +412,7 @@ class PairProgram:
         """The program is over: ground truth as it leaves the agents, before the supplies are
         stopped (with no field the magnets still attract each other, and that is not the run's
         doing)."""
-        self._truth_at_end = _read_truth(self._backdoor)
-        self._truth_read = True
-        return None
+        self._truth_at_end = read_truth(self._backdoor)
 
     def _stage(self, k: int, sample: int) -> tuple[int, str]:
         if self._pause.paused:
@@ -487,7 +451,7 @@ class PairProgram:
     def _update_pause(self, now: float) -> None:
         """Pause and resume take effect here, on the stream thread (`_PauseRequests`)."""
         pause, record, closed = self._pause, self._record, self._closed
-        wanted, immediate = pause.wanted()
+        wanted, immediate = pause.pause_wanted, pause.immediate
         finishing = self._ramp_down is not None or (not closed and self._j >= self._final_ramp)
         if wanted and not pause.paused and not finishing:
             mark = self._pursuit.k if closed else int(self.prepared.stage_of[self._j])
@@ -644,31 +608,14 @@ class PairProgram:
         """Each agent's final position (the camera's last frame, else ground truth) against the
         goal formation, in body lengths; reached closed loop only when the goal was also held
         for the plan's `hold_s` within its tolerance."""
-        self._stop_tracking()
-        if not self._truth_read:  # a fault or an e-stop ended the stream
-            self._truth_at_end = _read_truth(ctx.backdoor)
+        self.close()
+        if self._truth_at_end is None:  # a fault or an e-stop ended the stream
+            self._truth_at_end = read_truth(ctx.backdoor)
         plan, d, m = self.plan, self.d_mm, self.metrics
         goal_mm = agent_positions(state_of(plan.goal, d)) * d
         truth = self._truth_at_end
-        final = m.last_q
-        positions_from = "camera" if final is not None else "unknown"
-        if final is None and truth is not None:
-            final = state_from_positions(np.array(truth["agents"]) / d)
-            positions_from = "emulator ground truth"
-        elif final is not None and truth is not None:
-            positions_from += "; emulator ground truth in truth_error_bl"
-        agents = []
-        for i in range(2):
-            final_mm = error = truth_error = None
-            if final is not None:
-                p = agent_positions(final)[i] * d
-                final_mm = p.round(4).tolist()
-                error = round(float(np.hypot(*(p - goal_mm[i])) / d), 4)
-            if truth is not None:
-                t = np.array(truth["agents"][i])
-                truth_error = round(float(np.hypot(*(t - goal_mm[i])) / d), 4)
-            agents.append(AgentResult(final_mm, goal_mm[i].round(4).tolist(), error, truth_error,
-                                      unit="bl"))
+        camera = None if m.last_q is None else agent_positions(m.last_q) * d
+        agents, positions_from = agent_results(goal_mm, camera, truth, scale_mm=d, unit="bl")
         tol = plan.tolerance_bl
         closed = self.settings.closed_loop
         # open loop judges by ground truth where there is one: the camera only watched
@@ -696,13 +643,8 @@ class PairProgram:
                        details=_details(metrics))
 
     def close(self) -> None:
-        self._stop_tracking()
-
-    def _stop_tracking(self) -> None:
-        tracking = self._tracking
-        if tracking is not None and not self._tracking_stopped:
-            self._tracking_stopped = True
-            tracking.stop()
+        if self._tracking is not None:
+            self._tracking.stop()
 
 
 def _round(value: float | None) -> float | None:
@@ -723,16 +665,6 @@ def _details(metrics: dict) -> list[str]:
         lines.append(f"hold: {metrics['held_s']:.1f} s, worst agent error "
                      f"{metrics['hold_max_error_bl']:.3f} BL")
     return lines
-
-
-def _read_truth(backdoor: BackdoorClient | None) -> dict | None:
-    if backdoor is None:
-        return None
-    try:
-        return backdoor.request("truth")
-    except RigError as err:
-        log.error("could not read ground truth: %s", err)
-        return None
 
 
 def PairRun(plan: PairFormationPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
