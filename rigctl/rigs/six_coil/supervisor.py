@@ -268,11 +268,6 @@ class Supervisor:
             },
         }
 
-    def latencies_s(self) -> list[float]:
-        """Capture time of the frame a decision used -> the first command after it left the loop."""
-        times = self.sequencer.command_times
-        return [times[d.number] - d.t_source for d in self.decisions if d.number in times]
-
     # -- the decision thread --------------------------------------------------------------------
     def _event(self, name: str, **info: object) -> None:
         if self.record is not None:
