@@ -58,7 +58,6 @@ from rigctl.plans.wall_contact import (
 )
 from rigctl.rigs.coil_board.actuators import BoardActuators
 from rigctl.run.agents import agent_results, place_agents, read_truth
-from rigctl.run.control import RunState
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
 from rigctl.run.requests import RequestedControl, Requests
@@ -672,18 +671,14 @@ class CoilBoardProgram(RequestedControl):
             return state.positions_mm.copy() if state is not None else None
 
 
-def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-                 progress_out: TextIO | None = None,
-                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-                 on_state: Callable[[RunState, dict], None] | None = None,
-                 settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> EngineRun:
-    """The run of a two-particle plan on a coil board (the one engine with `CoilBoardProgram`).
-    Refusals (PlanError, ConfigError) raise here, before anything is opened."""
+def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *,
+                 settings: CoilBoardRunSettings = CoilBoardRunSettings(), **run_options) -> EngineRun:
+    """The run of a two-particle plan on a coil board (the one engine with `CoilBoardProgram`);
+    `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refusals (PlanError, ConfigError) raise here, before anything is opened."""
     program = CoilBoardProgram(plan, rig, settings=settings)
     connect = functools.partial(BoardActuators.connect,
                                 syren_ready_timeout_s=settings.syren_ready_timeout_s)
-    return EngineRun(program, rig, connect, runs_dir=runs_dir, progress_out=progress_out,
-                     on_cycle=on_cycle, on_state=on_state)
+    return EngineRun(program, rig, connect, **run_options)
 
 
 def execute_coilboard(plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",

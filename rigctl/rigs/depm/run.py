@@ -40,9 +40,6 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Callable
-from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
@@ -62,7 +59,6 @@ from rigctl.rigs.depm.metrics import (
 )
 from rigctl.rigs.depm.motion import Timeline, approach_path, caps, path_violations
 from rigctl.rigs.depm.sensors import HALL_NAME, HallWatch, sensor_estimator
-from rigctl.run.control import RunState
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
 from rigctl.run.requests import RequestedControl, Requests
@@ -458,16 +454,11 @@ class FieldSequenceProgram(RequestedControl):
 # -- the run --------------------------------------------------------------------------------------
 
 
-def FieldSequenceRun(plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-                     progress_out: TextIO | None = None,
-                     on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-                     on_state: Callable[[RunState, dict], None] | None = None,
-                     time_scale: float = 1.0) -> EngineRun:
-    """The run of a field-sequence plan on a dual-EPM rig (the one engine with this program).
-    Refuses (ConfigError, SafetyRefusal) before anything is opened."""
-    program = FieldSequenceProgram(plan, rig, time_scale=time_scale)
-    return EngineRun(program, rig, ArmPair.connect, runs_dir=runs_dir, progress_out=progress_out,
-                     on_cycle=on_cycle, on_state=on_state)
+def FieldSequenceRun(plan, rig: RigConfig, *, time_scale: float = 1.0, **run_options) -> EngineRun:
+    """The run of a field-sequence plan on a dual-EPM rig (the one engine with this program);
+    `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refuses (ConfigError, SafetyRefusal) before anything is opened."""
+    return EngineRun(FieldSequenceProgram(plan, rig, time_scale=time_scale), rig, ArmPair.connect,
+                     **run_options)
 
 
 # -- what a person reads --------------------------------------------------------------------------

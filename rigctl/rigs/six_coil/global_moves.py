@@ -28,7 +28,6 @@ from rigctl.rigs.six_coil.sequencer import Sequencer
 from rigctl.rigs.six_coil.supervisor import Supervisor, SupervisorSettings
 from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.run.agents import agent_results, place_agents, read_truth, truth_of
-from rigctl.run.control import RunState
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
 from rigctl.run.summary import RunSummary
@@ -151,16 +150,13 @@ class GlobalMovesProgram:
             self.supervisor.stop()
 
 
-def Run(plan: Plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-        progress_out: TextIO | None = None,
-        on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-        on_state: Callable[[RunState, dict], None] | None = None, closed_loop: bool = False,
-        supervisor_settings: SupervisorSettings | None = None) -> EngineRun:
-    """The run of a global-moves plan on a six-coil rig (the one engine with this program)."""
+def Run(plan: Plan, rig: RigConfig, *, closed_loop: bool = False,
+        supervisor_settings: SupervisorSettings | None = None, **run_options) -> EngineRun:
+    """The run of a global-moves plan on a six-coil rig (the one engine with this program);
+    `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`)."""
     program = GlobalMovesProgram(plan, rig, closed_loop=closed_loop,
                                  supervisor_settings=supervisor_settings)
-    return EngineRun(program, rig, CoilSupplies.connect, runs_dir=runs_dir,
-                     progress_out=progress_out, on_cycle=on_cycle, on_state=on_state)
+    return EngineRun(program, rig, CoilSupplies.connect, **run_options)
 
 
 def execute_plan(

@@ -33,10 +33,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, replace
-from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
@@ -65,7 +62,6 @@ from rigctl.rigs.six_coil.allocate import check_current_limits, field_and_pull_u
 from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings, distance_to_path
 from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.run.agents import agent_results, place_agents, read_truth
-from rigctl.run.control import RunState
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
 from rigctl.run.requests import RequestedControl, Requests
@@ -667,19 +663,14 @@ def _details(metrics: dict) -> list[str]:
     return lines
 
 
-def PairRun(plan: PairFormationPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-            progress_out: TextIO | None = None,
-            on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-            on_state: Callable[[RunState, dict], None] | None = None,
-            closed_loop: bool | None = None,
-            settings: PairRunSettings = PairRunSettings()) -> EngineRun:
+def PairRun(plan: PairFormationPlan, rig: RigConfig, *, closed_loop: bool | None = None,
+            settings: PairRunSettings = PairRunSettings(), **run_options) -> EngineRun:
     """The run of a pair-formation plan on a six-coil rig (the one engine with `PairProgram`);
-    `closed_loop`, if given, overrides the settings'. Refuses a bad plan without I/O."""
+    `closed_loop`, if given, overrides the settings'; `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refuses a bad plan
+    without I/O."""
     if closed_loop is not None:
         settings = replace(settings, closed_loop=closed_loop)
-    return EngineRun(PairProgram(plan, rig, settings), rig, CoilSupplies.connect,
-                     runs_dir=runs_dir, progress_out=progress_out, on_cycle=on_cycle,
-                     on_state=on_state)
+    return EngineRun(PairProgram(plan, rig, settings), rig, CoilSupplies.connect, **run_options)
 
 
 class PairStages:
