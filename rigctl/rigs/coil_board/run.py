@@ -60,7 +60,7 @@ from rigctl.rigs.coil_board.actuators import BoardActuators
 from rigctl.run.agents import agent_results, place_agents, read_truth
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
-from rigctl.run.requests import RequestedControl, Requests
+from rigctl.run.interruptions import RequestedControl, Requests, Suspension
 from rigctl.run.summary import RunSummary
 
 log = logging.getLogger(__name__)
@@ -273,15 +273,13 @@ class CoilBoardProgram(RequestedControl):
         self.coils_centre = np.zeros(2)
         # Particles that touch make one blob on the camera: re-planned moves keep them apart.
         self.reach = float(self.radii.sum() + max(plan.min_separation_mm, settings.keep_apart_mm))
-        self.lost_limit_s = (settings.lost_limit_s if settings.lost_limit_s is not None
-                             else rig.camera.timeout_s)
+        self.suspension = Suspension(settings.lost_limit_s if settings.lost_limit_s is not None
+                                     else rig.camera.timeout_s)
         self.replans = 0
         self.moves_done = 0
         self.drift = RelativeDrift()
-        self.lost_holds = 0  # times the run held (suspended) while the tracker had lost a particle
         self.tracking = None  # TrackingLoop, from `start`
         self.record = None
-        self.suspended: str | None = None
         self.reached = False
         self._say: Callable[[str], None] = lambda text: None
         self._commands: Commands | None = None
@@ -301,6 +299,10 @@ class CoilBoardProgram(RequestedControl):
         """Holding still at a pause (the coils at zero), or ending the move for a pause now."""
         return self._holding or (self.requests.pause_wanted and self.requests.immediate)
 
+    @property
+    def suspended(self) -> str | None:
+        return self.suspension.reason
+
     def attach_wake(self, wake: Callable[[], None]) -> None:
         self.requests.wake = wake  # a hold of zeros: the next command may as well leave now
 
@@ -311,6 +313,7 @@ class CoilBoardProgram(RequestedControl):
         from rigctl.vision.tracking import TrackingLoop
 
         self.record, self._say = ctx.record, ctx.say
+        self.suspension.record, self.suspension.say = ctx.record, ctx.say
         place_agents(ctx, self.plan, [{"position": a.start, "radius": a.radius}
                                       for a in self.plan.agents])
         xmin, ymin, xmax, ymax = self.workspace.bounds
@@ -331,7 +334,7 @@ class CoilBoardProgram(RequestedControl):
             if self._aborted:
                 return None
             self._aborted = True  # one cycle of zeros, then the end (the engine stops the coils)
-            self._holding, self.suspended, self._move = False, None, -1
+            self._holding, self.suspension.reason, self._move = False, None, -1
             return Step(np.zeros(4), k, -1, stage="aborting")
         if self._commands is None:
             return None
@@ -353,7 +356,7 @@ class CoilBoardProgram(RequestedControl):
         tracking = None
         if self.tracking is not None:
             tracking = {"frames": self.tracking.frames, "lost_frames": self.tracking.lost_frames,
-                        "holds": self.lost_holds}
+                        "holds": self.suspension.count}
         ctx.record.event("closed_loop", reached=reached, moves=self.moves_done,
                          replans=self.replans, drift_k=self.drift.k.tolist())
         return Outcome(
@@ -513,7 +516,6 @@ class CoilBoardProgram(RequestedControl):
         history: list[tuple[float, np.ndarray]] = []
         sent: list[float] = []  # angle of each command sent, radians
         lean = 0.0  # measured motion angle minus commanded angle
-        lost_since: float | None = None  # tracking lost since (monotonic s)
         began = time.monotonic()
         tracking = self.tracking
         assert tracking is not None
@@ -531,15 +533,12 @@ class CoilBoardProgram(RequestedControl):
             state = tracking.latest()
             if not tracking.ok(now):
                 # Suspended (coils off) while the tracker looks for them.
-                lost_since = self._lost(lost_since, now, "tracking lost during a move (no fresh "
-                                        "frame with both particles); the coils were stopped")
+                self.suspension.lost(now, "tracking lost during a move (no fresh frame with both "
+                                     "particles); the coils were stopped", tracking.failure)
                 history.clear()
                 yield ZERO
                 continue
-            if lost_since is not None:
-                self._regained(lost_since, now)
-                began += now - lost_since  # the hold is not the move's time
-                lost_since = None
+            began += self.suspension.regained(now)  # the hold is not the move's time
             if not history or history[-1][0] != state.t_source:
                 history.append((state.t_source, state.positions_mm))
                 # Keep one frame older than the stall window (all `_stalled` needs) and the last
@@ -618,39 +617,15 @@ class CoilBoardProgram(RequestedControl):
         them): suspended until there is one."""
         assert self.tracking is not None
         tracking = self.tracking
-        lost_since: float | None = None
         while True:
             now = time.monotonic()
             state = tracking.latest()
             if state is not None and state.t_source > after and not state.lost.any():
-                if lost_since is not None:
-                    self._regained(lost_since, now)
+                self.suspension.regained(now)
                 return state.positions_mm.copy()
             if not tracking.ok(now) or now > after + tracking.timeout_s:
-                lost_since = self._lost(lost_since, now, f"tracking lost: {what}")
+                self.suspension.lost(now, f"tracking lost: {what}", tracking.failure)
             yield ZERO
-
-    def _lost(self, since: float | None, now: float, reason: str) -> float:
-        """Tracking is lost now: suspend (the first time), and give up as a fault of the camera
-        once it has been lost for `lost_limit_s` or the camera itself failed. Returns since when."""
-        failure = self.tracking.failure
-        if failure is not None:
-            raise DeviceTimeout(f"{reason}: the camera failed ({failure}); the coils were stopped",
-                                device="camera")
-        if since is None:
-            self.suspended = reason
-            self.record.event("tracking_lost", reason=reason)
-            self._say(f"suspended: {reason}")
-            return now
-        if now - since > self.lost_limit_s:
-            raise DeviceTimeout(f"{reason}, for {self.lost_limit_s:g} s", device="camera")
-        return since
-
-    def _regained(self, since: float, now: float) -> None:
-        self.lost_holds += 1
-        self.suspended = None
-        self.record.event("tracking_regained", after_s=now - since)
-        self._say(f"tracking regained after {now - since:.2f} s")
 
     def _measure_now(self) -> np.ndarray:
         """Positions (2, 2) mm from the first frame taken from now on (blocking: nothing is

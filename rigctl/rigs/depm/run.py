@@ -61,7 +61,7 @@ from rigctl.rigs.depm.motion import Timeline, approach_path, caps, path_violatio
 from rigctl.rigs.depm.sensors import HALL_NAME, HallWatch, sensor_estimator
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
-from rigctl.run.requests import RequestedControl, Requests
+from rigctl.run.interruptions import RequestedControl, Requests
 
 log = logging.getLogger(__name__)
 

@@ -105,7 +105,7 @@ class GlobalMovesProgram:
 
     @property
     def suspended(self) -> str | None:
-        return self.supervisor.suspended if self.supervisor is not None else None
+        return self.supervisor.suspension.reason if self.supervisor is not None else None
 
     def attach_wake(self, wake: Callable[[], None]) -> None:
         self.sequencer.wake = wake

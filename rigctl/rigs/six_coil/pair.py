@@ -40,7 +40,7 @@ import numpy as np
 from rigctl.coils import u_actuation_matrix
 from rigctl.config import RigConfig
 from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.errors import ConfigError, DeviceTimeout, LimitError, PlanError
+from rigctl.errors import ConfigError, LimitError, PlanError
 from rigctl.plans.pair import (
     ZERO_RADIAL_ANGLE_RAD,
     PairPlannerOptions,
@@ -64,7 +64,7 @@ from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.run.agents import agent_results, place_agents, read_truth
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
-from rigctl.run.requests import RequestedControl, Requests
+from rigctl.run.interruptions import RequestedControl, Requests, Suspension
 
 log = logging.getLogger(__name__)
 
@@ -320,7 +320,7 @@ class PairProgram(RequestedControl):
         self._frame = -1
         self._started_at: float | None = None
         self._seen_at = 0.0
-        self._lost_since: float | None = None
+        self._suspension = Suspension(settings.lost_after_s)
         self._phi = float(prep.nodes[0][3])  # the pair's heading, last seen (or expected)
         self._phi_seen = False
         self._j = 0  # open loop: the next program sample
@@ -350,7 +350,7 @@ class PairProgram(RequestedControl):
 
     @property
     def suspended(self) -> str | None:
-        return "tracking lost" if self._lost_since is not None else None
+        return self._suspension.reason
 
     # -- the run's phases -----------------------------------------------------------------------
     def start(self, ctx: RunContext) -> None:
@@ -358,6 +358,7 @@ class PairProgram(RequestedControl):
 
         plan, prep, d = self.plan, self.prepared, self.d_mm
         self._record, self._backdoor = ctx.record, ctx.backdoor
+        self._suspension.record = ctx.record
         ctx.record.event("pair", closed_loop=self.settings.closed_loop,
                          timeout_s=round(self._timeout_s, 3))
         start_mm = agent_positions(prep.nodes[0]) * d
@@ -480,9 +481,7 @@ class PairProgram(RequestedControl):
         if latest is not None and latest.frame != self._frame and not latest.lost.any():
             self._frame = latest.frame
             self._seen_at = now
-            if self._lost_since is not None:
-                record.event("resume", after_s=round(now - self._lost_since, 3))
-                self._lost_since = None
+            self._suspension.regained(now)
             q = state_from_positions(latest.positions_mm / self.d_mm)
             self._phi = float(q[3])
             self.metrics.measure(q, self._pursuit)
@@ -498,15 +497,11 @@ class PairProgram(RequestedControl):
             else:
                 self._decide(q, now, latest)
         elif not self._tracking.ok(now) or now - self._seen_at > s.stale_s:
-            if self._lost_since is None:
-                self._lost_since = now
-                record.event("suspend", reason="tracking lost")
-            elif now - self._lost_since > s.lost_after_s:
-                raise DeviceTimeout(f"tracking lost for {s.lost_after_s:g} s", device="camera")
-        if self._lost_since is not None:
+            self._suspension.lost(now, "tracking lost")
+        if self._suspension.since is not None:
             # unseen, the agents are held where they were last seen (a held field would keep
             # moving them, and they could collide unseen)
-            return self._held(self._lost_since, now), -1
+            return self._held(self._suspension.since, now), -1
         if self._pause.paused:
             if self._pause_target is not None:
                 return self._pause_target, -1
