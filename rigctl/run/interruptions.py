@@ -38,9 +38,13 @@ class Requests:
 
 class RequestedControl:
     """A program's `pause`, `resume` and `abort` (the engine's calls, from any thread), kept in
-    its `requests` for the stream thread to act on."""
+    its `requests` for the stream thread to act on; and `connected`, for a program whose outputs
+    start at zero as the devices do (nothing to read from them)."""
 
     requests: Requests
+
+    def connected(self, actuators) -> None:
+        pass
 
     def pause(self, immediate: bool = False) -> None:
         self.requests.pause(immediate)

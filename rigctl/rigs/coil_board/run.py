@@ -47,7 +47,7 @@ from typing import TextIO
 import numpy as np
 
 from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, DeviceTimeout, PlanError, RigError
+from rigctl.errors import ConfigError, DeviceTimeout, PlanError
 from rigctl.plans.checks import check_plan, plan_workspace
 from rigctl.plans.schema import GlobalMovesPlan
 from rigctl.plans.wall_contact import (
@@ -325,9 +325,6 @@ class CoilBoardProgram(RequestedControl):
         ctx.record.event("found", positions=self._position.tolist(),
                          tolerance_mm=self.tolerance)
         self._commands = self._run_moves()
-
-    def connected(self, actuators) -> None:
-        pass  # the board starts with every coil off: nothing to read
 
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
         if self.requests.abort_wanted:
@@ -637,13 +634,11 @@ class CoilBoardProgram(RequestedControl):
         return state.positions_mm.copy()
 
     def _final_measurement(self) -> np.ndarray | None:
+        """The first frame from now on, else the last one seen (None: none ever was)."""
         if self.tracking is None or self.tracking.latest() is None:
             return None
-        try:
-            return self._measure_now()
-        except RigError:
-            state = self.tracking.latest()
-            return state.positions_mm.copy() if state is not None else None
+        state = self.tracking.captured_after(time.monotonic(), self.rig.camera.timeout_s)
+        return (state or self.tracking.latest()).positions_mm.copy()
 
 
 def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *,

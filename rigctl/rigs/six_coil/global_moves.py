@@ -78,12 +78,8 @@ class GlobalMovesProgram:
             self.supervisor = Supervisor(
                 self.plan, rig, self.field_program, self.currents, ramp_samples=ramp,
                 settings=supervisor_settings or SupervisorSettings(),
-                truth=self._truth if rig.emulation else None)
+                truth=(lambda: truth_of(self._backdoor)) if rig.emulation else None)
             self.sequencer = self.supervisor.sequencer
-
-    def _truth(self) -> np.ndarray:
-        """The emulator's true positions (n, 2) mm (the supervisor measures the tracker with it)."""
-        return truth_of(self._backdoor)
 
     # -- control, from any thread ---------------------------------------------------------------
     def pause(self, immediate: bool = False) -> None:

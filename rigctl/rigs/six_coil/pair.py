@@ -372,9 +372,6 @@ class PairProgram(RequestedControl):
             ctx.record.event("tracking", positions_mm=first.positions_mm.tolist())
         self._closed = self.settings.closed_loop and self._tracking is not None
 
-    def connected(self, actuators) -> None:
-        pass  # the supplies start from 0 A, as the program does: nothing to read
-
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
         now = time.monotonic()
         if self._started_at is None:
