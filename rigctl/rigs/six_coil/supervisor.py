@@ -169,7 +169,6 @@ class Decision:
     sample: int
     kind: str  # "continue", "replan", "done", "give_up"
     t_source: float
-    t_decided: float
     error_mm: list[float] = field(default_factory=list)
 
 
@@ -331,8 +330,7 @@ class Supervisor:
         error = np.hypot(*(measured - expected).T)
         goal_error = np.hypot(*(measured - self.goals).T)
         number = len(self.decisions)
-        decision = Decision(number, sample, "continue", state.t_source, time.monotonic(),
-                            error.round(4).tolist())
+        decision = Decision(number, sample, "continue", state.t_source, error.round(4).tolist())
         self.decisions.append(decision)
         go_on = (goal_error.max() <= self.goal_threshold_mm if last
                  else error.max() <= self.settings.threshold_mm)
