@@ -257,9 +257,8 @@ class FieldSequenceProgram(RequestedControl):
         approach = approach_path(q_now, q_start, self.arms, self.limits)
         found = path_violations(approach, self.arms, self.limits)
         if found:
+            # the engine records the refusal (its `violations` listed) and ends the run refused
             self.refused = SafetyRefusal("the approach to the plan's first pose breaks", found)
-            record.event("refused", reason="the approach breaks a safety constraint",
-                         violations=[str(v) for v in found])
             raise self.refused
         speed, accel = caps(self.arms, self.limits)
         self.timeline = Timeline(approach, self.curves, self.t_start_s, self.t_end_s, speed, accel)
