@@ -443,6 +443,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "was reached, 3 otherwise.")
     _client_options(p)
     p.add_argument("--rig", help="the rig file: reach its owner, or else its devices directly")
+    p.set_defaults(func=_cmd_estop)
 
     p = sub.add_parser(
         "doctor", help="reach every device of a rig without energising anything",
@@ -467,7 +468,6 @@ def register(sub: argparse._SubParsersAction) -> None:
             p.add_argument("--now", action="store_true",
                            help="pause at once (the field ramps down; the arms brake)")
         p.set_defaults(func=_cmd_control, verb=verb)
-    p.set_defaults(func=_cmd_estop)
 
     p = sub.add_parser("keys", help="CURVE keys for the daemon and its operators")
     keys_sub = p.add_subparsers(dest="keys_command", required=True)

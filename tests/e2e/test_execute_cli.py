@@ -100,3 +100,17 @@ def test_json_puts_exactly_one_document_on_stdout_errors_included(tmp_path):
     assert bad.returncode == 2
     assert json.loads(bad.stdout)["error"]["code"] == "bad_input"
     assert "missing.json" in bad.stderr
+
+
+def test_every_command_has_its_own_action_and_help(tmp_path):
+    from rigctl.cli.main import build_parser
+
+    parser = build_parser()
+    commands = parser._subparsers._group_actions[0].choices
+    for name, sub in commands.items():
+        if sub._subparsers is None:  # a group (plan, keys) has commands of its own
+            assert sub.get_default("func") is not None, f"rigctl {name} does nothing"
+        assert run_rigctl(name, "--help", cwd=tmp_path).returncode == 0, name
+    # each verb is carried out by its own function (a verb wired to another's would pass --help)
+    assert commands["reset"].get_default("verb") == "reset"
+    assert commands["estop"].get_default("func").__name__ == "_cmd_estop"
