@@ -98,22 +98,12 @@ class SixCoilBench(EmulatedBench):
     def _serve(self) -> RigConfig:
         coils = []
         for coil in self.template.coils:
-            model = BopCoilModel(
-                resistance_ohm=coil.resistance_ohm,
-                inductance_H=coil.inductance_H,
-                current_limit_A=coil.current_limit_A,
-                compliance_V=coil.compliance_V,
-            )
+            model = BopCoilModel(resistance_ohm=coil.resistance_ohm, inductance_H=coil.inductance_H,
+                                 current_limit_A=coil.current_limit_A, compliance_V=coil.compliance_V)
             scpi = BopScpi(model, before_command=self.advance)
             endpoint = self.server.serve_lines_tcp(scpi.handle, name=coil.name, host=self.host)
-            field = loop_field(
-                np.zeros(3),
-                np.asarray(coil.centre_mm) * 1e-3,
-                np.asarray(coil.axis),
-                coil.loop_radius_mm * 1e-3,
-                coil.turns,
-                1.0,
-            )
+            field = loop_field(np.zeros(3), np.asarray(coil.centre_mm) * 1e-3, np.asarray(coil.axis),
+                               coil.loop_radius_mm * 1e-3, coil.turns, 1.0)
             self.supplies.append(_Supply(coil.name, model, endpoint, np.asarray(field, dtype=float)))
             self.add_device(coil.name, endpoint, overtemp=lambda _, m=model: self._locked(
                 m.inject_overtemperature))
@@ -131,15 +121,10 @@ class SixCoilBench(EmulatedBench):
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> SixCoilBench:
         """`rigctl emulate six-coil [--world pair] [--slip ...]`."""
-        defaults = Mismatch()
-        mismatch = Mismatch(
-            slip=defaults.slip if args.slip is None else args.slip,
-            speed_spread=defaults.speed_spread if args.speed_spread is None else args.speed_spread,
-            drift_mm_per_s=defaults.drift_mm_per_s if args.drift is None else args.drift,
-            noise_mm=defaults.noise_mm if args.noise is None else args.noise,
-            seed=defaults.seed if args.seed is None else args.seed,
-            field_at_robots=args.field_at_robots,
-        )
+        given = {"slip": args.slip, "speed_spread": args.speed_spread, "drift_mm_per_s": args.drift,
+                 "noise_mm": args.noise, "seed": args.seed}
+        mismatch = Mismatch(**{k: v for k, v in given.items() if v is not None},
+                            field_at_robots=args.field_at_robots)
         if mismatch.slip <= 0 or mismatch.speed_spread < 0 or mismatch.drift_mm_per_s < 0 or \
                 mismatch.noise_mm < 0:
             raise ConfigError("--slip must be > 0; --speed-spread, --drift and --noise >= 0")
@@ -263,9 +248,9 @@ class SixCoilBench(EmulatedBench):
 
     def _mismatch(self, request: dict) -> dict:
         settings = {**self.mismatch.__dict__}
-        for key in settings:
+        for key, value in settings.items():
             if key in request:
-                settings[key] = type(settings[key])(request[key])
+                settings[key] = type(value)(request[key])
         if settings["slip"] <= 0 or settings["speed_spread"] < 0 or settings["noise_mm"] < 0:
             raise ValueError("slip must be > 0, speed_spread and noise_mm >= 0")
         self.mismatch = Mismatch(**settings)

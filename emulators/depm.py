@@ -144,12 +144,6 @@ class DepmBench(EmulatedBench):
         return dipole_field(np.asarray(points_m)[:, None, :], centres, moments).sum(axis=1)
 
     # -- backdoor -------------------------------------------------------------------------------
-    def _arm(self, name: object) -> EmulatedArm:
-        for arm in self.arms:
-            if arm.name == name:
-                return arm
-        raise ValueError(f"no arm {name!r}; the bench has {[a.name for a in self.arms]}")
-
     def _truth(self, request: dict) -> dict:
         self.advance()
         centres, moments = self.epms()
@@ -159,5 +153,8 @@ class DepmBench(EmulatedBench):
                 "U": u.tolist()}
 
     def _place(self, request: dict) -> dict:
-        self._arm(request.get("arm")).place(np.asarray(request["q"], dtype=float))
+        arms = {arm.name: arm for arm in self.arms}
+        if request.get("arm") not in arms:
+            raise ValueError(f"no arm {request.get('arm')!r}; the bench has {', '.join(arms)}")
+        arms[request["arm"]].place(np.asarray(request["q"], dtype=float))
         return {}
