@@ -299,10 +299,3 @@ class ErrorReply(_FlatPayload):
     def describe(self) -> str:
         name = ERROR_NAMES.get(self.code, f"error code 0x{self.code:02X}")
         return f"board refused {TYPE_NAMES.get(self.request_type, hex(self.request_type))}: {name}"
-
-
-def describe_flags(flags: int) -> str:
-    names = [name for bit, name in ((FLAG_HANDSHAKEN, "HANDSHAKEN"), (FLAG_WATCHDOG, "WATCHDOG"),
-                                    (FLAG_SYREN_READY, "SYREN_READY"), (FLAG_RX_OVERRUN, "RX_OVERRUN"))
-             if flags & bit]
-    return "|".join(names) or "none"

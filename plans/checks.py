@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +55,26 @@ def simulate(plan: GlobalMovesPlan) -> GlobalMovesPlan:
     return copy
 
 
+def check_placement(workspace, points: np.ndarray, radii: np.ndarray, gap_mm: float,
+                    field: Callable[[int], str], agent: Callable[[int], str]) -> None:
+    """PlanError unless every agent (points (n, 2) mm, radii (n,) mm) lies in free space, at least
+    its radius from every surface, and no two centres are closer than r_i + r_j + gap_mm;
+    `field(i)` names where agent i was given, `agent(i)` the agent."""
+    clearance = workspace.clearance(points)
+    for index, (point, room, radius) in enumerate(zip(points, clearance, radii)):
+        if room < radius - 1e-9:
+            where = "inside a wall or outside the boundary" if room < 0 else "too close to a wall"
+            raise PlanError(f"{field(index)}: ({point[0]:g}, {point[1]:g}) is {where} "
+                            f"(clearance {room:.3f} mm, radius {radius:g} mm)")
+    for i in range(len(points)):
+        for j in range(i + 1, len(points)):
+            distance = float(np.hypot(*(points[j] - points[i])))
+            need = radii[i] + radii[j] + gap_mm
+            if distance < need - 1e-9:
+                raise PlanError(f"{field(j)}: overlaps {agent(i)} (centres {distance:.3f} mm "
+                                f"apart, need {need:g} mm)")
+
+
 def check_plan(plan: GlobalMovesPlan) -> None:
     """Geometric checks beyond the schema; raises PlanError naming the field.
 
@@ -70,23 +91,8 @@ def check_plan(plan: GlobalMovesPlan) -> None:
     radii = model.radii
     for field in ("start", "goal"):
         points = np.array([getattr(agent, field) for agent in plan.agents], dtype=float)
-        clearance = workspace.clearance(points)
-        for index, (point, room, radius) in enumerate(zip(points, clearance, radii)):
-            if room < radius - 1e-9:
-                where = "inside a wall or outside the boundary" if room < 0 else "too close to a wall"
-                raise PlanError(
-                    f"{source}: agents.{index}.{field}: ({point[0]:g}, {point[1]:g}) is {where} "
-                    f"(clearance {room:.3f} mm, radius {radius:g} mm)"
-                )
-        for i in range(len(points)):
-            for j in range(i + 1, len(points)):
-                distance = float(np.hypot(*(points[j] - points[i])))
-                need = radii[i] + radii[j] + plan.min_separation_mm
-                if distance < need - 1e-9:
-                    raise PlanError(
-                        f"{source}: agents.{j}.{field}: overlaps agent {i} (centres {distance:.3f} mm "
-                        f"apart, need {need:g} mm)"
-                    )
+        check_placement(workspace, points, radii, plan.min_separation_mm,
+                        lambda i, f=field: f"{source}: agents.{i}.{f}", lambda i: f"agent {i}")
     if plan.expected is None:
         return
     if len(plan.expected) != len(plan.moves):

@@ -104,23 +104,6 @@ def interagent_forces(r: ArrayLike, psi: ArrayLike) -> tuple[np.ndarray, np.ndar
     return (1.0 - 3.0 * np.cos(psi) ** 2) / r4, np.sin(2.0 * psi) / r4
 
 
-def local_rates(r: ArrayLike, psi: ArrayLike, rate_per_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """(r', phi') in BL/s and rad/s for separation r (BL) and local angle psi (rad): eq. 3's local
-    rows with both agents moving (K = `rate_per_s`)."""
-    f_r, f_phi = interagent_forces(r, psi)
-    return rate_per_s * f_r, rate_per_s * f_phi / np.asarray(r, dtype=float)
-
-
-def constraint_residual(r: ArrayLike, r_dot: ArrayLike, phi_dot: ArrayLike,
-                        rate_per_s: float) -> np.ndarray:
-    """How far (r', phi') is from what some field angle can make (eq. 2): 0 on the ellipse
-    ((a + 1/2) / (3/2))^2 + b^2 = 1 with a = r' r^4 / K, b = r phi' r^4 / K; negative inside."""
-    r = np.asarray(r, dtype=float)
-    a = np.asarray(r_dot) * r**4 / rate_per_s
-    b = r * np.asarray(phi_dot) * r**4 / rate_per_s
-    return ((a + 0.5) / 1.5) ** 2 + b**2 - 1.0
-
-
 def lie_bracket_matrix(r: float, psi: float) -> np.ndarray:
     """Delta = [g, [f, g], [f, [f, g]]] of eq. 5 (Omega = 1) for S_local, state [r, phi, psi],
     drift f = [(1 - 3 cos^2 psi) / r^4, sin(2 psi) / r^5, 0], control g = [0, 0, 1]."""

@@ -426,12 +426,6 @@ class RrtResult:
     best_node: int
     history: list[tuple[int, float]] = field(default_factory=list)
 
-    @property
-    def final_state(self) -> np.ndarray:
-        """(n, 2) mm."""
-        return self.states[-1] if len(self.states) else self.tree.root.copy()
-
-
 ProgressCallback = Callable[[int, float, float], None]
 
 

@@ -176,6 +176,11 @@ class _PlanDocument(_Document):
     def base_dir(self) -> Path | None:
         return self._base_dir
 
+    @property
+    def size(self) -> str:
+        """How big the plan is, as `validate` and `load` say it."""
+        raise NotImplementedError
+
 
 class GlobalMovesPlan(_PlanDocument):
     """Every agent receives the same displacements `moves` in turn (seed 000, seed 004)."""
@@ -195,6 +200,10 @@ class GlobalMovesPlan(_PlanDocument):
     min_separation_mm: Annotated[float, Field(ge=0)] = Field(
         default=0.0, description="agents keep centre distance >= r_i + r_j + this (planner option)"
     )
+
+    @property
+    def size(self) -> str:
+        return f"{len(self.agents)} agents, {len(self.moves)} moves"
 
 
 # Kind: field-sequence (seed 003, rig depm). Its fields and their checks belong to the DEPM planner
@@ -303,6 +312,10 @@ class FieldSequencePlan(_PlanDocument):
             raise ValueError("expected: U needs one row per t_s")
         return self
 
+    @property
+    def size(self) -> str:
+        return f"{len(self.sequence)} components, {self.t_s[-1]:.1f} s"
+
 
 # Kind: pair-formation (seed 002, rig six-coil). Its fields and their checks belong to the pair
 # planner (rigctl.plans.pair); `check_plan` calls that module's `check(plan)`.
@@ -356,6 +369,10 @@ class PairFormationPlan(_PlanDocument):
         default=0.2, description="each agent within this of its goal position counts as reached")
     hold_s: Annotated[float, Field(ge=0)] = Field(
         default=3.0, description="how long execution holds the goal formation")
+
+    @property
+    def size(self) -> str:
+        return f"2 agents, {len(self.segments)} segments"
 
 
 def _plan_tag(value: Any) -> str | None:

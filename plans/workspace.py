@@ -880,11 +880,6 @@ class GridWorkspace(Workspace):
         x0, y0 = self.origin
         return (x0, y0, x0 + width * self.mm_per_px, y0 + height * self.mm_per_px)
 
-    @property
-    def clearance_grid(self) -> np.ndarray:
-        """The sampled clearance (H, W), mm, row 0 at the top."""
-        return self._clearance.reshape(self.shape)
-
     def _cells(self, points: ArrayLike):
         """Grid cell, bilinear weights and distance beyond the grid for points (..., 2)."""
         p = np.asarray(points, dtype=float)

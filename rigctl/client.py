@@ -175,6 +175,15 @@ class Rig:
     def reset(self) -> dict:
         return self.request("reset")
 
+    def hold(self, target: dict, ramp_s: float = 0.1) -> dict:
+        """Hold the rig at `target` (`{"field_mT": [3]}`, `{"drive": [4]}`, `{"joints_rad":
+        [[7], [7]]}`), reached by a straight ramp of `ramp_s`; again to retarget."""
+        return self.request("hold", target=target, ramp_s=ramp_s)
+
+    def release(self, ramp_s: float = 0.1) -> dict:
+        """End the manual hold: ramp to the rig's rest (the arms stay where they are)."""
+        return self.request("hold", release=True, ramp_s=ramp_s)
+
     def set_field(self, field_mT: Iterable[float], ramp_s: float = 0.1) -> dict:
         return self.request("set_field", field_mT=[float(b) for b in field_mT], ramp_s=ramp_s)
 

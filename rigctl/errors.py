@@ -51,3 +51,27 @@ class Disconnected(RigError, ConnectionError):
 
 class ProtocolError(RigError):
     """The device answered something that does not parse (garbage on the line)."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised on the main thread (`abort_on_sigterm`) so that a run ends as on Ctrl-C:
+    an abort that ramps down, records and summarises."""
+
+
+def abort_on_sigterm() -> None:
+    """From now on SIGTERM interrupts the main thread as Ctrl-C does (as `Terminated`); called
+    off the main thread (a test driving the CLI), it leaves the signal alone."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def interrupt(*_: object) -> None:
+        raise Terminated()
+
+    signal.signal(signal.SIGTERM, interrupt)
+
+
+def interrupt_name(interrupt: KeyboardInterrupt) -> str:
+    return "SIGTERM" if isinstance(interrupt, Terminated) else "Ctrl-C"

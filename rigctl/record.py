@@ -21,7 +21,7 @@ microseconds per cycle). The Parquet series is cut into parts of a few seconds; 
 only fills an in-memory buffer, and a writer thread writes each full part to a temporary name and
 renames it, so a part either exists whole or not at all. After a crash the parts hold everything
 but the last few seconds, and `read_stream` takes those from the journal (`stream.csv`), skipping
-a line cut in half; `recover_stream` writes them as a last part.
+a line cut in half.
 """
 
 from __future__ import annotations
@@ -336,33 +336,6 @@ def read_stream(run_dir: str | Path) -> dict[str, Any] | None:
         return None
     return {**columns, "channels": channels, "coils": [c.name for c in channels],
             "source": source}
-
-
-def recover_stream(run_dir: str | Path) -> int:
-    """After a crash: write the journal's rows that no Parquet part holds as one more part.
-    Returns the number of rows recovered."""
-    run_dir = Path(run_dir)
-    folder = run_dir / "stream"
-    parts = sorted(folder.glob("part-*.parquet"))
-    data = read_stream(run_dir)
-    if data is None:
-        return 0
-    import pyarrow.parquet as pq
-
-    n_parquet = sum(pq.read_metadata(p).num_rows for p in parts)
-    n = len(data["t_s"])
-    if n <= n_parquet:
-        return 0
-    folder.mkdir(exist_ok=True)
-    channels = data["channels"]
-    sl = slice(n_parquet, n)
-    cmd = np.column_stack([data[c.column("cmd")][sl] for c in channels])
-    meas = np.column_stack([data[c.column("meas")][sl] for c in channels])
-    error = data.get("period_error_s", np.full(n, np.nan))[sl]
-    write_stream_part(folder, channels, len(parts), data["t_s"][sl],
-                      data["sample"][sl].astype(np.int64), data["move"][sl].astype(np.int32),
-                      cmd, meas, error)
-    return n - n_parquet
 
 
 def describe_run(run_dir: str | Path, *, last_events: int = 50) -> dict:

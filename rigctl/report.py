@@ -69,11 +69,22 @@ RUN_CLOCK, PLAN_CLOCK = "run", "plan"
 
 
 def find_run(run: str | Path, runs_dir: str | Path = "runs") -> Path:
-    """A run given as a path, or as a run id inside `runs_dir`."""
+    """A run given as a path, as a run id inside `runs_dir`, as the start of one (a unique
+    prefix), or as `latest` (the newest there)."""
     for candidate in (Path(run), Path(runs_dir) / str(run)):
         if (candidate / "events.jsonl").is_file():
             return candidate
-    raise ConfigError(f"no run record at {run} (nor {Path(runs_dir) / str(run)})")
+    root = Path(runs_dir)
+    ids = sorted(p.name for p in root.iterdir() if (p / "events.jsonl").is_file()) \
+        if root.is_dir() else []
+    found = ids[-1:] if str(run) == "latest" else [i for i in ids if i.startswith(str(run))]
+    if len(found) == 1:
+        return root / found[0]
+    if found:
+        raise ConfigError(f"run {run!r} is the start of {len(found)} runs in {root}: "
+                          f"{', '.join(found[:3])}{', ...' if len(found) > 3 else ''}; give more")
+    raise ConfigError(f"no run record at {run} (nor in {root}: `rigctl runs --runs {root}` lists "
+                      "them)")
 
 
 # -- reading the record ---------------------------------------------------------------------------
@@ -298,52 +309,41 @@ def _agent_paths(plan: dict, events: list[dict],
     loop's `tracked` events, else the pair run's `track` events, else the daemon's `agents`
     samples, else the positions an old coil-board run logged after each move; then the
     summary's final position."""
-    tracked = _tracked_positions(events)
+    samples: list = []  # per frame, each agent's position (mm), when no `tracked` events fit
     if plan.get("kind") == "pair-formation":
         from rigctl.plans.pair import agent_positions
 
         body = plan["agents"]["body_diameter_mm"]
         states = [plan["start"], *(plan.get("expected") or []), plan["goal"]]
-        planned = agent_positions(np.array([[s["x_mm"] / body, s["y_mm"] / body, s["r_bl"],
-                                             np.radians(s["phi_deg"])] for s in states])) * body
+        both = agent_positions(np.array([[s["x_mm"] / body, s["y_mm"] / body, s["r_bl"],
+                                          np.radians(s["phi_deg"])] for s in states])) * body
+        planned = [both[:, i] for i in range(2)]
+        goals = [p[-1] for p in planned]
         track = np.array([e["q"] for e in events if e.get("event") == "track"], dtype=float)
-        if tracked is not None and tracked.shape[1] == 2:
-            measured = tracked
-        elif track.size:
-            measured = agent_positions(track) * body
-        else:
-            samples = [e["tracked"] for e in events if e.get("event") == "agents" and e.get("tracked")]
-            measured = np.array([t for t in samples if len(t) == 2], dtype=float).reshape(-1, 2, 2)
-        finals = _final_positions(summary, 2)
-        paths = []
-        for i in range(2):
-            m = measured[:, i]
-            if finals[i] is not None:
-                m = np.vstack([m, finals[i][None, :]])
-            paths.append((planned[:, i], m, planned[-1, i]))
-        return paths
-    agents = plan.get("agents") or []
-    if not isinstance(agents, list):
-        return []
-    expected = plan.get("expected") or []
-    if tracked is not None and tracked.shape[1] == len(agents):
-        measured_all = tracked
+        if track.size:
+            samples = list(agent_positions(track) * body)
     else:
+        agents = plan.get("agents") or []
+        if not isinstance(agents, list):
+            return []
+        expected = plan.get("expected") or []
+        planned = [np.array([a["start"]] + [step[i] for step in expected if len(step) > i],
+                            dtype=float) for i, a in enumerate(agents)]
+        goals = [np.array(a["goal"], dtype=float) for a in agents]
+    tracked = _tracked_positions(events)
+    if tracked is not None and tracked.shape[1] == len(planned):
+        samples = list(tracked)
+    if not samples:
         samples = [e["tracked"] for e in events if e.get("event") == "agents" and e.get("tracked")]
-        if not samples:  # an old coil-board record: where the camera saw them after each move
-            samples = [e["measured"] for e in events if e.get("event") == "move" and e.get("measured")]
-        measured_all = [np.array([s[i] for s in samples if len(s) > i], dtype=float).reshape(-1, 2)
-                        for i in range(len(agents))]
-    finals = _final_positions(summary, len(agents))
+    if not samples:  # an old coil-board record: where the camera saw them after each move
+        samples = [e["measured"] for e in events if e.get("event") == "move" and e.get("measured")]
+    finals = _final_positions(summary, len(planned))
     paths = []
-    for i, agent in enumerate(agents):
-        planned = np.array([agent["start"]] + [step[i] for step in expected if len(step) > i],
-                           dtype=float)
-        measured = np.asarray(measured_all[:, i] if isinstance(measured_all, np.ndarray)
-                              else measured_all[i], dtype=float).reshape(-1, 2)
-        if finals[i] is not None:
-            measured = np.vstack([measured, finals[i][None, :]])
-        paths.append((planned, measured, np.array(agent["goal"], dtype=float)))
+    for i, (path, goal, final) in enumerate(zip(planned, goals, finals)):
+        measured = np.array([s[i] for s in samples if len(s) > i], dtype=float).reshape(-1, 2)
+        if final is not None:
+            measured = np.vstack([measured, final[None, :]])
+        paths.append((path, measured, goal))
     return paths
 
 

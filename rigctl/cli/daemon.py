@@ -1,5 +1,5 @@
-"""The daemon's verbs of the `rigctl` command line: `daemon`, `status`, `estop`, `keys`, `runs`,
-`report`, and `execute_remote` behind `rigctl execute PLAN --connect ENDPOINT`.
+"""The daemon's verbs of the `rigctl` command line: `daemon`, `status`, `hold`, `estop`, `keys`,
+`runs`, `report`, and `execute_remote` behind `rigctl execute PLAN --connect ENDPOINT`.
 
 Client verbs find the daemon with `--connect` (default: the loopback command endpoint) and, for a
 daemon with CURVE keys, take `--server-key` / `--client-key` or the environment variables
@@ -55,6 +55,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
     from rigctl.daemon.messages import DaemonSettings
     from rigctl.daemon.server import Daemon
     from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.rigs.owner import RigLock
 
     # a thread waiting for the GIL (the command thread answering `status`, the stream thread)
     # gets it within 0.1 ms instead of Python's default 5 ms
@@ -72,6 +73,8 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
                   "(nothing real is energised)", file=sys.stderr)
             rig = load_rig(stack.enter_context(EmulatedBenchProcess(kind, Path(tmp) / "bench.toml")))
         settings = _rig_daemon_settings(rig) or DaemonSettings()
+        # one owner per rig: refused (exit 2) before anything connects if another process has it
+        lock = stack.enter_context(RigLock(rig, "rigctl daemon"))
         daemon = Daemon(
             rig,
             command=args.command or settings.command,
@@ -84,6 +87,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
             currents_hz=args.currents_hz,
         )
         endpoints = daemon.start()
+        lock.name_control(endpoints.command)  # where `rigctl estop --rig` finds this daemon
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: daemon.request_shutdown())
         print(f"{READY_PREFIX}command={endpoints.command} telemetry={endpoints.telemetry} "
@@ -119,8 +123,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
     if run:
         print(f"run: {run.get('id')} plan {run.get('plan_id')} sample {run['sample']}"
               f"/{run.get('samples', '?')} {_step(run)}")
-    if status.get("manual_field_mT"):
-        print(f"manual field: {status['manual_field_mT']} mT")
+    if status.get("hold"):
+        print(f"manual hold: {status['hold']}")
     for device in status["devices"]:
         print(f"  {device['name']:<4} {device['health']:<8} {device['url']}  {device['detail']}")
     if status.get("last_fault"):
@@ -129,11 +133,117 @@ def _cmd_status(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_hold(args: argparse.Namespace) -> int:
+    from rigctl.client import CommandRefused
+
+    with _client(args.connect, args.server_key, args.client_key, timeout_s=35.0) as rig:
+        try:
+            if args.release:
+                reply = rig.release(args.ramp_s)
+            elif args.joints_rad is not None:
+                q = args.joints_rad
+                reply = rig.hold({"joints_rad": [q[:7], q[7:]]}, args.ramp_s)
+            else:
+                key = "field_mT" if args.field_mT is not None else "drive"
+                reply = rig.hold({key: getattr(args, key)}, args.ramp_s)
+        except CommandRefused as err:
+            return _refused_exit(err)
+    if reply["hold"] is None:
+        print("released: ramping to the rest" if reply["released"] else "nothing was held")
+    else:
+        setpoints = ", ".join(f"{name} {value:g}"
+                              for name, value in zip(reply["channels"], reply["setpoints"]))
+        print(f"holding {reply['hold']}: {setpoints}")
+    return EXIT_OK
+
+
 def _cmd_estop(args: argparse.Namespace) -> int:
+    if args.rig is not None:
+        return _estop_rig(args)
     with _client(args.connect, args.server_key, args.client_key, timeout_s=1.0) as rig:
         reply = rig.estop()
     print(f"EMERGENCY STOP: state {reply['state']}; {reply['zeroing']}")
     return EXIT_OK
+
+
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from rigctl.config import load_rig
+    from rigctl.rigs.doctor import probe_rig
+
+    rig = load_rig(args.rig)
+    results = probe_rig(rig)
+    healthy = all(p.ok for p in results)
+    if args.json:
+        print(json.dumps({"rig": rig.rig.kind, "ok": healthy,
+                          "devices": [p.as_dict() for p in results]}))
+        return EXIT_OK if healthy else EXIT_FAULT
+    print(f"{rig.rig.name} ({rig.rig.kind}): nothing is energised by this check")
+    print(f"  {'device':<12} {'kind':<10} {'':<4} {'ms':>6}  detail")
+    for p in results:
+        print(f"  {p.device:<12} {p.kind:<10} {'ok' if p.ok else 'FAIL':<4} {p.ms:>6.0f}  "
+              f"{p.detail}")
+    print("every device answered" if healthy else
+          "NOT READY: " + ", ".join(p.device for p in results if not p.ok))
+    return EXIT_OK if healthy else EXIT_FAULT
+
+
+def _cmd_control(args: argparse.Namespace) -> int:
+    """`rigctl pause [--now] | resume | abort | reset`, to the daemon at --connect or to whichever
+    process owns the rig of --rig (a daemon or a `rigctl execute`)."""
+    from rigctl.client import CommandRefused
+
+    endpoint = args.connect
+    if args.rig is not None:
+        from rigctl.config import load_rig
+        from rigctl.rigs.owner import holder_of
+
+        holder = holder_of(load_rig(args.rig))
+        if holder is None or not holder.control:
+            raise ConfigError(f"{args.rig}: no process owns this rig (nothing is running on it)")
+        endpoint = holder.control
+    with _client(endpoint, args.server_key, args.client_key) as rig:
+        try:
+            if args.verb == "pause":
+                reply = rig.pause(immediate=args.now)
+            else:
+                reply = getattr(rig, args.verb)()
+        except CommandRefused as err:
+            return _refused_exit(err)
+    print(f"{args.verb}: state {reply.get('state')}"
+          + (" (pausing at the end of this step)" if reply.get("pending") else ""))
+    return EXIT_OK
+
+
+def _estop_rig(args: argparse.Namespace) -> int:
+    """`rigctl estop --rig RIG.toml`: the rig's owner (daemon or local run, as its lock names it)
+    stops; if none answers, every device of the rig is made safe directly."""
+    from rigctl.client import Rig
+    from rigctl.config import load_rig
+    from rigctl.errors import RigError
+    from rigctl.rigs import rig_kind
+    from rigctl.rigs.owner import holder_of
+
+    rig = load_rig(args.rig)
+    holder = holder_of(rig)
+    if holder is not None and holder.control:
+        try:
+            with Rig(holder.control, timeout_s=0.3, retries=0) as owner:
+                reply = owner.estop()
+            unreached = reply.get("unreached") or []
+            print(f"EMERGENCY STOP: {holder.describe()} took it; state {reply['state']}"
+                  + (f"; NOT REACHED: {', '.join(unreached)}" if unreached else
+                     f"; {reply.get('zeroing') or 'every device told to stop'}"))
+            return EXIT_FAULT if unreached else EXIT_OK
+        except RigError as err:
+            print(f"{holder.describe()} did not answer ({err}): making every device safe "
+                  "directly", file=sys.stderr)
+    result = rig_kind(rig.rig.kind).make_safe(rig)
+    for name, why in result.items():
+        print(f"  {name:<12} {'safe' if why is None else 'NOT REACHED: ' + why}")
+    reached = all(why is None for why in result.values())
+    print("EMERGENCY STOP: " + ("every device made safe directly" if reached else
+                                "some devices could not be reached: check them by hand"))
+    return EXIT_OK if reached else EXIT_FAULT
 
 
 def _cmd_keys(args: argparse.Namespace) -> int:
@@ -221,12 +331,10 @@ def execute_remote(plan_path: str | Path, endpoint: str, *, json_out: bool = Fal
 
 def _print_summary(summary: dict, json_out: bool):
     """The run's summary as `rigctl execute` prints it; returns it."""
-    from rigctl.run.summary import format_summary, summary_from_dict, summary_json_line
+    from rigctl.run.summary import print_summary, summary_from_dict
 
     result = summary_from_dict(summary)
-    print(format_summary(result))
-    if json_out:
-        print(summary_json_line(result))
+    print_summary(result, json_out)
     return result
 
 
@@ -305,8 +413,60 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the raw status as JSON")
     p.set_defaults(func=_cmd_status)
 
-    p = sub.add_parser("estop", help="emergency stop: every supply to zero at once")
+    p = sub.add_parser(
+        "hold", help="hold the rig at a manual setpoint (a field, drive values, a pose), or release",
+        description="Ask a running daemon to hold the rig's actuators: ramp straight from what is "
+        "held now to the target over --ramp-s, then hold it until released; again while holding "
+        "retargets. Every limit is checked before anything moves (refused: exit 2). --release "
+        "ramps the supplies or the board to zero and ends the hold; the arms stay where they are.")
     _client_options(p)
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--field-mT", nargs=3, type=float, metavar=("BX", "BY", "BZ"),
+                      help="six-coil: the field at the workspace centre, mT (0 0 0 releases)")
+    what.add_argument("--drive", nargs="+", type=float, metavar="V",
+                      help="coil board: one SyRen drive value per coil, whole units within "
+                      "+-max_command, in the rig file's coil order")
+    what.add_argument("--joints-rad", nargs=14, type=float, metavar="Q",
+                      help="depm: both arms' joints q1..q7, rad, the first arm's then the second's")
+    what.add_argument("--release", action="store_true", help="end the hold (ramp to the rest)")
+    p.add_argument("--ramp-s", type=float, default=0.1,
+                   help="the ramp's duration, s (default 0.1; the arms need their joints' speed "
+                   "limits respected: the refusal says how long)")
+    p.set_defaults(func=_cmd_hold)
+
+    p = sub.add_parser(
+        "estop", help="emergency stop: every output of the rig to zero at once",
+        description="Stop the rig now: supplies to 0 A and output off, board outputs to zero, "
+        "arms stopped where they are. With --rig, whichever process owns the rig (a daemon or a "
+        "`rigctl execute`) is told; if none answers, every device is made safe directly and "
+        "each one is named. Without --rig, the daemon at --connect. Exit 0 when every device "
+        "was reached, 3 otherwise.")
+    _client_options(p)
+    p.add_argument("--rig", help="the rig file: reach its owner, or else its devices directly")
+
+    p = sub.add_parser(
+        "doctor", help="reach every device of a rig without energising anything",
+        description="Check a rig before a run: every supply's *IDN? and error queue, the coil "
+        "board's handshake and outputs, each arm's joints, a Hall board sample, a camera frame. "
+        "Nothing is switched on. Exit 0 when every device answered, 3 otherwise, 2 for a bad "
+        "rig file.")
+    p.add_argument("--rig", required=True, help="the rig file (TOML)")
+    p.add_argument("--json", action="store_true", help="print the table as one JSON document")
+    p.set_defaults(func=_cmd_doctor)
+
+    verbs = {"pause": "pause the run at the end of the step it drives (--now: at once)",
+             "resume": "resume a paused run", "abort": "end the run: ramp down cleanly",
+             "reset": "after an e-stop or a fault: back to idle (the daemon)"}
+    for verb, text in verbs.items():
+        p = sub.add_parser(verb, help=text, description=text[0].upper() + text[1:] + ". To the "
+                           "daemon at --connect, or with --rig to whichever process owns the rig "
+                           "(a daemon or a `rigctl execute`).")
+        _client_options(p)
+        p.add_argument("--rig", help="the rig file: reach the process that owns it")
+        if verb == "pause":
+            p.add_argument("--now", action="store_true",
+                           help="pause at once (the field ramps down; the arms brake)")
+        p.set_defaults(func=_cmd_control, verb=verb)
     p.set_defaults(func=_cmd_estop)
 
     p = sub.add_parser("keys", help="CURVE keys for the daemon and its operators")
@@ -329,7 +489,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_runs)
 
     p = sub.add_parser("report", help="draw a run: planned vs measured paths, currents (PNG)")
-    p.add_argument("run", help="run record folder, or a run id inside --runs")
+    p.add_argument("run", help="run record folder, a run id inside --runs (or its start), or "
+                   "`latest`")
     p.add_argument("--runs", default="runs", help="run records folder (default ./runs)")
     p.add_argument("-o", "--output", help="PNG to write (default RUN/report.png)")
     p.set_defaults(func=_cmd_report)

@@ -1,110 +1,39 @@
 """`rigctl execute PLAN`: run a plan on the emulated bench of its rig kind, or on the rig a rig file
-names, and print the summary. Each (plan kind, rig kind) has its runner; the options are shared."""
+names, and print the summary. One path for every rig: the registry's builder for the plan's kind
+makes the run; the options a rig does not take are refused by name."""
 
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 
+from rigctl.daemon.local import LocalControl
 from rigctl.emulators.process import rig_for_run
-from rigctl.errors import (
-    EXIT_BAD_INPUT,
-    EXIT_FAULT,
-    EXIT_NOT_REACHED,
-    EXIT_OK,
-    ConfigError,
-)
+from rigctl.errors import ConfigError, abort_on_sigterm
 from rigctl.plans.schema import load_plan
-from rigctl.run.summary import format_summary, summary_json_line
+from rigctl.rigs import rig_kind
+from rigctl.rigs.owner import RigLock
+from rigctl.run.summary import exit_code, print_summary
+
+# run options: CLI flag -> the builder's keyword (a builder takes only those it names)
+_RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-scale": "time_scale"}
 
 
-def _execute_coil_board(plan, args: argparse.Namespace) -> int:
-    """A coil-board plan: exit 0 reached, 1 not, 2 bad input, 3 fault."""
-    from rigctl.rigs.coil_board.run import CoilBoardRun
-    from rigctl.run.summary import exit_code
-
-    out = None if args.quiet else sys.stderr
-    if args.open_loop:
-        raise ConfigError("--open-loop: a coil-board move ends when the camera sees it done; the "
-                          "coil board runs closed loop only")
-    if getattr(args, "agnostic", False):
-        raise ConfigError("--agnostic is for the depm rig")
-    extra: list[str] = []
-    if getattr(args, "firmware", None):
-        extra += ["--firmware", args.firmware]
-    if args.rig is not None and extra:
-        raise ConfigError("--firmware chooses the emulated bench that execute starts itself: "
-                          "give it to `rigctl emulate coil-board` when using --rig")
-    with rig_for_run(args.rig, "coil-board", extra_args=extra, progress_out=out) as rig:
-        summary = CoilBoardRun(plan, rig, runs_dir=args.runs, progress_out=out).execute()
-    print(format_summary(summary))
-    if args.json:
-        print(summary_json_line(summary))
-    return exit_code(summary)
+def _run_options(args: argparse.Namespace) -> dict:
+    given = {"--open-loop": False if args.open_loop else None,
+             "--agnostic": True if args.agnostic else None, "--time-scale": args.time_scale}
+    return {flag: value for flag, value in given.items() if value is not None}
 
 
-def _execute_depm(plan, args: argparse.Namespace) -> int:
-    """A field-sequence plan on the dual-EPM rig: exit 0 reached, 1 not, 2 refused (nothing
-    moved: a plan or an approach that breaks a safety constraint raises SafetyRefusal, a
-    LimitError), 3 fault."""
-    from rigctl.plans.depm import baseline_of
-    from rigctl.rigs.depm.run import FieldSequenceRun
-    from rigctl.run.summary import exit_code
-
-    out = None if args.quiet else sys.stderr
-    time_scale = float(args.time_scale or 1.0)
-    if not time_scale > 0:
-        raise ConfigError("--time-scale must be positive")
-    if args.agnostic:
-        if out is not None:
-            print("the magnetic-agnostic baseline: straight joint moves to the plan's end poses",
-                  file=out, flush=True)
-        plan = baseline_of(plan)
-    with rig_for_run(args.rig, "depm", progress_out=out) as rig:
-        summary = FieldSequenceRun(plan, rig, runs_dir=args.runs, progress_out=out,
-                                   time_scale=time_scale).execute()
-    print(format_summary(summary))
-    if args.json:
-        print(summary_json_line(summary))
-    if summary.metrics.get("refused"):  # the approach from where the arms stand: nothing moved
-        return EXIT_BAD_INPUT
-    return exit_code(summary)
-
-
-def _execute_pair(plan, args: argparse.Namespace) -> int:
-    """A pair-formation plan: exit 0 reached and held, 1 not, 3 fault (bad input raises
-    PlanError / LimitError / ConfigError: exit 2 from the CLI)."""
-    from rigctl.plans.pair import default_rig
-    from rigctl.rigs.six_coil.pair import (
-        PairRun,
-        PairRunSettings,
-        loopback_rig,
-        prepare_pair,
-    )
-    from rigctl.run.summary import exit_code
-
-    out = None if args.quiet else sys.stderr
-    settings = PairRunSettings(closed_loop=not args.open_loop)
-    if getattr(args, "agnostic", False):
-        raise ConfigError("--agnostic is for the depm rig")
-    if getattr(args, "world", None) not in (None, "pair"):
-        raise ConfigError("a pair-formation plan runs in the pair world (--world pair)")
-    if args.rig is not None:
-        if _mismatch_args(args):
-            raise ConfigError("--slip, --noise, --drift and --seed set up the emulated bench that "
-                              "execute starts itself: give them to `rigctl emulate` with --rig")
-    else:
-        prepare_pair(plan, default_rig(), settings)  # refuse a bad plan before starting a bench
-    with rig_for_run(args.rig, "six-coil", extra_args=["--world", "pair", *_mismatch_args(args)],
-                     progress_out=out, world=" (pair world)") as rig:
-        if args.rig is None:
-            rig = loopback_rig(rig)
-        summary = PairRun(plan, rig, runs_dir=args.runs, progress_out=out,
-                          settings=settings).execute()
-    print(format_summary(summary))
-    if args.json:
-        print(summary_json_line(summary))
-    return exit_code(summary)
+def _bench_args(args: argparse.Namespace) -> list[str]:
+    """The emulated bench's flags given (model mismatch, world, firmware) as `rigctl emulate`
+    arguments."""
+    out = _mismatch_args(args)
+    for flag in ("world", "firmware"):
+        if getattr(args, flag, None):
+            out += [f"--{flag}", getattr(args, flag)]
+    return out
 
 
 _MISMATCH_FLAGS = (("slip", "--slip"), ("speed_spread", "--speed-spread"), ("drift", "--drift"),
@@ -142,35 +71,33 @@ def cmd_execute(args: argparse.Namespace) -> int:
         from rigctl.cli.daemon import execute_remote
 
         return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
-    from rigctl.rigs.six_coil.global_moves import execute_plan
-    from rigctl.run.summary import summary_json_line
-
     plan = load_plan(args.plan)
-    runner = _RUNNERS.get((plan.kind, plan.rig))
-    if runner is not None:
-        # Rigs and plan kinds with their own execution: same flags, summary and exit codes.
-        return runner(plan, args)
-    out = sys.stderr if not args.quiet else None
-    closed_loop = False if args.open_loop else None  # None: whenever the rig has a camera
-    mismatch = _mismatch_args(args)
-    if args.rig is not None and mismatch:
-        raise ConfigError("--slip, --speed-spread, --drift, --noise, --seed and "
-                          "--field-at-robots set up the emulated bench that execute starts "
-                          "itself: give them to `rigctl emulate` when using --rig")
-    with rig_for_run(args.rig, plan.rig, extra_args=mismatch, progress_out=out) as rig:
-        summary = execute_plan(plan, rig, runs_dir=args.runs, progress_out=out,
-                               closed_loop=closed_loop)
-    print(format_summary(summary))
-    if args.json:
-        print(summary_json_line(summary))
-    if summary.faults:
-        return EXIT_FAULT
-    return EXIT_OK if summary.reached else EXIT_NOT_REACHED
-
-
-# (plan kind, rig kind) -> its runner; the six-coil global-moves run is `cmd_execute`'s own.
-_RUNNERS = {
-    ("global-moves", "coil-board"): _execute_coil_board,
-    ("field-sequence", "depm"): _execute_depm,
-    ("pair-formation", "six-coil"): _execute_pair,
-}
+    kind = rig_kind(plan.rig)
+    build = kind.builder(plan.kind)
+    takes = inspect.signature(build).parameters
+    options = {}
+    for flag, value in _run_options(args).items():
+        if _RUN_FLAGS[flag] not in takes:
+            raise ConfigError(f"{flag}: not an option of a {plan.kind} run on a {kind.name} rig")
+        options[_RUN_FLAGS[flag]] = value
+    given, implied = _bench_args(args), kind.bench_args(plan)
+    if args.rig is not None and given:
+        raise ConfigError(f"{' '.join(given)}: these set up the emulated bench that execute starts "
+                          f"itself; give them to `rigctl emulate {kind.name}` when using --rig")
+    for flag, value in zip(implied[::2], implied[1::2]):
+        if flag in given and given[given.index(flag) + 1] != value:
+            raise ConfigError(f"a {plan.kind} plan runs with {flag} {value}")
+    if args.rig is None and kind.bench_rig is not None:  # refused before a bench is started
+        build(plan, kind.bench_rig(), runs_dir=args.runs, **options)
+    bench = given + implied
+    world = f" ({bench[bench.index('--world') + 1]} world)" if "--world" in bench else ""
+    out = None if args.quiet else sys.stderr
+    abort_on_sigterm()  # SIGTERM ends a run as Ctrl-C does: an abort, recorded and summarised
+    with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig:
+        run = build(plan, rig, runs_dir=args.runs, progress_out=out, **options)
+        # one owner per rig (a second is refused, exit 2); the lock names where this run answers
+        # `rigctl estop --rig` and the other control requests
+        with LocalControl(run) as control, RigLock(rig, "rigctl execute", control.endpoint):
+            summary = run.execute()
+    print_summary(summary, args.json)
+    return exit_code(summary)

@@ -25,6 +25,7 @@ from rigctl.errors import (
     LimitError,
     PlanError,
     RigError,
+    interrupt_name,
 )
 
 log = logging.getLogger("rigctl")
@@ -92,13 +93,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
             Path(args.output).write_text(text)
         else:
             print(text)
-    if plan.kind == "field-sequence":
-        size = f"{len(plan.sequence)} components, {plan.t_s[-1]:.1f} s"
-    elif plan.kind == "pair-formation":
-        size = f"2 agents, {len(plan.segments)} segments"
-    else:
-        size = f"{len(plan.agents)} agents, {len(plan.moves)} moves"
-    print(f"OK: {args.file}: {plan.kind} plan for a {plan.rig} rig, {size}",
+    print(f"OK: {args.file}: {plan.kind} plan for a {plan.rig} rig, {plan.size}",
           file=sys.stderr if args.simulate and not args.output else sys.stdout)
     return EXIT_OK
 
@@ -125,6 +120,15 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
     return bench_class(args.kind).emulate_cli(args)
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("rigctl")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="rigctl",
@@ -134,6 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
         "energised), 3 device fault. Start with: rigctl execute plans/examples/fig4-two-magnets.json",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    parser.add_argument("--version", action="version", version=f"rigctl {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser(
@@ -213,11 +218,20 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (PlanError, ConfigError, LimitError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return _failed(args, "bad_input", f"error: {err}", EXIT_BAD_INPUT)
     except RigError as err:
-        print(f"fault: {err}", file=sys.stderr)
-        return EXIT_FAULT
+        return _failed(args, "fault", f"fault: {err}", EXIT_FAULT)
+    except KeyboardInterrupt as interrupt:  # outside a run (a run ends as an abort, summarised)
+        return _failed(args, "interrupted",
+                       f"interrupted ({interrupt_name(interrupt)}): nothing is running", EXIT_FAULT)
+
+
+def _failed(args: argparse.Namespace, code: str, line: str, status: int) -> int:
+    """One line on stderr; with --json also the error as the one JSON document on stdout."""
+    print(line, file=sys.stderr)
+    if getattr(args, "json", False):
+        print(json.dumps({"error": {"code": code, "message": line.split(": ", 1)[-1]}}))
+    return status
 
 
 if __name__ == "__main__":

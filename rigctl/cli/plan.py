@@ -263,21 +263,9 @@ def _radii(values: list[float] | None, n: int) -> np.ndarray:
 
 def _check_configuration(ws, points: np.ndarray, radii: np.ndarray, gap: float, flag: str) -> None:
     """Every robot in free space, no two closer than r_i + r_j + gap (PlanError naming the flag)."""
-    clearance = ws.clearance(points)
-    for number, (point, room, radius) in enumerate(zip(points, clearance, radii), start=1):
-        if room < radius - 1e-9:
-            raise PlanError(
-                f"{flag} #{number} ({point[0]:g},{point[1]:g}): a robot of radius {radius:g} mm "
-                f"does not fit there (clearance {room:.3f} mm)"
-            )
-    for i in range(len(points)):
-        for j in range(i + 1, len(points)):
-            apart = float(np.hypot(*(points[i] - points[j])))
-            if apart < radii[i] + radii[j] + gap - 1e-9:
-                raise PlanError(
-                    f"{flag} #{i + 1} and #{j + 1} are {apart:.3f} mm apart, closer than "
-                    f"r{i + 1} + r{j + 1} + separation = {radii[i] + radii[j] + gap:g} mm"
-                )
+    from rigctl.plans.checks import check_placement
+
+    check_placement(ws, points, radii, gap, lambda i: f"{flag} #{i + 1}", lambda i: f"#{i + 1}")
 
 
 def _turn_mm(args: argparse.Namespace) -> float | None:

@@ -21,7 +21,7 @@ from enum import Enum
 from typing import Annotated, Any, Literal
 from urllib.parse import urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from rigctl.config import (  # noqa: F401  (the rig file's [daemon] table and its defaults)
     DEFAULT_COMMAND_ENDPOINT,
@@ -62,6 +62,7 @@ class Command(str, Enum):
     ABORT = "abort"
     ESTOP = "estop"
     RESET = "reset"
+    HOLD = "hold"
     SET_FIELD = "set_field"
     RUNS = "runs"
     RUN = "run"
@@ -142,6 +143,20 @@ class PauseArgs(_Message):
     )
 
 
+class HoldArgs(_Message):
+    target: dict[str, Any] | None = Field(
+        default=None, description='the rig\'s request: {"field_mT": [bx, by, bz]} (six-coil), '
+        '{"drive": [v per coil]} (coil board), {"joints_rad": [[7], [7]]} (depm)')
+    release: bool = Field(default=False, description="ramp to the rig's rest and end the hold")
+    ramp_s: Annotated[float, Field(ge=0, le=60)] = 0.1
+
+    @model_validator(mode="after")
+    def _one_of(self) -> HoldArgs:
+        if (self.target is None) == (not self.release):
+            raise ValueError('give either "target" or "release": true')
+        return self
+
+
 class SetFieldArgs(_Message):
     field_mT: Annotated[
         list[float], Field(min_length=3, max_length=3, description="B at the workspace centre")
@@ -167,6 +182,7 @@ COMMAND_ARGS: dict[Command, type[_Message]] = {
     Command.ABORT: NoArgs,
     Command.ESTOP: NoArgs,
     Command.RESET: NoArgs,
+    Command.HOLD: HoldArgs,
     Command.SET_FIELD: SetFieldArgs,
     Command.RUNS: RunsArgs,
     Command.RUN: RunArgs,

@@ -12,12 +12,14 @@ supply over fresh connections, writes the fault into the run's event log, and ke
 The host process is spawned when the daemon starts (its imports take about a second, which an
 `execute` should not wait for) and runs plans one at a time; when it dies, the next run spawns
 another. `RemoteRun` is what the daemon holds: it has the `Run` interface (`execute`, `pause`,
-`resume`, `abort`, `estop`, `plan`, `record`) and forwards each call.
+`resume`, `abort`, `estop`, `plan`, `record`) and forwards each call. A manual hold is a run like
+any plan's (a `rigctl.run.hold.HoldPlan`), whose program also takes `retarget` and `release`.
 
 Messages are pickled tuples over one-way pipes (`multiprocessing.connection.Connection`):
 
     daemon -> host   ("run", plan, rig, runs_dir)   ("pause", immediate)
                      ("resume",)  ("abort",)  ("estop", asked_at)  ("event", name, fields)
+                     ("retarget", target, setpoints, ramp_s)  ("release", ramp_s)  (a hold's)
                      ("exit",)
     host -> daemon   ("ready", pid)   ("cycles", *CycleBatch fields; t on `time.monotonic()`)
                      ("state", state, info, record_path, record_t0)
@@ -46,7 +48,6 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -57,7 +58,6 @@ from rigctl import errors
 from rigctl.config import RigConfig
 from rigctl.daemon.telemetry import CycleBatch
 from rigctl.errors import RigError
-from rigctl.rigs.six_coil.supplies import zero_supplies_directly
 
 log = logging.getLogger("rigctl.daemon.runhost")  # also when run as `python -m rigctl.daemon.runhost`
 
@@ -86,11 +86,6 @@ def build_run(plan: Any, rig: RigConfig, *, runs_dir: str | Path, on_cycle: Any 
     builder = rig_kind(rig.rig.kind).builder(plan.kind)
     return builder(plan, rig, runs_dir=runs_dir, progress_out=None, on_cycle=on_cycle,
                    on_state=on_state)
-
-
-def describe_run(run: Any) -> dict:
-    """What `load` and `status` tell of a prepared run: its name, size and planned duration."""
-    return dict(run.info)
 
 
 # -- the daemon's side ----------------------------------------------------------------------------
@@ -301,9 +296,9 @@ class _RecordView:
 
 
 class RemoteRun:
-    """A job streamed by the `RunHost`, with the interface of the run it stands for: a plan's run
-    (`job` ("run", prepared plan, rig, runs dir), see `build_run`) or a manual field (`of_field`,
-    a `FieldHold`, which adds `retarget`)."""
+    """A run streamed by the `RunHost` (`job` ("run", prepared plan, rig, runs dir), see
+    `build_run`), with the interface of the run it stands for; a manual hold's also takes
+    `retarget` and `release`."""
 
     def __init__(self, host: RunHost, job: tuple, rig: RigConfig, *, plan: Any, info: dict,
                  on_cycles: Any, on_state: Any) -> None:
@@ -327,14 +322,6 @@ class RemoteRun:
         self._submitted = False
         self._early: list[tuple] = []  # control calls made before the host had the run
 
-    @classmethod
-    def of_field(cls, host: RunHost, rig: RigConfig, currents_A: np.ndarray, ramp_s: float, *,
-                 on_cycles: Any) -> "RemoteRun":
-        """Hold the supplies at `currents_A`, reached in a ramp of `ramp_s` (a manual field)."""
-        return cls(host, ("field", rig, np.asarray(currents_A, dtype=float).tolist(), ramp_s),
-                   rig, plan=None, info={}, on_cycles=on_cycles,
-                   on_state=lambda *_: None)
-
     @property
     def error(self) -> Exception | None:
         return self._error
@@ -346,9 +333,18 @@ class RemoteRun:
             raise self._error
         return self._result
 
-    def retarget(self, currents_A: np.ndarray, ramp_s: float, release: bool = False) -> None:
-        """A manual field's new target (`release`: ramp there, then stop)."""
-        self._control("retarget", np.asarray(currents_A, dtype=float).tolist(), ramp_s, release)
+    @property
+    def result(self) -> Any:
+        """The run's summary once it ended (None before, or if it failed)."""
+        return self._result
+
+    def retarget(self, target: dict, setpoints: np.ndarray, ramp_s: float) -> None:
+        """A manual hold's new target (`rigctl.run.hold.HoldProgram.retarget`)."""
+        self._control("retarget", target, np.asarray(setpoints, dtype=float).tolist(), ramp_s)
+
+    def release(self, ramp_s: float) -> None:
+        """A manual hold: ramp to the rig's rest, then end."""
+        self._control("release", ramp_s)
 
     def pause(self, immediate: bool = False) -> None:
         self._control("pause", immediate)
@@ -373,8 +369,11 @@ class RemoteRun:
         else:
             unreached = self._host.estop_ack(asked, ESTOP_ACK_S)
         if unreached is None:
+            from rigctl.rigs import rig_kind
+
             self._host.kill()
-            unreached = [name for name, err in zero_supplies_directly(self.rig).items() if err]
+            unreached = [name for name, err in rig_kind(self.rig.rig.kind).make_safe(self.rig).items()
+                         if err]
         return unreached
 
     def _control(self, *message: Any) -> bool:
@@ -447,84 +446,6 @@ class RemoteRun:
         self._error = HostGone(reason)
         self.started.set()
         self._done.set()
-
-
-def field_ramp(start_A: np.ndarray, target_A: np.ndarray, ramp_s: float,
-               rate_hz: float) -> np.ndarray:
-    """The samples (n, coils) of a manual field's straight ramp from `start_A` to `target_A` over
-    `ramp_s` at `rate_hz` (at least one sample: the target itself)."""
-    n = max(1, round(ramp_s * rate_hz))
-    start, target = np.asarray(start_A, dtype=float), np.asarray(target_A, dtype=float)
-    return start + (target - start) * (np.arange(1, n + 1) / n)[:, None]
-
-
-class FieldHold:
-    """A manual field (calibration): hold setpoints on the supplies at the stream rate, ramping
-    between targets, until released (ramp to zero), aborted, or e-stopped (zero at once)."""
-
-    plan = None
-    record = None
-
-    def __init__(self, supplies: Any, rate_hz: float,
-                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None]) -> None:
-        self.supplies = supplies
-        self.rate_hz = rate_hz
-        self.on_cycle = on_cycle
-        self._lock = threading.Lock()
-        self._last = np.zeros(len(supplies.names))
-        self._ramp: list[np.ndarray] = []
-        self._release = False
-        self._estop = threading.Event()
-        self.ramp_down_s = 0.1
-        self.stream_loop: Any = None
-
-    def retarget(self, currents_A: np.ndarray, ramp_s: float, release: bool = False) -> None:
-        with self._lock:
-            start = self._ramp[-1] if self._ramp else self._last
-            self._ramp = list(field_ramp(start, currents_A, ramp_s, self.rate_hz))
-            self._release = release
-
-    def execute(self) -> None:
-        from rigctl.stream import StreamLoop
-
-        def cycle(k: int) -> bool:
-            if self._estop.is_set():
-                self.supplies.zero_now()
-                return False
-            with self._lock:
-                if self._ramp:
-                    self._last = self._ramp.pop(0)
-                elif self._release:
-                    return False
-                setpoints = self._last
-            measured = self.supplies.cycle(setpoints)
-            self.on_cycle(k, -1, setpoints, measured)
-            return True
-
-        self.stream_loop = StreamLoop(self.rate_hz)
-        try:
-            if not self._estop.is_set():  # e-stopped while connecting: never switch on
-                self.supplies.energise()
-                self.stream_loop.run(cycle)
-        finally:
-            self.supplies.stop(ramp_s=0.0 if self._estop.is_set() else self.ramp_down_s)
-
-    def pause(self, immediate: bool = False) -> None:
-        raise RigError("a manual field cannot be paused: set_field [0, 0, 0] releases it")
-
-    def resume(self) -> None:
-        raise RigError("a manual field cannot be resumed")
-
-    def abort(self) -> None:
-        self.retarget(np.zeros_like(self._last), self.ramp_down_s, release=True)
-
-    def estop(self, asked_at: float | None = None) -> list[str]:
-        self._estop.set()
-        unreached = self.supplies.emergency_zero()
-        loop = self.stream_loop
-        if loop is not None:
-            loop.wake()
-        return unreached
 
 
 # -- the stream process's side --------------------------------------------------------------------
@@ -631,8 +552,6 @@ class _Host:
             kind, args = message[0], message[1:]
             if kind == "run":
                 self._start(self._build_run, *args)
-            elif kind == "field":
-                self._start(self._build_field, *args)
             elif kind == "estop":
                 unreached = self._call("estop", *args)
                 self.acks.send((args[0], unreached or []))  # the daemon waits for this
@@ -645,7 +564,10 @@ class _Host:
                 self._call("abort")
                 break
             else:
-                self._call(kind, *args)
+                try:
+                    self._call(kind, *args)
+                except RigError as err:  # the daemon refuses what a run refuses: a bug if here
+                    log.error("%s refused by the run: %s", kind, err)
         if self._thread is not None:
             self._thread.join()
 
@@ -656,7 +578,7 @@ class _Host:
                     self._pending.append((name, args))
                 return None
             run = self.run
-        return getattr(run, name)(*args)
+        return _apply(run, name, args)
 
     def _start(self, build: Any, *args: Any) -> None:
         with self._lock:
@@ -675,15 +597,6 @@ class _Host:
                 run.record.t0 if run.record else None))
         return run
 
-    def _build_field(self, rig: RigConfig, currents_A: list, ramp_s: float) -> FieldHold:
-        from rigctl.rigs.six_coil.supplies import CoilSupplies
-
-        supplies = CoilSupplies.connect(rig)  # outputs stay off until the hold starts
-        hold = FieldHold(supplies, rig.stream.rate_hz, on_cycle=lambda k, move, cmd, meas:
-                         self.uplink.cycle(k, move, cmd, meas, hold.stream_loop.last_error_s))
-        hold.retarget(np.asarray(currents_A), ramp_s)
-        return hold
-
     def _execute(self, build: Any, *args: Any) -> None:
         try:
             if self.realtime_priority:
@@ -692,7 +605,7 @@ class _Host:
             with self._lock:
                 self.run, pending, self._pending = run, self._pending, []
             for name, pending_args in pending:  # an e-stop before it began: it never energises
-                getattr(run, name)(*pending_args)
+                _apply(run, name, pending_args)
             summary = run.execute()
             self.uplink.message("done", summary)
         except BaseException as err:  # reported to the daemon, which faults the run
@@ -702,6 +615,13 @@ class _Host:
         finally:
             with self._lock:
                 self.run = None
+
+
+PROGRAM_CALLS = {"retarget", "release"}  # a manual hold's, made on its program
+
+
+def _apply(run: Any, name: str, args: tuple) -> Any:
+    return getattr(run.program if name in PROGRAM_CALLS else run, name)(*args)
 
 
 def host_main(down: Any, up: Any, acks: Any, realtime_priority: int | None) -> None:

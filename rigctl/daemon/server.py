@@ -4,13 +4,13 @@ Threads and who does what:
 - the *command thread* serves a ROUTER socket, so any number of REQ clients can talk at once and a
   client that vanishes mid-request costs nothing (its reply is dropped by ZeroMQ). Quick commands
   are answered on this thread; slow ones (`load` realizes and allocates a whole plan, `runs` and
-  `run` read the disk, `set_field` waits for the supplies to hold the field) go to a worker thread and are answered when
-  it is done, so nothing ever waits behind them. `estop` is carried out the moment it is read:
+  `run` read the disk, `hold` and `set_field` wait for the rig to stream the hold) go to a worker
+  thread and are answered when it is done, so nothing ever waits behind them. `estop` is carried out the moment it is read:
   the command thread hands it to the stream process, which writes 0 A and output off to every
   supply of the active run from its own command thread (the drivers latch at zero, so the stream
   can send nothing else after it) and answers with the supplies it could not reach; with nothing
   active the command thread starts zeroing the supplies directly;
-- plan runs and manual fields stream in the *stream process* (`rigctl.daemon.runhost`, spawned when the
+- plan runs and manual holds stream in the *stream process* (`rigctl.daemon.runhost`, spawned when the
   daemon starts), so that no Python of the daemon's competes with the stream for a GIL, nor the
   stream with a reply to a client. The daemon's *run thread* (one at a time) waits for the job
   and passes on what the stream process reports;
@@ -42,6 +42,7 @@ import numpy as np
 import zmq
 from pydantic import ValidationError
 
+from rigctl import errors
 from rigctl.config import RigConfig
 from rigctl.daemon.keys import CurveServer
 from rigctl.daemon.messages import (
@@ -53,6 +54,7 @@ from rigctl.daemon.messages import (
     Command,
     DaemonState,
     ErrorCode,
+    HoldArgs,
     Reply,
     Request,
     Topic,
@@ -64,8 +66,6 @@ from rigctl.daemon.runhost import (
     RemoteRun,
     RunHost,
     build_run,
-    describe_run,
-    field_ramp,
     make_realtime,
     realtime_permitted,
 )
@@ -73,6 +73,7 @@ from rigctl.daemon.sdnotify import SystemdNotifier
 from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
 from rigctl.errors import ConfigError, LimitError, PlanError, RigError
 from rigctl.rigs import rig_kind
+from rigctl.run.hold import CANNOT_PAUSE, HoldPlan
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,7 @@ ACTIVE = (S.RUNNING, S.PAUSED, S.SUSPENDED)
 
 TRANSITIONS: dict[tuple[DaemonState, str], DaemonState] = {
     (S.IDLE, "execute"): S.RUNNING,
+    (S.IDLE, "hold"): S.RUNNING,
     (S.RUNNING, "paused"): S.PAUSED,
     (S.PAUSED, "running"): S.RUNNING,
     (S.RUNNING, "suspended"): S.SUSPENDED,
@@ -100,7 +102,7 @@ RUN_EVENTS = {"running": "running", "paused": "paused", "suspended": "suspended"
               "faulted": "fault", "estopped": "estop", "aborted": "finished", "done": "finished"}
 """A `RunState` value -> the daemon event it causes (`prepared` causes none)."""
 
-FIELD_START_TIMEOUT_S = 30.0  # set_field waits this long for the supplies to be holding
+HOLD_START_TIMEOUT_S = 30.0  # hold waits this long for the rig to stream the hold
 
 QUICK_COMMANDS = {"status": "_cmd_status", "estop": "_cmd_estop"}
 """Commands without arguments answered without the pydantic models when the request is exactly
@@ -140,9 +142,6 @@ class RunFactory(Protocol):
     def start(self) -> None: ...  # when the daemon starts (spawn helpers)
     def close(self) -> None: ...  # when it stops
     def parse_plan(self, data: dict) -> Any: ...
-
-    def hold_field(self, rig: RigConfig, currents_A: np.ndarray, ramp_s: float, *,
-                   on_cycles: Callable[[CycleBatch], None]) -> RunLike: ...  # a manual field
 
     def prepare(self, plan: Any, rig: RigConfig, *, runs_dir: Path,
                 on_cycles: Callable[[CycleBatch], None],
@@ -185,7 +184,7 @@ class PlanRuns:
             known = self._checked.get(id(plan))
         if known is None or known[0] is not plan:
             local = build_run(plan, rig, runs_dir=runs_dir)
-            known = (plan, local.plan, describe_run(local))
+            known = (plan, local.plan, dict(local.info))  # its name, size, planned duration
             with self._lock:
                 self._checked[id(plan)] = known
                 while len(self._checked) > MAX_PLANS:
@@ -193,10 +192,6 @@ class PlanRuns:
         _, prepared, info = known
         return RemoteRun(self.host, ("run", prepared, rig, str(runs_dir)), rig, plan=prepared,
                          info=info, on_cycles=on_cycles, on_state=on_state)
-
-    def hold_field(self, rig: RigConfig, currents_A: np.ndarray, ramp_s: float, *,
-                   on_cycles: Callable[[CycleBatch], None]) -> RunLike:
-        return RemoteRun.of_field(self.host, rig, currents_A, ramp_s, on_cycles=on_cycles)
 
 
 @dataclass(frozen=True)
@@ -219,9 +214,9 @@ class _LoadedPlan:
 
 @dataclass
 class _ActiveRun:
-    """The run (or manual-field hold) on the run thread, and what the stream thread last did."""
+    """The run (a plan's or a manual hold) on the run thread, and what the stream thread last did."""
 
-    kind: str  # "plan" or "field"
+    kind: str  # "plan" or "hold"
     job: Any
     plan_id: str | None
     info: dict
@@ -230,6 +225,9 @@ class _ActiveRun:
     sample: int = -1
     move: int = -1
     last_cycle: float = 0.0
+    commanded: np.ndarray | None = None  # the latest setpoints the stream reported
+    setpoints: np.ndarray | None = None  # a hold's: the target it ramps to and holds
+    released: bool = False  # a hold's release was asked for
 
 
 class _Wakeup:
@@ -354,7 +352,7 @@ class Daemon:
         self.channels = actuators
         self.devices = {d.name: {"name": d.name, "url": d.url, "kind": d.kind, "health": "unknown",
                                  "detail": ""} for d in self.kind.devices(rig)}
-        self.manual_field_mT: list[float] | None = None
+        self.held: dict | None = None  # the manual hold's target
         self.last_run: dict | None = None
         self._actuation = self._actuation_matrix()
         self._handlers: dict[Command, Callable[[Any], Any]] = {
@@ -362,7 +360,8 @@ class Daemon:
             Command.LOAD: self._cmd_load, Command.EXECUTE: self._cmd_execute,
             Command.PAUSE: self._cmd_pause, Command.RESUME: self._cmd_resume,
             Command.ABORT: self._cmd_abort, Command.ESTOP: self._cmd_estop,
-            Command.RESET: self._cmd_reset, Command.SET_FIELD: self._cmd_set_field,
+            Command.RESET: self._cmd_reset, Command.HOLD: self._cmd_hold,
+            Command.SET_FIELD: self._cmd_set_field,
             Command.RUNS: self._cmd_runs, Command.RUN: self._cmd_run,
         }
 
@@ -624,7 +623,7 @@ class Daemon:
             for target in targets:
                 self._send(target, reply)
 
-        if cmd in (Command.LOAD, Command.RUNS, Command.RUN, Command.SET_FIELD):
+        if cmd in (Command.LOAD, Command.RUNS, Command.RUN, Command.HOLD, Command.SET_FIELD):
             def work() -> None:
                 reply = answer()
                 self._deliveries.append(lambda: deliver(reply))  # deque.append is thread-safe
@@ -710,7 +709,8 @@ class Daemon:
                 "plans": list(self._plans),
                 "devices": [dict(d) for d in self.devices.values()],
                 "last_fault": self.last_fault,
-                "manual_field_mT": self.manual_field_mT,
+                "hold": self.held,
+                "manual_field_mT": (self.held or {}).get("field_mT"),  # set_field's, six-coil
                 "uptime_s": round(time.monotonic() - self.t0, 3),
             }
 
@@ -733,11 +733,12 @@ class Daemon:
 
     def _cmd_execute(self, args: Any) -> dict:
         with self._lock:
+            if self._active is not None and self._active.kind == "hold":
+                raise Refusal(ErrorCode.WRONG_STATE,
+                              'a manual hold is on: release it first (hold {"release": true})')
             self._require(S.IDLE, doing="execute a plan")
             if self._active is not None:
-                raise Refusal(ErrorCode.BUSY if self._active.kind == "plan" else ErrorCode.WRONG_STATE,
-                              "a manual field is held: send set_field [0, 0, 0] first"
-                              if self._active.kind == "field" else "the last run is still stopping")
+                raise Refusal(ErrorCode.BUSY, "the last run is still stopping")
             loaded = self._plans.get(args.plan_id)
             if loaded is None:
                 raise Refusal(ErrorCode.UNKNOWN_PLAN,
@@ -746,20 +747,26 @@ class Daemon:
         if run is None:  # executed before: prepare again (the plan was checked at load)
             run = self._prepare(loaded.plan)
         active = _ActiveRun("plan", run, loaded.plan_id, dict(loaded.info))
-        with self._lock:
-            self._active = active
-            self._transition("execute")
-            active.thread = threading.Thread(target=self._run_thread, args=(active,),
-                                             name="daemon-run")
-            active.thread.start()
+        self._activate(active, "execute")
         if self.rig.emulated and getattr(loaded.plan, "agents", None) is not None:
             threading.Thread(target=self._sample_agents, args=(active,), name="daemon-agents",
                              daemon=True).start()
         return {"plan_id": loaded.plan_id, "state": self.state.value, **loaded.info}
 
+    def _activate(self, active: _ActiveRun, event: str) -> None:
+        """`active` becomes the daemon's run (an e-stop reaches it from now on), on its thread."""
+        with self._lock:
+            self._active = active
+            self._transition(event)
+            active.thread = threading.Thread(target=self._run_thread, args=(active,),
+                                             name=f"daemon-{active.kind}")
+            active.thread.start()
+
     def _cmd_pause(self, args: Any) -> dict:
         with self._lock:
             self._require(*ACTIVE, doing="pause")
+            if self._active.kind == "hold":
+                raise Refusal(ErrorCode.WRONG_STATE, f'{CANNOT_PAUSE} (hold {{"release": true}})')
             self._active.job.pause(args.immediate)
         return {"state": self.state.value, "pending": "pause now" if args.immediate
                 else "pause at the end of the current move"}
@@ -786,7 +793,7 @@ class Daemon:
                 active = self._active
                 unreached = active.job.estop() or []
             self._transition("estop", reason="emergency stop")
-            self.manual_field_mT = None
+            self.held = None
             for name in unreached:
                 self._device(name, "fault", "e-stop could not be sent: link down (its own "
                              "watchdog or interlock must stop it)")
@@ -812,59 +819,69 @@ class Daemon:
             self._transition("reset")
         return {"state": self.state.value}
 
-    def _cmd_set_field(self, args: Any) -> dict:
-        from rigctl.rigs.six_coil.allocate import (
-            check_current_limits,
-            currents_for_field,
-        )
-
-        target_T = np.asarray(args.field_mT, dtype=float) * 1e-3
-        if self._actuation is None:
-            raise Refusal(ErrorCode.WRONG_STATE, "this rig has no coils")
-        currents = currents_for_field(self._actuation, target_T)
-        # the ramp from the field held now, then holding it: the same current and voltage
-        # (R I + L dI/dt) limits as a plan's program
-        held = self.manual_field_mT
-        start = (np.zeros(len(currents)) if held is None else
-                 currents_for_field(self._actuation, np.asarray(held, dtype=float) * 1e-3))
-        ramp = field_ramp(start, currents, args.ramp_s, self.rig.stream.rate_hz)
-        check_current_limits(
-            np.vstack([ramp, currents]), self.rig, self.rig.stream.rate_hz,
-            lambda k: f"{list(args.field_mT)} mT ({'held' if k == len(ramp) else 'ramping'})",
-            current_advice="ask for a weaker field", start_A=start,
-            voltage_advice="ramp more slowly (a longer ramp_s) or ask for a weaker field")
-        zero = not np.any(target_T)
+    def _cmd_hold(self, args: Any) -> dict:
+        """A manual hold (any rig), retargeted while one is on, released by `release` or by a
+        target at the rig's rest (zero). Limits are checked here before anything moves: the
+        target's, and the ramp's from what is held now (between the setpoints the stream last
+        reported and the target it ramps to: the ramp's checks are linear or convex in its
+        start); an arm pose's first ramp is checked in the stream process once the arms' joints
+        are read, before they move."""
         with self._lock:
-            self._require(S.IDLE, doing="set a manual field")
-            active = self._active
-            if active is not None and active.kind != "field":
-                raise Refusal(ErrorCode.BUSY, "the last run is still stopping")
+            active = self._active if self._active is not None and self._active.kind == "hold" else None
+        request = None
+        if not args.release:
+            try:
+                request = self.kind.hold(self.rig, args.target)
+            except ConfigError as err:
+                raise Refusal(ErrorCode.BAD_ARGS, f"hold: {err}") from None
+        if active is not None and active.released:
+            raise Refusal(ErrorCode.BUSY, "the hold is being released; retry in a moment")
+        if request is None or request.at_rest:
             if active is not None:
-                active.job.retarget(currents, args.ramp_s, release=zero)
-                self.manual_field_mT = None if zero else list(args.field_mT)
-                return {"field_mT": args.field_mT, "currents_A": currents.round(4).tolist()}
-            if zero:
-                return {"field_mT": args.field_mT, "currents_A": currents.round(4).tolist()}
-        # held by the stream process; this (the worker) waits until it streams or cannot start
-        hold = self.factory.hold_field(self.rig, currents, args.ramp_s, on_cycles=self._on_cycles)
-        active = _ActiveRun("field", hold, None, {"field_mT": list(args.field_mT)})
+                active.job.release(args.ramp_s)
+                active.released = True
+                self.held = None
+            return {"hold": None, "released": active is not None,
+                    "setpoints": [0.0] * len(self.channels)}
+        if active is not None:
+            starts = [s for s in (active.setpoints, active.commanded) if s is not None]
+        else:
+            starts = [np.zeros(len(self.channels))] if request.pose_now is None else []
+        for start in starts:
+            request.check_ramp(np.asarray(start, dtype=float), args.ramp_s)
+        reply = {"hold": request.target, "channels": [c.name for c in self.channels],
+                 "setpoints": request.setpoints.round(4).tolist()}
+        with self._lock:
+            if active is not None and self._active is active:
+                active.job.retarget(request.target, request.setpoints, args.ramp_s)
+                active.setpoints, self.held = request.setpoints, request.target
+                active.info["target"] = request.target
+                return reply
+            self._require(S.IDLE, doing="hold")
+            if self._active is not None:
+                raise Refusal(ErrorCode.BUSY, "the last run is still stopping")
+        # streamed by the stream process; this (the worker) waits until it streams or cannot start
+        job = self._prepare(HoldPlan(rig=self.rig.rig.kind, target=request.target,
+                                     ramp_s=args.ramp_s))
+        active = _ActiveRun("hold", job, None, dict(job.info), setpoints=request.setpoints)
         with self._lock:
             if self.state != S.IDLE or self._active is not None or self._stop.is_set():
                 raise Refusal(ErrorCode.WRONG_STATE, f"state changed to {self.state.value}")
-            self._active = active  # from now on an e-stop reaches it
-            self.manual_field_mT = list(args.field_mT)
-            active.thread = threading.Thread(target=self._run_thread, args=(active,),
-                                             name="daemon-field")
-            active.thread.start()
-        if not hold.started.wait(FIELD_START_TIMEOUT_S):
-            hold.estop()  # still connecting: it must not switch on after set_field has failed
-        if not hold.streaming:  # the supplies could not be reached: say why; the state stays
-            active.thread.join(FIELD_START_TIMEOUT_S)
-            raise hold.error or RigError("the manual field did not start within "
-                                         f"{FIELD_START_TIMEOUT_S:g} s")
+            self.held = request.target
+            self._activate(active, "hold")
+        if not job.started.wait(HOLD_START_TIMEOUT_S):
+            job.estop()  # still connecting: it must not switch on after hold has failed
+        if not job.streaming:  # it could not start (a device, a limit at the arms): say why
+            active.thread.join(HOLD_START_TIMEOUT_S)
+            raise job.error or _start_error(job.result)
         for name in self.devices:
-            self._device(name, "ok", "manual field")
-        return {"field_mT": args.field_mT, "currents_A": currents.round(4).tolist()}
+            self._device(name, "ok", "manual hold")
+        return reply
+
+    def _cmd_set_field(self, args: Any) -> dict:
+        """The six-coil shorthand of `hold {"target": {"field_mT": ...}}` (zero releases)."""
+        result = self._cmd_hold(HoldArgs(target={"field_mT": args.field_mT}, ramp_s=args.ramp_s))
+        return {"field_mT": args.field_mT, "currents_A": result["setpoints"]}
 
     def _cmd_runs(self, args: Any) -> list[dict]:
         from rigctl.record import list_runs
@@ -889,15 +906,15 @@ class Daemon:
             log.error("the %s stopped: %s", active.kind, err)
             if active.kind == "plan" or getattr(active.job, "streaming", True):
                 self._fault(err.device, str(err), type(err).__name__, active)
-            # else a manual field that never started: set_field answers with the error
+            # else a manual hold that never started: hold answers with the error
         except Exception as err:
             log.exception("the %s stopped with an unexpected error", active.kind)
             self._fault(None, f"internal error: {type(err).__name__}: {err}", "Internal", active)
         finally:
             with self._lock:
                 self._active = None
-                if active.kind == "field":
-                    self.manual_field_mT = None
+                if active.kind == "hold":
+                    self.held = None
                 if summary is not None:
                     self.last_run = {"id": active.run_id, "plan_id": active.plan_id,
                                      **{k: v for k, v in summary.as_dict().items()
@@ -916,6 +933,7 @@ class Daemon:
         if active is not None:
             active.sample, active.move = int(batch.sample[-1]), int(batch.move[-1])
             active.last_cycle = float(batch.t[-1])
+            active.commanded = batch.commanded[-1]
         if self.publisher is not None:
             self.publisher.offer_cycles(replace(batch, t=batch.t - self.t0))
 
@@ -928,6 +946,8 @@ class Daemon:
             for name in self.devices:
                 self._device(name, "ok", "streaming")
         if value == "faulted":
+            if active is not None and active.kind == "hold" and not active.job.streaming:
+                return  # a hold that could not start: `hold` answers with why, the state stays
             self._fault(info.get("device"), str(info.get("reason")), "DeviceFault", active)
             return
         event = RUN_EVENTS.get(value)
@@ -994,6 +1014,20 @@ def _abort_quietly(active: _ActiveRun) -> None:
         active.job.abort()
     except RigError as err:
         log.warning("abort on shutdown: %s", err)
+
+
+def _start_error(summary: Any) -> RigError:
+    """Why a hold that never streamed ended, from its summary's first fault (as the error class
+    the stream process named, so a limit is answered as a limit)."""
+    if summary is not None and summary.refused:  # a limit where the actuators stand (the arms)
+        return errors.LimitError(summary.refused)
+    fault = summary.faults[0] if summary is not None and summary.faults else None
+    if fault is None:
+        return RigError(f"the manual hold did not start within {HOLD_START_TIMEOUT_S:g} s")
+    error_class = getattr(errors, fault["kind"], None)
+    if not (isinstance(error_class, type) and issubclass(error_class, RigError)):
+        error_class = RigError
+    return error_class(fault["reason"])
 
 
 def _describe(err: ValidationError) -> str:

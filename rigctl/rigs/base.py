@@ -1,6 +1,7 @@
 """What a rig kind is to the rest of rigctl: one registry entry instead of a switch per place.
 
-A `RigKind` names the plan kinds it runs (each a builder of the one engine `Run`), the channels
+A `RigKind` names the plan kinds it runs (each a builder of the one engine `Run`), how an
+operator's manual hold becomes setpoints (`hold`: every rig runs `hold` plans too), the channels
 its actuators stream, its devices (for `status` and the direct make-safe), and how to make every
 device safe with no run to ask (the e-stop with nothing active, a stream process that died). The
 builders import their rig's modules when called, so `rigctl --help` does not load every rig.
@@ -10,14 +11,23 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rigctl.channels import Channel
 from rigctl.config import RigConfig
 
+if TYPE_CHECKING:
+    from rigctl.run.hold import HoldRequest
+
 RunBuilder = Callable[..., Any]
-"""build(plan, rig, *, runs_dir, progress_out=None, on_cycle=None, on_state=None, **options)
--> rigctl.run.engine.Run, prepared: a plan the rig cannot run is refused here, with no I/O."""
+"""build(plan, rig, *, runs_dir, progress_out=None, on_cycle=None, on_state=None, <options>)
+-> rigctl.run.engine.Run, prepared: a plan the rig cannot run is refused here, with no I/O.
+The options a builder names as keywords (closed_loop, agnostic, time_scale) are the only ones
+`rigctl execute` passes it; any other flag is refused by name."""
+
+
+def no_bench_args(plan: Any) -> list[str]:
+    return []
 
 
 @dataclass(frozen=True)
@@ -39,15 +49,35 @@ class RigKind:
     make_safe: Callable[[RigConfig], dict[str, str | None]]
     """Open every actuator anew and make it safe; never raises: device name -> None when done,
     else why it could not be reached."""
+    hold: Callable[[RigConfig, dict], HoldRequest]
+    """An operator's hold request (`{"field_mT": ...}`, `{"drive": ...}`, `{"joints_rad": ...}`)
+    as setpoints, its limits checked with no I/O: ConfigError for a request of the wrong shape,
+    LimitError for one beyond a limit, each saying what to ask instead."""
+    bench_args: Callable[[Any], list[str]] = no_bench_args
+    """The `rigctl emulate` flags a plan needs of the emulated bench (a pair plan: its world)."""
+    bench_rig: Callable[[], RigConfig] | None = None
+    """The rig its emulated bench serves, known without starting it: `rigctl execute` refuses a
+    plan against it before a bench is started."""
 
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.errors import PlanError
 
+        if plan_kind == "hold":
+            return self._hold_run
         try:
             return self.plans[plan_kind]
         except KeyError:
             runs = ", ".join(sorted(self.plans))
             raise PlanError(f"plan: a {self.name} rig runs {runs} plans, not {plan_kind}") from None
+
+    def _hold_run(self, plan, rig: RigConfig, **options):
+        """The engine's run of a `HoldPlan` on this rig (refused here, with no I/O, if the
+        request breaks a limit)."""
+        from rigctl.run.engine import Run
+        from rigctl.run.hold import HoldProgram
+
+        request = self.hold(rig, plan.target)
+        return Run(HoldProgram(plan, rig, request), rig, request.connect, **options)
 
 
 def camera_devices(rig: RigConfig) -> list[Device]:

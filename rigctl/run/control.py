@@ -45,6 +45,7 @@ class RunControl:
     def _init_control(self, on_state: Callable[[RunState, dict], None] | None) -> None:
         self.on_state = on_state
         self.state = RunState.PREPARED
+        self.state_info: dict = {}  # what the last state change said (why suspended, which device)
         self.record: RunRecord | None = None
         self.stream_loop: StreamLoop | None = None  # while streaming: its timing, for telemetry
         self._estop = threading.Event()
@@ -74,7 +75,7 @@ class RunControl:
     def _set_state(self, state: RunState, **info: object) -> None:
         if state == self.state:
             return
-        self.state = state
+        self.state, self.state_info = state, dict(info)
         if self.record is not None:
             self.record.event("state", state=state.value, **info)
         if self.on_state is not None:

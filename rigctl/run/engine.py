@@ -30,7 +30,7 @@ from typing import Any, Protocol, TextIO
 import numpy as np
 
 from rigctl.config import RigConfig, dump_rig
-from rigctl.errors import RigError
+from rigctl.errors import LimitError, RigError, interrupt_name
 from rigctl.record import RunRecord
 from rigctl.run.actuators import Actuators
 from rigctl.run.control import EStopped, RunControl, RunState
@@ -168,6 +168,7 @@ class Run(RunControl):
         ctx = RunContext(rig, record, backdoor, self._say)
         actuators: Actuators | None = None
         unconfirmed: list[str] | None = None
+        refused: LimitError | None = None
         self.progress = Progress(self.progress_out, program.n_moves, program.duration_s)
         try:
             try:
@@ -182,9 +183,16 @@ class Run(RunControl):
                 record.event("energised", devices=actuators.names)
                 self._set_state(RunState.RUNNING)
                 stats = self._stream(actuators)
-            except KeyboardInterrupt:
-                self.abort("operator interrupt (Ctrl-C)")
+            except KeyboardInterrupt as interrupt:
+                self.abort(f"operator interrupt ({interrupt_name(interrupt)})")
                 record.event("abort", reason=self._abort_reason)
+        except LimitError as err:
+            if self.state != RunState.PREPARED:  # a limit met while running is a fault
+                self._stopped_by(err, record, faults)
+            else:  # refused where the program stands (the arms' approach): nothing was energised
+                refused = err
+                record.event("refused", reason=str(err),
+                             violations=[str(v) for v in getattr(err, "violations", [])])
         except RigError as err:
             self._stopped_by(err, record, faults)
         except EStopped:
@@ -207,8 +215,10 @@ class Run(RunControl):
             if backdoor is not None:
                 backdoor.close()
         aborted = program.aborted or self._abort_reason is not None
-        self._end_state(faults, aborted=aborted, gave_up=outcome.gave_up,
-                        abort_reason=self._abort_reason)
+        if refused is not None:
+            faults.append({"device": refused.device, "reason": str(refused), "kind": "Refused"})
+        self._end_state(faults, aborted=aborted or refused is not None, gave_up=outcome.gave_up,
+                        abort_reason=self._abort_reason or (refused and f"refused: {refused}"))
         summary = RunSummary(
             reached=outcome.reached and not faults, agents=outcome.agents, run=str(record.path),
             duration_s=time.monotonic() - started, positions_from=outcome.positions_from,
@@ -218,7 +228,8 @@ class Run(RunControl):
             unsafe_devices=list(unconfirmed or []), metrics=outcome.metrics,
             replans=outcome.replans, tracking=outcome.tracking,
             tolerance_unit=outcome.tolerance_unit, details=outcome.details,
-            state=self.state.value, rig_kind=rig.rig.kind, plan_kind=program.plan.kind)
+            state=self.state.value, rig_kind=rig.rig.kind, plan_kind=program.plan.kind,
+            refused=None if refused is None else str(refused))
         record.finish(summary.as_dict())
         return summary
 

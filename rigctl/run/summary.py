@@ -49,6 +49,7 @@ class RunSummary:
     plan_kind: str | None = None
     tolerance_unit: str = "mm"
     details: list[str] = field(default_factory=list)
+    refused: str | None = None  # refused before anything was energised (exit 2), and why
 
     def as_dict(self) -> dict:
         return {
@@ -70,6 +71,7 @@ class RunSummary:
             "stream": self.stream,
             "metrics": self.metrics,
             "details": self.details,
+            "refused": self.refused,
         }
 
 
@@ -88,7 +90,8 @@ def summary_from_dict(data: dict) -> RunSummary:
         stream=data.get("stream"), replans=data.get("replans") or 0, tracking=data.get("tracking"),
         safe=data.get("safe", True), unsafe_devices=data.get("unsafe_devices") or [],
         metrics=data.get("metrics") or {}, state=data.get("state"), rig_kind=data.get("rig"),
-        plan_kind=data.get("plan_kind"), tolerance_unit=unit, details=data.get("details") or [])
+        plan_kind=data.get("plan_kind"), tolerance_unit=unit, details=data.get("details") or [],
+        refused=data.get("refused"))
 
 
 def format_summary(summary: RunSummary) -> str:
@@ -143,12 +146,27 @@ def format_summary(summary: RunSummary) -> str:
 
 def exit_code(summary: RunSummary) -> int:
     """The README's exit status of a finished run: 3 a fault, an abort, an e-stop or a device not
-    confirmed safe; 1 the goal was not reached; 0 it was."""
-    from rigctl.errors import EXIT_FAULT, EXIT_NOT_REACHED, EXIT_OK
+    confirmed safe; 2 refused before anything was energised; 1 the goal was not reached; 0 it
+    was."""
+    from rigctl.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_NOT_REACHED, EXIT_OK
 
-    if summary.faults or not summary.safe:
+    if not summary.safe:
+        return EXIT_FAULT
+    if summary.refused:
+        return EXIT_BAD_INPUT
+    if summary.faults:
         return EXIT_FAULT
     return EXIT_OK if summary.reached else EXIT_NOT_REACHED
+
+
+def print_summary(summary: RunSummary, json_out: bool = False) -> None:
+    """The summary as `rigctl execute` prints it: the text on stdout; with `json_out` the text on
+    stderr and stdout holds the one JSON document and nothing else."""
+    import sys
+
+    print(format_summary(summary), file=sys.stderr if json_out else sys.stdout)
+    if json_out:
+        print(summary_json_line(summary), flush=True)
 
 
 def summary_json_line(summary: RunSummary | Any) -> str:

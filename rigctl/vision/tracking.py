@@ -129,6 +129,9 @@ class TrackingLoop:
                 self._cond.wait(remaining)
 
     def stop(self) -> None:
+        """Stop tracking and close the camera; again, nothing more."""
+        if self._stop.is_set():
+            return
         self._stop.set()
         with self._cond:
             self._cond.notify_all()  # the recorder waits on it

@@ -17,7 +17,7 @@ QUICK = {
     "rrt.py": ["--quick"],
     "tracker.py": ["--seconds", "0.5", "--closed-loop-runs", "0"],
     "closed_loop.py": ["--runs", "1"],
-    "daemon.py": ["--moves", "2"],
+    "daemon.py": ["--seconds", "0.3"],
     "coilboard_link.py": ["--round-trips", "50", "--seconds", "0.5", "--trials", "1"],
     "coilboard.py": ["--pairs", "2", "--runs", "1"],
     "depm.py": ["--time-scale", "8"],

@@ -79,3 +79,24 @@ def test_schema_plan_is_json_schema(tmp_path):
     assert result.returncode == 0
     schema = json.loads(result.stdout)
     assert "global-moves" in json.dumps(schema)
+
+
+def test_version_is_the_installed_package_version(tmp_path):
+    from importlib.metadata import version
+
+    done = run_rigctl("--version", cwd=tmp_path)
+    assert done.returncode == 0
+    assert done.stdout.strip() == f"rigctl {version('rigctl')}"
+
+
+def test_json_puts_exactly_one_document_on_stdout_errors_included(tmp_path):
+    plan = Path(__file__).resolve().parents[2] / "plans" / "examples" / "fig4-quick.json"
+    done = run_rigctl("execute", str(plan), "--json", "--runs", str(tmp_path / "runs"),
+                      cwd=tmp_path)
+    summary = json.loads(done.stdout)  # the whole of stdout
+    assert done.returncode == (0 if summary["reached"] else 1)
+    assert "run record:" in done.stderr and "run record:" not in done.stdout
+    bad = run_rigctl("execute", str(tmp_path / "missing.json"), "--json", cwd=tmp_path)
+    assert bad.returncode == 2
+    assert json.loads(bad.stdout)["error"]["code"] == "bad_input"
+    assert "missing.json" in bad.stderr

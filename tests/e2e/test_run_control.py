@@ -1,8 +1,9 @@
 """One run-control suite for the three rigs, on their emulated benches (each in its own process):
 pause at the end of a step and pause now, resume, abort, e-stop, a device fault mid-run, and lost
 sensing (the camera frozen; the Hall board stalled) -> suspended -> running again. Once through
-the daemon (`rigctl daemon`, the `Rig` client) and once through `rigctl execute` (SIGINT: an abort
-with one line, exit 3, a finished record). The coil board runs through the daemon on both its
+the daemon (`rigctl daemon`, the `Rig` client) and once through `rigctl execute --rig` (the same
+requests to the control endpoint its rig lock names; SIGINT and SIGTERM: an abort with one line,
+exit 3, a finished record). The coil board runs through the daemon on both its
 Python firmware emulator and the real firmware in simavr.
 
 Physical safety is read from each emulator's ground truth, not from rigctl: supply currents under
@@ -20,12 +21,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-
-from rigctl.client import Rig
-from rigctl.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
+
+from rigctl.client import DaemonUnreachable, Rig
+from rigctl.config import load_rig
 from rigctl.record import read_events
+from rigctl.rigs.owner import holder_of
 from rigctl.testing import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -123,24 +125,81 @@ def case(request) -> RigCase:
     return CASES[request.param]
 
 
-@pytest.fixture
-def rig_on_bench(case, tmp_path):
-    """(case, rig file, a backdoor, a Rig client of a daemon on that bench)."""
+class LocalRun:
+    """`rigctl execute PLAN --rig RIG` driven as the daemon is: through the control endpoint its
+    rig lock names (the same requests), while it runs; once its process ended, what its record's
+    summary says, in the daemon's terms (a run that ended without a fault leaves the rig idle)."""
+
+    def __init__(self, case: RigCase, rig_path: Path, runs: Path) -> None:
+        self.case, self.rig_path, self.runs = case, rig_path, runs
+        self.proc: subprocess.Popen | None = None
+        self.client: Rig | None = None
+
+    def execute(self) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "rigctl", "execute", str(EXAMPLES / self.case.plan), "--rig",
+             str(self.rig_path), "--runs", str(self.runs), "-q"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        rig = load_rig(self.rig_path)
+        wait_for(lambda: holder_of(rig) is not None, 60, "rigctl execute to own the rig")
+        self.client = Rig(holder_of(rig).control, timeout_s=1.0, retries=1)
+
+    def __getattr__(self, name: str):  # pause, resume, abort, estop: the Rig client's own
+        if name in ("pause", "resume", "abort", "estop"):
+            return getattr(self.client, name)
+        raise AttributeError(name)
+
+    def status(self) -> dict:
+        if self.proc.poll() is None:
+            try:
+                return self.client.request("status")
+            except DaemonUnreachable:
+                if self.proc.poll() is None:
+                    raise
+        summary = json.loads(next(self.runs.glob("*/summary.json")).read_text())
+        faulted = summary["state"] in ("faulted", "estopped")
+        return {"state": summary["state"] if faulted else "idle", "run": None,
+                "last_run": summary, "last_fault": (summary["faults"] or [None])[-1]}
+
+    def close(self) -> None:
+        if self.client is not None:
+            self.client.close()
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+@pytest.fixture(params=["daemon", "execute"])
+def rig_on_bench(case, request, tmp_path):
+    """(case, rig file, a backdoor, the run's control: a Rig client of a daemon on that bench, or
+    a `rigctl execute` on it)."""
+    if request.param == "execute" and case.bench_args:
+        pytest.skip("through rigctl execute once per rig kind (the simavr board: the daemon)")
     with EmulatedBenchProcess(case.kind, tmp_path / "bench.toml",
                               extra_args=case.bench_args) as rig_path:
+        backdoor = BackdoorClient(load_rig(rig_path).emulation.backdoor)
+        if request.param == "execute":
+            local = LocalRun(case, rig_path, tmp_path / "runs")
+            try:
+                yield case, rig_path, backdoor, local
+            finally:
+                local.close()
+                backdoor.close()
+            return
         daemon = Daemon(rig_path, tmp_path / "runs", tmp_path / "daemon.log")
         try:
-            with BackdoorClient(load_rig(rig_path).emulation.backdoor) as backdoor, \
-                    Rig(daemon.endpoints["command"]) as rig:
+            with backdoor, Rig(daemon.endpoints["command"]) as rig:
                 yield case, rig_path, backdoor, rig
         finally:
             daemon.close()
 
 
-def start(rig: Rig, case: RigCase, backdoor) -> None:
-    plan = json.loads((EXAMPLES / case.plan).read_text())
-    rig.execute(rig.load(plan))
-    rig.wait_state("running", timeout_s=60)
+def start(rig: Rig | LocalRun, case: RigCase, backdoor) -> None:
+    if isinstance(rig, LocalRun):
+        rig.execute()
+    else:
+        rig.execute(rig.load(json.loads((EXAMPLES / case.plan).read_text())))
+    wait_state(rig, "running", timeout_s=60)
     wait_for(lambda: case.active(backdoor.request("truth")), 60, "the actuators to act")
 
 
@@ -158,6 +217,8 @@ def wait_state(rig: Rig, *states: str, timeout_s: float = 30.0) -> dict:
 
 def test_status_lists_every_device_of_the_rig(rig_on_bench):
     case, rig_path, backdoor, rig = rig_on_bench
+    if isinstance(rig, LocalRun):
+        pytest.skip("a daemon's status (a local run's devices are its summary's)")
     names = {d["name"] for d in rig.status()["devices"]}
     loaded = load_rig(rig_path)
     expected = {"six-coil": {c.name for c in loaded.coils} | {"camera"},
@@ -190,7 +251,11 @@ def test_estop_from_a_running_rig_makes_every_device_safe(rig_on_bench):
     assert reply["state"] == "estopped" and reply["unreached"] == []
     wait_for(lambda: case.safe(backdoor.request("truth")), 5, "every device safe")
     wait_for(lambda: rig.status()["run"] is None, 30, "the run to end")
-    assert rig.reset()["state"] == "idle"
+    if isinstance(rig, LocalRun):
+        assert rig.proc.wait(30) == 3  # the README's exit status of an e-stopped run
+        assert rig.status()["last_run"]["state"] == "estopped"
+    else:
+        assert rig.reset()["state"] == "idle"
 
 
 def test_a_device_fault_mid_run_names_the_device(rig_on_bench):
@@ -218,7 +283,9 @@ def test_lost_sensing_suspends_the_run_and_it_resumes(rig_on_bench):
     wait_state(rig, "idle", timeout_s=60)
 
 
-def test_sigint_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(case, tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(case, sig,
+                                                                               tmp_path):
     cmd = [sys.executable, "-m", "rigctl", "execute", str(EXAMPLES / case.plan), "--runs",
            str(tmp_path / "runs"), *case.bench_args]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -227,7 +294,7 @@ def test_sigint_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(cas
         wait_for(lambda: any(e.get("event") == "energised"
                              for p in (tmp_path / "runs").glob("*/events.jsonl")
                              for e in read_events(p.parent)), 90, "the run to energise")
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -237,5 +304,78 @@ def test_sigint_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(cas
     run_dir = next((tmp_path / "runs").iterdir())
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["state"] == "aborted" and summary["safe"] is True
-    assert any(e["event"] == "abort" for e in read_events(run_dir))
+    aborts = [e for e in read_events(run_dir) if e["event"] == "abort"]
+    name = "Ctrl-C" if sig == signal.SIGINT else "SIGTERM"
+    assert aborts and name in aborts[0]["reason"], aborts
     assert "aborted" in out
+
+
+def estop_with_rig_file(rig_path: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rigctl", "estop", "--rig", str(rig_path)],
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_estop_with_the_rig_file_reaches_the_run_that_owns_the_rig(rig_on_bench):
+    case, rig_path, backdoor, rig = rig_on_bench
+    start(rig, case, backdoor)
+    done = estop_with_rig_file(rig_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    owner = "rigctl execute" if isinstance(rig, LocalRun) else "rigctl daemon"
+    assert f"EMERGENCY STOP: {owner}, pid" in done.stdout
+    wait_for(lambda: case.safe(backdoor.request("truth")), 5, "every device safe")
+    if isinstance(rig, LocalRun):
+        assert rig.proc.wait(30) == 3
+        assert rig.status()["last_run"]["state"] == "estopped"
+    else:
+        wait_state(rig, "estopped", timeout_s=30)
+
+
+@pytest.mark.parametrize("kind", ["six-coil", "coil-board", "depm"])
+def test_estop_with_the_rig_file_and_no_owner_reaches_every_device_directly(kind, tmp_path):
+    from rigctl.rigs import rig_kind
+
+    with EmulatedBenchProcess(kind, tmp_path / "bench.toml") as rig_path:
+        rig = load_rig(rig_path)
+        supplies = None
+        if kind == "six-coil":  # left energised by something that is gone: 2 A on every coil
+            from rigctl.rigs.six_coil.supplies import CoilSupplies
+
+            supplies = CoilSupplies.connect(rig)
+            supplies.energise()
+            supplies.cycle([2.0] * len(rig.coils))
+            with BackdoorClient(rig.emulation.backdoor) as backdoor:
+                wait_for(lambda: six_coil_active(backdoor.request("truth")), 5, "current")
+        try:
+            done = estop_with_rig_file(rig_path)
+            assert done.returncode == 0, done.stdout + done.stderr
+            actuators = [d.name for d in rig_kind(kind).devices(rig)
+                         if d.kind in ("supply", "board", "arm")]
+            for name in actuators:
+                assert any(line.split()[:1] == name.split()[:1] and line.rstrip().endswith("safe")
+                           for line in done.stdout.splitlines()), (name, done.stdout)
+            if supplies is not None:
+                with BackdoorClient(rig.emulation.backdoor) as backdoor:
+                    wait_for(lambda: six_coil_safe(backdoor.request("truth")), 5, "0 A")
+        finally:
+            if supplies is not None:
+                supplies.stop(0.0)
+
+
+def test_the_cli_verbs_control_the_run_that_owns_the_rig(rig_on_bench):
+    case, rig_path, backdoor, rig = rig_on_bench
+    if case.kind != "six-coil":
+        pytest.skip("the verbs are the same requests on every rig (the suite above): once")
+    start(rig, case, backdoor)
+
+    def verb(*words: str) -> None:
+        done = subprocess.run([sys.executable, "-m", "rigctl", *words, "--rig", str(rig_path)],
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stdout + done.stderr
+
+    verb("pause", "--now")
+    wait_state(rig, "paused")
+    verb("resume")
+    wait_state(rig, "running")
+    verb("abort")
+    status = wait_state(rig, "idle", timeout_s=60)
+    assert any(f["kind"] == "Abort" for f in status["last_run"]["faults"])

@@ -180,7 +180,7 @@ def test_lost_tracking_suspends_the_run_with_the_coils_off_until_the_camera_sees
     assert RunState.SUSPENDED in watched.states and watched.states[-1] == RunState.DONE
     assert summary.tracking["holds"] >= 1
     names = [e["event"] for e in watched.events()]
-    assert names.index("tracking_lost") < names.index("tracking_regained")
+    assert names.index("suspend") < names.index("resume")
 
 
 def test_tracking_lost_for_longer_than_the_limit_is_a_fault_of_the_camera(rig, backdoor, tmp_path):

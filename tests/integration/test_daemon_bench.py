@@ -1,7 +1,8 @@
 """The daemon driving the emulated six-coil bench (in this process, supplies on real TCP sockets)
 through the Python client: a plan to its goal with telemetry, pause/resume, abort, e-stop with the
 supplies' currents measured at zero, a supply fault leaving the daemon serving in `faulted`, and a
-manual field checked against the closed-form field of a loop on its axis."""
+manual field (the six-coil hold) checked against the closed-form field of a loop on its axis.
+The other rigs' holds: test_daemon_hold.py."""
 
 import json
 import os
@@ -328,7 +329,10 @@ def test_a_manual_field_an_unreachable_supply_prevents_is_refused_and_e_stop_rea
     wait_current(bench, amps=0.5)
     assert rig.estop()["state"] == "estopped"
     assert all_off(bench)
-    assert wait_run_over(rig)["manual_field_mT"] is None
+    status = wait_run_over(rig)
+    assert status["manual_field_mT"] is None and status["hold"] is None
+    events = [e["event"] for e in read_events(Path(status["last_run"]["run"]))]
+    assert "safe" in events and "unsafe" not in events  # the hold's record, ended by the e-stop
     assert rig.reset()["state"] == "idle"
 
 

@@ -9,7 +9,7 @@ import pytest
 from rigctl.plans.depm_safety import SafetyLimits
 
 from rigctl.kinematics import default_arms
-from rigctl.rigs.depm.motion import Timeline, approach_path, approach_violations, caps
+from rigctl.rigs.depm.motion import Timeline, approach_path, caps, path_violations
 
 DEG = np.pi / 180
 # LBR iiwa 14 R820 data sheet: joint speeds (deg/s); the acceleration of 10 rad/s^2 is assumed
@@ -48,7 +48,8 @@ def test_approach_through_the_keep_out_sphere_is_named():
     arms = default_arms()
     seed = np.array([0, 0.5, 0, -1.2, 0, 0.8, 0.0])
     inside = arms[0].solve(np.array([-0.10, 0.0, 0.0]), np.array([0, 0, 1.0]), seed).q
-    found = approach_violations(np.array([inside, Q_START[1]]), Q_START, arms, SafetyLimits())
+    q_now = np.array([inside, Q_START[1]])
+    found = path_violations(approach_path(q_now, Q_START, arms, SafetyLimits()), arms, SafetyLimits())
     assert any(v.arm == "left" and v.part == "EPM" and v.time_s == 0.0 for v in found), found
 
 

@@ -360,7 +360,7 @@ def test_cli_start_overlap_and_missing_workspace(workspace_file, tmp_path, capsy
     status = plan_main(["plan", "rrt", "--workspace", str(workspace_file), "--start", "100,100",
                         "--start", "105,100", "--goal", "200,300", "--goal", "300,300",
                         "-o", str(tmp_path / "p.json")])
-    assert status == 2 and "--start #1 and #2" in capsys.readouterr().err
+    assert status == 2 and "--start #2: overlaps #1" in capsys.readouterr().err
     status = plan_main(["plan", "rrt", "--workspace", str(tmp_path / "nope.json"), *ROBOTS,
                         "-o", str(tmp_path / "p.json")])
     assert status == 2 and "--workspace" in capsys.readouterr().err

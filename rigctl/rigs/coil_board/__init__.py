@@ -7,19 +7,17 @@ from rigctl.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
 
 
-def _global_moves(plan, rig: RigConfig, **options):
+def _global_moves(plan, rig: RigConfig, **run):
+    """Always closed loop (no `closed_loop` option): a move ends when the camera sees it done."""
     from rigctl.rigs.coil_board.run import CoilBoardRun
 
-    options.pop("closed_loop", None)  # always closed loop: a move ends when the camera sees it
-    return CoilBoardRun(plan, rig, **options)
+    return CoilBoardRun(plan, rig, **run)
 
 
 def _channels(rig: RigConfig) -> list[Channel]:
-    board = rig.board
-    if board is None:
-        return []
-    return [Channel(name, "drive", -board.max_command, board.max_command, "board")
-            for name in board.coil_names]
+    from rigctl.rigs.coil_board.actuators import board_channels
+
+    return board_channels(rig)
 
 
 def _devices(rig: RigConfig) -> list[Device]:
@@ -49,8 +47,32 @@ def _make_safe(rig: RigConfig) -> dict[str, str | None]:
         return {"coil board": str(err)}
 
 
+def _hold(rig: RigConfig, target: dict):
+    """`{"drive": [v per coil]}`: whole SyRen drive units within the board's +-max_command, in the
+    order of the board's coils (the pull's sense); ramps pass only through values between."""
+    from rigctl.errors import ConfigError, LimitError
+    from rigctl.rigs.coil_board.actuators import BoardActuators
+    from rigctl.run.hold import HoldRequest, target_values
+
+    board = rig.board
+    if board is None:
+        raise ConfigError("the rig has no [board] table: it is not a coil board")
+    names = list(board.coil_names)
+    drive = target_values(target, "drive", (len(names),), KIND.name,
+                          f"SyRen drive units for coils {', '.join(names)}")
+    for name, value in zip(names, drive):
+        if value != round(value):
+            raise LimitError(f"coil {name}: drive {value:g} is not a whole SyRen unit; ask for "
+                             f"an integer in -{board.max_command}..{board.max_command}")
+        if abs(value) > board.max_command:
+            raise LimitError(f"coil {name}: drive {value:g} is beyond the board's limit "
+                             f"+-{board.max_command}; ask for less")
+    return HoldRequest({"drive": drive.tolist()}, drive, BoardActuators.connect, board.rate_hz,
+                       "slip", lambda start, ramp_s: None, step=1.0)
+
+
 KIND = RigKind(
     name="coil-board",
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",
     plans={"global-moves": _global_moves},
-    channels=_channels, devices=_devices, make_safe=_make_safe)
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold)

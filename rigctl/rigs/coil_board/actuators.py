@@ -29,26 +29,35 @@ log = logging.getLogger(__name__)
 SYREN_READY_TIMEOUT_S = 5.0  # the SyRens start 2 s after power-on; a board just plugged in too
 
 
+def board_channels(rig: RigConfig) -> list[Channel]:
+    """Each coil's drive in SyRen units within the board's limit: the coil board's channels."""
+    board = rig.board
+    if board is None:
+        return []
+    return [Channel(name, "drive", -board.max_command, board.max_command, "board")
+            for name in board.coil_names]
+
+
 class BoardActuators:
     """The connected coil board of a rig (`connect`), as one actuator group of four channels."""
 
-    def __init__(self, board: CoilBoard, *, syren_ready_timeout_s: float = SYREN_READY_TIMEOUT_S
-                 ) -> None:
+    def __init__(self, board: CoilBoard, channels: list[Channel], *,
+                 syren_ready_timeout_s: float = SYREN_READY_TIMEOUT_S) -> None:
         self.board = board
         self.names = [board.name]
         self.syren_ready_timeout_s = syren_ready_timeout_s
-        self.channels = [Channel(name, "drive", -board.max_command, board.max_command, "board")
-                         for name in board.coil_names]
+        self.channels = channels  # `board_channels`
         self.measured = np.zeros(len(self.channels))
 
     @classmethod
     def connect(cls, rig: RigConfig, *, syren_ready_timeout_s: float = SYREN_READY_TIMEOUT_S
-                ) -> "BoardActuators":
+                ) -> BoardActuators:
         """Open the rig's [board] and handshake (the coils stay off); Disconnected or DeviceError
         naming the board if it cannot be opened."""
         if rig.board is None:
             raise ConfigError("the rig has no [board] table: it is not a coil board")
-        return cls(CoilBoard.from_settings(rig.board), syren_ready_timeout_s=syren_ready_timeout_s)
+        return cls(CoilBoard.from_settings(rig.board), board_channels(rig),
+                   syren_ready_timeout_s=syren_ready_timeout_s)
 
     def energise(self) -> None:
         """Wait until the board reports its SyRen drivers ready (SYREN_READY), which it does once

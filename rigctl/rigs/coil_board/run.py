@@ -38,7 +38,6 @@ import functools
 import logging
 import math
 import sys
-import threading
 import time
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
@@ -48,7 +47,7 @@ from typing import TextIO
 import numpy as np
 
 from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, DeviceTimeout, PlanError, RigError
+from rigctl.errors import ConfigError, DeviceTimeout, PlanError
 from rigctl.plans.checks import check_plan, plan_workspace
 from rigctl.plans.schema import GlobalMovesPlan
 from rigctl.plans.wall_contact import (
@@ -58,10 +57,11 @@ from rigctl.plans.wall_contact import (
     plan_two_particles,
 )
 from rigctl.rigs.coil_board.actuators import BoardActuators
-from rigctl.run.control import RunState
+from rigctl.run.agents import agent_results, place_agents, read_truth
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
-from rigctl.run.summary import AgentResult, RunSummary
+from rigctl.run.interruptions import RequestedControl, Requests, Suspension
+from rigctl.run.summary import RunSummary
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +230,7 @@ class RelativeDrift:
 
 
 
-class CoilBoardProgram:
+class CoilBoardProgram(RequestedControl):
     """Alg. 1 closed through the camera, as the engine's program (see the module docstring).
 
     Construction refuses what cannot run (PlanError, ConfigError) without I/O. `start` places the
@@ -273,48 +273,22 @@ class CoilBoardProgram:
         self.coils_centre = np.zeros(2)
         # Particles that touch make one blob on the camera: re-planned moves keep them apart.
         self.reach = float(self.radii.sum() + max(plan.min_separation_mm, settings.keep_apart_mm))
-        self.lost_limit_s = (settings.lost_limit_s if settings.lost_limit_s is not None
-                             else rig.camera.timeout_s)
+        self.suspension = Suspension(settings.lost_limit_s if settings.lost_limit_s is not None
+                                     else rig.camera.timeout_s)
         self.replans = 0
         self.moves_done = 0
         self.drift = RelativeDrift()
-        self.lost_holds = 0  # times the run held (suspended) while the tracker had lost a particle
         self.tracking = None  # TrackingLoop, from `start`
         self.record = None
-        self.suspended: str | None = None
         self.reached = False
         self._say: Callable[[str], None] = lambda text: None
         self._commands: Commands | None = None
         self._position: np.ndarray | None = None
         self._move = -1  # the move being driven (0-based, as the record's `move`), -1 between
         self._stage = "starting"
-        self._wake: Callable[[], None] = lambda: None
-        # control, from any thread
-        self._lock = threading.Lock()
-        self._pause_requested = False
-        self._pause_now = False
-        self._abort_requested = False
+        self.requests = Requests()
         self._holding = False
         self._aborted = False
-        self._tracking_stopped = False
-
-    # -- control, from any thread ---------------------------------------------------------------
-    def pause(self, immediate: bool = False) -> None:
-        """Hold zeros at the end of the current move, or (`immediate`) end the move now."""
-        with self._lock:
-            self._pause_requested = True
-            self._pause_now = self._pause_now or immediate
-
-    def resume(self) -> None:
-        with self._lock:
-            self._pause_requested = False
-            self._pause_now = False
-        self._wake()  # a hold of zeros: the next command may as well leave now
-
-    def abort(self) -> None:
-        with self._lock:
-            self._abort_requested = True
-        self._wake()
 
     @property
     def aborted(self) -> bool:
@@ -323,23 +297,25 @@ class CoilBoardProgram:
     @property
     def paused(self) -> bool:
         """Holding still at a pause (the coils at zero), or ending the move for a pause now."""
-        return self._holding or (self._pause_requested and self._pause_now)
+        return self._holding or (self.requests.pause_wanted and self.requests.immediate)
+
+    @property
+    def suspended(self) -> str | None:
+        return self.suspension.reason
 
     def attach_wake(self, wake: Callable[[], None]) -> None:
-        self._wake = wake
+        self.requests.wake = wake  # a hold of zeros: the next command may as well leave now
 
     # -- the run's phases -----------------------------------------------------------------------
     def start(self, ctx: RunContext) -> None:
         """Place the particles (emulated bench), start tracking them and take the first
         measurement; nothing is energised yet."""
-        from rigctl.run.emulated import portable_workspace
         from rigctl.vision.tracking import TrackingLoop
 
         self.record, self._say = ctx.record, ctx.say
-        if ctx.backdoor is not None:
-            ctx.backdoor.request("place", workspace=portable_workspace(self.plan), agents=[
-                {"position": a.start, "radius": a.radius} for a in self.plan.agents])
-            ctx.record.event("placed", agents=self.starts.tolist())
+        self.suspension.record, self.suspension.say = ctx.record, ctx.say
+        place_agents(ctx, self.plan, [{"position": a.start, "radius": a.radius}
+                                      for a in self.plan.agents])
         xmin, ymin, xmax, ymax = self.workspace.bounds
         self.tracking = TrackingLoop(self.rig.camera, self.radii, self.starts,
                                      roi_mm=(xmin, ymin, xmax, ymax))
@@ -350,15 +326,12 @@ class CoilBoardProgram:
                          tolerance_mm=self.tolerance)
         self._commands = self._run_moves()
 
-    def connected(self, actuators) -> None:
-        pass  # the board starts with every coil off: nothing to read
-
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
-        if self._abort_requested:
+        if self.requests.abort_wanted:
             if self._aborted:
                 return None
             self._aborted = True  # one cycle of zeros, then the end (the engine stops the coils)
-            self._holding, self.suspended, self._move = False, None, -1
+            self._holding, self.suspension.reason, self._move = False, None, -1
             return Step(np.zeros(4), k, -1, stage="aborting")
         if self._commands is None:
             return None
@@ -372,14 +345,15 @@ class CoilBoardProgram:
         """The camera's last look (the coils are off) against the goals, with ground truth's
         error beside it on an emulated bench."""
         measured = self._final_measurement()
-        self._stop_tracking()
-        agents, source = self._results(measured, ctx.backdoor)
+        if self.tracking is not None:
+            self.tracking.stop()
+        agents, source = agent_results(self.goals, measured, read_truth(ctx.backdoor))
         # Reached: the camera's last look, after the coils were stopped, has both within tolerance.
-        reached = all(a.error_mm is not None and a.error_mm <= self.tolerance for a in agents)
+        reached = measured is not None and all(a.error_mm <= self.tolerance for a in agents)
         tracking = None
         if self.tracking is not None:
             tracking = {"frames": self.tracking.frames, "lost_frames": self.tracking.lost_frames,
-                        "holds": self.lost_holds}
+                        "holds": self.suspension.count}
         ctx.record.event("closed_loop", reached=reached, moves=self.moves_done,
                          replans=self.replans, drift_k=self.drift.k.tolist())
         return Outcome(
@@ -391,11 +365,7 @@ class CoilBoardProgram:
     def close(self) -> None:
         if self._commands is not None:
             self._commands.close()
-        self._stop_tracking()
-
-    def _stop_tracking(self) -> None:
-        if self.tracking is not None and not self._tracking_stopped:
-            self._tracking_stopped = True
+        if self.tracking is not None:
             self.tracking.stop()
 
     # -- Alg. 1's loop, one command per stream cycle --------------------------------------------
@@ -410,7 +380,7 @@ class CoilBoardProgram:
         position = self._position
         assert position is not None
         while True:
-            if self._pause_requested:
+            if self.requests.pause_wanted:
                 yield from self._hold()
                 position = yield from self._measure(time.monotonic(), "a frame after the pause")
             error = float(np.max(np.hypot(*(position - self.goals).T)))
@@ -445,7 +415,7 @@ class CoilBoardProgram:
         self._holding, self._move, self._stage = True, -1, "paused"
         self._say("paused: every coil at zero")
         try:
-            while self._pause_requested:
+            while self.requests.pause_wanted:
                 yield ZERO
         finally:
             self._holding = False
@@ -543,7 +513,6 @@ class CoilBoardProgram:
         history: list[tuple[float, np.ndarray]] = []
         sent: list[float] = []  # angle of each command sent, radians
         lean = 0.0  # measured motion angle minus commanded angle
-        lost_since: float | None = None  # tracking lost since (monotonic s)
         began = time.monotonic()
         tracking = self.tracking
         assert tracking is not None
@@ -554,22 +523,19 @@ class CoilBoardProgram:
         interrupted = False
 
         while True:
-            if self._pause_requested and self._pause_now:
+            if self.requests.pause_wanted and self.requests.immediate:
                 interrupted = True  # pause now: the coils go to zero in this very cycle
                 break
             now = time.monotonic()
             state = tracking.latest()
             if not tracking.ok(now):
                 # Suspended (coils off) while the tracker looks for them.
-                lost_since = self._lost(lost_since, now, "tracking lost during a move (no fresh "
-                                        "frame with both particles); the coils were stopped")
+                self.suspension.lost(now, "tracking lost during a move (no fresh frame with both "
+                                     "particles); the coils were stopped", tracking.failure)
                 history.clear()
                 yield ZERO
                 continue
-            if lost_since is not None:
-                self._regained(lost_since, now)
-                began += now - lost_since  # the hold is not the move's time
-                lost_since = None
+            began += self.suspension.regained(now)  # the hold is not the move's time
             if not history or history[-1][0] != state.t_source:
                 history.append((state.t_source, state.positions_mm))
                 # Keep one frame older than the stall window (all `_stalled` needs) and the last
@@ -648,39 +614,15 @@ class CoilBoardProgram:
         them): suspended until there is one."""
         assert self.tracking is not None
         tracking = self.tracking
-        lost_since: float | None = None
         while True:
             now = time.monotonic()
             state = tracking.latest()
             if state is not None and state.t_source > after and not state.lost.any():
-                if lost_since is not None:
-                    self._regained(lost_since, now)
+                self.suspension.regained(now)
                 return state.positions_mm.copy()
             if not tracking.ok(now) or now > after + tracking.timeout_s:
-                lost_since = self._lost(lost_since, now, f"tracking lost: {what}")
+                self.suspension.lost(now, f"tracking lost: {what}", tracking.failure)
             yield ZERO
-
-    def _lost(self, since: float | None, now: float, reason: str) -> float:
-        """Tracking is lost now: suspend (the first time), and give up as a fault of the camera
-        once it has been lost for `lost_limit_s` or the camera itself failed. Returns since when."""
-        failure = self.tracking.failure
-        if failure is not None:
-            raise DeviceTimeout(f"{reason}: the camera failed ({failure}); the coils were stopped",
-                                device="camera")
-        if since is None:
-            self.suspended = reason
-            self.record.event("tracking_lost", reason=reason)
-            self._say(f"suspended: {reason}")
-            return now
-        if now - since > self.lost_limit_s:
-            raise DeviceTimeout(f"{reason}, for {self.lost_limit_s:g} s", device="camera")
-        return since
-
-    def _regained(self, since: float, now: float) -> None:
-        self.lost_holds += 1
-        self.suspended = None
-        self.record.event("tracking_regained", after_s=now - since)
-        self._say(f"tracking regained after {now - since:.2f} s")
 
     def _measure_now(self) -> np.ndarray:
         """Positions (2, 2) mm from the first frame taken from now on (blocking: nothing is
@@ -692,44 +634,21 @@ class CoilBoardProgram:
         return state.positions_mm.copy()
 
     def _final_measurement(self) -> np.ndarray | None:
-        if self.tracking is None or self._tracking_stopped or self.tracking.latest() is None:
+        """The first frame from now on, else the last one seen (None: none ever was)."""
+        if self.tracking is None or self.tracking.latest() is None:
             return None
-        try:
-            return self._measure_now()
-        except RigError:
-            state = self.tracking.latest()
-            return state.positions_mm.copy() if state is not None else None
-
-    def _results(self, measured: np.ndarray | None, backdoor) -> tuple[list[AgentResult], str]:
-        truth = None
-        if backdoor is not None:
-            try:
-                truth = np.array(backdoor.request("truth")["agents"], dtype=float)
-            except RigError as err:
-                log.error("could not read ground truth: %s", err)
-        agents = []
-        for i, goal in enumerate(self.goals):
-            final = None if measured is None else [round(float(v), 4) for v in measured[i]]
-            error = None if measured is None else round(float(np.hypot(*(measured[i] - goal))), 4)
-            truth_error = None if truth is None else round(float(np.hypot(*(truth[i] - goal))), 4)
-            agents.append(AgentResult(final, goal.tolist(), error, truth_error))
-        source = "camera (closed loop)" + ("; emulator ground truth in truth_error_mm"
-                                           if truth is not None else "")
-        return agents, source
+        state = self.tracking.captured_after(time.monotonic(), self.rig.camera.timeout_s)
+        return (state or self.tracking.latest()).positions_mm.copy()
 
 
-def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-                 progress_out: TextIO | None = None,
-                 on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-                 on_state: Callable[[RunState, dict], None] | None = None,
-                 settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> EngineRun:
-    """The run of a two-particle plan on a coil board (the one engine with `CoilBoardProgram`).
-    Refusals (PlanError, ConfigError) raise here, before anything is opened."""
+def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *,
+                 settings: CoilBoardRunSettings = CoilBoardRunSettings(), **run_options) -> EngineRun:
+    """The run of a two-particle plan on a coil board (the one engine with `CoilBoardProgram`);
+    `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refusals (PlanError, ConfigError) raise here, before anything is opened."""
     program = CoilBoardProgram(plan, rig, settings=settings)
     connect = functools.partial(BoardActuators.connect,
                                 syren_ready_timeout_s=settings.syren_ready_timeout_s)
-    return EngineRun(program, rig, connect, runs_dir=runs_dir, progress_out=progress_out,
-                     on_cycle=on_cycle, on_state=on_state)
+    return EngineRun(program, rig, connect, **run_options)
 
 
 def execute_coilboard(plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",

@@ -15,21 +15,24 @@ from rigctl.config import RigConfig
 from rigctl.rigs.base import Device, RigKind
 
 
-def _field_sequence(plan, rig: RigConfig, **options):
+def _field_sequence(plan, rig: RigConfig, *, agnostic: bool = False, time_scale: float = 1.0,
+                    **run):
     from rigctl.rigs.depm.run import FieldSequenceRun
 
-    options.pop("closed_loop", None)  # the Hall board always measures
-    return FieldSequenceRun(plan, rig, **options)
+    if agnostic:
+        from rigctl.plans.depm import baseline_of
+
+        if run.get("progress_out") is not None:
+            print("the magnetic-agnostic baseline: straight joint moves to the plan's end poses",
+                  file=run["progress_out"], flush=True)
+        plan = baseline_of(plan)
+    return FieldSequenceRun(plan, rig, time_scale=time_scale, **run)
 
 
 def _channels(rig: RigConfig) -> list[Channel]:
-    from rigctl.kinematics import LBR_IIWA_14_R820
+    from rigctl.rigs.depm.actuators import arm_channels
 
-    if rig.depm is None:
-        return []
-    model = LBR_IIWA_14_R820
-    return [Channel(f"{arm}_q{j + 1}", "rad", float(model.lower_rad[j]), float(model.upper_rad[j]), arm)
-            for arm in rig.depm.arm_names for j in range(len(model.lower_rad))]
+    return arm_channels(rig)
 
 
 def _devices(rig: RigConfig) -> list[Device]:
@@ -62,8 +65,55 @@ def _make_safe(rig: RigConfig) -> dict[str, str | None]:
     return result
 
 
+def _hold(rig: RigConfig, target: dict):
+    """`{"joints_rad": [[7 values], [7 values]]}`: a pose of both arms (in the rig file's order)
+    that keeps every safety constraint (joint ranges, the keep-out sphere, the EPMs apart), reached
+    by a straight joint-space ramp no joint of which is faster than the rig's speed fraction of
+    its maximum and that keeps every constraint on its way, sampled every `check_step_s`."""
+    import numpy as np
+
+    from rigctl.errors import ConfigError, LimitError
+    from rigctl.plans.depm import rig_from_settings
+    from rigctl.plans.depm_safety import SPEED_TOLERANCE, violations
+    from rigctl.rigs.depm.actuators import ArmPair
+    from rigctl.rigs.depm.motion import caps
+    from rigctl.run.hold import HoldRequest, target_values
+
+    if rig.depm is None:
+        raise ConfigError("a depm rig needs a [depm] table (arms, Hall board)")
+    depm_rig = rig_from_settings(rig.depm)
+    arms, limits = depm_rig.arms, depm_rig.limits
+    q = target_values(target, "joints_rad", (len(arms), 7), KIND.name,
+                      f"rad, seven joints for each arm ({', '.join(a.name for a in arms)})")
+
+    def refuse(found: list, what: str) -> None:
+        if found:
+            more = f" (and {len(found) - 1} more)" if len(found) > 1 else ""
+            raise LimitError(f"{what} breaks a safety constraint: {found[0]}{more}; ask for "
+                             "another pose",
+                             device=found[0].arm)
+
+    refuse(violations(np.zeros(1), q[:, None, :], None, arms, limits), "the pose")
+    speed, _ = caps(arms, limits)
+
+    def check_ramp(start: np.ndarray, ramp_s: float) -> None:
+        q0 = np.asarray(start, dtype=float).reshape(q.shape)
+        needed_s = float(np.max(np.abs(q - q0) / speed))
+        if needed_s > ramp_s * (1.0 + SPEED_TOLERANCE):
+            raise LimitError(f"the ramp to this pose needs ramp_s >= {needed_s:.2f} s (the joints "
+                             f"at {limits.speed_fraction:.0%} of their maximum speed), asked "
+                             f"{ramp_s:g} s; ask for a longer ramp_s")
+        t = np.linspace(0.0, ramp_s, max(2, int(np.ceil(ramp_s / limits.check_step_s)) + 1))
+        path = q0[:, None, :] + (q - q0)[:, None, :] * (t / max(ramp_s, 1e-12))[None, :, None]
+        refuse(violations(t, path, None, arms, limits), "the ramp to this pose")
+
+    return HoldRequest({"joints_rad": q.tolist()}, q.ravel(), ArmPair.connect,
+                       rig.depm.servo_rate_hz, "skip", check_ramp,
+                       pose_now=lambda arms_open: arms_open.joint_positions())
+
+
 KIND = RigKind(
     name="depm",
     description="two KUKA LBR iiwa arms carrying permanent magnets, a three-sensor Hall board",
     plans={"field-sequence": _field_sequence},
-    channels=_channels, devices=_devices, make_safe=_make_safe)
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold)

@@ -32,17 +32,27 @@ log = logging.getLogger(__name__)
 REST_TIMEOUT_S = 5.0  # an arm that still moves this long after its servo ended is not confirmed
 
 
+def arm_channels(rig: RigConfig) -> list[Channel]:
+    """Seven joint angles per arm in rad, within the arm model's range: the dual-EPM channels."""
+    if rig.depm is None:
+        return []
+    model = rig_from_settings(rig.depm).arms[0].model
+    return [Channel(f"{arm}_q{j + 1}", "rad", float(model.lower_rad[j]), float(model.upper_rad[j]),
+                    arm) for arm in rig.depm.arm_names for j in range(len(model.lower_rad))]
+
+
 class ArmPair:
     """Both arms of a depm rig, in the rig file's order; `cycle` takes and returns (14,) rad."""
 
-    def __init__(self, arms: list[KukaArm]) -> None:
+    def __init__(self, arms: list[KukaArm], channels: list[Channel]) -> None:
         self.arms = arms
+        self.channels = channels  # `arm_channels`
         self.names = [arm.name for arm in arms]
         self.measured = np.zeros(len(arms) * N_JOINTS)
         self._latched = False
 
     @classmethod
-    def connect(cls, rig: RigConfig) -> "ArmPair":
+    def connect(cls, rig: RigConfig) -> ArmPair:
         """Open both arms' KST sessions (each answers a joint read; nothing moves). On a failure
         the ones already open are closed and the error is raised."""
         d = rig.depm
@@ -59,18 +69,7 @@ class ArmPair:
             for arm in arms:
                 arm.close()
             raise
-        return cls(arms)
-
-    @property
-    def channels(self) -> list[Channel]:
-        out = []
-        for arm in self.arms:
-            limits = arm.joint_limits_rad
-            for j in range(N_JOINTS):
-                low, high = (None, None) if limits is None else (float(limits[j, 0]),
-                                                                 float(limits[j, 1]))
-                out.append(Channel(f"{arm.name}_q{j + 1}", "rad", low, high, arm.name))
-        return out
+        return cls(arms, arm_channels(rig))
 
     def joint_positions(self) -> np.ndarray:
         """Both arms' measured joints (A, 7) rad."""

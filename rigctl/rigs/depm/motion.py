@@ -7,7 +7,7 @@ three kinds of motion, all on the same servo:
   each a straight line in joint space (`JointPath`) on a trapezoidal time law, all joints of an arm
   starting and stopping together as in a synchronised PTP move, timed so no joint exceeds the
   rig's speed fraction of its maximum speed, nor its acceleration fraction. It is checked against
-  every safety constraint (`approach_violations`) before anything moves;
+  every safety constraint (`path_violations`) before anything moves;
 - the *plan*: its PCHIP joint curves, on the plan's clock;
 - a *rejoin*: after a hold that stopped the arms off the path (pause now holds the measured pose),
   a short `JointPath` of both arms back to the path where the clock stopped, before it runs on.
@@ -46,7 +46,7 @@ class _Leg:
 
     @classmethod
     def timed(cls, start_s: float, q_from: np.ndarray, q_to: np.ndarray, speed_caps: np.ndarray,
-              accel_caps: np.ndarray) -> "_Leg | None":
+              accel_caps: np.ndarray) -> _Leg | None:
         delta = np.abs(q_to - q_from)
         moving = delta > 1e-12
         if not moving.any():
@@ -156,12 +156,6 @@ def path_violations(path: JointPath, arms: Sequence[ArmKinematics],
     t = np.union1d(np.arange(0.0, path.duration_s, limits.check_step_s), ends)
     q, qd, qdd = path.sample(t)
     return violations(t, q, qd, arms, limits, qdd)
-
-
-def approach_violations(q_now: np.ndarray, q_start: np.ndarray, arms: Sequence[ArmKinematics],
-                        limits: SafetyLimits) -> list[Violation]:
-    """Constraints broken by the approach (`approach_path`) from `q_now` to `q_start`."""
-    return path_violations(approach_path(q_now, q_start, arms, limits), arms, limits)
 
 
 class Timeline:

@@ -40,9 +40,6 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Callable
-from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
@@ -62,9 +59,9 @@ from rigctl.rigs.depm.metrics import (
 )
 from rigctl.rigs.depm.motion import Timeline, approach_path, caps, path_violations
 from rigctl.rigs.depm.sensors import HALL_NAME, HallWatch, sensor_estimator
-from rigctl.run.control import RunState
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
+from rigctl.run.interruptions import RequestedControl, Requests
 
 log = logging.getLogger(__name__)
 
@@ -161,7 +158,7 @@ def _distance_to_span(q: np.ndarray, targets) -> np.ndarray:
 # -- the program ----------------------------------------------------------------------------------
 
 
-class FieldSequenceProgram:
+class FieldSequenceProgram(RequestedControl):
     """A field-sequence plan streamed to the two arms' servo (see the module docstring).
     Construction refuses a plan this rig must not run (ConfigError, SafetyRefusal), with no I/O."""
 
@@ -192,10 +189,7 @@ class FieldSequenceProgram:
         self.curves = joint_trajectory(plan)
         self.windows = windows_of(plan)
         self.tolerance_rad = math.radians(d.tracking_tolerance_deg)
-        # control, set from any thread
-        self._want_pause = False
-        self._pause_now = False
-        self._want_abort = False
+        self.requests = Requests()  # control, set from any thread
         # state of the stream thread
         self.paused = False
         self.suspended: str | None = None
@@ -226,20 +220,9 @@ class FieldSequenceProgram:
         self.approach_s = 0.0
         self.plan_time_reached_s = self.t_start_s
 
-    # -- control, from any thread ---------------------------------------------------------------
-    def pause(self, immediate: bool = False) -> None:
-        self._pause_now = immediate
-        self._want_pause = True
-
-    def resume(self) -> None:
-        self._want_pause = False
-
-    def abort(self) -> None:
-        self._want_abort = True
-
     @property
     def aborted(self) -> bool:
-        return self._want_abort
+        return self.requests.abort_wanted
 
     # -- the run's phases -----------------------------------------------------------------------
     def start(self, ctx: RunContext) -> None:
@@ -274,9 +257,8 @@ class FieldSequenceProgram:
         approach = approach_path(q_now, q_start, self.arms, self.limits)
         found = path_violations(approach, self.arms, self.limits)
         if found:
+            # the engine records the refusal (its `violations` listed) and ends the run refused
             self.refused = SafetyRefusal("the approach to the plan's first pose breaks", found)
-            record.event("refused", reason="the approach breaks a safety constraint",
-                         violations=[str(v) for v in found])
             raise self.refused
         speed, accel = caps(self.arms, self.limits)
         self.timeline = Timeline(approach, self.curves, self.t_start_s, self.t_end_s, speed, accel)
@@ -302,10 +284,10 @@ class FieldSequenceProgram:
         if measured is not None:
             self._check_tracking(k / self.plan_rate_hz, measured)
         samples = []
-        if self._cycles % SAMPLE_EVERY == 0 or tl.finished or self._want_abort:
+        if self._cycles % SAMPLE_EVERY == 0 or tl.finished or self.requests.abort_wanted:
             samples = self._poll_hall(now)
         self._cycles += 1
-        if self._want_abort:
+        if self.requests.abort_wanted:
             if self._abort_sent:
                 return None
             self._abort_sent = True  # stop where they are: hold the measured pose, then end
@@ -317,13 +299,13 @@ class FieldSequenceProgram:
             self._take(samples)
             self._ctx.record.event("plan_done", t_plan_s=self.plan_time_reached_s)
             return None
-        hold = self._want_pause or self.suspended is not None
+        hold = self.requests.pause_wanted or self.suspended is not None
         if hold and tl.held is None:
-            now_pose = self._pause_now and self._want_pause and measured is not None
+            now_pose = self.requests.immediate and self.requests.pause_wanted and measured is not None
             tl.hold(measured.reshape(len(self.arms), -1) if now_pose else self._last_target)
         elif not hold and tl.held is not None:
             tl.release()
-        self.paused = tl.held is not None and self._want_pause
+        self.paused = tl.held is not None and self.requests.pause_wanted
         target = tl.advance(dt)
         stage = None
         if tl.held is not None:
@@ -388,7 +370,7 @@ class FieldSequenceProgram:
                 self.suspended = f"Hall board: {reason}; the arms hold their pose"
                 record.event("hall_lost", device=HALL_NAME, reason=reason)
                 log.warning("%s: %s; run suspended", HALL_NAME, reason)
-            elif now - self._hall_trouble_since > HALL_LOST_FAULT_S and not self._want_abort:
+            elif now - self._hall_trouble_since > HALL_LOST_FAULT_S and not self.requests.abort_wanted:
                 raise DeviceError(f"no samples for {now - self._hall_trouble_since:.1f} s "
                                   f"({reason}); the run stopped", device=HALL_NAME)
         elif self._hall_trouble_since is not None:
@@ -443,7 +425,7 @@ class FieldSequenceProgram:
             t, U = np.array(self.times), np.array(self.estimates)
             table = table1(t, U, self.windows)
             cross = cross_activation(t, U, self.windows)
-        completed = self.timeline is not None and self.timeline.finished and not self._want_abort
+        completed = self.timeline is not None and self.timeline.finished and not self.requests.abort_wanted
         found = self.refused.violations if self.refused is not None else []
         reached = completed and self.refused is None and steady_state_reached(table)
         return {
@@ -471,16 +453,11 @@ class FieldSequenceProgram:
 # -- the run --------------------------------------------------------------------------------------
 
 
-def FieldSequenceRun(plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-                     progress_out: TextIO | None = None,
-                     on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-                     on_state: Callable[[RunState, dict], None] | None = None,
-                     time_scale: float = 1.0) -> EngineRun:
-    """The run of a field-sequence plan on a dual-EPM rig (the one engine with this program).
-    Refuses (ConfigError, SafetyRefusal) before anything is opened."""
-    program = FieldSequenceProgram(plan, rig, time_scale=time_scale)
-    return EngineRun(program, rig, ArmPair.connect, runs_dir=runs_dir, progress_out=progress_out,
-                     on_cycle=on_cycle, on_state=on_state)
+def FieldSequenceRun(plan, rig: RigConfig, *, time_scale: float = 1.0, **run_options) -> EngineRun:
+    """The run of a field-sequence plan on a dual-EPM rig (the one engine with this program);
+    `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refuses (ConfigError, SafetyRefusal) before anything is opened."""
+    return EngineRun(FieldSequenceProgram(plan, rig, time_scale=time_scale), rig, ArmPair.connect,
+                     **run_options)
 
 
 # -- what a person reads --------------------------------------------------------------------------

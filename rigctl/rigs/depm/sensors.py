@@ -62,7 +62,7 @@ class HallWatch:
         self.offsets_m: np.ndarray | None = None
         self.silence_s = MIN_SILENCE_S
 
-    def open(self) -> "HallWatch":
+    def open(self) -> HallWatch:
         board = HallBoard.open(self.url, name=self.name, timeout_s=self.timeout_s)
         self.offsets_m = board.info.offsets_m
         self.silence_s = max(MIN_SILENCE_S, 20.0 / board.info.rate_hz)

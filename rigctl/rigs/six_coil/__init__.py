@@ -8,22 +8,36 @@ from rigctl.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
 
 
-def _global_moves(plan, rig: RigConfig, **options):
+def _global_moves(plan, rig: RigConfig, *, closed_loop: bool | None = None, **run):
     from rigctl.rigs.six_coil.global_moves import Run
 
-    options.setdefault("closed_loop", rig.camera is not None)
-    return Run(plan, rig, **options)
+    return Run(plan, rig, closed_loop=rig.camera is not None if closed_loop is None else closed_loop,
+               **run)
 
 
-def _pair_formation(plan, rig: RigConfig, **options):
-    from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings
+def _pair_formation(plan, rig: RigConfig, *, closed_loop: bool | None = None, **run):
+    from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings, loopback_rig
 
-    closed = options.pop("closed_loop", rig.camera is not None)
-    return PairRun(plan, rig, settings=PairRunSettings(closed_loop=closed), **options)
+    closed = rig.camera is not None if closed_loop is None else closed_loop
+    if rig.emulation is not None:
+        rig = loopback_rig(rig)
+    return PairRun(plan, rig, settings=PairRunSettings(closed_loop=closed), **run)
+
+
+def _bench_rig() -> RigConfig:
+    from rigctl.plans.pair import default_rig
+
+    return default_rig()
+
+
+def _bench_args(plan) -> list[str]:
+    return ["--world", "pair"] if plan.kind == "pair-formation" else []
 
 
 def _channels(rig: RigConfig) -> list[Channel]:
-    return [Channel(c.name, "A", -c.current_limit_A, c.current_limit_A, "supplies") for c in rig.coils]
+    from rigctl.rigs.six_coil.supplies import supply_channels
+
+    return supply_channels(rig)
 
 
 def _devices(rig: RigConfig) -> list[Device]:
@@ -36,8 +50,38 @@ def _make_safe(rig: RigConfig) -> dict[str, str | None]:
     return zero_supplies_directly(rig)
 
 
+def _hold(rig: RigConfig, target: dict):
+    """`{"field_mT": [bx, by, bz]}` at the workspace centre: the minimum-norm currents, each
+    within its coil's limit, and the supplies' compliance R I + L dI/dt over the ramp to them."""
+    import numpy as np
+
+    from rigctl.coils import actuation_matrix
+    from rigctl.rigs.six_coil.allocate import check_current_limits, currents_for_field
+    from rigctl.rigs.six_coil.supplies import CoilSupplies
+    from rigctl.run.hold import HoldRequest, ramp, target_values
+
+    field_mT = target_values(target, "field_mT", (3,), KIND.name, "mT")
+    currents = currents_for_field(actuation_matrix(rig), field_mT * 1e-3)
+    rate = rig.stream.rate_hz
+    asked = f"{field_mT.tolist()} mT"
+
+    def check_ramp(start: np.ndarray, ramp_s: float) -> None:
+        samples = ramp(start, currents, ramp_s, rate)
+        check_current_limits(
+            np.vstack([samples, currents]), rig, rate,
+            lambda k: f"{asked} ({'held' if k == len(samples) else 'ramping'})",
+            current_advice="ask for a weaker field", start_A=start,
+            voltage_advice="ramp more slowly (a longer ramp_s) or ask for a weaker field")
+
+    check_current_limits(currents[None], rig, None, lambda _: asked,
+                         current_advice="ask for a weaker field")
+    return HoldRequest({"field_mT": field_mT.tolist()}, currents, CoilSupplies.connect, rate,
+                       "slip", check_ramp)
+
+
 KIND = RigKind(
     name="six-coil",
     description="six air-core coils fed by Kepco BOP supplies, overhead camera",
     plans={"global-moves": _global_moves, "pair-formation": _pair_formation},
-    channels=_channels, devices=_devices, make_safe=_make_safe)
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold,
+    bench_args=_bench_args, bench_rig=_bench_rig)

@@ -19,7 +19,7 @@ import numpy as np
 
 from rigctl.config import RigConfig
 from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.errors import PlanError, RigError
+from rigctl.errors import PlanError
 from rigctl.plans.checks import check_plan, contact_for_rig, simulate
 from rigctl.plans.schema import Plan
 from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate
@@ -27,11 +27,10 @@ from rigctl.rigs.six_coil.realize import FieldProgram, realize_global_moves
 from rigctl.rigs.six_coil.sequencer import Sequencer
 from rigctl.rigs.six_coil.supervisor import Supervisor, SupervisorSettings
 from rigctl.rigs.six_coil.supplies import CoilSupplies
-from rigctl.run.control import RunState
-from rigctl.run.emulated import portable_workspace, truth_of
+from rigctl.run.agents import agent_results, place_agents, read_truth, truth_of
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
-from rigctl.run.summary import AgentResult, RunSummary
+from rigctl.run.summary import RunSummary
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +67,7 @@ class GlobalMovesProgram:
         self.n_moves = len(self.plan.moves)
         self.duration_s = float(self.field_program.duration_s)
         self.info = {"name": self.plan.name, "moves": self.n_moves,
-                     "samples": int(len(self.currents.t_s)),
+                     "samples": len(self.currents.t_s),
                      "duration_s": round(self.duration_s, 3)}
         ramp = max(1, round(rig.stream.ramp_down_s * rig.stream.rate_hz))
         ends = [self.field_program.move_end_index(i) for i in range(self.field_program.n_moves)]
@@ -79,12 +78,8 @@ class GlobalMovesProgram:
             self.supervisor = Supervisor(
                 self.plan, rig, self.field_program, self.currents, ramp_samples=ramp,
                 settings=supervisor_settings or SupervisorSettings(),
-                truth=self._truth if rig.emulation else None)
+                truth=(lambda: truth_of(self._backdoor)) if rig.emulation else None)
             self.sequencer = self.supervisor.sequencer
-
-    def _truth(self) -> np.ndarray:
-        """The emulator's true positions (n, 2) mm (the supervisor measures the tracker with it)."""
-        return truth_of(self._backdoor)
 
     # -- control, from any thread ---------------------------------------------------------------
     def pause(self, immediate: bool = False) -> None:
@@ -106,7 +101,7 @@ class GlobalMovesProgram:
 
     @property
     def suspended(self) -> str | None:
-        return self.supervisor.suspended if self.supervisor is not None else None
+        return self.supervisor.suspension.reason if self.supervisor is not None else None
 
     def attach_wake(self, wake: Callable[[], None]) -> None:
         self.sequencer.wake = wake
@@ -115,15 +110,8 @@ class GlobalMovesProgram:
     def start(self, ctx: RunContext) -> None:
         plan = self.plan
         self._backdoor = ctx.backdoor
-        if ctx.backdoor is not None:
-            ctx.backdoor.request(
-                "place",
-                workspace=portable_workspace(plan),
-                agents=[{"position": list(a.start), "radius": a.radius} for a in plan.agents],
-                contact=contact_for_rig(plan.rig),
-                min_separation_mm=plan.min_separation_mm,
-            )
-            ctx.record.event("placed", agents=[list(a.start) for a in plan.agents])
+        place_agents(ctx, plan, [{"position": list(a.start), "radius": a.radius} for a in plan.agents],
+                     contact=contact_for_rig(plan.rig), min_separation_mm=plan.min_separation_mm)
         if self.supervisor is not None:
             self.supervisor.start(ctx.record)  # the robots are found before anything is energised
 
@@ -139,16 +127,13 @@ class GlobalMovesProgram:
         return Step(setpoints, sample, move, t_s=float(t_s[min(sample, len(t_s) - 1)]))
 
     def finish(self, ctx: RunContext) -> Outcome:
-        plan = self.plan
-        if self.supervisor is not None:
-            self.supervisor.stop()
-        agents, positions_from = _final_positions(plan, ctx.backdoor)
-        closed = {}
-        if self.supervisor is not None:
-            if self.supervisor.final_positions is not None:
-                agents, positions_from = _tracked_final_positions(
-                    agents, self.supervisor.final_positions)
-            closed = self.supervisor.summary()
+        plan, supervisor = self.plan, self.supervisor
+        closed, camera = {}, None
+        if supervisor is not None:
+            supervisor.stop()
+            closed, camera = supervisor.summary(), supervisor.final_positions
+        agents, positions_from = agent_results([a.goal for a in plan.agents], camera,
+                                               read_truth(ctx.backdoor))
         tolerance = plan.tolerance_mm
         reached = all(a.error_mm is not None and a.error_mm <= tolerance for a in agents)
         return Outcome(agents=agents, reached=reached, positions_from=positions_from,
@@ -161,16 +146,13 @@ class GlobalMovesProgram:
             self.supervisor.stop()
 
 
-def Run(plan: Plan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-        progress_out: TextIO | None = None,
-        on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-        on_state: Callable[[RunState, dict], None] | None = None, closed_loop: bool = False,
-        supervisor_settings: SupervisorSettings | None = None) -> EngineRun:
-    """The run of a global-moves plan on a six-coil rig (the one engine with this program)."""
+def Run(plan: Plan, rig: RigConfig, *, closed_loop: bool = False,
+        supervisor_settings: SupervisorSettings | None = None, **run_options) -> EngineRun:
+    """The run of a global-moves plan on a six-coil rig (the one engine with this program);
+    `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`)."""
     program = GlobalMovesProgram(plan, rig, closed_loop=closed_loop,
                                  supervisor_settings=supervisor_settings)
-    return EngineRun(program, rig, CoilSupplies.connect, runs_dir=runs_dir,
-                     progress_out=progress_out, on_cycle=on_cycle, on_state=on_state)
+    return EngineRun(program, rig, CoilSupplies.connect, **run_options)
 
 
 def execute_plan(
@@ -189,35 +171,3 @@ def execute_plan(
         closed_loop = rig.camera is not None
     return Run(plan, rig, runs_dir=runs_dir, progress_out=progress_out, closed_loop=closed_loop,
                supervisor_settings=supervisor_settings).execute()
-
-
-def _final_positions(plan: Plan, backdoor: BackdoorClient | None) -> tuple[list[AgentResult], str]:
-    goals = [list(map(float, a.goal)) for a in plan.agents]
-    if backdoor is None:
-        return [AgentResult(None, g, None) for g in goals], "unknown (no camera loop yet)"
-    try:
-        truth = backdoor.request("truth")
-    except RigError as err:
-        log.error("could not read ground truth: %s", err)
-        return [AgentResult(None, g, None) for g in goals], "unknown (backdoor failed)"
-    results = []
-    for position, goal in zip(truth["agents"], goals):
-        error = float(np.hypot(position[0] - goal[0], position[1] - goal[1]))
-        results.append(AgentResult([round(p, 4) for p in position], goal, round(error, 4)))
-    return results, "emulator ground truth (the camera loop does not exist yet)"
-
-
-def _tracked_final_positions(
-    truth: list[AgentResult], tracked: np.ndarray
-) -> tuple[list[AgentResult], str]:
-    """Final positions from the camera (closed loop); ground truth's error kept when emulated."""
-    results = []
-    for result, position in zip(truth, tracked):
-        error = float(np.hypot(position[0] - result.goal[0], position[1] - result.goal[1]))
-        results.append(AgentResult([round(float(p), 4) for p in position], result.goal,
-                                   round(error, 4), result.error_mm))
-    return results, "camera (closed loop)" + (
-        "; emulator ground truth in truth_error_mm" if any(
-            r.error_mm is not None for r in truth) else "")
-
-

@@ -33,17 +33,14 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, replace
-from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
 from rigctl.coils import u_actuation_matrix
 from rigctl.config import RigConfig
 from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.errors import ConfigError, DeviceTimeout, LimitError, PlanError, RigError
+from rigctl.errors import ConfigError, LimitError, PlanError
 from rigctl.plans.pair import (
     ZERO_RADIAL_ANGLE_RAD,
     PairPlannerOptions,
@@ -64,11 +61,10 @@ from rigctl.record import RunRecord
 from rigctl.rigs.six_coil.allocate import check_current_limits, field_and_pull_u
 from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings, distance_to_path
 from rigctl.rigs.six_coil.supplies import CoilSupplies
-from rigctl.run.control import RunState
-from rigctl.run.emulated import portable_workspace
+from rigctl.run.agents import agent_results, place_agents, read_truth
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
-from rigctl.run.summary import AgentResult
+from rigctl.run.interruptions import RequestedControl, Requests, Suspension
 
 log = logging.getLogger(__name__)
 
@@ -225,32 +221,16 @@ def slew_limited(program: np.ndarray, rig: RigConfig) -> np.ndarray:
     return out
 
 
-class _PauseRequests:
-    """Pause and resume as asked from any thread. The stream thread decides when a pause takes
-    effect (`hold`) and when it ends (`release`), and counts the time spent paused: it counts
-    towards neither the run's timeout nor the goal hold."""
+class _PauseRequests(Requests):
+    """The operator's requests, and the time spent paused: the stream thread decides when a
+    pause takes effect (`hold`) and when it ends (`release`); paused time counts towards neither
+    the run's timeout nor the goal hold."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._wanted = False
-        self._immediate = False
+        super().__init__()
         self.paused = False  # the stream thread's: holding now
         self._since: float | None = None
         self._paused_s = 0.0
-
-    def request(self, immediate: bool) -> None:
-        with self._lock:
-            self._wanted = True
-            self._immediate = self._immediate or immediate
-
-    def cancel(self) -> None:
-        with self._lock:
-            self._wanted = self._immediate = False
-
-    def wanted(self) -> tuple[bool, bool]:
-        """(a pause is wanted, at once)."""
-        with self._lock:
-            return self._wanted, self._immediate
 
     def hold(self, now: float) -> None:
         self.paused, self._since = True, now
@@ -279,7 +259,7 @@ def expected_headings(nodes: np.ndarray, stage_of: np.ndarray) -> np.ndarray:
     return phi
 
 
-class PairProgram:
+class PairProgram(RequestedControl):
     """One pair-formation plan on one six-coil rig, as the run engine's `RigProgram`:
     construction refuses a bad plan without I/O (`prepare_pair`); `start` places the agents on
     the emulated bench and finds them with the camera; `next` is one stream cycle's currents;
@@ -318,14 +298,11 @@ class PairProgram:
                      "samples": samples, "duration_s": round(samples / rig.stream.rate_hz, 3)}
         self.d_mm = self.plan.agents.body_diameter_mm
         self.metrics = _Metrics(prep.nodes)
-        self._abort = threading.Event()
-        self._pause = _PauseRequests()
+        self.requests = self._pause = _PauseRequests()
         self._record: RunRecord | None = None
         self._backdoor: BackdoorClient | None = None
         self._tracking = None  # TrackingLoop, once started
-        self._tracking_stopped = False
         self._truth_at_end: dict | None = None
-        self._truth_read = False
         # the stream thread's from here on
         self._ramp = max(1, round(settings.ramp_s * self.rate_hz))
         self._slew = CoilSlew(rig)
@@ -343,7 +320,7 @@ class PairProgram:
         self._frame = -1
         self._started_at: float | None = None
         self._seen_at = 0.0
-        self._lost_since: float | None = None
+        self._suspension = Suspension(settings.lost_after_s)
         self._phi = float(prep.nodes[0][3])  # the pair's heading, last seen (or expected)
         self._phi_seen = False
         self._j = 0  # open loop: the next program sample
@@ -358,25 +335,14 @@ class PairProgram:
         self._pause_hold: PairPursuit | None = None  # the pause's own hold of the formation
         self._pause_target: np.ndarray | None = None
 
-    # -- control, from any thread ---------------------------------------------------------------
-    def pause(self, immediate: bool = False) -> None:
-        """Hold the agents where they are, at the end of the segment being driven (closed loop:
-        when the pursuit reaches its next node, or after the segment's planned time), or at once
-        with `immediate`."""
-        self._pause.request(immediate)
-
-    def resume(self) -> None:
-        """Go on from where the agents are: closed loop, the pursuit from the next camera frame;
-        open loop, the program from the sample where it stopped."""
-        self._pause.cancel()
-
-    def abort(self) -> None:
-        """Ramp the field down and end; the summary reports the abort."""
-        self._abort.set()
-
+    # -- control: `pause` holds the agents where they are, at the end of the segment being
+    # driven (closed loop: when the pursuit reaches its next node, or after the segment's planned
+    # time), or at once; `resume` goes on from where they are (closed loop, the pursuit from the
+    # next camera frame; open loop, the program from the sample where it stopped); `abort` ramps
+    # the field down and ends.
     @property
     def aborted(self) -> bool:
-        return self._abort.is_set()
+        return self._pause.abort_wanted
 
     @property
     def paused(self) -> bool:
@@ -384,7 +350,7 @@ class PairProgram:
 
     @property
     def suspended(self) -> str | None:
-        return "tracking lost" if self._lost_since is not None else None
+        return self._suspension.reason
 
     # -- the run's phases -----------------------------------------------------------------------
     def start(self, ctx: RunContext) -> None:
@@ -392,15 +358,12 @@ class PairProgram:
 
         plan, prep, d = self.plan, self.prepared, self.d_mm
         self._record, self._backdoor = ctx.record, ctx.backdoor
+        self._suspension.record = ctx.record
         ctx.record.event("pair", closed_loop=self.settings.closed_loop,
                          timeout_s=round(self._timeout_s, 3))
         start_mm = agent_positions(prep.nodes[0]) * d
-        if ctx.backdoor is not None:
-            ctx.backdoor.request(
-                "place", workspace=portable_workspace(plan),
-                agents=[{"position": p.tolist(), "radius": 0.5 * d} for p in start_mm],
-                pair=plan.agents.model_dump())
-            ctx.record.event("placed", agents=start_mm.tolist())
+        place_agents(ctx, plan, [{"position": p.tolist(), "radius": 0.5 * d} for p in start_mm],
+                     pair=plan.agents.model_dump())
         if self.rig.camera is not None:  # the agents are found before anything is energised
             self._tracking = TrackingLoop(self.rig.camera, np.full(2, 0.5 * d), start_mm,
                                           roi_mm=prep.problem.workspace.bounds)
@@ -409,19 +372,16 @@ class PairProgram:
             ctx.record.event("tracking", positions_mm=first.positions_mm.tolist())
         self._closed = self.settings.closed_loop and self._tracking is not None
 
-    def connected(self, actuators) -> None:
-        pass  # the supplies start from 0 A, as the program does: nothing to read
-
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
         now = time.monotonic()
         if self._started_at is None:
             self._started_at = self._seen_at = now
         record = self._record
         assert record is not None
-        stopping = self._abort.is_set() or \
+        stopping = self._pause.abort_wanted or \
             now - self._started_at - self._pause.paused_s(now) > self._timeout_s
         if stopping and self._ramp_down is None:
-            record.event("stop", reason="abort" if self._abort.is_set() else "timeout")
+            record.event("stop", reason="abort" if self._pause.abort_wanted else "timeout")
             self._ramp_down = 0
         self._update_pause(now)
         sample = k if self._closed else self._j
@@ -446,9 +406,7 @@ class PairProgram:
         """The program is over: ground truth as it leaves the agents, before the supplies are
         stopped (with no field the magnets still attract each other, and that is not the run's
         doing)."""
-        self._truth_at_end = _read_truth(self._backdoor)
-        self._truth_read = True
-        return None
+        self._truth_at_end = read_truth(self._backdoor)
 
     def _stage(self, k: int, sample: int) -> tuple[int, str]:
         if self._pause.paused:
@@ -487,7 +445,7 @@ class PairProgram:
     def _update_pause(self, now: float) -> None:
         """Pause and resume take effect here, on the stream thread (`_PauseRequests`)."""
         pause, record, closed = self._pause, self._record, self._closed
-        wanted, immediate = pause.wanted()
+        wanted, immediate = pause.pause_wanted, pause.immediate
         finishing = self._ramp_down is not None or (not closed and self._j >= self._final_ramp)
         if wanted and not pause.paused and not finishing:
             mark = self._pursuit.k if closed else int(self.prepared.stage_of[self._j])
@@ -520,9 +478,7 @@ class PairProgram:
         if latest is not None and latest.frame != self._frame and not latest.lost.any():
             self._frame = latest.frame
             self._seen_at = now
-            if self._lost_since is not None:
-                record.event("resume", after_s=round(now - self._lost_since, 3))
-                self._lost_since = None
+            self._suspension.regained(now)
             q = state_from_positions(latest.positions_mm / self.d_mm)
             self._phi = float(q[3])
             self.metrics.measure(q, self._pursuit)
@@ -538,15 +494,11 @@ class PairProgram:
             else:
                 self._decide(q, now, latest)
         elif not self._tracking.ok(now) or now - self._seen_at > s.stale_s:
-            if self._lost_since is None:
-                self._lost_since = now
-                record.event("suspend", reason="tracking lost")
-            elif now - self._lost_since > s.lost_after_s:
-                raise DeviceTimeout(f"tracking lost for {s.lost_after_s:g} s", device="camera")
-        if self._lost_since is not None:
+            self._suspension.lost(now, "tracking lost")
+        if self._suspension.since is not None:
             # unseen, the agents are held where they were last seen (a held field would keep
             # moving them, and they could collide unseen)
-            return self._held(self._lost_since, now), -1
+            return self._held(self._suspension.since, now), -1
         if self._pause.paused:
             if self._pause_target is not None:
                 return self._pause_target, -1
@@ -644,31 +596,14 @@ class PairProgram:
         """Each agent's final position (the camera's last frame, else ground truth) against the
         goal formation, in body lengths; reached closed loop only when the goal was also held
         for the plan's `hold_s` within its tolerance."""
-        self._stop_tracking()
-        if not self._truth_read:  # a fault or an e-stop ended the stream
-            self._truth_at_end = _read_truth(ctx.backdoor)
+        self.close()
+        if self._truth_at_end is None:  # a fault or an e-stop ended the stream
+            self._truth_at_end = read_truth(ctx.backdoor)
         plan, d, m = self.plan, self.d_mm, self.metrics
         goal_mm = agent_positions(state_of(plan.goal, d)) * d
         truth = self._truth_at_end
-        final = m.last_q
-        positions_from = "camera" if final is not None else "unknown"
-        if final is None and truth is not None:
-            final = state_from_positions(np.array(truth["agents"]) / d)
-            positions_from = "emulator ground truth"
-        elif final is not None and truth is not None:
-            positions_from += "; emulator ground truth in truth_error_bl"
-        agents = []
-        for i in range(2):
-            final_mm = error = truth_error = None
-            if final is not None:
-                p = agent_positions(final)[i] * d
-                final_mm = p.round(4).tolist()
-                error = round(float(np.hypot(*(p - goal_mm[i])) / d), 4)
-            if truth is not None:
-                t = np.array(truth["agents"][i])
-                truth_error = round(float(np.hypot(*(t - goal_mm[i])) / d), 4)
-            agents.append(AgentResult(final_mm, goal_mm[i].round(4).tolist(), error, truth_error,
-                                      unit="bl"))
+        camera = None if m.last_q is None else agent_positions(m.last_q) * d
+        agents, positions_from = agent_results(goal_mm, camera, truth, scale_mm=d, unit="bl")
         tol = plan.tolerance_bl
         closed = self.settings.closed_loop
         # open loop judges by ground truth where there is one: the camera only watched
@@ -696,13 +631,8 @@ class PairProgram:
                        details=_details(metrics))
 
     def close(self) -> None:
-        self._stop_tracking()
-
-    def _stop_tracking(self) -> None:
-        tracking = self._tracking
-        if tracking is not None and not self._tracking_stopped:
-            self._tracking_stopped = True
-            tracking.stop()
+        if self._tracking is not None:
+            self._tracking.stop()
 
 
 def _round(value: float | None) -> float | None:
@@ -725,29 +655,14 @@ def _details(metrics: dict) -> list[str]:
     return lines
 
 
-def _read_truth(backdoor: BackdoorClient | None) -> dict | None:
-    if backdoor is None:
-        return None
-    try:
-        return backdoor.request("truth")
-    except RigError as err:
-        log.error("could not read ground truth: %s", err)
-        return None
-
-
-def PairRun(plan: PairFormationPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
-            progress_out: TextIO | None = None,
-            on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-            on_state: Callable[[RunState, dict], None] | None = None,
-            closed_loop: bool | None = None,
-            settings: PairRunSettings = PairRunSettings()) -> EngineRun:
+def PairRun(plan: PairFormationPlan, rig: RigConfig, *, closed_loop: bool | None = None,
+            settings: PairRunSettings = PairRunSettings(), **run_options) -> EngineRun:
     """The run of a pair-formation plan on a six-coil rig (the one engine with `PairProgram`);
-    `closed_loop`, if given, overrides the settings'. Refuses a bad plan without I/O."""
+    `closed_loop`, if given, overrides the settings'; `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refuses a bad plan
+    without I/O."""
     if closed_loop is not None:
         settings = replace(settings, closed_loop=closed_loop)
-    return EngineRun(PairProgram(plan, rig, settings), rig, CoilSupplies.connect,
-                     runs_dir=runs_dir, progress_out=progress_out, on_cycle=on_cycle,
-                     on_state=on_state)
+    return EngineRun(PairProgram(plan, rig, settings), rig, CoilSupplies.connect, **run_options)
 
 
 class PairStages:

@@ -53,6 +53,7 @@ from rigctl.record import RunRecord
 from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate
 from rigctl.rigs.six_coil.realize import FieldProgram, realize_global_moves
 from rigctl.rigs.six_coil.sequencer import Sequencer
+from rigctl.run.interruptions import Suspension
 from rigctl.vision.tracking import TrackingLoop
 
 log = logging.getLogger(__name__)
@@ -168,7 +169,6 @@ class Decision:
     sample: int
     kind: str  # "continue", "replan", "done", "give_up"
     t_source: float
-    t_decided: float
     error_mm: list[float] = field(default_factory=list)
 
 
@@ -212,7 +212,7 @@ class Supervisor:
         self.decisions: list[Decision] = []
         self.tracking_errors_mm: list[float] = []
         self.fault: RigError | None = None
-        self.suspended: str | None = None  # why the run is held now (tracking lost), else None
+        self.suspension = Suspension()  # why the run is held now (tracking lost), if it is
         self.final_positions: np.ndarray | None = None
         self.record: RunRecord | None = None
         self._stop = threading.Event()
@@ -224,7 +224,7 @@ class Supervisor:
     # -- life cycle -----------------------------------------------------------------------------
     def start(self, record: RunRecord | None) -> None:
         """Acquire the robots with the camera and start judging (before the stream starts)."""
-        self.record = record
+        self.record = self.suspension.record = record
         self._planner = ReplanWorker()  # imports numpy, scipy and the planner while we go on
         if self.truth is not None:
             self._truth_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="truth")
@@ -268,11 +268,6 @@ class Supervisor:
             },
         }
 
-    def latencies_s(self) -> list[float]:
-        """Capture time of the frame a decision used -> the first command after it left the loop."""
-        times = self.sequencer.command_times
-        return [times[d.number] - d.t_source for d in self.decisions if d.number in times]
-
     # -- the decision thread --------------------------------------------------------------------
     def _event(self, name: str, **info: object) -> None:
         if self.record is not None:
@@ -280,27 +275,22 @@ class Supervisor:
         log.info("supervisor: %s %s", name, info)
 
     def _run(self) -> None:
-        seq = self.sequencer
-        held = False
+        seq, suspension = self.sequencer, self.suspension
         while not self._stop.is_set():
             if not self.tracking.ok():
-                if not held:
+                if suspension.since is None:
                     seq.hold()
-                    held = True
                     state = self.tracking.latest()
                     why = ("camera: " + str(self.tracking.failure)) if self.tracking.failure else (
                         "robot(s) %s not found" % np.flatnonzero(state.lost).tolist()
                         if state is not None and state.lost.any()
                         else f"no fresh frame for {self.tracking.timeout_s:g} s")
-                    self.suspended = why
-                    self._event("suspend", reason=why, sample=seq.index)
+                    suspension.lost(time.monotonic(), why, sample=seq.index)
                 self.tracking.wait(0.05)
                 continue
-            if held:
-                self.suspended = None
+            if suspension.since is not None:
                 seq.unhold()
-                held = False
-                self._event("resume", sample=seq.index)
+                suspension.regained(time.monotonic(), sample=seq.index)
             if not seq.arrived.wait(0.02):
                 continue
             try:
@@ -340,8 +330,7 @@ class Supervisor:
         error = np.hypot(*(measured - expected).T)
         goal_error = np.hypot(*(measured - self.goals).T)
         number = len(self.decisions)
-        decision = Decision(number, sample, "continue", state.t_source, time.monotonic(),
-                            error.round(4).tolist())
+        decision = Decision(number, sample, "continue", state.t_source, error.round(4).tolist())
         self.decisions.append(decision)
         go_on = (goal_error.max() <= self.goal_threshold_mm if last
                  else error.max() <= self.settings.threshold_mm)

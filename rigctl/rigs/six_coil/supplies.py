@@ -25,12 +25,19 @@ from rigctl.transport import open_transport
 log = logging.getLogger(__name__)
 
 
+def supply_channels(rig: RigConfig) -> list[Channel]:
+    """One current channel per supply, in A, within its limit: the six-coil rig's channels."""
+    return [Channel(c.name, "A", -c.current_limit_A, c.current_limit_A, "supplies") for c in rig.coils]
+
+
 class CoilSupplies:
     """The connected supplies of a rig, in the rig file's coil order."""
 
     def __init__(self, supplies: list[KepcoBop], *, identities: list[str] | None = None,
-                 health_period_s: float = 1.0, rate_hz: float = 100.0) -> None:
+                 health_period_s: float = 1.0, rate_hz: float = 100.0,
+                 channels: list[Channel] | None = None) -> None:
         self.supplies = supplies
+        self.channels = channels or []  # `supply_channels`
         self.identities = identities or []
         self.names = [s.name for s in supplies]
         self.measured_A = np.zeros(len(supplies))
@@ -39,7 +46,7 @@ class CoilSupplies:
         self._cycles = 0
 
     @classmethod
-    def connect(cls, rig: RigConfig) -> "CoilSupplies":
+    def connect(cls, rig: RigConfig) -> CoilSupplies:
         """Open, identify and configure every supply (outputs stay off). On any failure the ones
         already opened are switched off and closed, and the error is raised."""
         supplies: list[KepcoBop] = []
@@ -63,7 +70,8 @@ class CoilSupplies:
             group = cls(supplies)
             group.stop(ramp_s=0.0)
             raise
-        return cls(supplies, identities=identities, rate_hz=rig.stream.rate_hz)
+        return cls(supplies, identities=identities, rate_hz=rig.stream.rate_hz,
+                   channels=supply_channels(rig))
 
     def energise(self) -> None:
         for supply in self.supplies:
@@ -96,12 +104,6 @@ class CoilSupplies:
                 log.error("e-stop: %s", err)
         for supply in self.supplies:
             supply.safe_stop(ramp_s=0.0)
-
-    @property
-    def channels(self) -> list[Channel]:
-        """One current channel per supply, in A, with its limit."""
-        return [Channel(s.name, "A", -s.current_limit_A, s.current_limit_A, "supplies")
-                for s in self.supplies]
 
     def stop(self, ramp_s: float, steps: int = 10) -> list[str]:
         """Ramp every supply from its last setpoint to zero together over `ramp_s`, then switch

@@ -1,0 +1,122 @@
+"""`rigctl doctor --rig RIG.toml`: reach every device of a rig without energising anything and say
+what each one answered, so that a wrong port or a dead link is found before a run.
+
+One probe per device kind, each a read-only exchange on the device's own protocol: a supply's
+`*IDN?` and its error queue; the coil board's handshake (firmware, channels, watchdog) and its
+STATUS (outputs must read zero); each arm's joint positions; one Hall board sample (a board at
+rest reads the earth's field, tens of microtesla); one camera frame.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from rigctl.config import RigConfig
+from rigctl.errors import RigError
+from rigctl.rigs import rig_kind
+from rigctl.rigs.base import Device
+
+
+@dataclass
+class Probe:
+    device: str
+    kind: str
+    url: str
+    ok: bool
+    detail: str
+    ms: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _supply(rig: RigConfig, device: Device) -> str:
+    from rigctl.drivers.kepco_bop import KepcoBop
+    from rigctl.transport import open_transport
+
+    coil = next(c for c in rig.coils if c.name == device.name)
+    timeout = rig.stream.reply_timeout_s
+    bop = KepcoBop(open_transport(coil.url, timeout_s=timeout), name=coil.name,
+                   current_limit_A=coil.current_limit_A, compliance_V=coil.compliance_V,
+                   timeout_s=timeout)
+    try:
+        identity = bop.identify()
+        queue = bop.errors()
+    finally:
+        bop.close()
+    if queue:
+        raise RigError(f"{identity}; error queue: " + "; ".join(f"{c} {t}" for c, t in queue),
+                       device=coil.name)
+    return f"{identity}; error queue empty"
+
+
+def _board(rig: RigConfig, device: Device) -> str:
+    from rigctl.drivers.coilboard import CoilBoard
+
+    board = CoilBoard.from_settings(rig.board)
+    try:
+        hello, status = board.hello, board.status()
+    finally:
+        board.close()
+    if any(status.outputs):
+        raise RigError(f"outputs {list(status.outputs)} are not zero with nobody driving them",
+                       device=device.name)
+    return (f"firmware {hello.fw_major}.{hello.fw_minor}, {hello.channels} channels, watchdog "
+            f"{hello.watchdog_ms} ms; outputs zero, {status.bad_frames} bad frames")
+
+
+def _arm(rig: RigConfig, device: Device) -> str:
+    from rigctl.drivers.kuka_sunrise import KukaArm
+
+    arm = KukaArm.open(device.url, name=device.name, timeout_s=rig.depm.reply_timeout_s)
+    try:
+        q = arm.joint_positions()
+    finally:
+        arm.close()
+    return "joints " + " ".join(f"{v:+.3f}" for v in np.asarray(q)) + " rad"
+
+
+def _hall(rig: RigConfig, device: Device) -> str:
+    from rigctl.drivers.hall import HallBoard
+
+    board = HallBoard.open(device.url, name=device.name, timeout_s=rig.depm.reply_timeout_s)
+    try:
+        sample = board.read()
+    finally:
+        board.close()
+    magnitude_uT = np.linalg.norm(sample.field_T, axis=1) * 1e6
+    saturated = " SATURATED" if np.any(sample.saturated) else ""
+    return (f"{len(magnitude_uT)} sensors, |B| " + ", ".join(f"{b:.0f}" for b in magnitude_uT)
+            + f" uT{saturated}")
+
+
+def _camera(rig: RigConfig, device: Device) -> str:
+    from rigctl.drivers.camera import CameraDriver
+
+    with CameraDriver(rig.camera.url, stamped=rig.camera.stamped, timeout_s=2.0,
+                      reconnect_attempts=0) as camera:
+        frame = camera.read()
+    height, width = frame.image.shape[:2]
+    return f"one frame, {width} x {height} px"
+
+
+PROBES: dict[str, Callable[[RigConfig, Device], str]] = {
+    "supply": _supply, "board": _board, "arm": _arm, "hall board": _hall, "camera": _camera}
+
+
+def probe_rig(rig: RigConfig) -> list[Probe]:
+    """Every device of the rig, probed in turn; never raises (a failure is that device's row)."""
+    results = []
+    for device in rig_kind(rig.rig.kind).devices(rig):
+        started = time.monotonic()
+        try:
+            detail, ok = PROBES[device.kind](rig, device), True
+        except (RigError, OSError) as err:
+            detail, ok = str(err), False
+        results.append(Probe(device.name, device.kind, device.url, ok, detail,
+                             round(1e3 * (time.monotonic() - started), 1)))
+    return results

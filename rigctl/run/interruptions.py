@@ -1,0 +1,95 @@
+"""What interrupts a running program: the operator's requests, from any thread (pause at the end
+of the present move or at once, resume, abort: the program reads them on the stream thread and
+decides when each takes effect; `wake`, the stream loop's, makes the next cycle leave at once), and
+lost tracking, which suspends the run until the camera sees the agents again."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+from rigctl.errors import DeviceTimeout
+
+
+class Requests:
+    """`pause_wanted`, `immediate` (pause now) and `abort_wanted`, as the operator asked."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.pause_wanted = False
+        self.immediate = False
+        self.abort_wanted = False
+        self.wake: Callable[[], None] = lambda: None
+
+    def pause(self, immediate: bool = False) -> None:
+        with self._lock:
+            self.pause_wanted = True
+            self.immediate = self.immediate or immediate
+
+    def resume(self) -> None:
+        with self._lock:
+            self.pause_wanted = self.immediate = False
+        self.wake()  # a hold: the next command may as well leave now
+
+    def abort(self) -> None:
+        self.abort_wanted = True
+        self.wake()
+
+
+class RequestedControl:
+    """A program's `pause`, `resume` and `abort` (the engine's calls, from any thread), kept in
+    its `requests` for the stream thread to act on; and `connected`, for a program whose outputs
+    start at zero as the devices do (nothing to read from them)."""
+
+    requests: Requests
+
+    def connected(self, actuators) -> None:
+        pass
+
+    def pause(self, immediate: bool = False) -> None:
+        self.requests.pause(immediate)
+
+    def resume(self) -> None:
+        self.requests.resume()
+
+    def abort(self) -> None:
+        self.requests.abort()
+
+
+class Suspension:
+    """Lost tracking: `reason` (a program's `suspended`: None while tracking holds) and `since`
+    (monotonic s), each change a `suspend` / `resume` event in `record` (a `RunRecord`, once the
+    run has one) and a line for the operator (`say`). Lost longer than `limit_s` (None: no limit),
+    or the camera itself failed (`failure`), it is a fault of the camera."""
+
+    def __init__(self, limit_s: float | None = None) -> None:
+        self.limit_s = limit_s
+        self.reason: str | None = None
+        self.since: float | None = None
+        self.count = 0  # suspensions ended
+        self.record = None
+        self.say: Callable[[str], None] = lambda text: None
+
+    def lost(self, now: float, reason: str, failure: Exception | None = None,
+             **info: object) -> None:
+        if failure is not None:
+            raise DeviceTimeout(f"{reason}: the camera failed ({failure})", device="camera")
+        if self.since is None:
+            self.since, self.reason = now, reason
+            if self.record is not None:
+                self.record.event("suspend", reason=reason, **info)
+            self.say(f"suspended: {reason}")
+        elif self.limit_s is not None and now - self.since > self.limit_s:
+            raise DeviceTimeout(f"{reason}, for {self.limit_s:g} s", device="camera")
+
+    def regained(self, now: float, **info: object) -> float:
+        """Tracking holds again: the seconds it was lost (0 if it was not)."""
+        if self.since is None:
+            return 0.0
+        lost_s = now - self.since
+        self.since = self.reason = None
+        self.count += 1
+        if self.record is not None:
+            self.record.event("resume", after_s=round(lost_s, 3), **info)
+        self.say(f"tracking regained after {lost_s:.2f} s")
+        return lost_s

@@ -1,0 +1,47 @@
+"""`rigctl doctor --rig`: every device of each emulated bench reached with nothing energised, and
+a device broken through the bench's backdoor named."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
+
+from rigctl.config import load_rig
+
+# rig kind -> (a backdoor fault that breaks one device's link, that device)
+BROKEN = {"six-coil": ({"cmd": "fault", "device": "y-", "kind": "drop_link"}, "y-"),
+          "coil-board": ({"cmd": "fault", "device": "board", "kind": "unplug"}, "coil board"),
+          "depm": ({"cmd": "fault", "device": "right", "kind": "drop_link"}, "right")}
+
+
+def doctor(rig_path) -> tuple[int, dict]:
+    done = subprocess.run([sys.executable, "-m", "rigctl", "doctor", "--rig", str(rig_path),
+                           "--json"], capture_output=True, text=True, timeout=60)
+    return done.returncode, json.loads(done.stdout)
+
+
+@pytest.mark.parametrize("kind", list(BROKEN))
+def test_doctor_reaches_every_device_and_names_a_broken_one(kind, tmp_path):
+    with EmulatedBenchProcess(kind, tmp_path / "bench.toml") as rig_path:
+        rig = load_rig(rig_path)
+        code, report = doctor(rig_path)
+        assert code == 0 and report["ok"], report
+        from rigctl.rigs import rig_kind
+
+        assert {d["device"] for d in report["devices"]} == \
+            {d.name for d in rig_kind(kind).devices(rig)}
+        with BackdoorClient(rig.emulation.backdoor) as backdoor:
+            truth = backdoor.request("truth")
+            fault, broken = BROKEN[kind]
+            request = dict(fault)
+            backdoor.request(request.pop("cmd"), **request)
+            code, report = doctor(rig_path)
+            assert backdoor.request("truth").keys() == truth.keys()  # the bench still serves
+        assert code == 3
+        failed = [d["device"] for d in report["devices"] if not d["ok"]]
+        assert failed == [broken], report
