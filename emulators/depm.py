@@ -6,45 +6,33 @@ kinematics of each arm (`rigctl.kinematics`, the bases and EPM tool of the rig f
 EPM's centre and moment direction, and the dipole model (seed 003 eq. 2, superposed, eq. 8) the
 field at every sensor. An arm that lags, stalls or stops therefore shows up in the measurement.
 
-Simulated time runs at `speed` simulated seconds per real second (backdoor `speed`), the same for
+Simulated time is the bench's `SimClock` (`speed` simulated seconds per real second), the same for
 the arms and the board's timestamps; the arms are stepped lazily (before each command and on a
 periodic tick) in 4 ms sub-steps.
 
-Backdoor (JSON lines over TCP; replies `{"ok": true, ...}` or `{"ok": false, "error": ...}`):
-- `{"cmd": "ping"}`;
+Backdoor: the table of `emulators/base.py` (`ping`, `help`, `speed`, `fault`) with devices "left",
+"right" (each arm: its link's faults, `stall_joint` with `"joint": j`, `unstall`) and "hall" (its
+link's faults, `skip` with `"n": samples`), plus:
 - `{"cmd": "truth"}`: sim time, each arm's joints, speeds, mode, watchdog state, each EPM's
   centre (m) and moment (A m^2), and the exact U at the workspace centre (mT, mT/m);
-- `{"cmd": "place", "arm": "left", "q": [7 rad]}`: put an arm's joints somewhere (at rest);
-- `{"cmd": "fault", "device": "left" | "right" | "hall", "kind": "drop_link" | "stall" |
-  "corrupt" | "restore" | "stall_joint" | "unstall" | "skip", "joint": j, "n": n}`;
-- `{"cmd": "speed", "factor": f}`.
+- `{"cmd": "place", "arm": "left", "q": [7 rad]}`: put an arm's joints somewhere (at rest).
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
-import os
-import signal
-import sys
-import threading
-from pathlib import Path
 
 import numpy as np
-from rigctl.emulators.backdoor import json_lines
+from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.hall.board import HallBoardServer
-from rigctl.emulators.kuka.arm import KST_PORT, EmulatedArm, SimClock
+from rigctl.emulators.kuka.arm import KST_PORT, EmulatedArm
 from rigctl.emulators.kuka.model import ArmLimits
-from rigctl.emulators.process import READY_PREFIX
-from rigctl.emulators.server import EmulatorServer
 from rigctl.plans.depm import default_rig, rig_from_settings
 
-from rigctl.config import DepmSettings, Emulation, RigConfig, RigInfo, dump_rig
+from rigctl.config import DepmSettings, Emulation, RigConfig, RigInfo
 from rigctl.errors import ConfigError
 from rigctl.kinematics import DEFAULT_BASES
 from rigctl.magnetics import dipole_field, field_vector
-
-log = logging.getLogger(__name__)
 
 TICK_S = 5e-3
 HALL_RATE_HZ = 100.0  # samples per real second
@@ -72,63 +60,68 @@ def default_settings() -> DepmSettings:
         reply_timeout_s=EMULATED_REPLY_TIMEOUT_S)
 
 
-class DepmBench:
-    """Start with `start()`; `rig` is the rig file that points at it; `stop()` when done."""
+class DepmBench(EmulatedBench):
+    """The dual-EPM bench (`EmulatedBench`); `arms` are its two arms, `hall` its Hall board."""
+
+    title = "dEPM bench"
+    tick_s = TICK_S
 
     def __init__(self, settings: DepmSettings | None = None, *, host: str = "127.0.0.1",
                  speed: float = 1.0, real_ports: bool = False, seed: int = 0,
                  initial_q: np.ndarray | None = None, hall_rate_hz: float = HALL_RATE_HZ) -> None:
+        super().__init__(host=host, speed=speed)
         self.settings = settings or default_settings()
-        self.host = host
-        self.clock = SimClock(speed)
         self.real_ports = real_ports
         self.seed = seed
         self.initial_q = PARKED_Q if initial_q is None else np.asarray(initial_q, dtype=float)
         self.hall_rate_hz = hall_rate_hz
-        self.server = EmulatorServer()
         self.kinematics = rig_from_settings(self.settings).arms
         self.arms: list[EmulatedArm] = []
         self.hall: HallBoardServer | None = None
-        self.rig: RigConfig | None = None
+        self.commands.update(truth=self._truth, place=self._place)
 
-    def start(self) -> RigConfig:
-        self.server.start()
+    def _serve(self) -> RigConfig:
         limits = ArmLimits.of(self.kinematics[0].model)
         for index, kin in enumerate(self.kinematics):
             port = KST_PORT + index if self.real_ports else 0
-            self.arms.append(EmulatedArm(self.server, name=kin.name, clock=self.clock,
-                                         q0=self.initial_q, limits=limits, host=self.host,
-                                         port=port, servo_timeout_s=SERVO_WATCHDOG_S,
-                                         tick_s=TICK_S))
-        self.hall = HallBoardServer(self.server, field_at=self.field_at, now=self.clock.now,
-                                    offsets_mm=self.settings.sensor_offsets_mm,
-                                    rate_hz=self.hall_rate_hz, seed=self.seed, host=self.host)
-        backdoor = self.server.serve_lines_tcp(json_lines(self._command), name="backdoor",
-                                              host=self.host)
-        self.server.every(TICK_S, self.advance)
+            arm = EmulatedArm(self.server, name=kin.name, clock=self.clock, q0=self.initial_q,
+                              limits=limits, host=self.host, port=port,
+                              servo_timeout_s=SERVO_WATCHDOG_S, tick_s=TICK_S)
+            self.arms.append(arm)
+            self.add_device(arm.name, arm.endpoint,
+                            stall_joint=lambda r, a=arm: a.stall(int(r["joint"])),
+                            unstall=lambda _, a=arm: a.unstall())
+        hall = self.hall = HallBoardServer(
+            self.server, field_at=self.field_at, now=self.clock.now,
+            offsets_mm=self.settings.sensor_offsets_mm, rate_hz=self.hall_rate_hz, seed=self.seed,
+            host=self.host)
+        self.add_device("hall", hall.endpoint, skip=lambda r: hall.skip(int(r.get("n", 1))))
         depm = self.settings.model_copy(update={"arm_urls": [a.url for a in self.arms],
-                                                "hall_url": self.hall.url})
-        self.rig = RigConfig(rig=RigInfo(kind="depm", name="emulated dEPM bench"), depm=depm,
-                             emulation=Emulation(backdoor=backdoor.url, seed=self.seed))
-        log.info("depm bench up: arms %s, hall %s, backdoor %s",
-                 [a.url for a in self.arms], self.hall.url, backdoor.url)
-        return self.rig
+                                                "hall_url": hall.url})
+        assert self.backdoor is not None
+        return RigConfig(rig=RigInfo(kind="depm", name="emulated dEPM bench"), depm=depm,
+                         emulation=Emulation(backdoor=self.backdoor.url, seed=self.seed))
 
-    def stop(self) -> None:
+    def _release(self) -> None:
         if self.rig is not None:  # started: close the session links, then the loop
             for arm in self.arms:
                 arm.close()
             if self.hall is not None:
                 self.hall.close()
             self.rig = None
-        self.server.stop()
 
-    def __enter__(self) -> "DepmBench":
-        self.start()
-        return self
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> DepmBench:
+        """`rigctl emulate depm [--seed N]`."""
+        if args.seed is not None and args.seed < 0:
+            raise ConfigError("--seed must be >= 0")
+        return cls(host=args.host, seed=args.seed or 0)
 
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+    def served(self, rig: RigConfig) -> list[tuple[str, str]]:
+        depm = rig.depm
+        assert depm is not None
+        return [*((f"arm {name}", f"{url}  (KUKA Sunrise Toolbox)")
+                  for name, url in zip(depm.arm_names, depm.arm_urls)), ("hall board", depm.hall_url)]
 
     # -- physics (loop thread) ------------------------------------------------------------------
     def advance(self) -> None:
@@ -151,84 +144,17 @@ class DepmBench:
         return dipole_field(np.asarray(points_m)[:, None, :], centres, moments).sum(axis=1)
 
     # -- backdoor -------------------------------------------------------------------------------
-    def _arm(self, name: object) -> EmulatedArm:
-        for arm in self.arms:
-            if arm.name == name:
-                return arm
-        raise ValueError(f"no arm {name!r}; the bench has {[a.name for a in self.arms]}")
+    def _truth(self, request: dict) -> dict:
+        self.advance()
+        centres, moments = self.epms()
+        u = field_vector(np.zeros(3), centres, moments) * 1e3
+        return {"sim_time_s": self.clock.now(), "arms": {a.name: a.truth() for a in self.arms},
+                "epm_centres_m": centres.tolist(), "epm_moments_Am2": moments.tolist(),
+                "U": u.tolist()}
 
-    def _command(self, request: dict) -> dict:
-        cmd = request.get("cmd")
-        if cmd == "ping":
-            return {}
-        if cmd == "truth":
-            self.advance()
-            centres, moments = self.epms()
-            u = field_vector(np.zeros(3), centres, moments) * 1e3
-            return {"sim_time_s": self.clock.now(), "arms": {a.name: a.truth() for a in self.arms},
-                    "epm_centres_m": centres.tolist(), "epm_moments_Am2": moments.tolist(),
-                    "U": u.tolist()}
-        if cmd == "place":
-            self._arm(request.get("arm")).place(np.asarray(request["q"], dtype=float))
-            return {}
-        if cmd == "fault":
-            return self._fault(request)
-        if cmd == "speed":
-            factor = float(request["factor"])
-            self.advance()
-            self.clock.set_speed(factor)
-            return {"factor": factor}
-        raise ValueError(f"unknown command {cmd!r}; use ping, truth, place, fault, speed")
-
-    def _fault(self, request: dict) -> dict:
-        device, kind = request.get("device"), request.get("kind")
-        if device == "hall":
-            assert self.hall is not None
-            endpoint = self.hall.endpoint
-            if kind == "skip":
-                self.hall.skip(int(request.get("n", 1)))
-                return {"device": device, "kind": kind}
-        else:
-            arm = self._arm(device)
-            endpoint = arm.endpoint
-            if kind == "stall_joint":
-                arm.stall(int(request["joint"]))
-                return {"device": device, "kind": kind}
-            if kind == "unstall":
-                arm.unstall()
-                return {"device": device, "kind": kind}
-        if kind == "drop_link":
-            endpoint.drop_link()
-        elif kind == "stall":
-            endpoint.stall()
-        elif kind == "corrupt":
-            endpoint.corrupt(int(request.get("n", 1)))
-        elif kind == "restore":
-            endpoint.restore()
-        else:
-            raise ValueError(f"unknown fault kind {kind!r}; use drop_link, stall, corrupt, restore, "
-                             "stall_joint, unstall (arms), skip (hall)")
-        return {"device": device, "kind": kind}
-
-
-def emulate_cli(args: argparse.Namespace) -> int:
-    """`rigctl emulate depm --rig-out F`: serve the bench, write its rig file, print READY."""
-    if args.seed is not None and args.seed < 0:
-        raise ConfigError("--seed must be >= 0")
-    rig_out = Path(args.rig_out)
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
-    with DepmBench(host=args.host, seed=args.seed or 0) as bench:
-        assert bench.rig is not None
-        rig = bench.rig.model_copy(update={"emulation": bench.rig.emulation.model_copy(
-            update={"pid": os.getpid()})})
-        rig_out.write_text(dump_rig(rig))
-        print(f"{READY_PREFIX}{rig_out.resolve()}", flush=True)
-        print(f"emulated dEPM bench up; rig file: {rig_out}; stop with Ctrl-C", file=sys.stderr)
-        for name, url in zip(rig.depm.arm_names, rig.depm.arm_urls):  # type: ignore[union-attr]
-            print(f"  arm {name:<6} {url}  (KUKA Sunrise Toolbox)", file=sys.stderr)
-        print(f"  hall board {rig.depm.hall_url}", file=sys.stderr)  # type: ignore[union-attr]
-        print(f"  backdoor   {rig.emulation.backdoor}", file=sys.stderr, flush=True)  # type: ignore[union-attr]
-        stop.wait()
-    return 0
+    def _place(self, request: dict) -> dict:
+        arms = {arm.name: arm for arm in self.arms}
+        if request.get("arm") not in arms:
+            raise ValueError(f"no arm {request.get('arm')!r}; the bench has {', '.join(arms)}")
+        arms[request["arm"]].place(np.asarray(request["q"], dtype=float))
+        return {}

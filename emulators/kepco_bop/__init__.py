@@ -2,7 +2,7 @@
 
 `model.py` is the coil and supply physics (pure, stepped by hand), `protocol.py` the SCPI dialect,
 and `serve_bop` puts both on a TCP port of a shared `EmulatorServer`, stepping the model to the
-present (monotonic clock, times a speed factor) before every command:
+present (`ModelClock`, on the benches' `SimClock`) before every command:
 
     with EmulatorServer() as server:
         bop = serve_bop(server, name="x+", resistance_ohm=1.5, inductance_H=0.03)
@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
+from rigctl.emulators.base import SimClock
 from rigctl.emulators.kepco_bop.model import BopCoilModel
 from rigctl.emulators.kepco_bop.protocol import BopScpi
 from rigctl.emulators.server import EmulatorServer, Endpoint
@@ -23,19 +24,17 @@ from rigctl.emulators.server import EmulatorServer, Endpoint
 __all__ = ["BopCoilModel", "BopScpi", "EmulatedBop", "ModelClock", "serve_bop"]
 
 
-@dataclass
 class ModelClock:
-    """Steps a model to "now": simulated time = speed x elapsed monotonic time since start."""
+    """Steps a model to "now" on the benches' one clock (`SimClock`: elapsed monotonic time x speed)."""
 
-    step: Callable[[float], None]
-    speed: float = 1.0
-    clock: Callable[[], float] = time.monotonic
-    _last: float | None = field(default=None, init=False)
+    def __init__(self, step: Callable[[float], None], speed: float = 1.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.step, self.sim, self._last = step, SimClock(speed, monotonic=clock), None
 
     def advance(self) -> None:
-        now = self.clock()
+        now = self.sim.now()
         if self._last is not None and now > self._last:
-            self.step((now - self._last) * self.speed)
+            self.step(now - self._last)
         self._last = now
 
 

@@ -3,7 +3,7 @@
 `EmulatedArm` puts one arm on a shared `EmulatorServer` loop: the Sunrise Toolbox server
 (`protocol.KstServer`) on its own port (30001 on a real controller; any free port by default here,
 `30001 + i` when the bench is asked for the real ports), one client at a time as on the robot.
-Simulated time comes from a `SimClock` (monotonic time times a speed factor) and the model is
+Simulated time comes from the bench's `SimClock` (`emulators/base.py`) and the model is
 stepped lazily in fixed 4 ms sub-steps: before every command and on the bench's periodic tick, so a PTP
 completion or a servo watchdog stop happens at the right simulated instant even when nobody asks.
 The servo watchdog's timeout is in real seconds (it guards the link, whatever the speed factor).
@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from rigctl.emulators.base import SimClock
 from rigctl.emulators.kuka.model import SERVO_TIMEOUT_S, ArmLimits, LbrArmModel
 from rigctl.emulators.kuka.protocol import KstServer
 from rigctl.emulators.server import EmulatorServer
@@ -29,27 +30,6 @@ log = logging.getLogger(__name__)
 KST_PORT = 30001
 STARVED_TICKS = 10  # a gap of this many tick periods between two advances: the loop was starved
 PHYSICS_STEP_S = 4e-3  # 250 Hz: fine for 50 Hz streams, and cheap enough at 6x speed
-
-
-class SimClock:
-    """Simulated seconds: monotonic time times `speed` (changeable without a jump)."""
-
-    def __init__(self, speed: float = 1.0) -> None:
-        if not speed > 0:
-            raise ValueError("speed must be positive")
-        self.speed = speed
-        self._base_real = time.monotonic()
-        self._base_sim = 0.0
-
-    def now(self) -> float:
-        return self._base_sim + (time.monotonic() - self._base_real) * self.speed
-
-    def set_speed(self, speed: float) -> None:
-        if not speed > 0:
-            raise ValueError("speed must be positive")
-        self._base_sim = self.now()
-        self._base_real = time.monotonic()
-        self.speed = speed
 
 
 class EmulatedArm:

@@ -8,13 +8,9 @@ a limit the plan would break; nothing was energised), 3 a device fault stopped t
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import logging
-import os
-import signal
 import sys
-import threading
 from pathlib import Path
 
 from rigctl.cli.daemon import register as register_daemon
@@ -33,13 +29,6 @@ from rigctl.errors import (
 )
 
 log = logging.getLogger("rigctl")
-
-
-# rig kind -> the module whose `emulate_cli(args) -> exit code` serves its emulated bench.
-_BENCHES = {
-    "coil-board": "rigctl.emulators.coilboard.bench",
-    "depm": "rigctl.emulators.depm",
-}
 
 
 def _add_bench_flags(p: argparse.ArgumentParser) -> None:
@@ -123,45 +112,12 @@ def _cmd_schema(args: argparse.Namespace) -> int:
 
 
 def _cmd_emulate(args: argparse.Namespace) -> int:
-    from rigctl.config import dump_rig
-    from rigctl.emulators.bench import SixCoilBench
-    from rigctl.emulators.process import READY_PREFIX
+    from rigctl.emulators.base import bench_class
 
     # devices answer within 0.1 ms of a request even while another thread of the bench is busy
     # in Python (the camera rendering a frame, the world stepping): a real device has no GIL
     sys.setswitchinterval(1e-4)
-    if args.kind in _BENCHES:
-        return importlib.import_module(_BENCHES[args.kind]).emulate_cli(args)
-    rig_out = Path(args.rig_out)
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
-    from rigctl.emulators.world.rolling import Mismatch
-
-    defaults = Mismatch()
-    mismatch = Mismatch(
-        slip=defaults.slip if args.slip is None else args.slip,
-        speed_spread=defaults.speed_spread if args.speed_spread is None else args.speed_spread,
-        drift_mm_per_s=defaults.drift_mm_per_s if args.drift is None else args.drift,
-        noise_mm=defaults.noise_mm if args.noise is None else args.noise,
-        seed=defaults.seed if args.seed is None else args.seed,
-        field_at_robots=args.field_at_robots,
-    )
-    if mismatch.slip <= 0 or mismatch.speed_spread < 0 or mismatch.drift_mm_per_s < 0 or \
-            mismatch.noise_mm < 0:
-        raise ConfigError("--slip must be > 0; --speed-spread, --drift and --noise >= 0")
-    with SixCoilBench(host=args.host, mismatch=mismatch, world=args.world or "rolling") as bench:
-        assert bench.rig is not None
-        rig = bench.rig.model_copy(update={"emulation": bench.rig.emulation.model_copy(
-            update={"pid": os.getpid()})})
-        rig_out.write_text(dump_rig(rig))
-        print(f"{READY_PREFIX}{rig_out.resolve()}", flush=True)
-        print(f"emulated six-coil bench up; rig file: {rig_out}; stop with Ctrl-C", file=sys.stderr)
-        for coil in rig.coils:
-            print(f"  supply {coil.name:<3} {coil.url}", file=sys.stderr)
-        print(f"  backdoor   {rig.emulation.backdoor}", file=sys.stderr, flush=True)
-        stop.wait()
-    return EXIT_OK
+    return bench_class(args.kind).emulate_cli(args)
 
 
 def _version() -> str:

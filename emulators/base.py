@@ -1,0 +1,255 @@
+"""The one emulated-bench base: an `EmulatorServer`, one simulated clock, one backdoor command table
+and the `rigctl emulate KIND` flow, shared by the six-coil bench (`bench.py`), the coil-board bench
+(`coilboard/bench.py`) and the dual-EPM bench (`depm.py`); `BENCHES` maps a rig kind to its bench.
+
+A bench subclasses `EmulatedBench`: `_serve()` puts its devices on `self.server` (registering each
+with `add_device`) and returns the rig file that points at them, `advance()` steps its physics to
+`self.clock.now()` (lazily, before a device command or a backdoor read, and every `tick_s`), and
+its backdoor commands go into `self.commands`. `self.clock` is a `SimClock`: simulated seconds are
+real monotonic seconds times the speed factor, and every model of the bench steps from it.
+
+Backdoor (JSON lines over TCP at the rig file's `emulation.backdoor`; one request per line, one
+reply per line, `{"ok": true, ...}` or `{"ok": false, "error": "..."}`). Every bench answers:
+- `{"cmd": "ping"}`;
+- `{"cmd": "help"}`: `{"commands": [...]}`, the names in its table (an unknown command's error
+  lists them too);
+- `{"cmd": "speed", "factor": f}`: simulated seconds per real second from now on, for all of the
+  bench's physics;
+- `{"cmd": "fault", "device": D, "kind": K, "n": n}`: a fault on one device. A device with a link
+  takes `drop_link` (connections reset, new ones refused), `stall` (no replies), `corrupt` (the
+  next `n` replies garbage) and `restore`; the benches add their devices' own kinds. The camera's
+  are `drop_frames` (`n`), `freeze`, `black_out`, `occlude` (`"robot": index`), `drop_link`,
+  `restore`, also as `{"cmd": "camera", "kind": K, ...}`. The reply is `{"device", "kind"}`.
+Each bench's module lists the devices, fault kinds and commands it adds (`place`, `truth`, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
+
+from rigctl.emulators.backdoor import json_lines
+from rigctl.emulators.process import READY_PREFIX
+from rigctl.emulators.server import EmulatorServer, Endpoint
+
+from rigctl.config import CameraSettings, RigConfig, dump_rig
+from rigctl.errors import EXIT_OK, ConfigError
+
+if TYPE_CHECKING:  # the camera (OpenCV) is imported by the benches that have one
+    from rigctl.emulators.camera.mjpeg import MjpegCamera
+    from rigctl.emulators.camera.render import Scene
+
+log = logging.getLogger(__name__)
+
+Command = Callable[[dict], dict]  # a backdoor request -> the reply's fields
+Fault = Callable[[dict], object]  # injects one fault; gets the request (for "n", "robot", ...)
+
+# rig kind -> "module:class" of its emulated bench, imported on demand
+BENCHES = {
+    "six-coil": "rigctl.emulators.bench:SixCoilBench",
+    "coil-board": "rigctl.emulators.coilboard.bench:CoilBoardBench",
+    "depm": "rigctl.emulators.depm:DepmBench",
+}
+
+
+def bench_class(kind: str) -> type[EmulatedBench]:
+    """The bench class that emulates rig kind `kind`."""
+    if kind not in BENCHES:
+        raise ConfigError(f"no emulated bench for rig kind {kind!r}; there are {', '.join(BENCHES)}")
+    module, name = BENCHES[kind].split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+class SimClock:
+    """Simulated seconds since the clock started: real (monotonic) seconds elapsed times `speed`.
+    A new speed applies from the instant it is set; the time already elapsed never jumps."""
+
+    def __init__(self, speed: float = 1.0, *, monotonic: Callable[[], float] = time.monotonic) -> None:
+        self._monotonic = monotonic
+        # (real, simulated, speed) at the last change: replaced whole, so any thread reads it whole
+        self._origin = (monotonic(), 0.0, _positive(speed))
+
+    @property
+    def speed(self) -> float:
+        return self._origin[2]
+
+    def now(self) -> float:
+        real, sim, speed = self._origin
+        return sim + (self._monotonic() - real) * speed
+
+    def set_speed(self, speed: float) -> None:
+        speed = _positive(speed)
+        real = self._monotonic()
+        then, sim, old = self._origin
+        self._origin = (real, sim + (real - then) * old, speed)
+
+
+def _positive(speed: float) -> float:
+    if not float(speed) > 0:
+        raise ValueError(f"speed factor must be positive, got {speed}")
+    return float(speed)
+
+
+class EmulatedBench:
+    """Start with `start()` (or `with`), read `rig` for the rig file that points at the bench,
+    `stop()` when done. Subclasses set `title` and implement `_serve()`."""
+
+    title = "bench"  # for the operator: "six-coil bench"
+    tick_s: ClassVar[float | None] = None  # advance() on this period too (None: only lazily)
+
+    def __init__(self, *, host: str = "127.0.0.1", speed: float = 1.0) -> None:
+        self.host = host
+        self.server = EmulatorServer()
+        self.clock = SimClock(speed)
+        self.rig: RigConfig | None = None
+        self.backdoor: Endpoint | None = None
+        self.camera: MjpegCamera | None = None
+        self.devices: dict[str, dict[str, Fault]] = {}  # device -> fault kind -> injector
+        self.commands: dict[str, Command] = {"ping": lambda _: {}, "help": self._help,
+                                             "speed": self._speed, "fault": self._fault}
+
+    # -- life cycle ---------------------------------------------------------------------------
+    def start(self) -> RigConfig:
+        self.server.start()
+        try:
+            self.clock = SimClock(self.clock.speed)  # simulated time starts with the bench
+            self.backdoor = self.server.serve_lines_tcp(json_lines(self.command), name="backdoor",
+                                                        host=self.host)
+            self.rig = self._serve()
+            if self.tick_s is not None:
+                self.server.every(self.tick_s, self.advance)
+        except BaseException:
+            self.stop()
+            raise
+        log.info("%s up: backdoor %s", self.title, self.backdoor.url)
+        return self.rig
+
+    def stop(self) -> None:
+        """Stop the bench's own parts (`_release`), then the server; idempotent."""
+        self._release()
+        self.server.stop()
+
+    def __enter__(self):  # -> the subclass
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _serve(self) -> RigConfig:
+        """Serve every device on `self.server`; the rig file pointing at them (backdoor included)."""
+        raise NotImplementedError
+
+    def _release(self) -> None:
+        """What `stop()` ends before the server (threads, harnesses, sessions)."""
+
+    def advance(self) -> None:
+        """Step the physics to `self.clock.now()`."""
+
+    # -- devices and their faults -------------------------------------------------------------
+    def add_device(self, name: str, link: Endpoint | None = None, **kinds: Fault) -> None:
+        """Make `name` a `fault` target: its link's faults (if it has one) and its own `kinds`."""
+        faults: dict[str, Fault] = {}
+        if link is not None:
+            faults = {"drop_link": lambda _: link.drop_link(), "stall": lambda _: link.stall(),
+                      "corrupt": lambda r: link.corrupt(int(r.get("n", 1))),
+                      "restore": lambda _: link.restore()}
+        self.devices[name] = {**faults, **kinds}
+
+    def _serve_camera(self, field_mm: tuple[float, float, float, float], *, tilt_deg: float,
+                      seed: int, fps: float) -> CameraSettings:
+        """The overhead camera over a fixed field, slightly tilted as a real one is mounted (not
+        re-aimed when robots are placed), serving `_scene()` as MJPEG; its faults go into the
+        table (device "camera" and the `camera` command). Returns the rig file's [camera]."""
+        from rigctl.emulators.camera import (
+            PAPER_RESOLUTION,
+            CameraModel,
+            Renderer,
+            serve_camera,
+        )
+
+        model = CameraModel.overhead(field_mm, tilt_deg=tilt_deg)
+        camera = self.camera = serve_camera(self.server, self._scene, Renderer(model, seed=seed),
+                                            fps=fps, host=self.host)
+        self.add_device("camera", drop_frames=lambda r: camera.drop_frames(int(r.get("n", 1))),
+                        freeze=lambda _: camera.freeze(), black_out=lambda _: camera.black_out(),
+                        occlude=lambda r: camera.occlude(int(r["robot"])),
+                        drop_link=lambda _: camera.endpoint.drop_link(),  # type: ignore[union-attr]
+                        restore=lambda _: camera.restore())
+        self.commands["camera"] = lambda r: self._fault({**r, "device": "camera"})
+        return CameraSettings(url=camera.url, stamped=True, fps=fps, resolution=PAPER_RESOLUTION,
+                              calibration=model.calibration())
+
+    def _scene(self) -> Scene | None:
+        """What the camera sees now (None: nothing placed yet, a black frame)."""
+        return None
+
+    # -- backdoor -----------------------------------------------------------------------------
+    def command(self, request: dict) -> dict:
+        """Answer one backdoor request from the table (in the server's loop thread)."""
+        cmd = request.get("cmd")
+        handler = self.commands.get(cmd) if isinstance(cmd, str) else None
+        if handler is None:
+            raise ValueError(f"unknown command {cmd!r}; use {', '.join(self.commands)}")
+        return handler(request)
+
+    def _help(self, request: dict) -> dict:
+        return {"commands": list(self.commands)}
+
+    def _speed(self, request: dict) -> dict:
+        factor = float(request["factor"])
+        _positive(factor)
+        self.advance()  # the physics up to now at the old speed
+        self.clock.set_speed(factor)
+        return {"factor": factor}
+
+    def _fault(self, request: dict) -> dict:
+        device, kind = request.get("device"), request.get("kind")
+        faults = self.devices.get(device) if isinstance(device, str) else None
+        if faults is None:
+            raise ValueError(f"no device {device!r}; the bench has {', '.join(self.devices)}")
+        if kind not in faults:
+            raise ValueError(f"unknown {device} fault {kind!r}; use {', '.join(faults)}")
+        faults[kind](request)
+        return {"device": device, "kind": kind}
+
+    # -- rigctl emulate KIND ------------------------------------------------------------------
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> EmulatedBench:
+        """The bench `rigctl emulate KIND`'s options ask for (bad options: ConfigError)."""
+        return cls(host=args.host)
+
+    def served(self, rig: RigConfig) -> list[tuple[str, str]]:
+        """(what, URL) of each device served, for the operator."""
+        return []
+
+    @classmethod
+    def emulate_cli(cls, args: argparse.Namespace) -> int:
+        """`rigctl emulate KIND --rig-out F`: serve the bench until SIGTERM or Ctrl-C; the rig
+        file (with this process's pid) written and `READY <rig file>` on stdout once it is up."""
+        bench = cls.from_args(args)
+        stop = threading.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+        rig_out = Path(args.rig_out)
+        with bench:
+            assert bench.rig is not None and bench.rig.emulation is not None
+            rig = bench.rig.model_copy(update={"emulation": bench.rig.emulation.model_copy(
+                update={"pid": os.getpid()})})
+            rig_out.write_text(dump_rig(rig))
+            print(f"{READY_PREFIX}{rig_out.resolve()}", flush=True)
+            lines = [f"emulated {bench.title} up; rig file: {rig_out}; stop with Ctrl-C",
+                     *(f"  {what:<10} {url}" for what, url in bench.served(rig)),
+                     f"  backdoor   {rig.emulation.backdoor}"]
+            print("\n".join(lines), file=sys.stderr, flush=True)
+            stop.wait()
+        return EXIT_OK
