@@ -85,20 +85,22 @@ def write_plan(tmp_path: Path, doc: dict, name: str = "plan.json") -> Path:
 
 
 def execute(capsys, plan: Path, tmp_path: Path, *extra: str, time_scale: float = TIME_SCALE):
-    """`rigctl execute PLAN --json`: (exit code, the summary's JSON, the text before it)."""
+    """`rigctl execute PLAN --json`: (exit code, the summary's JSON: the whole of stdout, the
+    summary's text: on stderr)."""
     args = build_parser().parse_args(["execute", str(plan), "--json", "-q", "--runs",
                                       str(tmp_path / "runs"), "--time-scale", str(time_scale),
                                       *extra])
     code = args.func(args)
-    out = capsys.readouterr().out.strip().splitlines()
-    return code, json.loads(out[-1]), "\n".join(out[:-1])
+    captured = capsys.readouterr()
+    return code, json.loads(captured.out), captured.err.strip()
 
 
 def refused(capsys, plan: Path, tmp_path: Path, *extra: str) -> tuple[int, str]:
     """`rigctl execute PLAN` of a plan refused before anything is opened: (exit code, stderr)."""
     code = main(["execute", str(plan), "--json", "-q", "--runs", str(tmp_path / "runs"), *extra])
     captured = capsys.readouterr()
-    assert not captured.out.strip(), captured.out  # no run, so no summary
+    error = json.loads(captured.out)["error"]  # no run, so no summary: the error, as JSON
+    assert error["code"] == "bad_input" and error["message"] in captured.err
     return code, captured.err
 
 
