@@ -59,8 +59,9 @@ class Terminated(KeyboardInterrupt):
 
 
 def abort_on_sigterm() -> None:
-    """From now on SIGTERM interrupts the main thread as Ctrl-C does (as `Terminated`); called
-    off the main thread (a test driving the CLI), it leaves the signal alone."""
+    """From now on SIGTERM interrupts the main thread as Ctrl-C does (as `Terminated`), and SIGINT
+    is Ctrl-C even where the process was started with it ignored (a shell's background job);
+    called off the main thread (a test driving the CLI), it leaves the signals alone."""
     import signal
     import threading
 
@@ -71,6 +72,7 @@ def abort_on_sigterm() -> None:
         raise Terminated()
 
     signal.signal(signal.SIGTERM, interrupt)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def interrupt_name(interrupt: KeyboardInterrupt) -> str:

@@ -212,4 +212,5 @@ def test_rigctl_hold_holds_refuses_with_exit_2_and_releases(tmp_path):
         released = hold("--release")
         assert released.returncode == 0 and released.stdout.startswith("released")
         hold_over(rig)
-        assert all(abs(a) < 0.05 for a in backdoor.request("truth")["currents_A"].values())
+        wait_for(lambda: all(abs(a) < 0.05 for a in backdoor.request("truth")["currents_A"].values()),
+                 5.0, "every current under 50 mA (the coils' L/R decay)")
