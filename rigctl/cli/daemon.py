@@ -55,6 +55,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
     from rigctl.daemon.messages import DaemonSettings
     from rigctl.daemon.server import Daemon
     from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.rigs.doctor import preflight
     from rigctl.rigs.owner import RigLock
 
     # a thread waiting for the GIL (the command thread answering `status`, the stream thread)
@@ -75,6 +76,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
         settings = _rig_daemon_settings(rig) or DaemonSettings()
         # one owner per rig: refused (exit 2) before anything connects if another process has it
         lock = stack.enter_context(RigLock(rig, "rigctl daemon"))
+        preflight(rig)  # every device answers and is made safe first, or exit 2 naming it
         daemon = Daemon(
             rig,
             command=args.command or settings.command,

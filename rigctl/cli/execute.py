@@ -13,6 +13,7 @@ from rigctl.emulators.process import rig_for_run
 from rigctl.errors import ConfigError, abort_on_sigterm
 from rigctl.plans.schema import load_plan
 from rigctl.rigs import rig_kind
+from rigctl.rigs.doctor import preflight
 from rigctl.rigs.owner import RigLock
 from rigctl.run.summary import exit_code, print_summary
 
@@ -93,11 +94,12 @@ def cmd_execute(args: argparse.Namespace) -> int:
     world = f" ({bench[bench.index('--world') + 1]} world)" if "--world" in bench else ""
     out = None if args.quiet else sys.stderr
     abort_on_sigterm()  # SIGTERM ends a run as Ctrl-C does: an abort, recorded and summarised
-    with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig:
+    with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig, \
+            RigLock(rig, "rigctl execute") as lock:  # one owner per rig: a second is refused
+        preflight(rig)  # every device answers and is made safe, or exit 2 naming it
         run = build(plan, rig, runs_dir=args.runs, progress_out=out, **options)
-        # one owner per rig (a second is refused, exit 2); the lock names where this run answers
-        # `rigctl estop --rig` and the other control requests
-        with LocalControl(run) as control, RigLock(rig, "rigctl execute", control.endpoint):
+        with LocalControl(run) as control:
+            lock.name_control(control.endpoint)  # where `rigctl estop --rig` and the rest find it
             summary = run.execute()
     print_summary(summary, args.json)
     return exit_code(summary)

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from rigctl.config import RigConfig
-from rigctl.errors import RigError
+from rigctl.errors import ConfigError, RigError
 from rigctl.rigs import rig_kind
 from rigctl.rigs.base import Device
 
@@ -120,3 +120,22 @@ def probe_rig(rig: RigConfig) -> list[Probe]:
         results.append(Probe(device.name, device.kind, device.url, ok, detail,
                              round(1e3 * (time.monotonic() - started), 1)))
     return results
+
+
+class DeviceUnreachable(ConfigError):
+    """A device of the rig did not pass its probe, or could not be made safe, before anything was
+    energised (exit 2: fix the rig file or the wiring; `rigctl doctor` shows every device)."""
+
+
+def preflight(rig: RigConfig) -> None:
+    """What the daemon and `rigctl execute` do first, once they own the rig and before a run record
+    exists: every device answers its doctor probe, then every device is made safe, so that what a
+    process killed before it left energised (a Kepco BOP has no link watchdog) is zeroed before
+    anything else happens. Refuses with `DeviceUnreachable`, naming each device that failed."""
+    failed = [f"{p.device} ({p.url}): {p.detail}" for p in probe_rig(rig) if not p.ok]
+    if not failed:
+        failed = [f"{name}: not made safe: {err}"
+                  for name, err in rig_kind(rig.rig.kind).make_safe(rig).items() if err]
+    if failed:
+        raise DeviceUnreachable("; ".join(failed) + ". Nothing was energised; `rigctl doctor "
+                                "--rig RIG.toml` probes every device")

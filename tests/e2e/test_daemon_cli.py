@@ -19,7 +19,7 @@ from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.client import Rig
 from rigctl.config import load_rig
 from rigctl.record import read_events, read_stream
-from rigctl.testing import plan_pair
+from rigctl.testing import plan_pair, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"
@@ -208,3 +208,44 @@ def test_a_pair_plan_submitted_to_a_daemon_on_the_pair_bench(tmp_path):
     np.testing.assert_allclose(paths[1][0][0], centre + half, atol=1e-9)
     assert len(paths[0][1]) > 10  # tracked frames
     np.testing.assert_allclose(paths[0][1][0], centre - half, atol=0.5 * body)
+
+
+def test_the_daemon_zeroes_a_supply_left_energised_before_it_serves(bench, tmp_path):
+    """A process killed mid-run leaves a Kepco BOP at its last setpoint (it has no link watchdog):
+    the daemon makes every device safe when it starts, before its READY line."""
+    from rigctl.drivers.kepco_bop import KepcoBop
+    from rigctl.transport import open_transport
+
+    coil = load_rig(bench).coils[0]
+    bop = KepcoBop(open_transport(coil.url), name=coil.name)
+    bop.configure()
+    bop.output(True)
+    bop.set_current(2.0)
+    bop.close()  # gone without a word, as a SIGKILLed stream process
+    wait_for(lambda: abs(bench_currents(bench)[coil.name] - 2.0) < 0.05, 5.0, "2 A in the coil")
+    d = DaemonProcess(bench, tmp_path / "runs", tmp_path / "daemon.log")
+    try:
+        # READY came after the make-safe; what remains is the coil's L/R decay
+        wait_for(lambda: max(abs(a) for a in bench_currents(bench).values()) < 0.05, 1.0,
+                 "every coil under 50 mA")
+    finally:
+        d.close()
+
+
+def test_a_wrong_port_is_refused_before_anything_is_energised(bench, tmp_path):
+    rig = load_rig(bench)
+    text = bench.read_text().replace(rig.coils[2].url, "tcp://127.0.0.1:1")
+    broken = tmp_path / "broken.toml"
+    broken.write_text(text)
+    for command in (["execute", str(EXAMPLES / "fig4-quick.json"), "--rig", str(broken),
+                     "--runs", str(tmp_path / "runs")],
+                    ["daemon", "--rig", str(broken), "--runs", str(tmp_path / "runs"),
+                     "--command", "tcp://127.0.0.1:0", "--telemetry", "tcp://127.0.0.1:0",
+                     "--events", "tcp://127.0.0.1:0"]):
+        done = run_cli(*command, cwd=tmp_path)
+        assert done.returncode == 2, done.stderr
+        lines = done.stderr.strip().splitlines()  # the daemon also logs (INFO) what it opened
+        assert lines[-1].startswith(f"error: {rig.coils[2].name} (tcp://127.0.0.1:1)"), done.stderr
+        assert command[0] == "daemon" or len(lines) == 1, done.stderr
+        assert not (tmp_path / "runs").exists()  # no run record: nothing started
+    assert max(abs(a) for a in bench_currents(bench).values()) < 0.05
