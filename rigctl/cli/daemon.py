@@ -194,16 +194,7 @@ def _cmd_control(args: argparse.Namespace) -> int:
     process owns the rig of --rig (a daemon or a `rigctl execute`)."""
     from rigctl.client import CommandRefused
 
-    endpoint = args.connect
-    if args.rig is not None:
-        from rigctl.config import load_rig
-        from rigctl.rigs.owner import holder_of
-
-        holder = holder_of(load_rig(args.rig))
-        if holder is None or not holder.control:
-            raise ConfigError(f"{args.rig}: no process owns this rig (nothing is running on it)")
-        endpoint = holder.control
-    with _client(endpoint, args.server_key, args.client_key) as rig:
+    with _client(_owner_endpoint(args), args.server_key, args.client_key) as rig:
         try:
             if args.verb == "pause":
                 reply = rig.pause(immediate=args.now)
@@ -214,6 +205,28 @@ def _cmd_control(args: argparse.Namespace) -> int:
     print(f"{args.verb}: state {reply.get('state')}"
           + (" (pausing at the end of this step)" if reply.get("pending") else ""))
     return EXIT_OK
+
+
+def _owner_endpoint(args: argparse.Namespace) -> str:
+    """--connect, or with --rig the control endpoint of the process that owns the rig (its lock
+    names it: a daemon or a `rigctl execute`)."""
+    if getattr(args, "rig", None) is None:
+        return args.connect
+    from rigctl.config import load_rig
+    from rigctl.rigs.owner import holder_of
+
+    holder = holder_of(load_rig(args.rig))
+    if holder is None or not holder.control:
+        raise ConfigError(f"{args.rig}: no process owns this rig (nothing is running on it)")
+    return holder.control
+
+
+def _cmd_watch(args: argparse.Namespace) -> int:
+    from rigctl.cli.watch import watch
+
+    return watch(_owner_endpoint(args), seconds=args.seconds, interval_s=args.interval,
+                 out=sys.stdout, as_json=args.json,
+                 client=lambda endpoint: _client(endpoint, args.server_key, args.client_key))
 
 
 def _estop_rig(args: argparse.Namespace) -> int:
@@ -470,6 +483,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             p.add_argument("--now", action="store_true",
                            help="pause at once (the field ramps down; the arms brake)")
         p.set_defaults(func=_cmd_control, verb=verb)
+
+    from rigctl.cli import watch
+
+    watch.register(sub, _client_options).set_defaults(func=_cmd_watch)
 
     p = sub.add_parser("keys", help="CURVE keys for the daemon and its operators")
     keys_sub = p.add_subparsers(dest="keys_command", required=True)

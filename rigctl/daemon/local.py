@@ -1,11 +1,14 @@
 """The control endpoint of a local run (`rigctl execute`): the same ZeroMQ requests as the daemon's
 for what a run can do (`ping`, `status`, `pause`, `resume`, `abort`, `estop`), on loopback, named
 in the rig's lock (`rigctl.rigs.owner`) so that `rigctl estop --rig RIG.toml` and the `Rig` client reach
-a local run exactly as they reach a daemon.
+a local run exactly as they reach a daemon; and the daemon's telemetry (`state`, `fault`,
+`actuators`, `stream`) on two PUB sockets that `ping` names, so `rigctl watch` and an operator's
+subscriber see a local run as they see the daemon's.
 
 A REP socket on its own thread: a request is answered at once (an e-stop is taken on this thread,
 as the daemon takes it, and the stream thread finishes it); anything malformed gets an error
-reply and the run goes on.
+reply and the run goes on. The stream thread only appends each cycle to a deque; this thread hands
+them to the publisher in batches, as the daemon's reader of its stream process does.
 """
 
 from __future__ import annotations
@@ -13,8 +16,10 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from typing import Any
 
+import numpy as np
 import zmq
 from pydantic import ValidationError
 
@@ -23,16 +28,21 @@ from rigctl.daemon.messages import (
     Command,
     ErrorCode,
     Request,
+    Topic,
     error_reply,
     ok_reply,
 )
+from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
 from rigctl.errors import RigError
+from rigctl.rigs import rig_kind
 
 log = logging.getLogger(__name__)
 
 RUN_COMMANDS = (Command.PING, Command.STATUS, Command.PAUSE, Command.RESUME, Command.ABORT,
                 Command.ESTOP)
-POLL_MS = 50
+POLL_MS = 10  # also how often the stream's cycles go to the publisher
+# a run's states as the daemon reports them (a run that has not started or has ended: idle)
+DAEMON_STATE = {"prepared": "idle", "done": "idle", "aborted": "idle"}
 
 
 class LocalControl:
@@ -47,10 +57,59 @@ class LocalControl:
         self._sock.setsockopt(zmq.LINGER, 0)
         self._sock.bind("tcp://127.0.0.1:0")
         self.endpoint: str = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.publisher = TelemetryPublisher(
+            self._context, "tcp://127.0.0.1:0", "tcp://127.0.0.1:0",
+            channels=rig_kind(run.rig.rig.kind).channels(run.rig), clock_origin=self.started)
+        self._cycles: deque[tuple] = deque()  # appended by the stream thread, drained by this one
+        self._streaming = False
+        self._hook(run)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name="run-control", daemon=True)
 
+    def _hook(self, run: Any) -> None:
+        """The run's cycles and states, also to the publisher (the run's own hooks still called)."""
+        on_cycle, on_state = run.on_cycle, run.on_state
+
+        def cycle(sample: int, move: int, commanded: np.ndarray, measured: np.ndarray) -> None:
+            if on_cycle is not None:
+                on_cycle(sample, move, commanded, measured)
+            self._cycles.append((time.monotonic(), sample, move, np.array(commanded, dtype=float),
+                                 np.array(measured, dtype=float),
+                                 run.stream_loop.last_error_s))
+
+        def state(run_state: Any, info: dict) -> None:
+            if on_state is not None:
+                on_state(run_state, info)
+            try:  # telemetry is for watchers: nothing here may end the run
+                self._publish_state(run, run_state.value, info)
+            except Exception:
+                log.exception("state telemetry failed")
+
+        run.on_cycle, run.on_state = cycle, state
+
+    def _publish_state(self, run: Any, state: str, info: dict) -> None:
+        record = getattr(run, "record", None)
+        name = str(record.path) if record is not None else None
+        if state == "faulted":
+            self.publisher.publish_event(Topic.FAULT, device=info.get("device"),
+                                         reason=str(info.get("reason")), kind="DeviceFault",
+                                         run=name)
+        self.publisher.publish_event(Topic.STATE, state=DAEMON_STATE.get(state, state), run=name,
+                                     device=info.get("device"), reason=info.get("reason"))
+
+    def _hand_over_cycles(self) -> None:
+        cycles = [self._cycles.popleft() for _ in range(len(self._cycles))]
+        if cycles:
+            if not self._streaming:  # period-error statistics from the stream's first cycle on
+                self._streaming = True
+                self.publisher.reset_stream(self.run.stream_loop.rate_hz)
+            t, sample, move, commanded, measured, error = zip(*cycles)
+            self.publisher.offer_cycles(CycleBatch(
+                np.array(t) - self.started, np.array(sample), np.array(move), np.array(commanded),
+                np.array(measured), np.array(error, dtype=float)))
+
     def start(self) -> LocalControl:
+        self.publisher.start()
         self._thread.start()
         return self
 
@@ -58,6 +117,8 @@ class LocalControl:
         self._stop.set()
         self._thread.join(2.0)
         self._sock.close(linger=0)
+        self._hand_over_cycles()
+        self.publisher.stop()
 
     def __enter__(self) -> LocalControl:
         return self.start()
@@ -67,6 +128,7 @@ class LocalControl:
 
     def _serve(self) -> None:
         while not self._stop.is_set():
+            self._hand_over_cycles()
             if not self._sock.poll(POLL_MS, zmq.POLLIN):
                 continue
             payload = self._sock.recv()
@@ -117,4 +179,6 @@ class LocalControl:
             else None
         return {"state": state, "reason": info.get("reason"), "owner": self.owner,
                 "rig": run.rig.rig.kind, "run": None if ended else dict(run.info),
-                "last_fault": fault, "uptime_s": round(time.monotonic() - self.started, 3)}
+                "last_fault": fault, "uptime_s": round(time.monotonic() - self.started, 3),
+                "telemetry": {"command": self.endpoint, "data": self.publisher.data_endpoint,
+                              "events": self.publisher.events_endpoint}}
