@@ -112,7 +112,7 @@ def _rig_daemon_settings(rig):
 
 # -- client verbs --------------------------------------------------------------------------------
 def _cmd_status(args: argparse.Namespace) -> int:
-    with _client(args.connect, args.server_key, args.client_key) as rig:
+    with _client(_owner_endpoint(args), args.server_key, args.client_key) as rig:
         status = rig.status()
     if args.json:
         print(json.dumps(status))
@@ -138,7 +138,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
 def _cmd_hold(args: argparse.Namespace) -> int:
     from rigctl.client import CommandRefused
 
-    with _client(args.connect, args.server_key, args.client_key, timeout_s=35.0) as rig:
+    with _client(_owner_endpoint(args), args.server_key, args.client_key, timeout_s=35.0) as rig:
         try:
             if args.release:
                 reply = rig.release(args.ramp_s)
@@ -156,6 +156,21 @@ def _cmd_hold(args: argparse.Namespace) -> int:
         setpoints = ", ".join(f"{name} {value:g}"
                               for name, value in zip(reply["channels"], reply["setpoints"]))
         print(f"holding {reply['hold']}: {setpoints}")
+    return EXIT_OK
+
+
+def _cmd_load(args: argparse.Namespace) -> int:
+    """`rigctl load PLAN`: the daemon checks the plan against its rig and keeps it; prints the
+    plan id that `rigctl execute --connect` or a client's `execute` starts."""
+    from rigctl.client import CommandRefused
+
+    document = _plan_document(args.plan)
+    with _client(_owner_endpoint(args), args.server_key, args.client_key, timeout_s=60.0) as rig:
+        try:
+            plan_id = rig.load(document)
+        except CommandRefused as err:
+            return _refused_exit(err)
+    print(json.dumps({"plan_id": plan_id}) if args.json else f"loaded: plan id {plan_id}")
     return EXIT_OK
 
 
@@ -306,6 +321,14 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 # -- rigctl execute PLAN --connect ENDPOINT -------------------------------------------------------
+def _plan_document(plan_path: str | Path) -> dict:
+    """A plan file as the JSON document a daemon's `load` takes."""
+    try:
+        return json.loads(Path(plan_path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise PlanError(f"{plan_path}: not a readable JSON plan ({err})") from None
+
+
 def execute_remote(plan_path: str | Path, endpoint: str, *, json_out: bool = False,
                    quiet: bool = False, server_key: str | None = None,
                    client_key: str | None = None) -> int:
@@ -315,10 +338,7 @@ def execute_remote(plan_path: str | Path, endpoint: str, *, json_out: bool = Fal
     """
     from rigctl.client import CommandRefused
 
-    try:
-        plan = json.loads(Path(plan_path).read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise PlanError(f"{plan_path}: {err}") from None
+    plan = _plan_document(plan_path)
     out = None if quiet else sys.stderr
     with _client(endpoint, server_key, client_key) as rig:
         try:
@@ -423,8 +443,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="publish `currents` at most this often (default 0: every stream cycle)")
     p.set_defaults(func=_cmd_daemon)
 
-    p = sub.add_parser("status", help="ask a running daemon for its state, run and devices")
+    p = sub.add_parser("status", help="ask a running daemon (or a rig's owner) for its state, "
+                       "run and devices")
     _client_options(p)
+    p.add_argument("--rig", help="the rig file: ask the process that owns it")
     p.add_argument("--json", action="store_true", help="print the raw status as JSON")
     p.set_defaults(func=_cmd_status)
 
@@ -435,6 +457,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "retargets. Every limit is checked before anything moves (refused: exit 2). --release "
         "ramps the supplies or the board to zero and ends the hold; the arms stay where they are.")
     _client_options(p)
+    p.add_argument("--rig", help="the rig file: ask the process that owns it (a `rigctl "
+                   "execute` is running a plan and refuses)")
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--field-mT", nargs=3, type=float, metavar=("BX", "BY", "BZ"),
                       help="six-coil: the field at the workspace centre, mT (0 0 0 releases)")
@@ -448,6 +472,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the ramp's duration, s (default 0.1; the arms need their joints' speed "
                    "limits respected: the refusal says how long)")
     p.set_defaults(func=_cmd_hold)
+
+    p = sub.add_parser(
+        "load", help="give a plan to a running daemon, checked against its rig (prints its id)",
+        description="Send a plan to the daemon: it is parsed, checked against every limit of the "
+        "daemon's rig and kept; the printed plan id is what a client's `execute` starts. Refused "
+        "(exit 2) with the field or limit named.")
+    _client_options(p)
+    p.add_argument("plan", help="plan file (JSON)")
+    p.add_argument("--rig", help="the rig file: the process that owns it")
+    p.add_argument("--json", action="store_true", help='print {"plan_id": ...}')
+    p.set_defaults(func=_cmd_load)
 
     p = sub.add_parser(
         "estop", help="emergency stop: every output of the rig to zero at once",

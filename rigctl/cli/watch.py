@@ -66,9 +66,8 @@ class View:
     def render(self) -> str:
         s = self.status
         rig = s.get("rig")
-        lines = [f"rigctl watch: {rig['name']} ({rig['kind']})" if isinstance(rig, dict) else
-                 f"rigctl watch: a {rig} rig (rigctl execute)" if rig else "rigctl watch",
-                 f"  owner {self.endpoint}   {time.strftime('%H:%M:%S')}   Ctrl-C to stop watching",
+        lines = [f"rigctl watch: {rig['name']} ({rig['kind']})" if rig else "rigctl watch",
+                 f"  {s.get('owner', 'rigctl daemon')} at {self.endpoint}   {time.strftime('%H:%M:%S')}   Ctrl-C to stop watching",
                  "", f"state   {s.get('state', '?')}"
                  + (f"  ({s.get('device') or ''}{': ' if s.get('device') else ''}{s['reason']})"
                     if s.get("reason") else "")]

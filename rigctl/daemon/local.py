@@ -177,8 +177,15 @@ class LocalControl:
         ended = state in ("faulted", "estopped", "aborted", "done")
         fault = {"device": info.get("device"), "reason": info.get("reason")} if state == "faulted" \
             else None
-        return {"state": state, "reason": info.get("reason"), "owner": self.owner,
-                "rig": run.rig.rig.kind, "run": None if ended else dict(run.info),
+        faulty = info.get("device") if state == "faulted" else None
+        devices = [{"name": d.name, "url": d.url, "kind": d.kind,
+                    "health": "fault" if d.name == faulty else "ok",
+                    "detail": info.get("reason") if d.name == faulty else f"in use by {self.owner}"}
+                   for d in rig_kind(run.rig.rig.kind).devices(run.rig)]
+        return {"state": state, "reason": info.get("reason"), "device": info.get("device"),
+                "owner": self.owner, "rig": {"name": run.rig.rig.name, "kind": run.rig.rig.kind,
+                                             "emulated": run.rig.emulated},
+                "devices": devices, "run": None if ended else dict(run.info),
                 "last_fault": fault, "uptime_s": round(time.monotonic() - self.started, 3),
                 "telemetry": {"command": self.endpoint, "data": self.publisher.data_endpoint,
                               "events": self.publisher.events_endpoint}}
