@@ -21,7 +21,11 @@ takes, per rig:
   `estop_zeroed` event, which the one engine writes on every rig; in ms and in stream periods),
   request sent -> reply, and request sent -> the emulated devices physically safe, read from the
   bench's backdoor `truth` as fast as it answers: every coil current under 0.05 A (set by the
-  coils' L/R, not by rigctl), every SyRen output zero, both arms at rest (every joint speed zero).
+  coils' L/R, not by rigctl), every SyRen output zero, both arms at rest (every joint speed zero);
+  then the same e-stop against a local `rigctl execute` of the same plan on the same rig (its
+  control endpoint found through the rig's lock), and, with nothing owning the rig, `rigctl estop
+  --rig` as a process reaching every device directly (its wall time, and the direct make-safe
+  of every device timed in this process: what that command does once Python has started).
 
     python bench/daemon.py                          # every rig, about 35 s each
     python bench/daemon.py --rig depm --seconds 1   # one rig, quickly
@@ -359,6 +363,61 @@ def estop_latency(rig: Rig, plan_id: str, bench: RigBench, backdoor_url: str) ->
             "safe_confirmed_in_record": summary["safe"]}
 
 
+def local_estop_latency(rig_path: Path, plan: dict, bench: RigBench, tmp: Path) -> dict:
+    """The same e-stop against a local `rigctl execute` on the same rig (found through its lock,
+    the same client request); then, with nothing owning the rig, `rigctl estop --rig` as a
+    process reaching every device directly."""
+    from rigctl.rigs.owner import holder_of
+
+    rig = load_rig(rig_path)
+    (tmp / "local-plan.json").write_text(json.dumps(plan))
+    run = subprocess.Popen([sys.executable, "-m", "rigctl", "execute", str(tmp / "local-plan.json"),
+                            "--rig", str(rig_path), "--runs", str(tmp / "local-runs"), "--json",
+                            "-q"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        with BackdoorClient(rig.emulation.backdoor) as backdoor:
+            deadline = time.monotonic() + 60.0
+            while (holder_of(rig) is None or not holder_of(rig).control
+                   or not bench.driving(backdoor.request("truth"))):
+                if time.monotonic() > deadline or run.poll() is not None:
+                    raise RuntimeError("the local run never drove its devices")
+                time.sleep(0.01)
+            with Rig(holder_of(rig).control, timeout_s=5.0) as owner:
+                t0 = time.perf_counter()
+                owner.estop()
+                reply_s = time.perf_counter() - t0
+                while not bench.safe(backdoor.request("truth")):
+                    pass
+                safe_s = time.perf_counter() - t0
+        summary = json.loads(run.communicate(timeout=60)[0])
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait()
+    zeroed = next(e for e in read_events(Path(summary["run"])) if e["event"] == "estop_zeroed")
+    t0 = time.perf_counter()
+    direct = subprocess.run([sys.executable, "-m", "rigctl", "estop", "--rig", str(rig_path)],
+                            capture_output=True, text=True, timeout=60)
+    direct_s = time.perf_counter() - t0
+    from rigctl.rigs import rig_kind
+
+    t0 = time.perf_counter()  # what that process does once it has started: every device reached
+    unreached = [name for name, err in rig_kind(rig.rig.kind).make_safe(rig).items() if err]
+    make_safe_s = time.perf_counter() - t0
+    return {"local_run": {
+                "received_to_every_device_told_ms": round(zeroed["after_request_s"] * 1e3, 3),
+                "request_to_reply_ms": round(reply_s * 1e3, 3),
+                "request_to_physically_safe_ms": round(safe_s * 1e3, 1),
+                "safe_confirmed_in_record": summary["safe"]},
+            "no_owner_direct": {
+                "exit_code": direct.returncode,
+                "devices_reached": sum(line.split()[-1:] == ["safe"]
+                                       for line in direct.stdout.splitlines()),
+                "process_wall_ms": round(direct_s * 1e3, 1),
+                "every_device_made_safe_in_process_ms": round(make_safe_s * 1e3, 1),
+                "unreached_in_process": unreached}}
+
+
 def bench_rig(kind: str, args: argparse.Namespace, tmp: Path) -> dict:
     """Every figure for one rig kind: its bench and its daemon started, measured, stopped."""
     bench = RIGS[kind]
@@ -385,6 +444,8 @@ def bench_rig(kind: str, args: argparse.Namespace, tmp: Path) -> dict:
         finally:
             proc.terminate()
             proc.wait(timeout=30)
+        estop.update(local_estop_latency(tmp / "rig.toml", bench.plan(args.seconds + 2.0), bench,
+                                         tmp))
     return {"idle": idle, "while_streaming": streaming, "telemetry_1_subscriber": one,
             "telemetry_10_subscribers": ten, "estop": estop}
 
