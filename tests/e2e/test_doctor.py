@@ -45,3 +45,31 @@ def test_doctor_reaches_every_device_and_names_a_broken_one(kind, tmp_path):
         assert code == 3
         failed = [d["device"] for d in report["devices"] if not d["ok"]]
         assert failed == [broken], report
+
+
+# a device stopped (reads, never answers), unplugged (link gone) or answering garbage
+LINK_FAULTS = ({"kind": "stall"}, {"kind": "drop_link"}, {"kind": "corrupt", "n": 50})
+# the device of each bench whose link faults are tried, as the backdoor and the rig name it
+LINKED = {"six-coil": ("y-", "y-"), "coil-board": ("board", "coil board"),
+          "depm": ("right", "right")}
+
+
+@pytest.mark.parametrize("kind", list(LINKED))
+def test_doctor_names_a_device_stopped_unplugged_or_answering_garbage(kind, tmp_path):
+    """The doctor's probes in this process (the command around them is the test above)."""
+    from rigctl.rigs.doctor import probe_rig
+
+    target, shown = LINKED[kind]
+    with EmulatedBenchProcess(kind, tmp_path / "bench.toml") as rig_path:
+        rig = load_rig(rig_path)
+        with BackdoorClient(rig.emulation.backdoor) as backdoor:
+            for fault in LINK_FAULTS:
+                backdoor.request("fault", device=target, **fault)
+                try:
+                    probes = probe_rig(rig)
+                finally:
+                    backdoor.request("fault", device=target, kind="restore")
+                failed = {p.device: p.detail for p in probes if not p.ok}
+                assert list(failed) == [shown], (fault, probes)
+                assert failed[shown], "the failure says what went wrong"
+            assert all(p.ok for p in probe_rig(rig))  # restored: every device answers again
