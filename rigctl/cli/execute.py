@@ -8,14 +8,7 @@ import argparse
 import inspect
 import sys
 
-from rigctl.daemon.local import LocalControl
-from rigctl.emulators.process import rig_for_run
 from rigctl.errors import ConfigError, abort_on_sigterm
-from rigctl.plans.schema import load_plan
-from rigctl.rigs import rig_kind
-from rigctl.rigs.doctor import preflight
-from rigctl.rigs.owner import RigLock
-from rigctl.run.summary import exit_code, print_summary
 
 # run options: CLI flag -> the builder's keyword (a builder takes only those it names)
 _RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-scale": "time_scale"}
@@ -72,6 +65,15 @@ def cmd_execute(args: argparse.Namespace) -> int:
         from rigctl.cli.daemon import execute_remote
 
         return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
+    # here, not at the top: every other command (`estop` first) starts without these imports
+    from rigctl.daemon.local import LocalControl
+    from rigctl.emulators.process import rig_for_run
+    from rigctl.plans.schema import load_plan
+    from rigctl.rigs import rig_kind
+    from rigctl.rigs.doctor import preflight
+    from rigctl.rigs.owner import RigLock
+    from rigctl.run.summary import exit_code, print_summary
+
     plan = load_plan(args.plan)
     kind = rig_kind(plan.rig)
     build = kind.builder(plan.kind)

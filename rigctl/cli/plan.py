@@ -30,7 +30,6 @@ import numpy as np
 
 from rigctl.config import MagnetSettings, load_rig
 from rigctl.errors import ConfigError, PlanError
-from rigctl.plans.checks import WorkspaceSource
 
 log = logging.getLogger(__name__)
 
@@ -341,6 +340,8 @@ def run_rrt(args: argparse.Namespace) -> int:
     from rigctl.plans.model import GlobalInputModel
     from rigctl.plans.rrt import RrtTree, check_tree_meta, plan_rrt, polish, tree_meta
 
+    from rigctl.plans.checks import WorkspaceSource  # numba, scipy: only when planning
+
     source = WorkspaceSource(args.workspace)
     starts = _points(args.start, "--start")
     goals = _points(args.goal, "--goal")
@@ -407,7 +408,7 @@ def run_rrt(args: argparse.Namespace) -> int:
     return EXIT_SOLVED if solved else EXIT_NOT_SOLVED
 
 
-def _write_plan(output: Path, source: WorkspaceSource, rig: str, name: str, starts, goals, radii,
+def _write_plan(output: Path, source: "WorkspaceSource", rig: str, name: str, starts, goals, radii,
                 moves, states, tolerance: float, min_separation: float) -> None:
     from rigctl.plans.checks import check_plan
     from rigctl.plans.schema import dump_plan, parse_plan
@@ -440,6 +441,8 @@ def run_coverage(args: argparse.Namespace) -> int:
     from rigctl.plans.coverage import coverage, free_bounding_box
     from rigctl.plans.rrt import RrtTree
 
+    from rigctl.plans.checks import WorkspaceSource  # numba, scipy: only when planning
+
     source = WorkspaceSource(args.workspace)
     if not args.grid > 0:
         raise PlanError(f"--grid: must be > 0 mm, got {args.grid:g}")
@@ -469,6 +472,8 @@ def run_wall_contact(args: argparse.Namespace) -> int:
     """`rigctl plan wall-contact`: Alg. 1 of seed 004, the plan written. Returns the exit status."""
     from rigctl.plans.model import GlobalInputModel
     from rigctl.plans.wall_contact import centre_region, plan_with_model
+
+    from rigctl.plans.checks import WorkspaceSource  # numba, scipy: only when planning
 
     source = WorkspaceSource(args.workspace)
     document = source.document
@@ -578,6 +583,8 @@ def run_reachable(args: argparse.Namespace) -> int:
             raise PlanError("--polygon: give at least three vertices X,Y;X,Y;X,Y")
         region = PolygonRegion(vertices)
     else:
+        from rigctl.plans.checks import WorkspaceSource  # numba, scipy: only when planning
+
         source = WorkspaceSource(args.workspace)
         if "boundary" not in source.document or source.document.get("obstacles"):
             raise PlanError("--workspace: needs a convex shape boundary without obstacles")

@@ -22,6 +22,7 @@ QUICK = {
     "coilboard.py": ["--pairs", "2", "--runs", "1"],
     "depm.py": ["--time-scale", "8"],
     "pair.py": ["--quick"],
+    "preflight.py": ["--rig", "six-coil", "--repeat", "1"],
 }
 
 
