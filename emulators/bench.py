@@ -10,7 +10,8 @@ allocator's actuation matrix, so an error in allocation or in the realizer shows
 the wrong place.
 
 Backdoor: the table of `emulators/base.py` (`ping`, `help`, `speed`, `fault`, `camera`) with
-devices "x+" ... "z-" (each supply: its link's faults and `overtemp`) and "camera", plus:
+devices "x+" ... "z-" (each supply: its link's faults and `overtemp`; `restore` clears both) and
+"camera", plus:
 - `{"cmd": "place", "workspace": {...plan workspace, image paths absolute...}, "agents":
   [{"position": [x, y], "radius": r}], "contact": "slide", "min_separation_mm": 0}`: put the robots
   down (what an operator does by hand); world "pair": `"pair": {physics}` and two agents;
@@ -105,8 +106,11 @@ class SixCoilBench(EmulatedBench):
             field = loop_field(np.zeros(3), np.asarray(coil.centre_mm) * 1e-3, np.asarray(coil.axis),
                                coil.loop_radius_mm * 1e-3, coil.turns, 1.0)
             self.supplies.append(_Supply(coil.name, model, endpoint, np.asarray(field, dtype=float)))
+            # `restore` clears the link's faults and lets the supply cool down (an over-temperature
+            # is cleared; its output stays off until turned on again, as a real BOP's)
             self.add_device(coil.name, endpoint, overtemp=lambda _, m=model: self._locked(
-                m.inject_overtemperature))
+                m.inject_overtemperature), restore=lambda _, m=model, e=endpoint: (
+                e.restore(), self._locked(m.clear_overtemperature)))
             coils.append(coil.model_copy(update={"url": endpoint.url}))
         camera = self._serve_camera(
             PAIR_CAMERA_FIELD_MM if self.world_kind == "pair" else CAMERA_FIELD_MM, tilt_deg=5.0,

@@ -125,3 +125,21 @@ def test_a_speed_that_is_not_positive_is_refused(bench, backdoor):
         with pytest.raises(DeviceError, match="speed factor must be positive"):
             backdoor.request("speed", factor=factor)
     assert np.all(np.isfinite(physics_time(bench, backdoor)))
+
+
+def test_restore_cools_an_overheated_supply_so_the_next_run_can_switch_it_on():
+    from rigctl.drivers.kepco_bop import KepcoBop
+
+    with SixCoilBench() as bench, BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
+        coil = bench.rig.coils[0]
+        bop = KepcoBop(open_transport(coil.url), name=coil.name)
+        try:
+            backdoor.request("fault", device=coil.name, kind="overtemp")
+            with pytest.raises(DeviceError, match="(?i)temperature"):
+                bop.output(True)
+            backdoor.request("fault", device=coil.name, kind="restore")
+            bop.configure()  # the error queue drained: the supply reports nothing pending
+            bop.output(True)  # the output turns on again
+            bop.output(False)
+        finally:
+            bop.close()
