@@ -196,3 +196,20 @@ def test_the_replanner_process_says_when_it_is_ready_and_then_plans():
     assert result.distance <= 0.3
     np.testing.assert_allclose(result.states[-1], [[70.0, 100.0]], atol=0.3)
     np.testing.assert_allclose(result.moves.sum(axis=0), [20.0, 0.0], atol=0.3)
+
+
+def test_a_closed_replan_worker_leaves_no_descriptor_open():
+    """One worker per run: its pipes must all be closed with it (a daemon runs for months)."""
+    import os
+
+    from rigctl.rigs.six_coil.supervisor import ReplanWorker
+
+    def open_fds() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    ReplanWorker().close()  # whatever a first start opens for good (imports, caches)
+    before = open_fds()
+    kept = [ReplanWorker() for _ in range(3)]  # still referenced, as a finished run's is
+    for worker in kept:
+        worker.close()
+    assert open_fds() == before
