@@ -101,12 +101,14 @@ def test_status_execute_remote_and_estop_verbs(daemon, tmp_path):
 
 
 def test_sigterm_mid_run_ramps_down_and_exits_0(daemon, bench):
-    with Rig(daemon.endpoints["command"]) as rig:
+    # generous timeouts: CI shares 2 cores, and a loaded machine makes the plan's load (realize,
+    # allocate) and the run's start (devices, camera) take seconds
+    with Rig(daemon.endpoints["command"], timeout_s=30.0) as rig:
         rig.execute(rig.load(json.loads((EXAMPLES / "fig4-two-magnets.json").read_text())))
-        rig.wait_state("running")
-        deadline = time.monotonic() + 10
+        rig.wait_state("running", timeout_s=60.0)
+        deadline = time.monotonic() + 60
         while max(abs(a) for a in bench_currents(bench).values()) < 1.0:
-            assert time.monotonic() < deadline, "no Parquet part within 60 s"
+            assert time.monotonic() < deadline, "no current in the coils within 60 s"
     daemon.proc.send_signal(signal.SIGTERM)
     assert daemon.proc.wait(timeout=20) == 0
     # ramped to zero before the outputs went off: at most the last step of the ramp is left to
@@ -119,9 +121,9 @@ def test_sigterm_mid_run_ramps_down_and_exits_0(daemon, bench):
 
 
 def test_a_crash_mid_run_leaves_a_readable_record_and_a_report(daemon, bench, tmp_path):
-    with Rig(daemon.endpoints["command"]) as rig:
+    with Rig(daemon.endpoints["command"], timeout_s=30.0) as rig:
         rig.execute(rig.load(json.loads((EXAMPLES / "fig4-two-magnets.json").read_text())))
-        rig.wait_state("running")
+        rig.wait_state("running", timeout_s=60.0)
         deadline = time.monotonic() + 60  # generous: CI shares 2 cores
         while True:  # past the first Parquet part (5 s of cycles), then crash
             run = rig.status()["run"]
