@@ -101,9 +101,9 @@ def parse_url(url: str) -> tuple[str, str, int]:
         raise ConfigError(f"{url!r} is not a device URL; write {ACCEPTED_FORMS}")
     if text.startswith("/"):
         return "serial", text, DEFAULT_BAUD
-    if text.upper().startswith(("TCPIP", "ASRL")):
+    if text.upper().startswith(("TCPIP", "ASRL")) or "::" in text:
         return _visa_address(text)
-    parts = urlsplit(text)
+    parts = _split(text)
     if parts.scheme == "tcp":
         host, port = _tcp_address(text, parts.netloc if not (parts.path.strip("/") or parts.query)
                                   else "")
@@ -112,6 +112,13 @@ def parse_url(url: str) -> tuple[str, str, int]:
         path, baud = _serial_address(text, parts)
         return "serial", path, baud
     raise ConfigError(f"{url!r} is not a device URL; write {ACCEPTED_FORMS}")
+
+
+def _split(url: str):
+    try:
+        return urlsplit(url)
+    except ValueError as err:  # an unclosed [IPv6 bracket
+        raise ConfigError(f"{url!r} is not a URL ({err}); write {ACCEPTED_FORMS}") from None
 
 
 def canonical_url(url: str) -> str:
@@ -174,7 +181,7 @@ def camera_source(source: str | int) -> tuple[str, str | int]:
         return "device", int(text)
     if text.startswith("/dev/"):
         return "device", text
-    parts = urlsplit(text)
+    parts = _split(text)
     scheme = parts.scheme.lower() if "://" in text else ""
     if scheme == "file" and parts.path:
         return "file", parts.path

@@ -45,6 +45,8 @@ from rigctl.transport import (
         "TCPIP0::10.0.0.11::99999::SOCKET",
         "TCPIP::::5025::SOCKET",
         "ASRL3::INSTR",
+        "GPIB0::5::INSTR",
+        "tcp://[::1:5025",
     ],
 )
 def test_bad_url_names_the_url_and_what_to_write(url: str) -> None:
@@ -98,7 +100,7 @@ def test_camera_sources(source, kind) -> None:
     assert camera_source(source) == kind
 
 
-@pytest.mark.parametrize("source", ["htp:/typo", "COM3", "http://:8080/x", "http://cam:99999/x", -1])
+@pytest.mark.parametrize("source", ["htp:/typo", "COM3", "http://[cam:80/x", "http://:8080/x", "http://cam:99999/x", -1])
 def test_bad_camera_source_says_what_to_write(source) -> None:
     with pytest.raises(ConfigError) as info:
         camera_source(source)
