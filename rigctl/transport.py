@@ -96,21 +96,16 @@ def open_transport(url: str, *, timeout_s: float = 1.0) -> Transport:
 def parse_url(url: str) -> tuple[str, str, int]:
     """("tcp", host, port) or ("serial", device path, baud) for a device URL, with no I/O;
     ConfigError naming the URL and what to write instead."""
-    text = url.strip() if isinstance(url, str) else url
-    if not isinstance(text, str) or not text:
-        raise ConfigError(f"{url!r} is not a device URL; write {ACCEPTED_FORMS}")
+    text = url.strip()
     if text.startswith("/"):
         return "serial", text, DEFAULT_BAUD
     if text.upper().startswith(("TCPIP", "ASRL")) or "::" in text:
         return _visa_address(text)
     parts = _split(text)
-    if parts.scheme == "tcp":
-        host, port = _tcp_address(text, parts.netloc if not (parts.path.strip("/") or parts.query)
-                                  else "")
-        return "tcp", host, port
+    if parts.scheme == "tcp" and not (parts.path.strip("/") or parts.query):
+        return ("tcp", *_tcp_address(text, parts.netloc))
     if parts.scheme == "serial":
-        path, baud = _serial_address(text, parts)
-        return "serial", path, baud
+        return ("serial", *_serial_address(text, parts))
     raise ConfigError(f"{url!r} is not a device URL; write {ACCEPTED_FORMS}")
 
 
@@ -189,7 +184,8 @@ def camera_source(source: str | int) -> tuple[str, str | int]:
         netloc = parts.netloc.rpartition("@")[2]
         _tcp_address(text, netloc if ":" in netloc.rpartition("]")[2] else f"{netloc}:80")
         return "stream", text
-    if not scheme and ":" not in text and (text.lower().endswith(VIDEO_SUFFIXES) or Path(text).is_file()):
+    is_video = text.lower().endswith(VIDEO_SUFFIXES) or Path(text).is_file()
+    if not scheme and ":" not in text and is_video:
         return "file", text
     raise ConfigError(f"{source!r} is not a camera source; write {CAMERA_FORMS}")
 

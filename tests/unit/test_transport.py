@@ -100,7 +100,8 @@ def test_camera_sources(source, kind) -> None:
     assert camera_source(source) == kind
 
 
-@pytest.mark.parametrize("source", ["htp:/typo", "COM3", "http://[cam:80/x", "http://:8080/x", "http://cam:99999/x", -1])
+@pytest.mark.parametrize(
+    "source", ["htp:/typo", "COM3", "http://[cam:80/x", "http://:8080/x", "http://cam:99999/x", -1])
 def test_bad_camera_source_says_what_to_write(source) -> None:
     with pytest.raises(ConfigError) as info:
         camera_source(source)
