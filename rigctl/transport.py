@@ -99,7 +99,7 @@ def parse_url(url: str) -> tuple[str, str, int]:
     text = url.strip()
     if text.startswith("/"):
         return "serial", text, DEFAULT_BAUD
-    if text.upper().startswith(("TCPIP", "ASRL")) or "::" in text:
+    if "::" in text and "://" not in text:  # VISA: TCPIP0::host::port::SOCKET, ASRL...::INSTR
         return _visa_address(text)
     parts = _split(text)
     if parts.scheme == "tcp" and not (parts.path.strip("/") or parts.query):

@@ -20,7 +20,6 @@ from rigctl.transport import (
     parse_url,
 )
 
-
 # -- URLs ----------------------------------------------------------------------------------------
 
 
@@ -69,6 +68,7 @@ def test_a_visa_port_number_is_refused_asking_for_the_device_path() -> None:
     [
         ("tcp://10.0.0.11:5025", ("tcp", "10.0.0.11", 5025)),
         ("tcp://bop-1.lab:5025/", ("tcp", "bop-1.lab", 5025)),
+        ("tcp://[::1]:5025", ("tcp", "::1", 5025)),
         ("TCPIP::10.0.0.11::5025::SOCKET", ("tcp", "10.0.0.11", 5025)),
         ("TCPIP0::bop-1.lab::5025::SOCKET", ("tcp", "bop-1.lab", 5025)),
         ("tcpip3::10.0.0.12::4000::socket", ("tcp", "10.0.0.12", 4000)),
