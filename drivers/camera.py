@@ -34,10 +34,9 @@ import cv2
 import numpy as np
 
 from rigctl.errors import ConfigError, DeviceTimeout, Disconnected
+from rigctl.transport import camera_source
 
 log = logging.getLogger(__name__)
-
-STREAM_SCHEMES = ("http://", "https://", "rtsp://", "rtsps://", "rtmp://", "udp://", "tcp://")
 
 # The embedded stamp: a row-major grid of STAMP_BLOCK x STAMP_BLOCK px blocks from the top-left
 # corner, each black (0) or white (1). Blocks align with JPEG's 8 x 8 blocks, so they survive
@@ -131,20 +130,10 @@ class Frame:
 
 
 def _source_kind(source: str | int) -> tuple[str, str | int]:
-    if isinstance(source, int):
-        return "device", source
-    text = str(source).strip()
-    if text.isdigit():
-        return "device", int(text)
-    if text.lower().startswith(STREAM_SCHEMES):
-        return "stream", text
-    path = Path(text[len("file://") :] if text.startswith("file://") else text)
-    if not path.is_file():
-        raise ConfigError(
-            f"camera source {text!r} is neither a camera index, a stream URL "
-            f"({', '.join(STREAM_SCHEMES)}) nor an existing video file"
-        )
-    return "file", str(path)
+    kind, target = camera_source(source)
+    if kind == "file" and not Path(str(target)).is_file():
+        raise ConfigError(f"camera source: no video file {target}")
+    return kind, target
 
 
 class CameraDriver:
@@ -291,7 +280,7 @@ class CameraDriver:
     def _open_capture(self) -> cv2.VideoCapture:
         timeout_ms = int(self.timeout_s * 1000)
         if self.kind == "device":
-            capture = cv2.VideoCapture(int(self.target))
+            capture = cv2.VideoCapture(self.target)  # an index, or /dev/video0 (V4L2)
         elif self.kind == "stream":
             capture = cv2.VideoCapture(
                 str(self.target), cv2.CAP_FFMPEG,

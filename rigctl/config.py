@@ -18,7 +18,9 @@ from typing import Annotated, Literal
 
 import tomli_w
 from pydantic import (
+    AfterValidator,
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     ValidationError,
@@ -28,10 +30,27 @@ from pydantic import (
 
 from rigctl.camera_model import Calibration
 from rigctl.errors import ConfigError
+from rigctl.transport import camera_source, parse_url
 
 RigKind = Literal["six-coil", "coil-board", "depm"]
 
 Vector3 = tuple[float, float, float]
+
+
+def _checked(check):
+    """A pydantic validator from a `rigctl.transport` parser: its ConfigError as the field's error."""
+    def validate(value):
+        try:
+            check(value)
+        except ConfigError as err:
+            raise ValueError(str(err)) from None
+        return value if isinstance(value, str) else str(value)
+    return validate
+
+
+# Every device URL is parsed when the rig file is loaded, before anything connects.
+DeviceUrl = Annotated[str, AfterValidator(_checked(parse_url))]
+CameraSource = Annotated[str, BeforeValidator(_checked(camera_source))]  # `url = 0` is an index
 
 
 class _Strict(BaseModel):
@@ -80,7 +99,8 @@ class Coil(_Strict):
     """
 
     name: str
-    url: str = Field(description="driver URL of the master supply, e.g. tcp://10.0.0.11:5025")
+    url: DeviceUrl = Field(description="the master supply: tcp://10.0.0.11:5025, "
+                           "TCPIP::10.0.0.11::5025::SOCKET or serial:///dev/ttyUSB0?baud=9600")
     centre_mm: Vector3
     axis: Vector3
     loop_radius_mm: Annotated[float, Field(gt=0)]
@@ -110,7 +130,8 @@ class StreamSettings(_Strict):
 class CameraSettings(_Strict):
     """The overhead camera: where its frames come from and how pixels map to workspace mm."""
 
-    url: str = Field(description="device index, stream URL (http://.../stream.mjpg) or video file")
+    url: CameraSource = Field(description="device index (0), /dev/video0, stream URL "
+                              "(http://.../stream.mjpg) or video file")
     stamped: bool = Field(
         default=False, description="frames carry the emulated camera's capture-time stamp rows"
     )
@@ -127,7 +148,7 @@ class CameraSettings(_Strict):
 class CoilBoardSettings(_Strict):
     """The coil board's host link (docs/coilboard-protocol.md, docs/coilboard-driver.md)."""
 
-    url: str = Field(description="pty path, serial:///dev/ttyACM0?baud=115200 or tcp://host:port")
+    url: DeviceUrl = Field(description="pty path, serial:///dev/ttyACM0?baud=115200 or tcp://host:port")
     baud: Annotated[int, Field(gt=0, description="for a bare device path")] = 115200
     rate_hz: Annotated[
         float, Field(gt=0, le=500, description="SET rate while streaming (the SyRen bus updates ~60/s)")
@@ -159,12 +180,12 @@ class DepmSettings(_Strict):
     """
 
     arm_names: list[str] = ["left", "right"]
-    arm_urls: list[str] = Field(description="KST servers, e.g. tcp://172.31.1.147:30001")
+    arm_urls: list[DeviceUrl] = Field(description="KST servers, e.g. tcp://172.31.1.147:30001")
     arm_positions_mm: list[Vector3] = Field(description="arm bases in the world frame")
     arm_rpy_deg: list[Vector3] = Field(description="arm bases: fixed-axis roll, pitch, yaw")
     epm_moment_Am2: Annotated[float, Field(gt=0, description="each EPM's dipole moment")]
     tool_offset_mm: Annotated[float, Field(gt=0, description="EPM centre on the flange z axis")] = 85.0
-    hall_url: str = Field(description="the Hall board's sample stream, tcp://host:port")
+    hall_url: DeviceUrl = Field(description="the Hall board's sample stream, tcp://host:port")
     sensor_offsets_mm: list[Vector3] = Field(
         default=[(0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 2.0, 0.0)],
         description="sensor positions from the workspace centre; the first is the reference")
@@ -191,7 +212,7 @@ class DepmSettings(_Strict):
 class Emulation(_Strict):
     """Present only in rig files written by `rigctl emulate`: where the bench's backdoor is."""
 
-    backdoor: str = Field(description="tcp://host:port of the bench's test backdoor")
+    backdoor: DeviceUrl = Field(description="tcp://host:port of the bench's test backdoor")
     pid: int | None = None
     # How the emulated world departs from the planner's model (`rigctl emulate --slip ...`).
     slip: Annotated[float, Field(gt=0, description="distance per turn x slip")] = 1.0
@@ -295,8 +316,9 @@ def default_six_coil_coils(urls: list[str] | None = None) -> list[Coil]:
 def _format_validation_error(err: ValidationError, source: str) -> str:
     lines = []
     for problem in err.errors():
-        where = ".".join(str(p) for p in problem["loc"]) or "(top level)"
-        lines.append(f"{source}: {where}: {problem['msg']}")
+        where = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in problem["loc"])
+        message = problem["msg"].removeprefix("Value error, ")
+        lines.append(f"{source}: {where.lstrip('.') or '(top level)'}: {message}")
     return "\n".join(lines)
 
 
@@ -319,6 +341,14 @@ def load_rig(path: str | Path) -> RigConfig:
     return parse_rig(data, str(path))
 
 
+SIX_COIL_TABLES = ("field", "magnets", "coils", "actuation_matrix_T_per_A")
+
+
 def dump_rig(rig: RigConfig) -> str:
-    """The rig as TOML text, loadable by `load_rig`."""
-    return tomli_w.dumps(rig.model_dump(mode="json", exclude_none=True))
+    """The rig as TOML text, loadable by `load_rig`: only the tables its kind reads (a coil-board
+    or depm rig has no [field], [magnets] or coils)."""
+    data = rig.model_dump(mode="json", exclude_none=True)
+    if rig.rig.kind != "six-coil":
+        for key in SIX_COIL_TABLES:
+            data.pop(key, None)
+    return tomli_w.dumps(data)

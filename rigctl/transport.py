@@ -6,6 +6,14 @@ A driver never opens a socket or a serial port itself; it is handed a `Transport
 - `tcp://host:port`                      a TCP socket (TCP_NODELAY), e.g. a Kepco BOP on port 5025
 - `serial:///dev/ttyUSB0?baud=115200`    a serial port through pyserial
 - `/dev/pts/7` (a bare device path)      the same, at the default baud rate (ptys, emulated boards)
+- `TCPIP[n]::host::port::SOCKET`         a VISA raw-socket resource: the same TCP socket
+- `ASRL/dev/ttyUSB0::INSTR`              a VISA serial resource: the same serial port, at VISA's
+                                          default 9600 baud (a resource string carries no baud)
+
+VISA strings are mapped here rather than opened through pyvisa: both forms are one socket or one
+port with LF-terminated SCPI lines, which these transports already are, with their deadlines.
+`parse_url` checks a URL with no I/O (the rig file loader calls it for every device), and
+`camera_source` does the same for a camera's source (an index, /dev/video0, a stream, a file).
 
 Every read has a deadline. The errors are the project's own: `Disconnected` when the peer is gone,
 `DeviceTimeout` when it stays silent past the deadline, `ProtocolError` when a reply grows past
@@ -16,10 +24,12 @@ which device it is talking to and re-raises with `device=`.
 from __future__ import annotations
 
 import logging
+import re
 import select
 import socket
 import termios
 import time
+from pathlib import Path
 from typing import Protocol, runtime_checkable
 from urllib.parse import parse_qs, urlsplit
 
@@ -29,9 +39,16 @@ from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, ProtocolErro
 
 log = logging.getLogger(__name__)
 
-ACCEPTED_FORMS = "tcp://host:port, serial:///dev/ttyUSB0?baud=115200, or a device path such as /dev/pts/7"
+SERIAL_EXAMPLE = "serial:///dev/ttyUSB0?baud=9600"
+ACCEPTED_FORMS = f"{SERIAL_EXAMPLE} or tcp://HOST:PORT"
 DEFAULT_BAUD = 115200
+VISA_BAUD = 9600  # VI_ATTR_ASRL_BAUD's default: what a VISA library opens an ASRL resource at
 _RECV_CHUNK = 4096
+_VISA_SOCKET = re.compile(r"TCPIP\d*::([^:]*)::([^:]*)::SOCKET", re.IGNORECASE)
+_VISA_SERIAL = re.compile(r"ASRL(.*)::INSTR", re.IGNORECASE)
+STREAM_SCHEMES = ("http", "https", "rtsp", "rtsps", "rtmp", "udp", "tcp")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mjpg", ".mjpeg", ".mpg")
+CAMERA_FORMS = "0 (a device index), /dev/video0, http://HOST:PORT/stream.mjpg or a video file"
 
 
 @runtime_checkable
@@ -70,46 +87,107 @@ def open_transport(url: str, *, timeout_s: float = 1.0) -> Transport:
     """
     if timeout_s <= 0:
         raise ConfigError(f"transport timeout must be positive, got {timeout_s} s for {url!r}")
-    if url.startswith("/"):
-        return SerialTransport(url, url, baud=DEFAULT_BAUD, timeout_s=timeout_s)
-    parts = urlsplit(url)
-    if parts.scheme == "tcp":
-        host, port = _tcp_address(url, parts)
-        return TcpTransport(url, host, port, timeout_s=timeout_s)
+    kind, target, number = parse_url(url)
+    if kind == "tcp":
+        return TcpTransport(url, target, number, timeout_s=timeout_s)
+    return SerialTransport(url, target, baud=number, timeout_s=timeout_s)
+
+
+def parse_url(url: str) -> tuple[str, str, int]:
+    """("tcp", host, port) or ("serial", device path, baud) for a device URL, with no I/O;
+    ConfigError naming the URL and what to write instead."""
+    text = url.strip()
+    if text.startswith("/"):
+        return "serial", text, DEFAULT_BAUD
+    if "::" in text and "://" not in text:  # VISA: TCPIP0::host::port::SOCKET, ASRL...::INSTR
+        return _visa_address(text)
+    parts = _split(text)
+    if parts.scheme == "tcp" and not (parts.path.strip("/") or parts.query):
+        return ("tcp", *_tcp_address(text, parts.netloc))
     if parts.scheme == "serial":
-        path, baud = _serial_address(url, parts)
-        return SerialTransport(url, path, baud=baud, timeout_s=timeout_s)
-    raise ConfigError(f"cannot open {url!r}: unknown transport URL; use {ACCEPTED_FORMS}")
+        return ("serial", *_serial_address(text, parts))
+    raise ConfigError(f"{url!r} is not a device URL; write {ACCEPTED_FORMS}")
 
 
-def _tcp_address(url: str, parts) -> tuple[str, int]:
+def _split(url: str):
     try:
-        port = parts.port
-    except ValueError:
-        port = None
-    if not parts.hostname or port is None or parts.path not in ("", "/") or parts.query:
-        raise ConfigError(f"cannot open {url!r}: a TCP URL is tcp://host:port; accepted: {ACCEPTED_FORMS}")
-    return parts.hostname, port
+        return urlsplit(url)
+    except ValueError as err:  # an unclosed [IPv6 bracket
+        raise ConfigError(f"{url!r} is not a URL ({err}); write {ACCEPTED_FORMS}") from None
+
+
+def canonical_url(url: str) -> str:
+    """One spelling per device (`TCPIP::h::5025::SOCKET` and `tcp://h:5025` are one supply):
+    tcp://host:port or serial://path (no baud); a source that is no device URL (a camera) as written."""
+    try:
+        kind, target, number = parse_url(url)
+    except ConfigError:
+        return url.strip().lower()
+    return f"tcp://{target.lower()}:{number}" if kind == "tcp" else f"serial://{target}"
+
+
+def _tcp_address(url: str, netloc: str) -> tuple[str, int]:
+    host, _, port = netloc.rpartition(":")
+    host = host.strip("[]")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(f"{url!r}: needs a host and a port 1-65535: tcp://HOST:PORT, "
+                          f"e.g. tcp://192.168.1.11:5025")
+    return host, int(port)
+
+
+def _visa_address(url: str) -> tuple[str, str, int]:
+    if match := _VISA_SOCKET.fullmatch(url):
+        return ("tcp", *_tcp_address(url, f"{match[1]}:{match[2]}"))
+    if (match := _VISA_SERIAL.fullmatch(url)) and match[1].startswith("/"):
+        return "serial", match[1], VISA_BAUD
+    if match:
+        raise ConfigError(f"{url!r}: a VISA port number names no device here; give the device "
+                          f"path, e.g. ASRL/dev/ttyUSB0::INSTR or {SERIAL_EXAMPLE}")
+    raise ConfigError(f"{url!r}: of the VISA resources only raw sockets, TCPIP::HOST::PORT::SOCKET "
+                      f"(tcp://HOST:PORT), and serial ports, ASRL/dev/ttyUSB0::INSTR, are opened")
 
 
 def _serial_address(url: str, parts) -> tuple[str, int]:
+    def refuse(why: str) -> ConfigError:
+        return ConfigError(f"{url!r}: {why}; write e.g. {SERIAL_EXAMPLE}")
+
     if parts.netloc or not parts.path.startswith("/"):
-        raise ConfigError(
-            f"cannot open {url!r}: a serial URL is serial:///dev/name?baud=N; accepted: {ACCEPTED_FORMS}"
-        )
+        raise refuse("a serial URL is serial:///dev/NAME?baud=N (three slashes)")
     query = parse_qs(parts.query, keep_blank_values=True)
     unknown = set(query) - {"baud"}
     if unknown:
-        raise ConfigError(f"cannot open {url!r}: unknown serial option(s) {sorted(unknown)}; only baud=N")
-    baud = DEFAULT_BAUD
-    if "baud" in query:
-        try:
-            baud = int(query["baud"][-1])
-        except ValueError:
-            raise ConfigError(f"cannot open {url!r}: baud must be an integer") from None
-        if baud <= 0:
-            raise ConfigError(f"cannot open {url!r}: baud must be positive")
+        raise refuse(f"unknown serial option(s) {sorted(unknown)}, only baud=N")
+    try:
+        baud = int(query["baud"][-1]) if "baud" in query else DEFAULT_BAUD
+    except ValueError:
+        raise refuse("baud must be an integer") from None
+    if baud <= 0:
+        raise refuse("baud must be positive")
     return parts.path, baud
+
+
+def camera_source(source: str | int) -> tuple[str, str | int]:
+    """("device", index or /dev path), ("stream", URL) or ("file", path) with no I/O;
+    ConfigError naming the source and the forms it may take."""
+    if isinstance(source, int) and not isinstance(source, bool) and source >= 0:
+        return "device", source
+    text = str(source).strip()
+    if text.isdigit():
+        return "device", int(text)
+    if text.startswith("/dev/"):
+        return "device", text
+    parts = _split(text)
+    scheme = parts.scheme.lower() if "://" in text else ""
+    if scheme == "file" and parts.path:
+        return "file", parts.path
+    if scheme in STREAM_SCHEMES:
+        netloc = parts.netloc.rpartition("@")[2]
+        _tcp_address(text, netloc if ":" in netloc.rpartition("]")[2] else f"{netloc}:80")
+        return "stream", text
+    is_video = text.lower().endswith(VIDEO_SUFFIXES) or Path(text).is_file()
+    if not scheme and ":" not in text and is_video:
+        return "file", text
+    raise ConfigError(f"{source!r} is not a camera source; write {CAMERA_FORMS}")
 
 
 class _BufferedReads:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from rigctl.cli.daemon import register as register_daemon
 from rigctl.cli.execute import _add_mismatch_flags, cmd_execute
+from rigctl.cli.init import register_init
 from rigctl.cli.plan import register as register_planners
 from rigctl.config import load_rig
 from rigctl.errors import (
@@ -202,6 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     register_planners(sub)
     register_daemon(sub)
+    register_init(sub)
     return parser
 
 

@@ -48,11 +48,12 @@ def lock_dir() -> Path:
 
 
 def device_keys(rig: RigConfig) -> list[str]:
-    """The rig's devices as lock keys: their URLs, lower case, sorted (the order locks are taken in,
-    so two processes never wait on each other crosswise)."""
+    """The rig's devices as lock keys: their URLs in one spelling (TCPIP:: or tcp://), sorted (the
+    order locks are taken in, so two processes never wait on each other crosswise)."""
     from rigctl.rigs import rig_kind
+    from rigctl.transport import canonical_url
 
-    return sorted({d.url.strip().lower() for d in rig_kind(rig.rig.kind).devices(rig) if d.url})
+    return sorted({canonical_url(d.url) for d in rig_kind(rig.rig.kind).devices(rig) if d.url})
 
 
 def _path(key: str) -> Path:

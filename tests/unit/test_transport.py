@@ -11,8 +11,14 @@ import pytest
 
 from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, ProtocolError
 from rigctl.testing import ScriptedTransport
-from rigctl.transport import SerialTransport, TcpTransport, open_transport
-
+from rigctl.transport import (
+    SerialTransport,
+    TcpTransport,
+    camera_source,
+    canonical_url,
+    open_transport,
+    parse_url,
+)
 
 # -- URLs ----------------------------------------------------------------------------------------
 
@@ -21,22 +27,85 @@ from rigctl.transport import SerialTransport, TcpTransport, open_transport
     "url",
     [
         "http://127.0.0.1:80",
+        "htp:/typo",
+        "COM3",
         "tcp://127.0.0.1",
         "tcp://127.0.0.1:notaport",
         "tcp://:5025",
+        "tcp://127.0.0.1:0",
+        "tcp://127.0.0.1:65536",
         "tcp://127.0.0.1:5025/path",
         "serial://dev/ttyUSB0",
         "serial:///dev/ttyUSB0?baud=fast",
         "serial:///dev/ttyUSB0?parity=E",
         "ttyUSB0",
         "",
+        "TCPIP::10.0.0.11::INSTR",
+        "TCPIP0::10.0.0.11::99999::SOCKET",
+        "TCPIP::::5025::SOCKET",
+        "ASRL3::INSTR",
+        "GPIB0::5::INSTR",
+        "tcp://[::1:5025",
     ],
 )
-def test_bad_url_names_the_url_and_the_accepted_forms(url: str) -> None:
+def test_bad_url_names_the_url_and_what_to_write(url: str) -> None:
     with pytest.raises(ConfigError) as info:
+        parse_url(url)
+    message = str(info.value)
+    assert repr(url) in message
+    assert "tcp://HOST:PORT" in message or "serial:///dev/ttyUSB0?baud=9600" in message
+    with pytest.raises(ConfigError):  # and open_transport refuses it the same way, unopened
         open_transport(url)
-    assert repr(url) in str(info.value)
-    assert "tcp://host:port" in str(info.value) or "baud" in str(info.value)
+
+
+def test_a_visa_port_number_is_refused_asking_for_the_device_path() -> None:
+    with pytest.raises(ConfigError, match="give the device path, e.g. ASRL/dev/ttyUSB0::INSTR"):
+        parse_url("ASRL1::INSTR")
+
+
+@pytest.mark.parametrize(
+    "url, parsed",
+    [
+        ("tcp://10.0.0.11:5025", ("tcp", "10.0.0.11", 5025)),
+        ("tcp://bop-1.lab:5025/", ("tcp", "bop-1.lab", 5025)),
+        ("tcp://[::1]:5025", ("tcp", "::1", 5025)),
+        ("TCPIP::10.0.0.11::5025::SOCKET", ("tcp", "10.0.0.11", 5025)),
+        ("TCPIP0::bop-1.lab::5025::SOCKET", ("tcp", "bop-1.lab", 5025)),
+        ("tcpip3::10.0.0.12::4000::socket", ("tcp", "10.0.0.12", 4000)),
+        ("serial:///dev/ttyUSB0?baud=9600", ("serial", "/dev/ttyUSB0", 9600)),
+        ("serial:///dev/ttyACM0", ("serial", "/dev/ttyACM0", 115200)),
+        ("/dev/pts/7", ("serial", "/dev/pts/7", 115200)),
+        # VISA opens an ASRL resource at 9600 baud unless told otherwise (VI_ATTR_ASRL_BAUD)
+        ("ASRL/dev/ttyUSB0::INSTR", ("serial", "/dev/ttyUSB0", 9600)),
+    ],
+)
+def test_device_urls_and_visa_resources_parse_to_one_address(url, parsed) -> None:
+    assert parse_url(url) == parsed
+
+
+def test_one_spelling_per_device() -> None:
+    assert canonical_url("TCPIP0::BOP-1.lab::5025::SOCKET") == canonical_url("tcp://bop-1.lab:5025")
+    assert canonical_url("ASRL/dev/ttyUSB0::INSTR") == canonical_url("serial:///dev/ttyUSB0?baud=19200")
+    assert canonical_url("http://Cam:8080/s.mjpg") == "http://cam:8080/s.mjpg"  # no device URL
+
+
+@pytest.mark.parametrize(
+    "source, kind",
+    [(0, ("device", 0)), ("0", ("device", 0)), ("/dev/video0", ("device", "/dev/video0")),
+     ("http://10.0.0.5:8080/stream.mjpg", ("stream", "http://10.0.0.5:8080/stream.mjpg")),
+     ("https://cam.lab/video", ("stream", "https://cam.lab/video")),
+     ("runs/fig4.mp4", ("file", "runs/fig4.mp4")), ("file:///data/run.avi", ("file", "/data/run.avi"))],
+)
+def test_camera_sources(source, kind) -> None:
+    assert camera_source(source) == kind
+
+
+@pytest.mark.parametrize(
+    "source", ["htp:/typo", "COM3", "http://[cam:80/x", "http://:8080/x", "http://cam:99999/x", -1])
+def test_bad_camera_source_says_what_to_write(source) -> None:
+    with pytest.raises(ConfigError) as info:
+        camera_source(source)
+    assert repr(source) in str(info.value)
 
 
 def _free_port() -> int:
