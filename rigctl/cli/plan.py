@@ -25,12 +25,15 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rigctl.config import MagnetSettings, load_rig
 from rigctl.errors import ConfigError, PlanError
-from rigctl.plans.checks import WorkspaceSource
+
+if TYPE_CHECKING:  # numba compiles nothing for the commands that do not plan
+    from rigctl.plans.checks import WorkspaceSource
 
 log = logging.getLogger(__name__)
 
@@ -337,7 +340,7 @@ def _options(args: argparse.Namespace, tree_meta: dict | None):
 
 def run_rrt(args: argparse.Namespace) -> int:
     """`rigctl plan rrt`: plan, write the plan, report. Returns the exit status."""
-    from rigctl.plans.checks import contact_for_rig
+    from rigctl.plans.checks import WorkspaceSource, contact_for_rig
     from rigctl.plans.model import GlobalInputModel
     from rigctl.plans.rrt import RrtTree, check_tree_meta, plan_rrt, polish, tree_meta
 
@@ -437,6 +440,7 @@ def _write_plan(output: Path, source: WorkspaceSource, rig: str, name: str, star
 
 def run_coverage(args: argparse.Namespace) -> int:
     """`rigctl plan coverage`: coverage of a saved tree. Returns the exit status."""
+    from rigctl.plans.checks import WorkspaceSource
     from rigctl.plans.coverage import coverage, free_bounding_box
     from rigctl.plans.rrt import RrtTree
 
@@ -467,6 +471,7 @@ def run_coverage(args: argparse.Namespace) -> int:
 
 def run_wall_contact(args: argparse.Namespace) -> int:
     """`rigctl plan wall-contact`: Alg. 1 of seed 004, the plan written. Returns the exit status."""
+    from rigctl.plans.checks import WorkspaceSource
     from rigctl.plans.model import GlobalInputModel
     from rigctl.plans.wall_contact import centre_region, plan_with_model
 
@@ -563,6 +568,7 @@ def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
 
 def run_reachable(args: argparse.Namespace) -> int:
     """`rigctl plan reachable`: reachable fractions of the Delta space. Returns the exit status."""
+    from rigctl.plans.checks import WorkspaceSource
     from rigctl.plans.wall_contact import (
         DiskRegion,
         PolygonRegion,
