@@ -4,17 +4,18 @@ Compiled kernels are cached in the first writable directory of: `$NUMBA_CACHE_DI
 choice), `$CACHE_DIRECTORY` (systemd's, from the unit's `CacheDirectory=rigctl`),
 `$XDG_CACHE_HOME/rigctl` or `~/.cache/rigctl`. With none of them writable (a read-only install and
 home) the kernels are compiled in memory, in every process, instead of dying at import: numba's
-`cache=True` raises when it finds no writable place. This is decided once, when this module is
-imported, before numba is: numba reads `NUMBA_CACHE_DIR` when `numba.core.config` is imported
-(and again, only when a `NUMBA_` variable changed, when the compiler calls `reload_config`), and
-it picks a kernel's cache directory when the kernel is decorated. Child processes inherit the
-setting through the environment.
+`cache=True` raises when it finds no writable place. The place is decided once, when this module
+is imported, and set as `NUMBA_CACHE_DIR` before numba is imported: numba reads it when
+`numba.core.config` is imported (again, if a `NUMBA_` variable changed, at `reload_config`), and
+picks a kernel's cache directory when the kernel is made. Child processes inherit the setting.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import tempfile
+import threading
 from collections.abc import Mapping
 
 
@@ -43,12 +44,36 @@ def _writable(path: str) -> bool:
 CACHE_DIR = cache_dir()
 if CACHE_DIR is not None:
     os.environ["NUMBA_CACHE_DIR"] = CACHE_DIR
-
-import numba  # after NUMBA_CACHE_DIR is set
-
-numba.core.config.reload_config()  # in case numba was imported before this module
+_lock = threading.Lock()
 
 
 def njit(**options):
-    """`numba.njit(**options)`, cached on disk when `CACHE_DIR` is set."""
-    return numba.njit(cache=CACHE_DIR is not None, **options)
+    """`numba.njit(**options)`, cached on disk when `CACHE_DIR` is set, made at the first call of
+    a kernel of the module: a command that computes nothing does not import numba."""
+    return lambda py_func: _Kernel(py_func, options)
+
+
+class _Kernel:
+    """A kernel until its module's first call: then every kernel of the module becomes numba's
+    dispatcher in the module's globals, so that kernels calling kernels find dispatchers."""
+
+    def __init__(self, py_func, options: dict) -> None:
+        functools.update_wrapper(self, py_func)
+        self.py_func, self.options, self.dispatcher = py_func, options, None
+
+    def __call__(self, *args, **kwargs):
+        if self.dispatcher is None:
+            with _lock:
+                _compile_module(self.py_func.__globals__)
+        return self.dispatcher(*args, **kwargs)
+
+
+def _compile_module(namespace: dict) -> None:
+    import numba  # after NUMBA_CACHE_DIR is set
+
+    numba.core.config.reload_config()  # in case numba was imported before CACHE_DIR was set
+    for name, kernel in list(namespace.items()):
+        if isinstance(kernel, _Kernel) and kernel.dispatcher is None:
+            kernel.dispatcher = numba.njit(cache=CACHE_DIR is not None, **kernel.options)(
+                kernel.py_func)
+            namespace[name] = kernel.dispatcher
