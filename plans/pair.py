@@ -34,11 +34,11 @@ import math
 import time
 from dataclasses import dataclass, replace
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
 from rigctl.errors import PlanError
+from rigctl.jit import njit
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +171,7 @@ def propagate_local(r: ArrayLike, phi: ArrayLike, psi_g: ArrayLike, dt: ArrayLik
     return rs[-1].reshape(shape), ps[-1].reshape(shape)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _rk4_local(r0, phi0, psi_g, dt, rate, rs, ps):  # pragma: no cover - compiled
     """RK4 of eq. 3's local rows for each candidate i (n,), sub-steps as rows of rs, ps
     (steps + 1, n). 1 - 3 cos^2 psi is written -1/2 - 3/2 cos 2 psi (this loop is the planner's
@@ -192,7 +192,7 @@ def _rk4_local(r0, phi0, psi_g, dt, rate, rs, ps):  # pragma: no cover - compile
             rs[s + 1, i], ps[s + 1, i] = r, p
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+@njit(error_model="numpy", inline="always")
 def _local_rates(r, phi, two_psi_g, rate):  # pragma: no cover - compiled
     a = two_psi_g - 2.0 * phi
     k = rate / (r * r * r * r)

@@ -41,12 +41,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy import ndimage
 
 from rigctl.errors import PlanError
+from rigctl.jit import njit
 
 if TYPE_CHECKING:
     from rigctl.plans.schema import ImageWorkspaceSpec, ShapeWorkspaceSpec
@@ -487,7 +487,7 @@ class _ShapeTable:
         )
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _shape_query(
     points, kind, sign, param, vertex, edge, length2, outward, bisector, features,
     phi, normal, kappa, term, piece,
@@ -579,7 +579,7 @@ def _shape_query(
         kappa[i] = sign[j] * k
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _polygon_distance(x, y, first, stop, vertex, edge, length2):  # pragma: no cover - compiled
     """Signed distance from (x, y) to the polygon of vertices first..stop-1 (negative inside),
     the index of its nearest edge (the first of equals) and the sign (-1 inside, else 1)."""
@@ -607,7 +607,7 @@ def _polygon_distance(x, y, first, stop, vertex, edge, length2):  # pragma: no c
     return sign * math.sqrt(best2), nearest, sign
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _point_segment_distance(px, py, ax, ay, dx, dy):  # pragma: no cover - compiled
     """Distance from (px, py) to the segment from (ax, ay) along (dx, dy)."""
     wx = px - ax
@@ -619,7 +619,7 @@ def _point_segment_distance(px, py, ax, ay, dx, dy):  # pragma: no cover - compi
     return math.sqrt(gx * gx + gy * gy)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _segment_enters_box(ax, ay, dx, dy, cx, cy, hx, hy):  # pragma: no cover - compiled
     """Whether the segment from (ax, ay) along (dx, dy) meets the box centre (cx, cy), half
     size (hx, hy) (slab test: the parameter ranges inside the x and the y slab overlap)."""
@@ -628,7 +628,7 @@ def _segment_enters_box(ax, ay, dx, dy, cx, cy, hx, hy):  # pragma: no cover - c
     return low <= high
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _slab(a, d, c, h, low, high):  # pragma: no cover - compiled
     """[low, high] narrowed to the t where a + t d lies in [c - h, c + h] (empty: low > high)."""
     if d == 0.0:
@@ -638,7 +638,7 @@ def _slab(a, d, c, h, low, high):  # pragma: no cover - compiled
     return max(low, min(t1, t2)), min(high, max(t1, t2))
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _box_distance(x, y, cx, cy, hx, hy):  # pragma: no cover - compiled
     """Signed distance from (x, y) to the box centre (cx, cy), half size (hx, hy): with
     q = |p - c| - h, sqrt(max(q, 0)^2) + min(max(qx, qy), 0); sqrt(x^2 + y^2) rather than hypot,
@@ -650,7 +650,7 @@ def _box_distance(x, y, cx, cy, hx, hy):  # pragma: no cover - compiled
     return math.sqrt(ox * ox + oy * oy) + min(max(qx, qy), 0.0)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _segments_distance(ax, ay, dx, dy, bx, by, ex, ey):  # pragma: no cover - compiled
     """Distance between segments a + s d and b + t e (s, t in [0, 1]); 0 where they cross."""
     # Proper crossing: each segment's ends lie strictly on both sides of the other's line.
@@ -668,7 +668,7 @@ def _segments_distance(ax, ay, dx, dy, bx, by, ex, ey):  # pragma: no cover - co
     )
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _shape_sweep_clear(
     points, moves, rho, kind, sign, param, vertex, edge, length2, outward, bisector, clear,
 ):  # pragma: no cover - compiled
@@ -679,7 +679,7 @@ def _shape_sweep_clear(
                                   kind, sign, param, vertex, edge, length2)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _segment_clear(
     ax, ay, dx, dy, rho, kind, sign, param, vertex, edge, length2,
 ):  # pragma: no cover - compiled
@@ -736,7 +736,7 @@ def _segment_clear(
     return True
 
 
-@numba.njit(cache=True, error_model="numpy")
+@njit(error_model="numpy")
 def _shape_slide_clear(
     points, moves, rho, normal, tol, kind, sign, param, vertex, edge, length2, outward,
     clear,

@@ -28,6 +28,7 @@ from rigctl.errors import (
     RigError,
     interrupt_name,
 )
+from rigctl.logs import configure as configure_logs
 
 log = logging.getLogger("rigctl")
 
@@ -212,11 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     # a service's log is its record of what happened (state changes, loads, which threads run
     # at realtime priority): the daemon logs INFO; interactive commands only warnings
-    quiet_level = logging.INFO if args.func.__name__ == "_cmd_daemon" else logging.WARNING
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else quiet_level,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    configure_logs(args.verbose, service=args.func.__name__ == "_cmd_daemon")
     try:
         return args.func(args)
     except (PlanError, ConfigError, LimitError) as err:

@@ -25,11 +25,15 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rigctl.config import MagnetSettings, load_rig
 from rigctl.errors import ConfigError, PlanError
+
+if TYPE_CHECKING:  # numba compiles nothing for the commands that do not plan
+    from rigctl.plans.checks import WorkspaceSource
 
 log = logging.getLogger(__name__)
 
@@ -336,11 +340,9 @@ def _options(args: argparse.Namespace, tree_meta: dict | None):
 
 def run_rrt(args: argparse.Namespace) -> int:
     """`rigctl plan rrt`: plan, write the plan, report. Returns the exit status."""
-    from rigctl.plans.checks import contact_for_rig
+    from rigctl.plans.checks import WorkspaceSource, contact_for_rig
     from rigctl.plans.model import GlobalInputModel
     from rigctl.plans.rrt import RrtTree, check_tree_meta, plan_rrt, polish, tree_meta
-
-    from rigctl.plans.checks import WorkspaceSource  # numba, scipy: only when planning
 
     source = WorkspaceSource(args.workspace)
     starts = _points(args.start, "--start")
@@ -408,7 +410,7 @@ def run_rrt(args: argparse.Namespace) -> int:
     return EXIT_SOLVED if solved else EXIT_NOT_SOLVED
 
 
-def _write_plan(output: Path, source: "WorkspaceSource", rig: str, name: str, starts, goals, radii,
+def _write_plan(output: Path, source: WorkspaceSource, rig: str, name: str, starts, goals, radii,
                 moves, states, tolerance: float, min_separation: float) -> None:
     from rigctl.plans.checks import check_plan
     from rigctl.plans.schema import dump_plan, parse_plan
@@ -438,10 +440,9 @@ def _write_plan(output: Path, source: "WorkspaceSource", rig: str, name: str, st
 
 def run_coverage(args: argparse.Namespace) -> int:
     """`rigctl plan coverage`: coverage of a saved tree. Returns the exit status."""
+    from rigctl.plans.checks import WorkspaceSource
     from rigctl.plans.coverage import coverage, free_bounding_box
     from rigctl.plans.rrt import RrtTree
-
-    from rigctl.plans.checks import WorkspaceSource  # numba, scipy: only when planning
 
     source = WorkspaceSource(args.workspace)
     if not args.grid > 0:
@@ -470,10 +471,9 @@ def run_coverage(args: argparse.Namespace) -> int:
 
 def run_wall_contact(args: argparse.Namespace) -> int:
     """`rigctl plan wall-contact`: Alg. 1 of seed 004, the plan written. Returns the exit status."""
+    from rigctl.plans.checks import WorkspaceSource
     from rigctl.plans.model import GlobalInputModel
     from rigctl.plans.wall_contact import centre_region, plan_with_model
-
-    from rigctl.plans.checks import WorkspaceSource  # numba, scipy: only when planning
 
     source = WorkspaceSource(args.workspace)
     document = source.document
@@ -568,6 +568,7 @@ def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
 
 def run_reachable(args: argparse.Namespace) -> int:
     """`rigctl plan reachable`: reachable fractions of the Delta space. Returns the exit status."""
+    from rigctl.plans.checks import WorkspaceSource
     from rigctl.plans.wall_contact import (
         DiskRegion,
         PolygonRegion,
@@ -583,8 +584,6 @@ def run_reachable(args: argparse.Namespace) -> int:
             raise PlanError("--polygon: give at least three vertices X,Y;X,Y;X,Y")
         region = PolygonRegion(vertices)
     else:
-        from rigctl.plans.checks import WorkspaceSource  # numba, scipy: only when planning
-
         source = WorkspaceSource(args.workspace)
         if "boundary" not in source.document or source.document.get("obstacles"):
             raise PlanError("--workspace: needs a convex shape boundary without obstacles")
