@@ -4,7 +4,10 @@ lock on every one of its devices, so that a second one is refused before it conn
 The locks are keyed by the devices (each actuator's and sensor's URL, as the rig kind lists them),
 not by the rig file's name: two rig files naming the same supplies are the same rig, and a rig
 that shares one device with another is refused too. Each device is a file in the lock folder
-(`RIGCTL_LOCK_DIR`, else `/tmp/rigctl-locks`) held with `flock`: the kernel drops a lock when its
+(`RIGCTL_LOCK_DIR`, else `/run/lock/rigctl`, the machine's lock folder, which a service's
+`PrivateTmp=` does not hide as it hides /tmp; `/tmp/rigctl-locks` where there is no /run/lock),
+each file writable by everyone so the daemon's user and an operator's see the same locks, held
+with `flock`: the kernel drops a lock when its
 process dies, however it dies, so a lock left behind by a crash is free to take at once, and the
 file's content (who, pid, since, where it answers control requests) is only ever read while
 the lock is held by the process it names.
@@ -44,7 +47,9 @@ class Holder:
 
 
 def lock_dir() -> Path:
-    return Path(os.environ.get("RIGCTL_LOCK_DIR") or "/tmp/rigctl-locks")
+    if os.environ.get("RIGCTL_LOCK_DIR"):
+        return Path(os.environ["RIGCTL_LOCK_DIR"])
+    return Path("/run/lock/rigctl") if Path("/run/lock").is_dir() else Path("/tmp/rigctl-locks")
 
 
 def device_keys(rig: RigConfig) -> list[str]:
@@ -72,7 +77,9 @@ class RigLock:
     def acquire(self) -> RigLock:
         folder = lock_dir()
         try:
-            folder.mkdir(mode=0o1777, parents=True, exist_ok=True)
+            if not folder.is_dir():
+                folder.mkdir(parents=True, exist_ok=True)
+                os.chmod(folder, 0o1777)  # whatever the umask (a unit's is 0027): every user's
         except OSError as err:
             raise ConfigError(f"cannot create the rig lock folder {folder}: {err.strerror}; set "
                               "RIGCTL_LOCK_DIR to a writable folder") from None
@@ -86,7 +93,13 @@ class RigLock:
 
     def _take(self, key: str) -> None:
         path = _path(key)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as err:
+            raise ConfigError(f"cannot open the rig lock {path}: {err.strerror}; set "
+                              "RIGCTL_LOCK_DIR to a folder every rigctl user can write") from None
+        if os.fstat(fd).st_uid == os.getuid():
+            os.fchmod(fd, 0o666)  # the next owner may be another user (the daemon's, an operator)
         for attempt in range(TRIES):  # a `holder_of` looking in holds it for a moment
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

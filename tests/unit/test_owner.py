@@ -99,3 +99,29 @@ def test_rigctl_execute_on_an_owned_rig_exits_2_before_connecting(tmp_path):
     assert f"rig in use by rigctl daemon, pid {child.pid}" in done.stderr
     assert "Traceback" not in done.stderr
     assert not (tmp_path / "runs").exists()
+
+
+def test_the_locks_are_every_users_whatever_the_umask(lock_dir):
+    """The daemon runs as its own user under umask 0027 (the unit's); an operator's `rigctl
+    execute` or `estop --rig` must still open the same lock files."""
+    import stat
+
+    old = os.umask(0o027)
+    try:
+        with RigLock(six_coil_rig(40100), "rigctl daemon"):
+            pass
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(lock_dir.stat().st_mode) == 0o1777
+    files = list(lock_dir.iterdir())
+    assert len(files) == 6 and all(stat.S_IMODE(f.stat().st_mode) == 0o666 for f in files)
+
+
+def test_the_default_lock_folder_is_not_in_tmp_where_a_service_cannot_share_it(monkeypatch):
+    from pathlib import Path
+
+    from rigctl.rigs.owner import lock_dir
+
+    monkeypatch.delenv("RIGCTL_LOCK_DIR")
+    expected = "/run/lock/rigctl" if Path("/run/lock").is_dir() else "/tmp/rigctl-locks"
+    assert str(lock_dir()) == expected
