@@ -198,8 +198,8 @@ class EmulatedBench:
             from rigctl.plans.schema import parse_workspace
             from rigctl.plans.workspace import Workspace
 
-            workspace = Workspace.from_spec(parse_workspace(request["workspace"], "floor: workspace"))
-            floor[:] = [Scene(workspace, np.zeros((0, 2)), np.zeros(0))]
+            spec = parse_workspace(request["workspace"], "floor: workspace")
+            floor[:] = [Scene(Workspace.from_spec(spec), np.zeros((0, 2)), np.zeros(0))]
             return {}
 
         self.commands["floor"] = lay_floor

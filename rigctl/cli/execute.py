@@ -18,10 +18,11 @@ from rigctl.run.summary import exit_code, print_summary
 
 # run options: CLI flag -> the builder's keyword (a builder takes only those it names)
 _RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-scale": "time_scale"}
-# emulated-bench options: CLI flag -> the keywords of a bench's constructor, one of which takes it
-_BENCH_FLAGS = {"--world": ("world",), "--firmware": ("firmware",), "--seed": ("seed", "mismatch"),
-                **{flag: ("mismatch",) for flag in ("--slip", "--speed-spread", "--drift", "--noise",
-                                                     "--field-at-robots")}}
+# emulated-bench options (`rigctl emulate` flags): CLI flag -> the keywords of a bench's
+# constructor, one of which takes it
+_BENCH_FLAGS = {**dict.fromkeys(("--slip", "--speed-spread", "--drift", "--noise",
+                                 "--field-at-robots"), ("mismatch",)),
+                "--seed": ("seed", "mismatch"), "--world": ("world",), "--firmware": ("firmware",)}
 
 
 def refuse_foreign(flags: list[str], table: dict, target, where: str) -> None:
@@ -36,7 +37,7 @@ def refuse_foreign(flags: list[str], table: dict, target, where: str) -> None:
 
 def refuse_foreign_bench_flags(args: argparse.Namespace, kind: str, where: str) -> None:
     """The emulated-bench flags given that the bench of rig kind `kind` does not take, refused."""
-    flags = [arg for arg in _bench_args(args) if arg.startswith("--")]
+    flags = [arg for arg in _bench_args(args) if arg in _BENCH_FLAGS]
     if flags:  # the bench's module (OpenCV, the world models) only imported to check them
         from rigctl.emulators.base import bench_class
 
@@ -52,26 +53,13 @@ def _run_options(args: argparse.Namespace) -> dict:
 def _bench_args(args: argparse.Namespace) -> list[str]:
     """The emulated bench's flags given (model mismatch, world, firmware) as `rigctl emulate`
     arguments."""
-    out = _mismatch_args(args)
-    for flag in ("world", "firmware"):
-        if getattr(args, flag, None):
-            out += [f"--{flag}", getattr(args, flag)]
-    return out
-
-
-_MISMATCH_FLAGS = (("slip", "--slip"), ("speed_spread", "--speed-spread"), ("drift", "--drift"),
-                   ("noise", "--noise"), ("seed", "--seed"))
-
-
-def _mismatch_args(args: argparse.Namespace) -> list[str]:
-    """The model-mismatch flags given, as `rigctl emulate` arguments."""
     out = []
-    for name, flag in _MISMATCH_FLAGS:
-        value = getattr(args, name, None)
-        if value is not None:
+    for flag in _BENCH_FLAGS:
+        value = getattr(args, flag[2:].replace("-", "_"), None)
+        if value is True:
+            out.append(flag)
+        elif value is not None and value is not False:
             out += [flag, str(value)]
-    if getattr(args, "field_at_robots", False):
-        out.append("--field-at-robots")
     return out
 
 

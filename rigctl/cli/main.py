@@ -26,6 +26,7 @@ from rigctl.cli.paths import (
     input_file,
     output_file,
 )
+from rigctl.cli.plan import points_mm
 from rigctl.cli.plan import register as register_planners
 from rigctl.config import load_rig
 from rigctl.errors import (
@@ -79,13 +80,8 @@ def _cmd_calibrate_camera(args: argparse.Namespace) -> int:
     elif args.markers is not None:
         if args.marker_radius is None:
             raise ConfigError("--markers needs --marker-radius")
-        try:
-            points = [[float(x), float(y)] for x, y in
-                      (p.split(",") for p in args.markers.split(";") if p.strip())]
-        except ValueError:
-            raise ConfigError(f"--markers: expected 'x,y;x,y;...' in mm, got {args.markers!r}") \
-                from None
-        options["markers_mm"] = points
+        options["markers_mm"] = points_mm([p for p in args.markers.split(";") if p.strip()],
+                                          "--markers")
         options["marker_radius_mm"] = args.marker_radius
     else:
         raise ConfigError("give --plan (workspace corners) or --markers 'x,y;x,y;...'")
@@ -182,7 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
         "switched on. Prints progress, a summary, and writes a run record directory.",
     )
     p.add_argument("plan", type=input_file("plan"), help="plan file (JSON, see `rigctl schema plan`)")
-    p.add_argument("--rig", type=input_file("rig file"), help="rig file (TOML) for real hardware or one written by `rigctl emulate`")
+    p.add_argument("--rig", type=input_file("rig file"),
+                   help="rig file (TOML) for real hardware or one written by `rigctl emulate`")
     p.add_argument("--connect", metavar="ENDPOINT",
                    help="submit to a running `rigctl daemon` (e.g. tcp://127.0.0.1:5555) and follow it")
     p.add_argument("--json", action="store_true", help="end the output with one JSON line")
@@ -218,7 +215,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Serve every device of the rig kind on its real protocol on "
                        "loopback, write a rig file pointing at them, run until interrupted.")
     p.add_argument("kind", choices=["six-coil", "coil-board", "depm"], help="rig kind")
-    p.add_argument("--rig-out", default="bench.toml", type=output_file("rig file"), help="where to write the rig file")
+    p.add_argument("--rig-out", default="bench.toml", type=output_file("rig file"),
+                   help="where to write the rig file")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
     _add_mismatch_flags(p)
     _add_bench_flags(p)
@@ -231,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("what", choices=["camera"])
     p.add_argument("--rig", required=True, type=input_file("rig file"),
                    help="rig file with a [camera] table")
-    p.add_argument("--plan", type=input_file("plan"), help="a plan whose workspace boundary the camera sees (corners)")
+    p.add_argument("--plan", type=input_file("plan"),
+                   help="a plan whose workspace boundary the camera sees (corners)")
     p.add_argument("--markers", help="known marker centres, 'x,y;x,y;...' in mm")
     p.add_argument("--marker-radius", type=float, help="the markers' radius in mm")
     p.add_argument("-o", "--output", type=output_file("rig file"),

@@ -1,10 +1,9 @@
 """Paths as the command line takes them, checked where they come in (argparse `type=`), so that a
 bad one is one line naming it and exit 2 before anything is done, never a traceback from deep
 inside a command: a file to read exists, is a file, can be read, is not empty and (for text) is
-UTF-8; a file to write has a folder to go in; a folder is not a file.
+UTF-8; a file to write has a writable folder to go in; a folder is not a file.
 
-Coordinates as options take them (`--start -8,-6`, `--markers '-5,0;5,0'`) are values, not
-options: `coordinates_are_values(parser)` tells argparse so.
+`coordinates_are_values(parser)` makes "-8,-6" an option's value, not an option.
 """
 
 from __future__ import annotations
@@ -23,26 +22,22 @@ class BadPath(RigError):
     (it would make a usage message of it) to `rigctl.cli.main`, which prints it as bad input."""
 
 
-def _describe(what: str) -> str:
-    return f"{what} " if what else ""
-
-
 def input_file(what: str, *, text: bool = True) -> Callable[[str], str]:
-    """An argparse type: a file to read (`what`: "plan", "rig file", ...); UTF-8 text unless
-    `text` is false. Returns the path as given."""
+    """An argparse type: a file to read (`what`: "plan", "rig file", ...), UTF-8 unless `text`
+    is false."""
 
     def check(value: str) -> str:
         path = Path(value)
         if not path.exists():
-            raise BadPath(f"{_describe(what)}{value}: no such file")
+            raise BadPath(f"{what} {value}: no such file")
         if path.is_dir():
-            raise BadPath(f"{value}: is a folder, not a {what or 'file'}")
+            raise BadPath(f"{value}: is a folder, not a {what}")
         try:
             data = path.read_bytes()
         except OSError as err:
-            raise BadPath(f"{_describe(what)}{value}: cannot read: {err.strerror}") from None
+            raise BadPath(f"{what} {value}: cannot read: {err.strerror}") from None
         if not data.strip():
-            raise BadPath(f"{value}: empty file, not a {what or 'file'}")
+            raise BadPath(f"{value}: empty file, not a {what}")
         if text:
             try:
                 data.decode("utf-8")
@@ -55,49 +50,47 @@ def input_file(what: str, *, text: bool = True) -> Callable[[str], str]:
 
 
 def output_file(what: str) -> Callable[[str], str]:
-    """An argparse type: a file to write (`what` names it); its folder exists and is writable."""
+    """An argparse type: a file to write (`what` names it)."""
 
     def check(value: str) -> str:
         path = Path(value)
         if path.is_dir():
             raise BadPath(f"{value}: is a folder; give the {what} file to write")
-        folder = path.resolve().parent
-        if not folder.is_dir():
-            raise BadPath(f"{value}: cannot write the {what}: folder {folder} does not exist")
-        if not os.access(folder, os.W_OK):
-            raise BadPath(f"{value}: cannot write the {what}: folder {folder} is not writable")
+        _writable(value, path.resolve().parent, f"write the {what}")
         return value
 
     return check
 
 
 def folder(what: str, *, write: bool = False) -> Callable[[str], str]:
-    """An argparse type: a folder (`what` names it). It may be missing when `write` (it is made
-    then) if the folder it would go in exists; it must be writable when `write`."""
+    """An argparse type: a folder of `what`; with `write` it may be missing (it is made then)."""
 
     def check(value: str) -> str:
         path = Path(value)
         if path.exists() and not path.is_dir():
             raise BadPath(f"{value}: is a file, not a folder of {what}")
-        if not write:
-            if not path.is_dir():
-                raise BadPath(f"{value}: no such folder of {what}")
-            return value
-        existing = path if path.is_dir() else path.resolve().parent
-        if not existing.is_dir():
-            raise BadPath(f"{value}: cannot make the folder of {what}: {existing} does not exist")
-        if not os.access(existing, os.W_OK):
-            raise BadPath(f"{value}: the folder of {what} {existing} is not writable")
+        if write:
+            _writable(value, path if path.is_dir() else path.resolve().parent,
+                      f"write the {what} there")
+        elif not path.is_dir():
+            raise BadPath(f"{value}: no such folder of {what}")
         return value
 
     return check
 
 
-# a value such as "-8,-6", "-8.5,6,1" or "-5,0;5,0" (argparse itself knows "-8" and "-.5" only)
-_NUMBERS = re.compile(r"^-\.?\d[\d.eE+-]*([,;]\s*[-+]?\.?\d[\d.eE+-]*)*[;]?$")
+def _writable(value: str, where: Path, doing: str) -> None:
+    if not where.is_dir():
+        raise BadPath(f"{value}: cannot {doing}: folder {where} does not exist")
+    if not os.access(where, os.W_OK):
+        raise BadPath(f"{value}: cannot {doing}: folder {where} is not writable")
+
+
+# "-8,-6", "-8.5,6,1" or "-5,0;5,0" (argparse itself takes only "-8" and "-.5" for numbers)
+_NUMBERS = re.compile(r"^-\.?\d[\d.eE+-]*([,;]\s*[-+]?\.?\d[\d.eE+-]*)*;?$")
 
 
 def coordinates_are_values(parser: argparse.ArgumentParser) -> None:
-    """Let `parser` take "-8,-6" (and "-8") as an option's value, as `--start=-8,-6` already is.
-    argparse has no public switch for it: this sets the pattern it tells numbers by."""
+    """Let `parser` take "-8,-6" as an option's value, as it takes `--start=-8,-6`. argparse has
+    no public switch for it: this sets the pattern it tells negative numbers by."""
     parser._negative_number_matcher = _NUMBERS

@@ -102,7 +102,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--raster", type=float, default=DEFAULT_RASTER_MM, metavar="MM",
                    help="plan on a raster of this pitch in mm (default 0: the exact geometry); the "
                    "written plan is always replayed on the exact geometry")
-    p.add_argument("--save-tree", metavar="FILE", type=output_file("tree"), help="write the tree (.npz) for later reuse")
+    p.add_argument("--save-tree", metavar="FILE", type=output_file("tree"),
+                   help="write the tree (.npz) for later reuse")
     p.add_argument("--tree", metavar="FILE", type=input_file("tree", text=False),
                    help="reuse a saved tree: answer the goal from it, grow it if not solved")
     p.add_argument("-o", "--output", required=True, metavar="PLAN.json", type=output_file("plan"),
@@ -163,7 +164,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--disk", action="store_true", help="a disk workspace")
     shape.add_argument("--polygon", metavar="X,Y;X,Y;...",
                        help="a convex polygon workspace given by its vertices")
-    shape.add_argument("--workspace", metavar="WS.json", type=input_file("workspace"), help="a workspace document (convex)")
+    shape.add_argument("--workspace", metavar="WS.json", type=input_file("workspace"),
+                       help="a workspace document (convex)")
     p.add_argument("--d12", type=float, required=True, metavar="D",
                    help="initial particle distance in units of the workspace diameter")
     p.add_argument("--angle", type=float, default=0.0, metavar="DEG",
@@ -237,17 +239,20 @@ def _run_depm(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- plan rrt
 
 
-def _points(values: list[str], flag: str) -> np.ndarray:
+def points_mm(values: list[str], flag: str, axes: str = "X,Y") -> np.ndarray:
+    """Points given as "X,Y" (or `axes`) in mm, (n, len(axes)); PlanError naming `flag` and the
+    point's number."""
     points = []
     for number, text in enumerate(values, start=1):
-        parts = text.replace(" ", "").split(",")
         try:
-            x, y = (float(v) for v in parts)
+            point = [float(v) for v in text.replace(" ", "").split(",")]
         except ValueError:
-            raise PlanError(f"{flag} #{number}: expected X,Y in mm, got {text!r}") from None
-        if not (math.isfinite(x) and math.isfinite(y)):
+            point = []
+        if len(point) != axes.count(",") + 1:
+            raise PlanError(f"{flag} #{number}: expected {axes} in mm, got {text!r}")
+        if not all(math.isfinite(v) for v in point):
             raise PlanError(f"{flag} #{number}: coordinates must be finite, got {text!r}")
-        points.append((x, y))
+        points.append(point)
     return np.array(points, dtype=float)
 
 
@@ -344,8 +349,8 @@ def run_rrt(args: argparse.Namespace) -> int:
     from rigctl.plans.rrt import RrtTree, check_tree_meta, plan_rrt, polish, tree_meta
 
     source = WorkspaceSource(args.workspace)
-    starts = _points(args.start, "--start")
-    goals = _points(args.goal, "--goal")
+    starts = points_mm(args.start, "--start")
+    goals = points_mm(args.goal, "--goal")
     if len(starts) != len(goals):
         raise PlanError(f"--goal: {len(goals)} goals for {len(starts)} starts; give one per robot")
     radii = _radii(args.radius, len(starts))
@@ -481,8 +486,8 @@ def run_wall_contact(args: argparse.Namespace) -> int:
                         "obstacles")
     if args.height is not None:
         return _run_wall_contact_3d(args, document)
-    starts = _points(args.start, "--start")
-    goals = _points(args.goal, "--goal")
+    starts = points_mm(args.start, "--start")
+    goals = points_mm(args.goal, "--goal")
     if len(starts) != 2 or len(goals) != 2:
         raise PlanError(f"--start/--goal: the planner places exactly two particles, got "
                         f"{len(starts)} starts and {len(goals)} goals")
@@ -527,19 +532,11 @@ def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
         prism_region,
     )
 
-    points = {}
-    for flag, values in (("--start", args.start), ("--goal", args.goal)):
-        parsed = []
-        for number, text in enumerate(values, start=1):
-            try:
-                x, y, z = (float(v) for v in text.replace(" ", "").split(","))
-            except ValueError:
-                raise PlanError(f"{flag} #{number}: with --height, expected X,Y,Z in mm, got "
-                                f"{text!r}") from None
-            parsed.append((x, y, z))
+    points = {flag: points_mm(values, flag, "X,Y,Z (with --height)")
+              for flag, values in (("--start", args.start), ("--goal", args.goal))}
+    for flag, parsed in points.items():
         if len(parsed) != 2:
             raise PlanError(f"{flag}: the planner places exactly two particles, got {len(parsed)}")
-        points[flag] = np.array(parsed)
     if not (args.height > 2 * args.radius and args.radius > 0 and args.epsilon > 0):
         raise PlanError(f"--height {args.height:g}: must exceed the particles' diameter "
                         f"{2 * args.radius:g} mm (and --radius, --epsilon > 0)")
@@ -575,7 +572,7 @@ def run_reachable(args: argparse.Namespace) -> int:
     if args.disk:
         region = DiskRegion(np.zeros(2), 0.5)
     elif args.polygon:
-        vertices = _points([v for v in args.polygon.split(";") if v.strip()], "--polygon")
+        vertices = points_mm([v for v in args.polygon.split(";") if v.strip()], "--polygon")
         if len(vertices) < 3:
             raise PlanError("--polygon: give at least three vertices X,Y;X,Y;X,Y")
         region = PolygonRegion(vertices)
