@@ -20,6 +20,9 @@ reply per line, `{"ok": true, ...}` or `{"ok": false, "error": "..."}`). Every b
   next `n` replies garbage) and `restore`; the benches add their devices' own kinds. The camera's
   are `drop_frames` (`n`), `freeze`, `black_out`, `occlude` (`"robot": index`), `drop_link`,
   `restore`, also as `{"cmd": "camera", "kind": K, ...}`. The reply is `{"device", "kind"}`.
+A bench with a camera also answers `{"cmd": "floor", "workspace": {...plan workspace...}}`: the
+workspace laid on the floor (its walls, as a real rig's floor shows them, for `rigctl calibrate
+camera`); the camera shows it while nothing is placed.
 Each bench's module lists the devices, fault kinds and commands it adds (`place`, `truth`, ...).
 """
 
@@ -37,6 +40,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
+import numpy as np
 from rigctl.emulators.backdoor import json_lines
 from rigctl.emulators.process import READY_PREFIX
 from rigctl.emulators.server import EmulatorServer, Endpoint
@@ -178,14 +182,27 @@ class EmulatedBench:
         )
 
         model = CameraModel.overhead(field_mm, tilt_deg=tilt_deg)
-        camera = self.camera = serve_camera(self.server, self._scene, Renderer(model, seed=seed),
-                                            fps=fps, host=self.host)
+        floor: list[Scene] = []  # the workspace on the floor, shown until something is placed
+        camera = self.camera = serve_camera(
+            self.server, lambda: self._scene() or (floor[0] if floor else None),
+            Renderer(model, seed=seed), fps=fps, host=self.host)
         self.add_device("camera", drop_frames=lambda r: camera.drop_frames(int(r.get("n", 1))),
                         freeze=lambda _: camera.freeze(), black_out=lambda _: camera.black_out(),
                         occlude=lambda r: camera.occlude(int(r["robot"])),
                         drop_link=lambda _: camera.endpoint.drop_link(),  # type: ignore[union-attr]
                         restore=lambda _: camera.restore())
         self.commands["camera"] = lambda r: self._fault({**r, "device": "camera"})
+
+        def lay_floor(request: dict) -> dict:
+            from rigctl.emulators.camera.render import Scene
+            from rigctl.plans.schema import parse_workspace
+            from rigctl.plans.workspace import Workspace
+
+            spec = parse_workspace(request["workspace"], "floor: workspace")
+            floor[:] = [Scene(Workspace.from_spec(spec), np.zeros((0, 2)), np.zeros(0))]
+            return {}
+
+        self.commands["floor"] = lay_floor
         return CameraSettings(url=camera.url, stamped=True, fps=fps, resolution=PAPER_RESOLUTION,
                               calibration=model.calibration())
 

@@ -294,13 +294,21 @@ def _cmd_runs(args: argparse.Namespace) -> int:
     if args.connect:
         with _client(args.connect, args.server_key, args.client_key) as rig:
             runs = rig.runs(limit=args.limit)
+        where = args.connect
     else:
+        from rigctl.cli.paths import folder
         from rigctl.record import list_runs
 
-        runs = list_runs(args.runs, limit=args.limit)
+        where = folder("run records")(args.runs)  # read here: with --connect no folder is needed
+        runs = list_runs(where, limit=args.limit)
     if args.json:
         print(json.dumps(runs))
         return EXIT_OK
+    if not runs:
+        print(f"no runs in {where}")
+        return EXIT_OK
+    width = max(len(run["id"]) for run in runs)
+    print(f"{'RUN':<{width}}  {'RESULT':<10} {'TIME (s)':>8}  PLAN")
     for run in runs:
         if not run["finished"]:
             verdict = "UNFINISHED"
@@ -308,7 +316,9 @@ def _cmd_runs(args: argparse.Namespace) -> int:
             verdict = "FAULT"
         else:
             verdict = "reached" if run.get("reached") else "missed"
-        print(f"{run['id']}  {verdict:<10} {run.get('duration_s') or '':>8}  {run.get('plan') or ''}")
+        duration = run.get("duration_s")
+        seconds = "" if duration is None else f"{duration:.1f}"
+        print(f"{run['id']:<{width}}  {verdict:<10} {seconds:>8}  {run.get('plan') or ''}")
     return EXIT_OK
 
 
@@ -416,6 +426,7 @@ def _client_options(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from rigctl.cli.paths import input_file, output_file
     from rigctl.daemon.messages import (
         DEFAULT_COMMAND_ENDPOINT,
         DEFAULT_EVENTS_ENDPOINT,
@@ -428,7 +439,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "docs/daemon-protocol.md) and telemetry. Without --rig it starts the emulated six-coil "
         "bench. Binds loopback unless told otherwise; anything else needs CURVE keys. Prints "
         "`READY command=... telemetry=... events=...` when serving. SIGTERM ramps down and exits 0.")
-    p.add_argument("--rig", help="rig file (TOML) of any rig kind; default: an emulated bench")
+    p.add_argument("--rig", type=input_file("rig file"),
+                   help="rig file (TOML) of any rig kind; default: an emulated bench")
     p.add_argument("--bench", choices=["six-coil", "coil-board", "depm"],
                    help="without --rig: which emulated bench to start (default six-coil)")
     p.add_argument("--command", help=f"command endpoint (default {DEFAULT_COMMAND_ENDPOINT})")
@@ -492,7 +504,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "each one is named. Without --rig, the daemon at --connect. Exit 0 when every device "
         "was reached, 3 otherwise.")
     _client_options(p)
-    p.add_argument("--rig", help="the rig file: reach its owner, or else its devices directly")
+    p.add_argument("--rig", type=input_file("rig file"),
+                   help="the rig file: reach its owner, or else its devices directly")
     p.set_defaults(func=_cmd_estop)
 
     p = sub.add_parser(
@@ -501,7 +514,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "board's handshake and outputs, each arm's joints, a Hall board sample, a camera frame. "
         "Nothing is switched on. Exit 0 when every device answered, 3 otherwise, 2 for a bad "
         "rig file.")
-    p.add_argument("--rig", required=True, help="the rig file (TOML)")
+    p.add_argument("--rig", required=True, type=input_file("rig file"), help="the rig file (TOML)")
     p.add_argument("--json", action="store_true", help="print the table as one JSON document")
     p.set_defaults(func=_cmd_doctor)
 
@@ -513,7 +526,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                            "daemon at --connect, or with --rig to whichever process owns the rig "
                            "(a daemon or a `rigctl execute`).")
         _client_options(p)
-        p.add_argument("--rig", help="the rig file: reach the process that owns it")
+        p.add_argument("--rig", type=input_file("rig file"),
+                       help="the rig file: reach the process that owns it")
         if verb == "pause":
             p.add_argument("--now", action="store_true",
                            help="pause at once (the field ramps down; the arms brake)")
@@ -546,5 +560,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run", help="run record folder, a run id inside --runs (or its start), or "
                    "`latest`")
     p.add_argument("--runs", default="runs", help="run records folder (default ./runs)")
-    p.add_argument("-o", "--output", help="PNG to write (default RUN/report.png)")
+    p.add_argument("-o", "--output", type=output_file("report"),
+                   help="PNG to write (default RUN/report.png)")
     p.set_defaults(func=_cmd_report)

@@ -12,6 +12,30 @@ from rigctl.errors import ConfigError, abort_on_sigterm
 
 # run options: CLI flag -> the builder's keyword (a builder takes only those it names)
 _RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-scale": "time_scale"}
+# emulated-bench options (`rigctl emulate` flags): CLI flag -> the keywords of a bench's
+# constructor, one of which takes it
+_BENCH_FLAGS = {**dict.fromkeys(("--slip", "--speed-spread", "--drift", "--noise",
+                                 "--field-at-robots"), ("mismatch",)),
+                "--seed": ("seed", "mismatch"), "--world": ("world",), "--firmware": ("firmware",)}
+
+
+def refuse_foreign(flags: list[str], table: dict, target, where: str) -> None:
+    """Refuse by name (ConfigError) each of `flags` whose keyword in `table` the callable `target`
+    does not take; `where` says what was asked ("a global-moves run on a depm rig")."""
+    takes = set(inspect.signature(target).parameters)
+    for flag in flags:
+        wanted = table[flag]
+        if takes.isdisjoint((wanted,) if isinstance(wanted, str) else wanted):
+            raise ConfigError(f"{flag}: not an option of {where}")
+
+
+def refuse_foreign_bench_flags(args: argparse.Namespace, kind: str, where: str) -> None:
+    """The emulated-bench flags given that the bench of rig kind `kind` does not take, refused."""
+    flags = [arg for arg in _bench_args(args) if arg in _BENCH_FLAGS]
+    if flags:  # the bench's module (OpenCV, the world models) only imported to check them
+        from rigctl.emulators.base import bench_class
+
+        refuse_foreign(flags, _BENCH_FLAGS, bench_class(kind), where)
 
 
 def _run_options(args: argparse.Namespace) -> dict:
@@ -23,26 +47,13 @@ def _run_options(args: argparse.Namespace) -> dict:
 def _bench_args(args: argparse.Namespace) -> list[str]:
     """The emulated bench's flags given (model mismatch, world, firmware) as `rigctl emulate`
     arguments."""
-    out = _mismatch_args(args)
-    for flag in ("world", "firmware"):
-        if getattr(args, flag, None):
-            out += [f"--{flag}", getattr(args, flag)]
-    return out
-
-
-_MISMATCH_FLAGS = (("slip", "--slip"), ("speed_spread", "--speed-spread"), ("drift", "--drift"),
-                   ("noise", "--noise"), ("seed", "--seed"))
-
-
-def _mismatch_args(args: argparse.Namespace) -> list[str]:
-    """The model-mismatch flags given, as `rigctl emulate` arguments."""
     out = []
-    for name, flag in _MISMATCH_FLAGS:
-        value = getattr(args, name, None)
-        if value is not None:
+    for flag in _BENCH_FLAGS:
+        value = getattr(args, flag[2:].replace("-", "_"), None)
+        if value is True:
+            out.append(flag)
+        elif value is not None and value is not False:
             out += [flag, str(value)]
-    if getattr(args, "field_at_robots", False):
-        out.append("--field-at-robots")
     return out
 
 
@@ -77,12 +88,11 @@ def cmd_execute(args: argparse.Namespace) -> int:
     plan = load_plan(args.plan)
     kind = rig_kind(plan.rig)
     build = kind.builder(plan.kind)
-    takes = inspect.signature(build).parameters
-    options = {}
-    for flag, value in _run_options(args).items():
-        if _RUN_FLAGS[flag] not in takes:
-            raise ConfigError(f"{flag}: not an option of a {plan.kind} run on a {kind.name} rig")
-        options[_RUN_FLAGS[flag]] = value
+    where = f"a {plan.kind} run on a {kind.name} rig"
+    given_options = _run_options(args)
+    refuse_foreign(list(given_options), _RUN_FLAGS, build, where)
+    options = {_RUN_FLAGS[flag]: value for flag, value in given_options.items()}
+    refuse_foreign_bench_flags(args, kind.name, where)
     given, implied = _bench_args(args), kind.bench_args(plan)
     if args.rig is not None and given:
         raise ConfigError(f"{' '.join(given)}: these set up the emulated bench that execute starts "

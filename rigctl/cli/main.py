@@ -14,8 +14,20 @@ import sys
 from pathlib import Path
 
 from rigctl.cli.daemon import register as register_daemon
-from rigctl.cli.execute import _add_mismatch_flags, cmd_execute
+from rigctl.cli.execute import (
+    _add_mismatch_flags,
+    cmd_execute,
+    refuse_foreign_bench_flags,
+)
 from rigctl.cli.init import register_init
+from rigctl.cli.paths import (
+    BadPath,
+    coordinates_are_values,
+    folder,
+    input_file,
+    output_file,
+)
+from rigctl.cli.plan import points_mm
 from rigctl.cli.plan import register as register_planners
 from rigctl.config import load_rig
 from rigctl.errors import (
@@ -46,7 +58,11 @@ def _add_bench_flags(p: argparse.ArgumentParser) -> None:
 def _cmd_calibrate_camera(args: argparse.Namespace) -> int:
     """Calibrate the rig's camera and write the rig file back with the calibration in it."""
     from rigctl.config import dump_rig
-    from rigctl.vision.calibration import boundary_corners_mm, calibrate_camera
+    from rigctl.vision.calibration import (
+        boundary_corners_mm,
+        calibrate_camera,
+        floor_corners_mm,
+    )
 
     rig = load_rig(args.rig)
     if rig.camera is None:
@@ -54,21 +70,20 @@ def _cmd_calibrate_camera(args: argparse.Namespace) -> int:
     options: dict = {}
     if args.plan is not None:
         from rigctl.plans.schema import load_plan
+        from rigctl.plans.workspace import Workspace
 
         plan = load_plan(args.plan)
         if not hasattr(plan.workspace, "boundary"):
             raise ConfigError("an image workspace has no boundary corners: use --markers")
-        options["corners_mm"] = boundary_corners_mm(plan.workspace.boundary)
+        # the corners the camera sees: the free floor's (a maze's walls hide the boundary's)
+        options["corners_mm"] = floor_corners_mm(Workspace.from_spec(plan.workspace),
+                                                 len(boundary_corners_mm(plan.workspace.boundary)))
+        _show_workspace_to_emulated_camera(rig, plan)
     elif args.markers is not None:
         if args.marker_radius is None:
             raise ConfigError("--markers needs --marker-radius")
-        try:
-            points = [[float(x), float(y)] for x, y in
-                      (p.split(",") for p in args.markers.split(";") if p.strip())]
-        except ValueError:
-            raise ConfigError(f"--markers: expected 'x,y;x,y;...' in mm, got {args.markers!r}") \
-                from None
-        options["markers_mm"] = points
+        options["markers_mm"] = points_mm([p for p in args.markers.split(";") if p.strip()],
+                                          "--markers")
         options["marker_radius_mm"] = args.marker_radius
     else:
         raise ConfigError("give --plan (workspace corners) or --markers 'x,y;x,y;...'")
@@ -79,6 +94,20 @@ def _cmd_calibrate_camera(args: argparse.Namespace) -> int:
     out.write_text(dump_rig(rig.model_copy(update={"camera": camera})))
     print(f"camera calibrated; written to {out}")
     return EXIT_OK
+
+
+def _show_workspace_to_emulated_camera(rig, plan) -> None:
+    """On an emulated bench, lay the plan's workspace on the floor its camera sees (a real rig's
+    floor has its walls; the emulated one shows nothing until told what is there)."""
+    if rig.emulation is None:
+        return
+    from rigctl.emulators.backdoor import BackdoorClient
+    from rigctl.run.agents import portable_workspace
+
+    with BackdoorClient(rig.emulation.backdoor) as backdoor:
+        backdoor.request("floor", workspace=portable_workspace(plan))
+    print(f"emulated bench: the workspace of {plan.source} laid on its floor",
+          file=sys.stderr)
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
@@ -116,6 +145,7 @@ def _cmd_schema(args: argparse.Namespace) -> int:
 def _cmd_emulate(args: argparse.Namespace) -> int:
     from rigctl.emulators.base import bench_class
 
+    refuse_foreign_bench_flags(args, args.kind, f"the emulated {args.kind} bench")
     # devices answer within 0.1 ms of a request even while another thread of the bench is busy
     # in Python (the camera rendering a frame, the world stepping): a real device has no GIL
     sys.setswitchinterval(1e-4)
@@ -149,12 +179,14 @@ def build_parser() -> argparse.ArgumentParser:
         "on loopback, so nothing real can be energised. Every limit is checked before anything is "
         "switched on. Prints progress, a summary, and writes a run record directory.",
     )
-    p.add_argument("plan", help="plan file (JSON, see `rigctl schema plan`)")
-    p.add_argument("--rig", help="rig file (TOML) for real hardware or one written by `rigctl emulate`")
+    p.add_argument("plan", type=input_file("plan"), help="plan file (JSON, see `rigctl schema plan`)")
+    p.add_argument("--rig", type=input_file("rig file"),
+                   help="rig file (TOML) for real hardware or one written by `rigctl emulate`")
     p.add_argument("--connect", metavar="ENDPOINT",
                    help="submit to a running `rigctl daemon` (e.g. tcp://127.0.0.1:5555) and follow it")
     p.add_argument("--json", action="store_true", help="end the output with one JSON line")
-    p.add_argument("--runs", default="runs", help="directory for run records (default: ./runs)")
+    p.add_argument("--runs", default="runs", type=folder("run records", write=True),
+                   help="directory for run records (default: ./runs)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.add_argument("--open-loop", action="store_true",
                    help="do not close the loop with the rig's camera (default: closed loop "
@@ -170,10 +202,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("validate", help="check a plan file; name what is wrong",
                        description="Check a plan against the schema and the workspace (agents in free "
                        "space, expected states consistent with the moves). Exit 2 if not valid.")
-    p.add_argument("file")
+    p.add_argument("file", type=input_file("plan"))
     p.add_argument("--simulate", action="store_true",
                    help="fill `expected` from the model and print the plan (or write it with -o)")
-    p.add_argument("-o", "--output", help="with --simulate: write the completed plan here")
+    p.add_argument("-o", "--output", type=output_file("plan"),
+                   help="with --simulate: write the completed plan here")
     p.set_defaults(func=_cmd_validate)
 
     p = sub.add_parser("schema", help="print the JSON Schema of a plan or a rig file")
@@ -184,7 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Serve every device of the rig kind on its real protocol on "
                        "loopback, write a rig file pointing at them, run until interrupted.")
     p.add_argument("kind", choices=["six-coil", "coil-board", "depm"], help="rig kind")
-    p.add_argument("--rig-out", default="bench.toml", help="where to write the rig file")
+    p.add_argument("--rig-out", default="bench.toml", type=output_file("rig file"),
+                   help="where to write the rig file")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
     _add_mismatch_flags(p)
     _add_bench_flags(p)
@@ -195,11 +229,15 @@ def build_parser() -> argparse.ArgumentParser:
                        "corners (a plan names them) or from dark round markers at known places, "
                        "and store the calibration in the rig file.")
     p.add_argument("what", choices=["camera"])
-    p.add_argument("--rig", required=True, help="rig file with a [camera] table")
-    p.add_argument("--plan", help="a plan whose workspace boundary the camera sees (corners)")
+    p.add_argument("--rig", required=True, type=input_file("rig file"),
+                   help="rig file with a [camera] table")
+    p.add_argument("--plan", type=input_file("plan"),
+                   help="a plan whose workspace boundary the camera sees (corners)")
     p.add_argument("--markers", help="known marker centres, 'x,y;x,y;...' in mm")
     p.add_argument("--marker-radius", type=float, help="the markers' radius in mm")
-    p.add_argument("-o", "--output", help="write the calibrated rig file here (default: --rig)")
+    p.add_argument("-o", "--output", type=output_file("rig file"),
+                   help="write the calibrated rig file here (default: --rig)")
+    coordinates_are_values(p)
     p.set_defaults(func=_cmd_calibrate_camera)
 
     register_planners(sub)
@@ -210,13 +248,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except BadPath as err:  # before anything is done: one line (and the JSON error with --json)
+        argv = sys.argv[1:] if argv is None else argv
+        return _failed(argparse.Namespace(json="--json" in argv), "bad_input", f"error: {err}",
+                       EXIT_BAD_INPUT)
     # a service's log is its record of what happened (state changes, loads, which threads run
     # at realtime priority): the daemon logs INFO; interactive commands only warnings
     configure_logs(args.verbose, service=args.func.__name__ == "_cmd_daemon")
     try:
         return args.func(args)
-    except (PlanError, ConfigError, LimitError) as err:
+    except (PlanError, ConfigError, LimitError, BadPath) as err:
         return _failed(args, "bad_input", f"error: {err}", EXIT_BAD_INPUT)
     except RigError as err:
         return _failed(args, "fault", f"fault: {err}", EXIT_FAULT)

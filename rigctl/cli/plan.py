@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from rigctl.cli.paths import coordinates_are_values, input_file, output_file
 from rigctl.config import MagnetSettings, load_rig
 from rigctl.errors import ConfigError, PlanError
 
@@ -99,15 +100,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--rig", choices=["six-coil", "coil-board"], default="six-coil",
                    help="rig kind: six-coil (robots slide along walls, moves are whole magnet "
                    "turns) or coil-board (robots stick to walls)")
-    p.add_argument("--rig-file", metavar="RIG.toml",
+    p.add_argument("--rig-file", metavar="RIG.toml", type=input_file("rig file"),
                    help="rig file whose magnets.radius_mm sets the turn length (default 10 mm)")
     p.add_argument("--raster", type=float, default=DEFAULT_RASTER_MM, metavar="MM",
                    help="plan on a raster of this pitch in mm (default 0: the exact geometry); the "
                    "written plan is always replayed on the exact geometry")
-    p.add_argument("--save-tree", metavar="FILE", help="write the tree (.npz) for later reuse")
-    p.add_argument("--tree", metavar="FILE",
+    p.add_argument("--save-tree", metavar="FILE", type=output_file("tree"),
+                   help="write the tree (.npz) for later reuse")
+    p.add_argument("--tree", metavar="FILE", type=input_file("tree", text=False),
                    help="reuse a saved tree: answer the goal from it, grow it if not solved")
-    p.add_argument("-o", "--output", required=True, metavar="PLAN.json", help="plan file to write")
+    p.add_argument("-o", "--output", required=True, metavar="PLAN.json", type=output_file("plan"),
+                   help="plan file to write")
     p.add_argument("--json", action="store_true", help="end the output with one JSON line")
     p.set_defaults(func=run_rrt)
 
@@ -117,9 +120,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "into hypercubes of edge G mm and report the fraction that hold a tree node (seed 000 "
         "Sec. II-d).",
     )
-    p.add_argument("--workspace", required=True, metavar="WS.json",
+    p.add_argument("--workspace", required=True, metavar="WS.json", type=input_file("workspace"),
                    help="the workspace the tree was grown in")
-    p.add_argument("--tree", required=True, metavar="FILE",
+    p.add_argument("--tree", required=True, metavar="FILE", type=input_file("tree", text=False),
                    help="tree saved by `plan rrt --save-tree`")
     p.add_argument("--grid", required=True, type=float, metavar="G", help="hypercube edge in mm")
     p.add_argument("--json", action="store_true", help="end the output with one JSON line")
@@ -146,7 +149,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--height", type=float, metavar="H",
                    help="3D (Sec. IV-G): a right prism / cylinder of height H mm over the boundary; "
                    "--start/--goal then are X,Y,Z; writes a rigctl.plan3d/1 document (no 3D rig runs it)")
-    p.add_argument("-o", "--output", required=True, metavar="PLAN.json", help="plan file to write")
+    p.add_argument("-o", "--output", required=True, metavar="PLAN.json", type=output_file("plan"),
+                   help="plan file to write")
     p.add_argument("--json", action="store_true",
                    help='end the output with {"solved", "moves", "length", "seconds"}')
     p.set_defaults(func=run_wall_contact)
@@ -163,7 +167,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     shape.add_argument("--disk", action="store_true", help="a disk workspace")
     shape.add_argument("--polygon", metavar="X,Y;X,Y;...",
                        help="a convex polygon workspace given by its vertices")
-    shape.add_argument("--workspace", metavar="WS.json", help="a workspace document (convex)")
+    shape.add_argument("--workspace", metavar="WS.json", type=input_file("workspace"),
+                       help="a workspace document (convex)")
     p.add_argument("--d12", type=float, required=True, metavar="D",
                    help="initial particle distance in units of the workspace diameter")
     p.add_argument("--angle", type=float, default=0.0, metavar="DEG",
@@ -183,7 +188,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "Exit 0 planned, 1 planned but refused by the safety check (plan still written), 2 bad "
         "input.",
     )
-    p.add_argument("--sequence", required=True, metavar="FILE",
+    p.add_argument("--sequence", required=True, metavar="FILE", type=input_file("sequence"),
                    help='JSON list of {"name", "U": [Bx, By, Bz mT, 5 gradient terms mT/m], '
                    '"hold_s"}')
     p.add_argument("--waypoints", type=int, default=20, metavar="N",
@@ -192,10 +197,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="radial path alternatives per waypoint (default 4)")
     p.add_argument("--agnostic", action="store_true",
                    help="the baseline: straight joint-space moves to the same end poses")
-    p.add_argument("--rig", metavar="RIG.toml",
+    p.add_argument("--rig", metavar="RIG.toml", type=input_file("rig file"),
                    help="plan for this depm rig file's arm bases, magnets and limits (default: "
                    "the emulated rig's, docs/depm.md)")
-    p.add_argument("-o", "--output", required=True, metavar="PLAN.json", help="plan file to write")
+    p.add_argument("-o", "--output", required=True, metavar="PLAN.json", type=output_file("plan"),
+                   help="plan file to write")
     p.add_argument("--json", action="store_true", help="end the output with one JSON line")
     p.set_defaults(func=_run_depm)
 
@@ -204,12 +210,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
 
     add_pair_planner(planners)
+    paths = {"workspace": input_file("workspace"), "rig": input_file("rig file"),
+             "output": output_file("plan")}
+    for action in planners.choices["pair"]._actions:  # its parser lives with the pair planner
+        action.type = paths.get(action.dest, action.type)
+    for planner in planners.choices.values():  # --start -8,-6 is a point, not an option
+        coordinates_are_values(planner)
 
 
 def _add_problem_arguments(p: argparse.ArgumentParser, workspace: str, whose: str,
                            count: str) -> None:
     """--workspace, --start and --goal, shared by the planners that place agents."""
-    p.add_argument("--workspace", required=True, metavar="WS.json",
+    p.add_argument("--workspace", required=True, metavar="WS.json", type=input_file("workspace"),
                    help=f"workspace document {workspace}, or a plan whose workspace to use")
     p.add_argument("--start", action="append", required=True, metavar="X,Y",
                    help=f"{whose} start in mm; {count}")
@@ -230,25 +242,20 @@ def _run_depm(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- plan rrt
 
 
-def _output_path(text: str) -> Path:
-    """The -o path, its folder checked before any planning is done."""
-    output = Path(text)
-    if not output.resolve().parent.is_dir():
-        raise PlanError(f"-o: folder {output.resolve().parent} does not exist")
-    return output
-
-
-def _points(values: list[str], flag: str) -> np.ndarray:
+def points_mm(values: list[str], flag: str, axes: str = "X,Y") -> np.ndarray:
+    """Points given as "X,Y" (or `axes`) in mm, (n, len(axes)); PlanError naming `flag` and the
+    point's number."""
     points = []
     for number, text in enumerate(values, start=1):
-        parts = text.replace(" ", "").split(",")
         try:
-            x, y = (float(v) for v in parts)
+            point = [float(v) for v in text.replace(" ", "").split(",")]
         except ValueError:
-            raise PlanError(f"{flag} #{number}: expected X,Y in mm, got {text!r}") from None
-        if not (math.isfinite(x) and math.isfinite(y)):
+            point = []
+        if len(point) != axes.count(",") + 1:
+            raise PlanError(f"{flag} #{number}: expected {axes} in mm, got {text!r}")
+        if not all(math.isfinite(v) for v in point):
             raise PlanError(f"{flag} #{number}: coordinates must be finite, got {text!r}")
-        points.append((x, y))
+        points.append(point)
     return np.array(points, dtype=float)
 
 
@@ -345,12 +352,12 @@ def run_rrt(args: argparse.Namespace) -> int:
     from rigctl.plans.rrt import RrtTree, check_tree_meta, plan_rrt, polish, tree_meta
 
     source = WorkspaceSource(args.workspace)
-    starts = _points(args.start, "--start")
-    goals = _points(args.goal, "--goal")
+    starts = points_mm(args.start, "--start")
+    goals = points_mm(args.goal, "--goal")
     if len(starts) != len(goals):
         raise PlanError(f"--goal: {len(goals)} goals for {len(starts)} starts; give one per robot")
     radii = _radii(args.radius, len(starts))
-    output = _output_path(args.output)
+    output = Path(args.output)
 
     tree = None
     if args.tree:
@@ -484,8 +491,8 @@ def run_wall_contact(args: argparse.Namespace) -> int:
                         "obstacles")
     if args.height is not None:
         return _run_wall_contact_3d(args, document)
-    starts = _points(args.start, "--start")
-    goals = _points(args.goal, "--goal")
+    starts = points_mm(args.start, "--start")
+    goals = points_mm(args.goal, "--goal")
     if len(starts) != 2 or len(goals) != 2:
         raise PlanError(f"--start/--goal: the planner places exactly two particles, got "
                         f"{len(starts)} starts and {len(goals)} goals")
@@ -493,7 +500,7 @@ def run_wall_contact(args: argparse.Namespace) -> int:
         raise PlanError(f"--radius: must be > 0 mm, got {args.radius:g}")
     if not args.epsilon > 0:
         raise PlanError(f"--epsilon: must be > 0 mm, got {args.epsilon:g}")
-    output = _output_path(args.output)
+    output = Path(args.output)
     radii = np.full(2, args.radius)
     region = centre_region(document["boundary"], args.radius)
     exact = source.workspace()
@@ -530,23 +537,15 @@ def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
         prism_region,
     )
 
-    points = {}
-    for flag, values in (("--start", args.start), ("--goal", args.goal)):
-        parsed = []
-        for number, text in enumerate(values, start=1):
-            try:
-                x, y, z = (float(v) for v in text.replace(" ", "").split(","))
-            except ValueError:
-                raise PlanError(f"{flag} #{number}: with --height, expected X,Y,Z in mm, got "
-                                f"{text!r}") from None
-            parsed.append((x, y, z))
+    points = {flag: points_mm(values, flag, "X,Y,Z (with --height)")
+              for flag, values in (("--start", args.start), ("--goal", args.goal))}
+    for flag, parsed in points.items():
         if len(parsed) != 2:
             raise PlanError(f"{flag}: the planner places exactly two particles, got {len(parsed)}")
-        points[flag] = np.array(parsed)
     if not (args.height > 2 * args.radius and args.radius > 0 and args.epsilon > 0):
         raise PlanError(f"--height {args.height:g}: must exceed the particles' diameter "
                         f"{2 * args.radius:g} mm (and --radius, --epsilon > 0)")
-    output = _output_path(args.output)
+    output = Path(args.output)
     region = prism_region(centre_region(document["boundary"], args.radius), args.height, args.radius)
     result, chosen = plan_wall_contact_3d(region, points["--start"], points["--goal"], args.epsilon,
                                           args.interchangeable)
@@ -579,7 +578,7 @@ def run_reachable(args: argparse.Namespace) -> int:
     if args.disk:
         region = DiskRegion(np.zeros(2), 0.5)
     elif args.polygon:
-        vertices = _points([v for v in args.polygon.split(";") if v.strip()], "--polygon")
+        vertices = points_mm([v for v in args.polygon.split(";") if v.strip()], "--polygon")
         if len(vertices) < 3:
             raise PlanError("--polygon: give at least three vertices X,Y;X,Y;X,Y")
         region = PolygonRegion(vertices)

@@ -461,6 +461,25 @@ def boundary_corners_mm(boundary: object) -> np.ndarray:
     )
 
 
+def floor_corners_mm(workspace, n_corners: int, *, pitch_mm: float | None = None) -> np.ndarray:
+    """The corners (n, 2) mm, counter-clockwise, of the floor the camera sees bright: the outline
+    of the workspace's free space (`workspace`: a `rigctl.plans.workspace.Workspace`), which is
+    the boundary's unless obstacles line it (the walls of a maze). Found as the camera's are, by
+    `find_boundary_corners` on a top-down picture of the free space at `pitch_mm` per pixel
+    (default: 1/1500 of its larger side)."""
+    xmin, ymin, xmax, ymax = workspace.bounds
+    pitch_mm = pitch_mm or max(xmax - xmin, ymax - ymin) / 1500.0
+    margin = 4 * pitch_mm
+    xs = np.arange(xmin - margin, xmax + margin, pitch_mm)
+    ys = np.arange(ymin - margin, ymax + margin, pitch_mm)[::-1]  # rows downwards: y up, unmirrored
+    grid = np.stack(np.meshgrid(xs, ys), axis=-1)
+    clearance = workspace.clearance(grid.reshape(-1, 2)).reshape(grid.shape[:2])
+    picture = (255.0 * np.clip(clearance / pitch_mm + 0.5, 0.0, 1.0)).astype(np.uint8)
+    px = find_boundary_corners(picture, n_corners)
+    mm = np.column_stack([xs[0] + px[:, 0] * pitch_mm, ys[0] - px[:, 1] * pitch_mm])
+    return mm if _signed_area(mm) > 0 else mm[::-1]
+
+
 __all__ = [
     "Calibration",
     "CalibrationError",
@@ -471,4 +490,5 @@ __all__ = [
     "calibration_from_markers",
     "calibration_from_points",
     "find_boundary_corners",
+    "floor_corners_mm",
 ]

@@ -131,3 +131,20 @@ def test_boundary_corners_come_counter_clockwise():
     assert area == pytest.approx(100.0)
     with pytest.raises(CalibrationError):
         boundary_corners_mm(("disk", (0, 0, 5)))
+
+
+def test_the_floor_corners_are_the_free_floors_where_walls_line_the_boundary():
+    from rigctl.plans.workspace import ShapeWorkspace
+
+    from rigctl.vision.calibration import floor_corners_mm
+
+    walls = [("rect", (0, 0, 400, 50)), ("rect", (0, 350, 400, 50)), ("rect", (0, 0, 50, 400)),
+             ("rect", (350, 0, 50, 400)), ("rect", (150, 150, 25, 100))]  # and one inside
+    maze = floor_corners_mm(ShapeWorkspace(("rect", (0, 0, 400, 400)), walls), 4)
+    inner = np.array([[50, 50], [350, 50], [350, 350], [50, 350]], dtype=float)
+    start = int(np.argmin(np.hypot(*(maze - inner[0]).T)))  # counter-clockwise, from any corner
+    np.testing.assert_allclose(np.roll(maze, -start, axis=0), inner, atol=0.1)
+    open_floor = floor_corners_mm(ShapeWorkspace(("polygon", [(0, 0), (60, 10), (20, 50)])), 3)
+    start = int(np.argmin(np.hypot(*open_floor.T)))
+    np.testing.assert_allclose(np.roll(open_floor, -start, axis=0), [[0, 0], [60, 10], [20, 50]],
+                               atol=0.05)

@@ -363,7 +363,7 @@ def test_cli_start_overlap_and_missing_workspace(workspace_file, tmp_path, capsy
     assert status == 2 and "--start #2: overlaps #1" in capsys.readouterr().err
     status = plan_main(["plan", "rrt", "--workspace", str(tmp_path / "nope.json"), *ROBOTS,
                         "-o", str(tmp_path / "p.json")])
-    assert status == 2 and "--workspace" in capsys.readouterr().err
+    assert status == 2 and "workspace" in (err := capsys.readouterr().err) and "nope.json" in err
 
 
 def test_cli_six_coil_moves_are_whole_turns_and_axis_only(workspace_file, tmp_path, capsys):
