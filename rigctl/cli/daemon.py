@@ -40,7 +40,14 @@ def _client(endpoint: str, server_key: str | None = None, client_key: str | None
 
     server_key = server_key or os.environ.get("RIGCTL_SERVER_KEY") or None
     client_key = client_key or os.environ.get("RIGCTL_CLIENT_KEY") or None
-    return Rig(endpoint, server_key=server_key, client_key=client_key, timeout_s=timeout_s)
+    if (server_key is None) != (client_key is None):
+        raise ConfigError("CURVE needs both keys: --server-key (the daemon's public key) and "
+                          "--client-key (your secret key), or RIGCTL_SERVER_KEY and "
+                          "RIGCTL_CLIENT_KEY")
+    try:
+        return Rig(endpoint, server_key=server_key, client_key=client_key, timeout_s=timeout_s)
+    except (OSError, ValueError) as err:  # an unreadable or malformed key file
+        raise ConfigError(f"cannot use the CURVE keys: {err}") from None
 
 
 def _refused_exit(err) -> int:
@@ -458,7 +465,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("status", help="ask a running daemon (or a rig's owner) for its state, "
                        "run and devices")
     _client_options(p)
-    p.add_argument("--rig", help="the rig file: ask the process that owns it")
+    p.add_argument("--rig", type=input_file("rig file"),
+                   help="the rig file: ask the process that owns it")
     p.add_argument("--json", action="store_true", help="print the raw status as JSON")
     p.set_defaults(func=_cmd_status)
 
@@ -469,7 +477,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "retargets. Every limit is checked before anything moves (refused: exit 2). --release "
         "ramps the supplies or the board to zero and ends the hold; the arms stay where they are.")
     _client_options(p)
-    p.add_argument("--rig", help="the rig file: ask the process that owns it (a `rigctl "
+    p.add_argument("--rig", type=input_file("rig file"),
+                   help="the rig file: ask the process that owns it (a `rigctl "
                    "execute` is running a plan and refuses)")
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--field-mT", nargs=3, type=float, metavar=("BX", "BY", "BZ"),
@@ -491,8 +500,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "daemon's rig and kept; the printed plan id is what a client's `execute` starts. Refused "
         "(exit 2) with the field or limit named.")
     _client_options(p)
-    p.add_argument("plan", help="plan file (JSON)")
-    p.add_argument("--rig", help="the rig file: the process that owns it")
+    p.add_argument("plan", type=input_file("plan"), help="plan file (JSON)")
+    p.add_argument("--rig", type=input_file("rig file"),
+                   help="the rig file: the process that owns it")
     p.add_argument("--json", action="store_true", help='print {"plan_id": ...}')
     p.set_defaults(func=_cmd_load)
 
@@ -535,7 +545,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     from rigctl.cli import watch
 
-    watch.register(sub, _client_options).set_defaults(func=_cmd_watch)
+    watch.register(sub, _client_options, input_file("rig file")).set_defaults(func=_cmd_watch)
 
     p = sub.add_parser("keys", help="CURVE keys for the daemon and its operators")
     keys_sub = p.add_subparsers(dest="keys_command", required=True)

@@ -141,7 +141,8 @@ def _fresh(rig) -> dict:
     return {k: status.get(k) for k in ("state", "reason", "device", "run", "rig", "last_fault")}
 
 
-def register(sub: argparse._SubParsersAction, client_options) -> argparse.ArgumentParser:
+def register(sub: argparse._SubParsersAction, client_options,
+             rig_file) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "watch", help="a live view of the rig: state, channels, stream timing, agents, faults",
         description="Follow the daemon at --connect, or whichever process owns the rig of --rig "
@@ -150,7 +151,7 @@ def register(sub: argparse._SubParsersAction, client_options) -> argparse.Argume
         "each agent's error, faults. Redraws in place until Ctrl-C or the owner goes away. "
         "--seconds S prints one view after S seconds (with --json as one JSON document).")
     client_options(p)
-    p.add_argument("--rig", help="the rig file: watch the process that owns it")
+    p.add_argument("--rig", type=rig_file, help="the rig file: watch the process that owns it")
     p.add_argument("--seconds", type=float, metavar="S", help="one view after S seconds")
     p.add_argument("--interval", type=float, default=0.5, metavar="S",
                    help="redraw every S seconds (default 0.5)")

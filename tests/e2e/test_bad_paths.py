@@ -81,6 +81,11 @@ CASES = [
     (["estop", "--rig", "latin1.toml"], "latin1.toml"),
     (["pause", "--rig", "empty.json"], "empty.json"),
     (["daemon", "--rig", "somedir"], "somedir"),
+    (["watch", "--rig", "somedir"], "somedir"),
+    (["status", "--rig", "empty.json", "--json"], "empty.json"),
+    (["hold", "--rig", "somedir", "--release"], "somedir"),
+    (["load", "missing.json", "--json"], "missing.json"),
+    (["status", "--server-key", "afile", "--client-key", "afile", "--json"], "afile"),
 ]
 
 
