@@ -30,9 +30,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import ipaddress
 import logging
 import os
 import signal
+import socket
 import sys
 import threading
 import time
@@ -63,6 +65,17 @@ BENCHES = {
     "coil-board": "rigctl.emulators.coilboard.bench:CoilBoardBench",
     "depm": "rigctl.emulators.depm:DepmBench",
 }
+
+
+def _loopback(host: str) -> bool:
+    """Whether `host` (an address, or a name looked up) is this machine's loopback."""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        try:
+            return ipaddress.ip_address(socket.gethostbyname(host)).is_loopback
+        except OSError as err:
+            raise ConfigError(f"--host {host}: {err}") from None
 
 
 def bench_class(kind: str) -> type[EmulatedBench]:
@@ -253,6 +266,10 @@ class EmulatedBench:
     def emulate_cli(cls, args: argparse.Namespace) -> int:
         """`rigctl emulate KIND --rig-out F`: serve the bench until SIGTERM or Ctrl-C; the rig
         file (with this process's pid) written and `READY <rig file>` on stdout once it is up."""
+        if not _loopback(args.host):
+            print(f"warning: serving the emulated devices and the backdoor on {args.host}: any "
+                  "host that reaches it can drive them and inject faults (the default, "
+                  "127.0.0.1, keeps them on this machine)", file=sys.stderr, flush=True)
         bench = cls.from_args(args)
         stop = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):

@@ -202,3 +202,24 @@ def test_runs_is_a_table_with_a_header_and_rounded_figures(files, capsys):
 def test_runs_says_when_a_folder_has_none(files, capsys):
     assert main(["runs", "--runs", "somedir"]) == 0
     assert capsys.readouterr().out == "no runs in somedir\n"
+
+
+def test_an_emulated_bench_beyond_loopback_is_served_with_a_warning(tmp_path):
+    import subprocess
+    import sys
+
+    bench = subprocess.Popen([sys.executable, "-m", "rigctl", "emulate", "six-coil", "--host",
+                              "0.0.0.0", "--rig-out", str(tmp_path / "b.toml")],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert bench.stderr.readline().startswith("warning: serving the emulated devices and "
+                                                  "the backdoor on 0.0.0.0")
+        assert bench.stdout.readline().startswith("READY ")
+    finally:
+        bench.terminate()
+        bench.wait(30)
+
+
+def test_an_emulated_bench_on_a_host_that_does_not_resolve_is_refused(capsys):
+    assert main(["emulate", "six-coil", "--host", "nosuchhost.invalid"]) == 2
+    assert "--host nosuchhost.invalid" in capsys.readouterr().err
