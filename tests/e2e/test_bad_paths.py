@@ -220,6 +220,11 @@ def test_an_emulated_bench_beyond_loopback_is_served_with_a_warning(tmp_path):
         bench.wait(30)
 
 
-def test_an_emulated_bench_on_a_host_that_does_not_resolve_is_refused(capsys):
-    assert main(["emulate", "six-coil", "--host", "nosuchhost.invalid"]) == 2
-    assert "--host nosuchhost.invalid" in capsys.readouterr().err
+def test_an_emulated_bench_on_a_host_that_does_not_resolve_is_refused(tmp_path):
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "rigctl", "emulate", "six-coil", "--host",
+                           "nosuchhost.invalid", "--rig-out", str(tmp_path / "b.toml")],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stderr.startswith("error: --host nosuchhost.invalid")
