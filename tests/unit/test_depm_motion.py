@@ -115,3 +115,32 @@ def test_timeline_starts_with_the_approach():
     tl.advance(approach.duration_s / 2)
     assert not tl.in_approach and tl.plan_time_s == pytest.approx(0.0)
     np.testing.assert_allclose(tl.advance(0.0), Q_START)
+
+
+def test_an_approach_whose_straight_way_cuts_the_keep_out_sphere_goes_round_by_the_candle():
+    """Where the example plan ends, its next run begins: the straight joint-space way from there
+    to its first pose, one arm after the other in either order, passes within the keep-out
+    sphere; the approach retreats to the candle first and keeps every constraint."""
+    import json
+    from pathlib import Path
+
+    from rigctl.rigs.depm.motion import joint_path
+
+    plan = json.loads((Path(__file__).resolve().parents[2] / "plans" / "examples"
+                       / "depm-plan.json").read_text())
+    q_end = np.array([arm["joints_rad"][-1] for arm in plan["arms"]])
+    q_start = np.array([arm["joints_rad"][0] for arm in plan["arms"]])
+    arms, limits = default_arms(), SafetyLimits()
+    speed, accel = caps(arms, limits)
+    for order in ([0, 1], [1, 0]):  # the straight ways, built leg by leg here
+        straight = joint_path(q_end[order], q_start[order], speed[order], accel[order],
+                              one_at_a_time=True)
+        assert path_violations(straight, [arms[i] for i in order], limits)
+    path = approach_path(q_end, q_start, arms, limits)
+    assert path_violations(path, arms, limits) == []
+    q, _, _ = path.sample(np.array([0.0, path.duration_s]))
+    np.testing.assert_allclose(q[:, 0], q_end, atol=1e-12)
+    np.testing.assert_allclose(q[:, -1], q_start, atol=1e-9)
+    # by way of the candle: at the end of some leg both arms stand with every joint at 0
+    q, _, _ = path.sample(np.array([leg.start_s + leg.duration_s for leg in path.legs]))
+    assert np.any(np.all(np.abs(q) < 1e-9, axis=(0, 2)))

@@ -3,8 +3,9 @@
 A run of a field-sequence plan streams one joint target per arm and cycle. The targets come from
 three kinds of motion, all on the same servo:
 
-- the *approach*: from wherever the arms stand to the plan's first pose, one arm after the other,
-  each a straight line in joint space (`JointPath`) on a trapezoidal time law, all joints of an arm
+- the *approach*: from wherever the arms stand to the plan's first pose, one arm after the other
+  (by way of the candle pose when the direct way would break a constraint), each leg a straight
+  line in joint space (`JointPath`) on a trapezoidal time law, all joints of an arm
   starting and stopping together as in a synchronised PTP move, timed so no joint exceeds the
   rig's speed fraction of its maximum speed, nor its acceleration fraction. It is checked against
   every safety constraint (`path_violations`) before anything moves;
@@ -116,16 +117,23 @@ def joint_path(q_from: np.ndarray, q_to: np.ndarray, speed_caps: np.ndarray,
                accel_caps: np.ndarray, *, one_at_a_time: bool) -> JointPath:
     """From `q_from` to `q_to` (A, 7): every arm together, or one arm after the other (in order;
     an arm already there adds no leg). Caps (A, 7) or (7,), rad/s and rad/s^2."""
-    q_from = np.asarray(q_from, dtype=float)
     q_to = np.asarray(q_to, dtype=float)
+    groups = [[a] for a in range(len(q_to))] if one_at_a_time else [list(range(len(q_to)))]
+    return waypoint_path(q_from, [(arms, q_to[arms]) for arms in groups], speed_caps, accel_caps)
+
+
+def waypoint_path(q_from: np.ndarray, moves: Sequence[tuple[list[int], np.ndarray]],
+                  speed_caps: np.ndarray, accel_caps: np.ndarray) -> JointPath:
+    """From `q_from` (A, 7), one leg per move in turn: the arms it names to its joints (a move
+    that changes nothing adds no leg)."""
+    q_from = np.asarray(q_from, dtype=float)
     speed_caps = np.broadcast_to(speed_caps, q_from.shape)
     accel_caps = np.broadcast_to(accel_caps, q_from.shape)
     path = JointPath(q_from.copy())
-    groups = [[a] for a in range(len(q_from))] if one_at_a_time else [list(range(len(q_from)))]
     q, t = q_from.copy(), 0.0
-    for arms in groups:
+    for arms, target in moves:
         nxt = q.copy()
-        nxt[arms] = q_to[arms]
+        nxt[arms] = target
         leg = _Leg.timed(t, q, nxt, speed_caps, accel_caps)
         if leg is not None:
             path.legs.append(leg)
@@ -143,9 +151,22 @@ def caps(arms: Sequence[ArmKinematics], limits: SafetyLimits) -> tuple[np.ndarra
 
 def approach_path(q_now: np.ndarray, q_start: np.ndarray, arms: Sequence[ArmKinematics],
                   limits: SafetyLimits) -> JointPath:
-    """From where the arms stand (A, 7) to the plan's first pose, one arm after the other."""
+    """From where the arms stand (A, 7) to the plan's first pose, one arm after the other: the
+    first of these that keeps every constraint (else the first, whose breaches the caller
+    reports): in the rig's order; in the other order; each arm back to the candle (all joints
+    0, straight up, far from the workspace) first, then each to its start, in either order. A
+    straight line in joint space from where a plan ended to where the next begins can cut the
+    keep-out sphere that a retreat goes around."""
     speed, accel = caps(arms, limits)
-    return joint_path(q_now, q_start, speed, accel, one_at_a_time=True)
+    q_start = np.asarray(q_start, dtype=float)
+    candle = np.zeros(q_start.shape[1])
+    candidates = []
+    for order in (list(range(len(q_start))), list(range(len(q_start)))[::-1]):
+        candidates.append([([a], q_start[a]) for a in order])
+    for order in (list(range(len(q_start))), list(range(len(q_start)))[::-1]):
+        candidates.append([([a], candle) for a in order] + [([a], q_start[a]) for a in order])
+    paths = [waypoint_path(q_now, moves, speed, accel) for moves in candidates]
+    return next((p for p in paths if not path_violations(p, arms, limits)), paths[0])
 
 
 def path_violations(path: JointPath, arms: Sequence[ArmKinematics],
