@@ -25,7 +25,9 @@ takes, per rig:
   then the same e-stop against a local `rigctl execute` of the same plan on the same rig (its
   control endpoint found through the rig's lock), and, with nothing owning the rig, `rigctl estop
   --rig` as a process reaching every device directly (its wall time, and the direct make-safe
-  of every device timed in this process: what that command does once Python has started).
+  of every device timed in this process: what that command does once Python has started);
+- six coils only: the stream's late share while 20 clients (in 4 processes) ask `status` as fast
+  as they are answered, next to the same run without them (the issue: within 1 point).
 
     python bench/daemon.py                          # every rig, about 35 s each
     python bench/daemon.py --rig depm --seconds 1   # one rig, quickly
@@ -418,6 +420,47 @@ def local_estop_latency(rig_path: Path, plan: dict, bench: RigBench, tmp: Path) 
                 "unreached_in_process": unreached}}
 
 
+FLOOD = """
+import json, sys, threading, time, zmq
+endpoint, clients, seconds = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+answered = [0] * clients
+def client(i):
+    sock = zmq.Context.instance().socket(zmq.REQ)
+    sock.connect(endpoint)
+    request = json.dumps({"id": f"flood-{i}", "cmd": "status"}).encode()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        sock.send(request)
+        sock.recv()
+        answered[i] += 1
+    sock.close(linger=0)
+threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+for t in threads: t.start()
+for t in threads: t.join()
+print(sum(answered))
+"""
+
+
+def flood(rig: Rig, plan_id: str, seconds: float, endpoint: str, clients: int = 20,
+          processes: int = 4) -> dict:
+    """The stream's late share while `clients` operator scripts (in `processes` processes, so
+    that this one's GIL is not the limit) ask `status` as fast as they are answered, next to the
+    same run without them, in turn."""
+    figures = {}
+    for name, n in (("without_flood", 0), ("with_flood", clients)):
+        start_streaming(rig, plan_id)
+        procs = [subprocess.Popen([sys.executable, "-c", FLOOD, endpoint, str(n // processes),
+                                   str(seconds)], stdout=subprocess.PIPE, text=True)
+                 for _ in range(processes if n else 0)]
+        time.sleep(seconds)
+        answered = sum(int(p.communicate(timeout=60)[0] or 0) for p in procs)
+        figures[name] = {**stream_figures(*end_run(rig, rig.abort)),
+                         "status_requests_answered_per_s": round(answered / seconds, 1)}
+    gap = figures["with_flood"]["stream_late_share"] - figures["without_flood"]["stream_late_share"]
+    return {**figures, "clients": clients, "late_share_difference_points": round(100 * gap, 2),
+            "within_1_point": abs(gap) <= 0.01}
+
+
 def bench_rig(kind: str, args: argparse.Namespace, tmp: Path) -> dict:
     """Every figure for one rig kind: its bench and its daemon started, measured, stopped."""
     bench = RIGS[kind]
@@ -438,6 +481,8 @@ def bench_rig(kind: str, args: argparse.Namespace, tmp: Path) -> dict:
                 one = timed_run(client, plan_id, args.seconds, endpoints, 1)
                 ten = timed_run(client, plan_id, args.seconds, endpoints, 10)
                 estop = estop_latency(client, plan_id, bench, rig.emulation.backdoor)
+                flooded = flood(client, plan_id, args.seconds, endpoints["command"]) \
+                    if kind == "six-coil" else None
         except Exception:
             print((tmp / "daemon.log").read_text()[-3000:], file=sys.stderr)
             raise
@@ -447,7 +492,7 @@ def bench_rig(kind: str, args: argparse.Namespace, tmp: Path) -> dict:
         estop.update(local_estop_latency(tmp / "rig.toml", bench.plan(args.seconds + 2.0), bench,
                                          tmp))
     return {"idle": idle, "while_streaming": streaming, "telemetry_1_subscriber": one,
-            "telemetry_10_subscribers": ten, "estop": estop}
+            "telemetry_10_subscribers": ten, "estop": estop, "status_flood": flooded}
 
 
 def main() -> None:

@@ -114,6 +114,7 @@ REPLAY_WINDOW_S = 60.0
 REPLAY_CACHE = 256
 MAX_PLANS = 32
 AGENTS_HZ = 10.0
+REZERO_S = 0.5  # how often a device not confirmed safe is tried again
 
 
 class Refusal(Exception):
@@ -344,6 +345,7 @@ class Daemon:
         self._router: zmq.Socket | None = None
         self._log_handler: _TelemetryLogHandler | None = None
         self._agents_stop = threading.Event()
+        self.unsafe: set[str] = set()  # devices a run could not confirm safe: zeroed once they answer
         self.kind = rig_kind(rig.rig.kind)
         actuators = self.kind.channels(rig)
         if not actuators:
@@ -737,6 +739,7 @@ class Daemon:
                 raise Refusal(ErrorCode.WRONG_STATE,
                               'a manual hold is on: release it first (hold {"release": true})')
             self._require(S.IDLE, doing="execute a plan")
+            self._require_safe("execute a plan")
             if self._active is not None:
                 raise Refusal(ErrorCode.BUSY, "the last run is still stopping")
             loaded = self._plans.get(args.plan_id)
@@ -828,6 +831,8 @@ class Daemon:
         are read, before they move."""
         with self._lock:
             active = self._active if self._active is not None and self._active.kind == "hold" else None
+            if not args.release:
+                self._require_safe("hold")
         request = None
         if not args.release:
             try:
@@ -923,8 +928,36 @@ class Daemon:
                 for name, device in self.devices.items():
                     if device["health"] == "ok":
                         self._device(name, "off", "safe: ramped down, output off")
+                unsafe = [n for n in (summary.unsafe_devices if summary else []) if n in self.devices]
+                for name in unsafe:
+                    self._device(name, "unsafe", "may still carry current: not confirmed safe; "
+                                 "made safe as soon as it answers (check it by hand)")
+                self.unsafe.update(unsafe)
+            if unsafe:
+                threading.Thread(target=self._make_safe_when_reachable, name="daemon-rezero",
+                                 daemon=True).start()
             self._agents_stop.set()
             self._wakeup.wake()
+
+    def _make_safe_when_reachable(self) -> None:
+        """Every REZERO_S, the rig's direct make-safe until each device a run could not confirm
+        safe (its link was down: a Kepco BOP then holds its last setpoint) has been reached; no
+        run starts meanwhile (`_require_safe`)."""
+        while self.unsafe and not self._stop.wait(REZERO_S):
+            result = self.kind.make_safe(self.rig)
+            with self._lock:
+                for name in list(self.unsafe):
+                    if result.get(name, "not reached") is None:
+                        self.unsafe.discard(name)
+                        self._device(name, "off", "made safe once its link answered again")
+                        log.warning("%s: made safe once its link answered again", name)
+
+    def _require_safe(self, doing: str) -> None:
+        if self.unsafe:
+            raise Refusal(ErrorCode.WRONG_STATE,
+                          f"cannot {doing}: {', '.join(sorted(self.unsafe))} may still carry "
+                          "current (not confirmed safe); the daemon makes it safe as soon as it "
+                          "answers: check its link")
 
     def _on_cycles(self, batch: CycleBatch) -> None:
         """Cycles a run in the stream process ran (`t` on `time.monotonic()`), about every 10 ms:

@@ -19,7 +19,7 @@ from rigctl.client import CommandRefused, Rig
 from rigctl.config import StreamSettings
 from rigctl.daemon.server import Daemon
 from rigctl.record import read_events, read_stream
-from rigctl.testing import plan_pair
+from rigctl.testing import plan_pair, wait_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 
@@ -180,11 +180,25 @@ def test_a_supply_fault_during_a_run_leaves_the_daemon_serving_in_faulted(rig, b
     status = wait_run_over(rig)
     assert status["state"] == "faulted"
     health = {d["name"]: d["health"] for d in status["devices"]}
-    assert health["y+"] == "fault"
     assert all(not s.model.output_on for s in bench.supplies if s.name != "y+")
     run_dir = Path(status["last_run"]["run"])
     assert any(e["event"] == "fault" and e["device"] == "y+" for e in read_events(run_dir))
     assert rig.reset()["state"] == "idle"
+    # y+ could not be told to stop: a BOP holds its last setpoint, and status says it may
+    y_plus = next(s for s in bench.supplies if s.name == "y+")
+    assert health["y+"] == "unsafe" and y_plus.model.output_on
+    with pytest.raises(CommandRefused) as refused:
+        rig.execute(plan_id)  # no run while a supply may carry current
+    assert refused.value.code == "wrong_state" and "y+" in refused.value.reason
+    with BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
+        backdoor.request("fault", device="y+", kind="restore")
+    # its link back, the daemon zeroes it at once (it tries every REZERO_S)
+    wait_for(lambda: not y_plus.model.output_on and abs(y_plus.model.current_A) < 0.05, 5.0,
+             "y+ made safe")
+    wait_for(lambda: {d["name"]: d["health"] for d in rig.status()["devices"]}["y+"] == "off",
+             5.0, "y+ reported safe")
+    rig.execute(plan_id)  # and runs may start again
+    rig.abort()
 
 
 def wait_current(bench, amps=1.0, timeout_s=10):
