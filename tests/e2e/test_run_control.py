@@ -141,7 +141,9 @@ class LocalRun:
              str(self.rig_path), "--runs", str(self.runs), "-q"],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         rig = load_rig(self.rig_path)
-        wait_for(lambda: holder_of(rig) is not None, 60, "rigctl execute to own the rig")
+        # the lock is taken first, its control endpoint named once the run is built
+        wait_for(lambda: getattr(holder_of(rig), "control", None) is not None, 60,
+                 "rigctl execute to own the rig and answer control requests")
         self.client = Rig(holder_of(rig).control, timeout_s=1.0, retries=1)
 
     def __getattr__(self, name: str):  # pause, resume, abort, estop: the Rig client's own
@@ -217,6 +219,8 @@ def wait_state(rig: Rig, *states: str, timeout_s: float = 30.0) -> dict:
 
 def test_status_lists_every_device_of_the_rig(rig_on_bench):
     case, rig_path, backdoor, rig = rig_on_bench
+    if isinstance(rig, LocalRun):  # a local run answers while it runs
+        rig.execute()
     names = {d["name"] for d in rig.status()["devices"]}
     loaded = load_rig(rig_path)
     expected = {"six-coil": {c.name for c in loaded.coils} | {"camera"},
