@@ -45,8 +45,32 @@ SCHEMA_ID = "rigctl.plan/1"
 RigName = Literal["six-coil", "coil-board"]  # rigs that run global-moves plans
 Contact = Literal["slide", "non-slip"]
 
-Point = tuple[float, float]
-PositiveLength = Annotated[float, Field(gt=0)]
+# Bounds: what a plan may hold, checked before anything is allocated from it, so that no number
+# in a document can make `validate` or the daemon's `load` take unbounded time or memory. Each is
+# far beyond what a lab's plan holds, and each is stated in the published schema.
+MAX_EXTENT_MM = 10_000.0
+"""|x|, |y| of every position, size and move (mm): a 10 m workspace."""
+MAX_MOVES = 10_000
+"""Moves (global-moves) and segments (pair-formation) in a plan: hours of rolling."""
+MAX_AGENTS = 64
+MAX_SHAPES = 256
+"""Obstacles in a workspace."""
+MAX_VERTICES = 256
+"""Vertices of a polygon (checked for self-crossings in O(n^2))."""
+MAX_IMAGE_PIXELS = 2048 * 2048
+"""Pixels of a workspace image (width x height, read from the PNG header before decoding)."""
+MAX_DURATION_S = 3600.0
+"""Any time in a plan (holds, segments, knot times): one hour."""
+MAX_SAMPLES = 100_000
+"""Rows of a sampled series in a plan (knots, expected samples), and components of a sequence."""
+MAX_PROGRAM_SAMPLES = 4_000_000
+"""Samples of the field program a plan is realized into (about an hour at 1 kHz), checked
+before the program is allocated."""
+
+Coordinate = Annotated[float, Field(ge=-MAX_EXTENT_MM, le=MAX_EXTENT_MM)]
+Point = tuple[Coordinate, Coordinate]
+PositiveLength = Annotated[float, Field(gt=0, le=MAX_EXTENT_MM)]
+Duration = Annotated[float, Field(ge=0, le=MAX_DURATION_S)]
 
 # `replay` agreement demanded by check_plan (mm).
 REPLAY_TOLERANCE_MM = 1e-6
@@ -60,14 +84,15 @@ class _Document(BaseModel):
 
 
 class RectShape(_Document):
-    rect: tuple[float, float, PositiveLength, PositiveLength] = Field(
+    rect: tuple[Coordinate, Coordinate, PositiveLength, PositiveLength] = Field(
         description="[x, y, w, h]: lower-left corner, width and height (mm)"
     )
 
 
 class PolygonShape(_Document):
     polygon: list[Point] = Field(
-        min_length=3, description="vertices [[x, y], ...] (mm), simple, either orientation"
+        min_length=3, max_length=MAX_VERTICES,
+        description=f"vertices [[x, y], ...] (mm), simple, either orientation, at most {MAX_VERTICES}"
     )
 
     @field_validator("polygon")
@@ -80,7 +105,7 @@ class PolygonShape(_Document):
 
 
 class DiskShape(_Document):
-    disk: tuple[float, float, PositiveLength] = Field(description="[cx, cy, r] (mm)")
+    disk: tuple[Coordinate, Coordinate, PositiveLength] = Field(description="[cx, cy, r] (mm)")
 
 
 _SHAPE_KEYS = ("rect", "polygon", "disk")
@@ -113,12 +138,14 @@ Shape = Annotated[
 
 class ShapeWorkspaceSpec(_Document):
     boundary: Shape
-    obstacles: list[Shape] = []
+    obstacles: list[Shape] = Field(default=[], max_length=MAX_SHAPES,
+                                   description=f"at most {MAX_SHAPES}")
 
 
 class ImageWorkspaceSpec(_Document):
-    image: str = Field(description="PNG path, relative to the plan file; dark (< 128) = obstacle")
-    mm_per_px: PositiveLength
+    image: str = Field(max_length=4096, description="PNG path, relative to the plan file; dark "
+                       f"(< 128) = obstacle; at most {MAX_IMAGE_PIXELS} pixels")
+    mm_per_px: Annotated[float, Field(ge=1e-3, le=100.0, description="1 um to 100 mm")]
     origin: Point = Field(
         default=(0.0, 0.0), description="workspace position (mm) of the image's lower-left corner"
     )
@@ -189,15 +216,18 @@ class GlobalMovesPlan(_PlanDocument):
     rig: RigName
     name: str | None = None
     workspace: WorkspaceSpec
-    agents: list[Agent] = Field(min_length=1)
-    moves: list[Point] = Field(description="shared displacements [dx, dy] (mm), applied in order")
+    agents: list[Agent] = Field(min_length=1, max_length=MAX_AGENTS,
+                                description=f"at most {MAX_AGENTS}")
+    moves: list[Point] = Field(max_length=MAX_MOVES, description="shared displacements [dx, dy] "
+                               f"(mm), applied in order; at most {MAX_MOVES}")
     expected: list[list[Point]] | None = Field(
-        default=None, description="expected[i][j]: agent j's position after move i (mm)"
+        default=None, max_length=MAX_MOVES,
+        description="expected[i][j]: agent j's position after move i (mm)"
     )
     tolerance_mm: PositiveLength = Field(
         default=1.0, description="how far a measured agent may be from expected before correcting"
     )
-    min_separation_mm: Annotated[float, Field(ge=0)] = Field(
+    min_separation_mm: Annotated[float, Field(ge=0, le=MAX_EXTENT_MM)] = Field(
         default=0.0, description="agents keep centre distance >= r_i + r_j + this (planner option)"
     )
 
@@ -221,18 +251,20 @@ class SequenceComponent(_Document):
 
     name: str
     U: Vector8 = Field(description="[Bx, By, Bz] mT, [dBx/dx, dBx/dy, dBx/dz, dBy/dy, dBy/dz] mT/m")
-    hold_s: NonNegative = Field(default=5.0, description="hold after the arms arrive (s)")
+    hold_s: Duration = Field(default=5.0, description="hold after the arms arrive (s), at most 1 h")
 
 
 class ArmPlan(_Document):
     """One arm: where its base stands and its joint knots (one row of 7 angles per `t_s`)."""
 
     name: str
-    position_mm: tuple[float, float, float] = Field(description="base position, world frame (mm)")
+    position_mm: tuple[Coordinate, Coordinate, Coordinate] = Field(
+        description="base position, world frame (mm)")
     rpy_deg: tuple[float, float, float] = Field(
         default=(0.0, 0.0, 0.0), description="base orientation, fixed-axis roll, pitch, yaw (deg)"
     )
-    joints_rad: list[Joints7] = Field(description="joint knots (rad), one row per entry of t_s")
+    joints_rad: list[Joints7] = Field(max_length=MAX_SAMPLES,
+                                      description="joint knots (rad), one row per entry of t_s")
 
 
 class Segment(_Document):
@@ -240,9 +272,9 @@ class Segment(_Document):
 
     name: str
     U: Vector8 = Field(description="requested U (mT, mT/m)")
-    start_s: NonNegative = Field(description="the transition toward this component starts")
-    reached_s: NonNegative = Field(description="the arms arrive: the hold starts")
-    end_s: NonNegative = Field(description="the hold ends (the next transition starts)")
+    start_s: Duration = Field(description="the transition toward this component starts")
+    reached_s: Duration = Field(description="the arms arrive: the hold starts")
+    end_s: Duration = Field(description="the hold ends (the next transition starts)")
     residual: Vector8 = Field(
         description="U the planned end poses make minus U requested (mT, mT/m), dipole model"
     )
@@ -251,9 +283,9 @@ class Segment(_Document):
 class ExpectedField(_Document):
     """U at the workspace centre the planned poses make (dipole model), sampled at `rate_hz`."""
 
-    rate_hz: Annotated[float, Field(gt=0)]
-    t_s: list[float]
-    U: list[Vector8] = Field(description="one row per t_s (mT, mT/m)")
+    rate_hz: Annotated[float, Field(gt=0, le=10_000)]
+    t_s: list[Duration] = Field(max_length=MAX_SAMPLES)
+    U: list[Vector8] = Field(max_length=MAX_SAMPLES, description="one row per t_s (mT, mT/m)")
 
 
 class DepmLimits(_Document):
@@ -264,7 +296,7 @@ class DepmLimits(_Document):
     epm_min_distance_mm: Annotated[float, Field(gt=0)] = 300.0
     speed_fraction: Annotated[float, Field(gt=0, le=1)] = 0.3
     accel_fraction: Annotated[float, Field(gt=0, le=1)] = 0.5
-    check_step_s: Annotated[float, Field(gt=0)] = 0.01
+    check_step_s: Annotated[float, Field(ge=1e-4, le=1.0)] = 0.01
 
 
 class FieldSequencePlan(_PlanDocument):
@@ -282,14 +314,16 @@ class FieldSequencePlan(_PlanDocument):
     tool_offset_mm: Annotated[float, Field(gt=0)] = Field(
         default=85.0, description="EPM centre along the flange z axis (mm)"
     )
-    waypoints: Annotated[int, Field(ge=2)] = 20
-    k: Annotated[int, Field(ge=1)] = 4
+    waypoints: Annotated[int, Field(ge=2, le=1000)] = 20
+    k: Annotated[int, Field(ge=1, le=100)] = 4
     limits: DepmLimits = DepmLimits()
-    sequence: list[SequenceComponent] = Field(min_length=1)
+    sequence: list[SequenceComponent] = Field(min_length=1, max_length=1000)
     interpolation: Literal["pchip"] = "pchip"
-    t_s: list[float] = Field(min_length=2, description="knot times (s), strictly increasing")
+    t_s: list[Duration] = Field(min_length=2, max_length=MAX_SAMPLES,
+                                description="knot times (s), strictly increasing, at most 1 h")
     arms: list[ArmPlan] = Field(min_length=2, max_length=2)
-    segments: list[Segment] = Field(description="one per sequence component, in order")
+    segments: list[Segment] = Field(max_length=1000,
+                                    description="one per sequence component, in order")
     expected: ExpectedField | None = None
 
     @model_validator(mode="after")
@@ -332,9 +366,9 @@ class PairAgents(_Document):
 class PairState(_Document):
     """A formation: centroid (mm), separation r (body diameters), heading of agent 1 -> 2 (deg)."""
 
-    x_mm: float
-    y_mm: float
-    r_bl: Annotated[float, Field(gt=0)]
+    x_mm: Coordinate
+    y_mm: Coordinate
+    r_bl: Annotated[float, Field(gt=0, le=MAX_EXTENT_MM)]
     phi_deg: float
 
 
@@ -345,7 +379,7 @@ class PairSegment(_Document):
     psi_deg: float
     f_x: float = Field(description="pull along x, BL/s")
     f_y: float = Field(description="pull along y, BL/s")
-    dt_s: Annotated[float, Field(gt=0)]
+    dt_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)]
 
 
 class PairFormationPlan(_PlanDocument):
@@ -362,13 +396,20 @@ class PairFormationPlan(_PlanDocument):
     r_max_bl: Annotated[float, Field(gt=0)] = 3.5
     start: PairState
     goal: PairState
-    segments: list[PairSegment]
+    segments: list[PairSegment] = Field(max_length=MAX_MOVES, description=f"at most {MAX_MOVES}")
     expected: list[PairState] | None = Field(
-        default=None, description="expected[k]: the formation after segment k")
+        default=None, max_length=MAX_MOVES, description="expected[k]: the formation after segment k")
     tolerance_bl: PositiveLength = Field(
         default=0.2, description="each agent within this of its goal position counts as reached")
-    hold_s: Annotated[float, Field(ge=0)] = Field(
-        default=3.0, description="how long execution holds the goal formation")
+    hold_s: Duration = Field(
+        default=3.0, description="how long execution holds the goal formation (at most 1 h)")
+
+    @model_validator(mode="after")
+    def _bounded(self) -> "PairFormationPlan":
+        total = sum(segment.dt_s for segment in self.segments)
+        if total > MAX_DURATION_S:
+            raise ValueError(f"segments: {total:.6g} s in all; at most {MAX_DURATION_S:g} s")
+        return self
 
     @property
     def size(self) -> str:

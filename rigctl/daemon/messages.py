@@ -17,6 +17,7 @@ The document for people is `docs/daemon-protocol.md`; this module is the one the
 from __future__ import annotations
 
 import ipaddress
+import json
 from enum import Enum
 from typing import Annotated, Any, Literal
 from urllib.parse import urlsplit
@@ -38,6 +39,12 @@ MAX_REQUEST_BYTES = 4 * 1024 * 1024
 
 HARD_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 """ZMQ_MAXMSGSIZE on the command socket: a peer sending more is disconnected by ZeroMQ itself."""
+
+MAX_JSON_DEPTH = 64
+"""Deeper nesting in a request is refused as `bad_json` (a plan needs 6 levels)."""
+
+MAX_INT_DIGITS = 30
+"""An integer literal longer than this is refused as `bad_json` (Python's int-str limit is 4300)."""
 
 DATA_SEND_HWM = 1000
 """Per-subscriber queue (messages) on the data socket: about 10 s of telemetry, then drops."""
@@ -71,7 +78,7 @@ class Command(str, Enum):
 class ErrorCode(str, Enum):
     """Why a request was refused. Stable strings: scripts may branch on them."""
 
-    BAD_JSON = "bad_json"  # not UTF-8 JSON
+    BAD_JSON = "bad_json"  # not UTF-8 JSON (or nested too deeply, a huge integer, a lone surrogate)
     BAD_REQUEST = "bad_request"  # JSON, but not {"id", "cmd", "args"} with the right types
     TOO_LARGE = "too_large"  # over MAX_REQUEST_BYTES
     UNKNOWN_COMMAND = "unknown_command"
@@ -83,6 +90,7 @@ class ErrorCode(str, Enum):
     WRONG_STATE = "wrong_state"  # the command makes no sense in the daemon's current state
     BUSY = "busy"  # a run is still stopping; retry shortly
     DEVICE = "device"  # a device failed while carrying the command out
+    DEADLINE = "deadline"  # `load` took longer than LOAD_DEADLINE_S: the plan is not loaded
     INTERNAL = "internal"  # a bug: logged with its traceback on the daemon's side
 
 
@@ -113,9 +121,70 @@ class _Message(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+class _Args(_Message):
+    """A request's arguments: no NaN or infinity anywhere (telemetry may carry NaN, requests not)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
 # -- requests and replies ------------------------------------------------------------------------
 
 RequestId = str | int | None
+
+
+class BadJson(ValueError):
+    """A request frame that `decode_request` refuses (answered with `bad_json`)."""
+
+
+def _parse_int(text: str) -> int:
+    if len(text) > MAX_INT_DIGITS:
+        raise BadJson(f"an integer of {len(text)} digits (at most {MAX_INT_DIGITS})")
+    return int(text)
+
+
+def decode_request(payload: bytes) -> Any:
+    """The JSON value of a request frame, or BadJson saying why not: not UTF-8, not JSON, an
+    integer over MAX_INT_DIGITS digits, nesting deeper than MAX_JSON_DEPTH, or a string with an
+    unpaired surrogate (no reply could carry it). NaN and Infinity are read as JSON's Python
+    dialect has them, for the models to refuse by field."""
+    try:
+        data = json.loads(payload, parse_int=_parse_int)
+    except BadJson:
+        raise
+    except RecursionError:
+        raise BadJson(f"nested more than {MAX_JSON_DEPTH} levels deep") from None
+    except (UnicodeDecodeError, ValueError) as err:  # JSONDecodeError is a ValueError
+        raise BadJson(f"not JSON: {err}") from None
+    if isinstance(data, (dict, list)):
+        _check_tree(data)
+    elif isinstance(data, str):
+        _check_text(data)
+    return data
+
+
+def _check_tree(root: dict | list) -> None:
+    """Depth and strings of a decoded JSON tree, without recursion."""
+    stack = [(root, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > MAX_JSON_DEPTH:
+            raise BadJson(f"nested more than {MAX_JSON_DEPTH} levels deep")
+        items = node.items() if isinstance(node, dict) else enumerate(node)
+        for key, value in items:
+            if isinstance(key, str):
+                _check_text(key)
+            if isinstance(value, (dict, list)):
+                stack.append((value, depth + 1))
+            elif isinstance(value, str):
+                _check_text(value)
+
+
+def _check_text(text: str) -> None:
+    if not text.isascii():
+        try:
+            text.encode("utf-8")
+        except UnicodeEncodeError:
+            raise BadJson("a string with an unpaired surrogate (\\ud800-\\udfff)") from None
 
 
 class Request(_Message):
@@ -124,26 +193,26 @@ class Request(_Message):
     args: dict[str, Any] = {}
 
 
-class NoArgs(_Message):
+class NoArgs(_Args):
     pass
 
 
-class LoadArgs(_Message):
+class LoadArgs(_Args):
     plan: dict[str, Any]
 
 
-class ExecuteArgs(_Message):
-    plan_id: str
+class ExecuteArgs(_Args):
+    plan_id: str = Field(max_length=64)
 
 
-class PauseArgs(_Message):
+class PauseArgs(_Args):
     immediate: bool = Field(
         default=False,
         description="false: pause at the end of the current move; true: ramp the field down now",
     )
 
 
-class HoldArgs(_Message):
+class HoldArgs(_Args):
     target: dict[str, Any] | None = Field(
         default=None, description='the rig\'s request: {"field_mT": [bx, by, bz]} (six-coil), '
         '{"drive": [v per coil]} (coil board), {"joints_rad": [[7], [7]]} (depm)')
@@ -157,19 +226,19 @@ class HoldArgs(_Message):
         return self
 
 
-class SetFieldArgs(_Message):
+class SetFieldArgs(_Args):
     field_mT: Annotated[
         list[float], Field(min_length=3, max_length=3, description="B at the workspace centre")
     ]
     ramp_s: Annotated[float, Field(ge=0, le=10)] = 0.1
 
 
-class RunsArgs(_Message):
+class RunsArgs(_Args):
     limit: Annotated[int, Field(ge=1, le=1000)] = 20
 
 
-class RunArgs(_Message):
-    run: str = Field(description="a run id from `runs` (the record directory's name)")
+class RunArgs(_Args):
+    run: str = Field(max_length=255, description="a run id from `runs` (the record directory's name)")
 
 
 COMMAND_ARGS: dict[Command, type[_Message]] = {
