@@ -550,6 +550,10 @@ def _read_json(path: Path) -> Any:
     except json.JSONDecodeError as err:
         where = f"line {err.lineno} column {err.colno}"
         raise PlanError(f"{path}: {where}: not valid JSON: {err.msg}") from None
+    except RecursionError:
+        raise PlanError(f"{path}: not a plan: nested too deeply") from None
+    except ValueError as err:  # an integer over Python's int-str limit
+        raise PlanError(f"{path}: not a plan: {err}") from None
 
 
 def _describe(err: ValidationError, source: str) -> str:

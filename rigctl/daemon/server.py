@@ -253,18 +253,24 @@ class _ActiveRun:
 
 
 class _Wakeup:
-    """A pipe the command thread polls next to its socket: other threads write a byte to wake it."""
+    """A pipe the command thread polls next to its socket: other threads write a byte to wake it
+    (a `load` thread may still do so after the daemon closed it: then nothing happens)."""
 
     def __init__(self) -> None:
         self.read_fd, self.write_fd = os.pipe()
         os.set_blocking(self.read_fd, False)
         os.set_blocking(self.write_fd, False)
+        self._lock = threading.Lock()
+        self._closed = False
 
     def wake(self) -> None:
-        try:
-            os.write(self.write_fd, b"x")
-        except BlockingIOError:  # already full of wake-ups: the reader will run anyway
-            pass
+        with self._lock:
+            if self._closed:
+                return
+            try:
+                os.write(self.write_fd, b"x")
+            except BlockingIOError:  # already full of wake-ups: the reader will run anyway
+                pass
 
     def drain(self) -> None:
         try:
@@ -274,8 +280,10 @@ class _Wakeup:
             pass
 
     def close(self) -> None:
-        os.close(self.read_fd)
-        os.close(self.write_fd)
+        with self._lock:
+            self._closed = True
+            os.close(self.read_fd)
+            os.close(self.write_fd)
 
 
 class _TelemetryLogHandler(logging.Handler):

@@ -22,6 +22,7 @@ QUICK = {
     "coilboard.py": ["--pairs", "2", "--runs", "1"],
     "depm.py": ["--time-scale", "8"],
     "pair.py": ["--quick"],
+    "fuzz_daemon.py": ["--requests", "200", "--plans", "20"],
 }
 
 

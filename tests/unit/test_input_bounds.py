@@ -1,0 +1,123 @@
+"""Inputs that cannot hurt: a request frame is decoded within bounds (`decode_request`), and a plan
+is bounded in every count, extent, time and image size before anything is allocated from it
+(`parse_plan`, `check_plan`, `rigctl validate`, the six-coil realizer)."""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rigctl.cli.main import main
+from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.daemon.messages import MAX_INT_DIGITS, MAX_JSON_DEPTH, BadJson, decode_request
+from rigctl.errors import PlanError
+from rigctl.plans.schema import MAX_IMAGE_PIXELS, MAX_MOVES, MAX_PROGRAM_SAMPLES, parse_plan
+from rigctl.rigs.six_coil.realize import realize_global_moves
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
+
+
+def fig4() -> dict:
+    return json.loads((EXAMPLES / "fig4-quick.json").read_text())
+
+
+@pytest.mark.parametrize("payload, says", [
+    (b'{"id": "\\ud800", "cmd": "ping"}', "surrogate"),
+    (b'{"cmd": "run", "args": {"\\udfff": 1}}', "surrogate"),  # a key, too
+    (b'{"id": ' + b"9" * 5000 + b', "cmd": "ping"}', "5000 digits"),
+    (b'{"id": ' + b"9" * (MAX_INT_DIGITS + 1) + b', "cmd": "ping"}', "digits"),
+    (b"[" * 100_000 + b"]" * 100_000, "nested"),  # past the recursion limit
+    (b'{"a":' * (MAX_JSON_DEPTH + 1) + b"1" + b"}" * (MAX_JSON_DEPTH + 1), "nested"),
+    (b"\xff\xfe", "not JSON"),
+    (b"", "not JSON"),
+    (b'{"cmd": "ping"', "not JSON"),
+])
+def test_a_frame_that_cannot_be_a_request_is_refused_with_why(payload, says):
+    with pytest.raises(BadJson, match=says):
+        decode_request(payload)
+
+
+def test_what_a_request_may_hold_is_read_as_json_reads_it():
+    assert decode_request(b'{"id": "\\ud83d\\ude00", "x": [NaN, 1e400, -0.0]}') == {
+        "id": "\U0001F600", "x": [pytest.approx(math.nan, nan_ok=True), math.inf, -0.0]}
+    nested = b'{"a":' * MAX_JSON_DEPTH + b"1" + b"}" * MAX_JSON_DEPTH  # at the bound: fine
+    assert isinstance(decode_request(nested), dict)
+    assert decode_request(b"9" * MAX_INT_DIGITS) == int("9" * MAX_INT_DIGITS)
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"moves": [[1e300, 0.0]]}, "moves.0.0"),
+    ({"moves": [[10.0, 0.0]] * (MAX_MOVES + 1)}, "moves"),
+    ({"agents": [{"start": [0, 0], "goal": [1, 1], "radius": 1e300}]}, "agents.0.radius"),
+    ({"tolerance_mm": math.inf}, "tolerance_mm"),
+    ({"min_separation_mm": math.nan}, "min_separation_mm"),
+    ({"workspace": {"boundary": {"polygon": [[i, i * i] for i in range(300)]}}},
+     "workspace.boundary.polygon"),
+    ({"workspace": {"boundary": {"rect": [0, 0, 10, 10]}, "obstacles": [{"disk": [5, 5, 1]}] * 300}},
+     "workspace.obstacles"),
+])
+def test_an_extreme_value_in_a_plan_is_refused_naming_its_field(change, field):
+    with pytest.raises(PlanError) as refused:
+        parse_plan({**fig4(), **change}, "p.json")
+    assert f"p.json: {field}: " in str(refused.value)
+
+
+def white_png(path: Path, width: int, height: int) -> Path:
+    """A real PNG (8-bit grey, every pixel 255), written without decoding anything."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+    header = width.to_bytes(4, "big") + height.to_bytes(4, "big") + bytes([8, 0, 0, 0, 0])
+    pixels = zlib.compress((b"\x00" + b"\xff" * width) * height, 9)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", pixels)
+                     + chunk(b"IEND", b""))
+    return path
+
+
+def validate(tmp_path: Path, document: dict, capsys) -> tuple[int, str]:
+    path = tmp_path / "plan.json"
+    path.write_text(json.dumps(document))
+    status = main(["validate", str(path)])
+    return status, capsys.readouterr().err
+
+
+def test_validate_refuses_a_workspace_image_over_the_pixel_bound_before_decoding_it(tmp_path, capsys):
+    side = math.isqrt(MAX_IMAGE_PIXELS) + 1
+    image = white_png(tmp_path / "huge.png", side, side)
+    plan = {**fig4(), "workspace": {"image": str(image), "mm_per_px": 0.1}}
+    status, err = validate(tmp_path, plan, capsys)
+    assert status == 2
+    assert f"is {side} x {side} pixels; at most {MAX_IMAGE_PIXELS}" in err
+    (tmp_path / "not.png").write_bytes(b"GIF89a" + bytes(40))
+    status, err = validate(tmp_path, {**plan, "workspace": {"image": "not.png", "mm_per_px": 1}}, capsys)
+    assert status == 2 and "is not a PNG" in err
+
+
+def test_validate_refuses_a_plan_without_moves(tmp_path, capsys):
+    plan = {**fig4(), "moves": []}
+    plan.pop("expected")
+    status, err = validate(tmp_path, plan, capsys)
+    assert status == 2 and "moves: empty" in err
+
+
+@pytest.mark.parametrize("text", ["[" * 100_000 + "]" * 100_000, '{"a": ' + "9" * 5000 + "}"])
+def test_validate_refuses_json_python_cannot_hold(tmp_path, capsys, text):
+    (tmp_path / "plan.json").write_text(text)
+    assert main(["validate", str(tmp_path / "plan.json")]) == 2
+    assert capsys.readouterr().err.startswith("error: ")
+
+
+def test_a_six_coil_program_over_the_sample_bound_is_refused_before_it_is_allocated():
+    rig = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
+    per_turn = 2 * math.pi * rig.magnets.radius_mm
+    turns_per_move = 100
+    # rolling alone: turns / (turns per s) * rate samples
+    seconds = MAX_PROGRAM_SAMPLES / rig.stream.rate_hz
+    moves = int(seconds * rig.field.rolling_turns_per_s / turns_per_move) + 2
+    with pytest.raises(PlanError, match="samples of field program"):
+        realize_global_moves(np.tile([[turns_per_move * per_turn, 0.0]], (moves, 1)), rig)
