@@ -50,8 +50,8 @@ Contact = Literal["slide", "non-slip"]
 # far beyond what a lab's plan holds, and each is stated in the published schema.
 MAX_EXTENT_MM = 10_000.0
 """|x|, |y| of every position, size and move (mm): a 10 m workspace."""
-MAX_MOVES = 10_000
-"""Moves (global-moves) and segments (pair-formation) in a plan: hours of rolling."""
+MAX_MOVES = 5_000
+"""Moves (global-moves) and segments (pair-formation) in a plan (one loads in about 6 s)."""
 MAX_AGENTS = 64
 MAX_SHAPES = 256
 """Obstacles in a workspace."""
@@ -64,8 +64,8 @@ MAX_DURATION_S = 3600.0
 MAX_SAMPLES = 100_000
 """Rows of a sampled series in a plan (knots, expected samples), and components of a sequence."""
 MAX_PROGRAM_SAMPLES = 4_000_000
-"""Samples of the field program a plan is realized into (about an hour at 1 kHz), checked
-before the program is allocated."""
+"""Samples of the field program a plan is realized into (an hour at 1.1 kHz), checked before the
+program is allocated; the program itself lasts at most MAX_DURATION_S."""
 
 Coordinate = Annotated[float, Field(ge=-MAX_EXTENT_MM, le=MAX_EXTENT_MM)]
 Point = tuple[Coordinate, Coordinate]

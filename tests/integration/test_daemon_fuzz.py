@@ -38,6 +38,11 @@ def daemon(tmp_path_factory):
         yield d
 
 
+@pytest.fixture(scope="module")
+def huge_image(tmp_path_factory):
+    return fuzz.huge_png(tmp_path_factory.mktemp("image") / "huge.png")
+
+
 @pytest.fixture
 def probe(daemon):
     p = fuzz.Probe(daemon.endpoints.command)
@@ -160,6 +165,34 @@ def test_a_load_past_its_deadline_answers_deadline_and_blocks_neither_commands_n
         plans.release.set()
 
 
+def load(probe, plan: dict) -> dict:
+    payload = json.dumps({"id": "plan-load", "cmd": "load", "args": {"plan": plan}}).encode()
+    reply, _ = probe.send([payload], LOAD_REPLY_S)
+    assert reply is not None, "no reply to load"
+    return reply
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"moves": [[1e300, 0.0]]}, "moves.0.0"),  # no reply, and the worker blocked for good
+    ({"moves": []}, "moves: empty"),  # passed validate; execute printed a traceback
+    ({"moves": [[31.4159, 0.0]] * 6000}, "moves: List should have at most"),
+    ({"agents": [{"start": [100, 100], "goal": [100, 100], "radius": 1e300}]}, "agents.0.radius"),
+])
+def test_the_plans_that_hurt_the_daemon_are_refused_naming_the_field(daemon, probe, change, field):
+    plan = {**json.loads((fuzz.EXAMPLES / "fig4-quick.json").read_text()), **change}
+    plan.pop("expected")
+    reply = load(probe, plan)
+    assert reply["error"]["code"] == "plan_invalid" and field in reply["error"]["message"], reply
+    still_serving(probe, daemon)
+
+
+def test_a_huge_workspace_image_is_refused_and_an_ordinary_plan_still_loads(daemon, probe, huge_image):
+    plan = json.loads((fuzz.EXAMPLES / "fig4-quick.json").read_text())
+    reply = load(probe, {**plan, "workspace": {"image": str(huge_image), "mm_per_px": 0.1}})
+    assert reply["error"]["code"] == "plan_invalid" and "4100 x 4100 pixels" in reply["error"]["message"]
+    assert load(probe, plan)["ok"] is True
+
+
 @settings(CI, max_examples=300)
 @given(payload=fuzz.requests())
 def test_every_generated_request_gets_a_reply_with_a_code(daemon, probe, payload):
@@ -171,11 +204,6 @@ def test_every_generated_request_gets_a_reply_with_a_code(daemon, probe, payload
 @given(frames=fuzz.raw_frames)
 def test_every_generated_set_of_frames_gets_a_reply_with_a_code(daemon, probe, frames):
     assert answered(probe, frames) not in ("internal", "ok")
-
-
-@pytest.fixture(scope="module")
-def huge_image(tmp_path_factory):
-    return fuzz.huge_png(tmp_path_factory.mktemp("image") / "huge.png")
 
 
 @settings(CI, max_examples=120)

@@ -16,7 +16,13 @@ from rigctl.cli.main import main
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
 from rigctl.daemon.messages import MAX_INT_DIGITS, MAX_JSON_DEPTH, BadJson, decode_request
 from rigctl.errors import PlanError
-from rigctl.plans.schema import MAX_IMAGE_PIXELS, MAX_MOVES, MAX_PROGRAM_SAMPLES, parse_plan
+from rigctl.plans.schema import (
+    MAX_DURATION_S,
+    MAX_IMAGE_PIXELS,
+    MAX_MOVES,
+    MAX_PROGRAM_SAMPLES,
+    parse_plan,
+)
 from rigctl.rigs.six_coil.realize import realize_global_moves
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
@@ -121,3 +127,14 @@ def test_a_six_coil_program_over_the_sample_bound_is_refused_before_it_is_alloca
     moves = int(seconds * rig.field.rolling_turns_per_s / turns_per_move) + 2
     with pytest.raises(PlanError, match="samples of field program"):
         realize_global_moves(np.tile([[turns_per_move * per_turn, 0.0]], (moves, 1)), rig)
+
+
+def test_a_six_coil_program_that_would_last_over_an_hour_is_refused():
+    rig = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
+    per_turn = 2 * math.pi * rig.magnets.radius_mm
+    # each move: one turn (0.5 s at 2 turns/s) and the hold after it
+    seconds_per_move = 1 / rig.field.rolling_turns_per_s + rig.field.hold_s
+    moves = int(MAX_DURATION_S / seconds_per_move) + 10
+    with pytest.raises(PlanError, match=r"lasts \d+ s; at most 3600 s"):
+        realize_global_moves(np.tile([[per_turn, 0.0], [-per_turn, 0.0]], (moves // 2 + 1, 1)), rig)
+    assert realize_global_moves([[per_turn, 0.0]] * 10, rig).duration_s < MAX_DURATION_S

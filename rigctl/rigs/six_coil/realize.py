@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike
 
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, PlanError
-from rigctl.plans.schema import MAX_PROGRAM_SAMPLES
+from rigctl.plans.schema import MAX_DURATION_S, MAX_PROGRAM_SAMPLES
 
 logger = logging.getLogger(__name__)
 
@@ -300,6 +300,9 @@ def realize_global_moves(
     emit(np.zeros((1, 3)), NO_MOVE, HOLD)
 
     field = np.concatenate(fields)
+    if len(field) > MAX_DURATION_S * rate:
+        raise PlanError(f"moves: the field program lasts {len(field) / rate:.0f} s; at most "
+                        f"{MAX_DURATION_S:g} s (fewer or shorter moves)")
     return FieldProgram(
         t_s=np.arange(len(field)) / rate,
         field_T=field,
