@@ -405,7 +405,7 @@ class PairFormationPlan(_PlanDocument):
         default=3.0, description="how long execution holds the goal formation (at most 1 h)")
 
     @model_validator(mode="after")
-    def _bounded(self) -> "PairFormationPlan":
+    def _bounded(self) -> PairFormationPlan:
         total = sum(segment.dt_s for segment in self.segments)
         if total > MAX_DURATION_S:
             raise ValueError(f"segments: {total:.6g} s in all; at most {MAX_DURATION_S:g} s")

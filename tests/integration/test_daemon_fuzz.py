@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 import zmq
 from hypothesis import HealthCheck, given, settings
+from rigctl.plans.schema import MAX_IMAGE_PIXELS
 
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
 from rigctl.daemon.messages import HARD_MAX_MESSAGE_BYTES, Command
@@ -191,6 +192,13 @@ def test_a_huge_workspace_image_is_refused_and_an_ordinary_plan_still_loads(daem
     reply = load(probe, {**plan, "workspace": {"image": str(huge_image), "mm_per_px": 0.1}})
     assert reply["error"]["code"] == "plan_invalid" and "4100 x 4100 pixels" in reply["error"]["message"]
     assert load(probe, plan)["ok"] is True
+
+
+def test_validate_refuses_a_huge_workspace_image_before_decoding_it(huge_image, tmp_path):
+    plan = json.loads((fuzz.EXAMPLES / "fig4-quick.json").read_text())
+    plan["workspace"] = {"image": str(huge_image), "mm_per_px": 0.1}
+    status, err = fuzz.validate_in_process(json.dumps(plan).encode(), tmp_path)
+    assert status == 2 and f"is 4100 x 4100 pixels; at most {MAX_IMAGE_PIXELS} pixels" in err
 
 
 @settings(CI, max_examples=300)
