@@ -142,13 +142,16 @@ def _parse_int(text: str) -> int:
     return int(text)
 
 
+_DECODER = json.JSONDecoder(parse_int=_parse_int)
+
+
 def decode_request(payload: bytes) -> Any:
     """The JSON value of a request frame, or BadJson saying why not: not UTF-8, not JSON, an
     integer over MAX_INT_DIGITS digits, nesting deeper than MAX_JSON_DEPTH, or a string with an
     unpaired surrogate (no reply could carry it). NaN and Infinity are read as JSON's Python
     dialect has them, for the models to refuse by field."""
     try:
-        data = json.loads(payload, parse_int=_parse_int)
+        data = _DECODER.decode(payload.decode("utf-8"))
     except BadJson:
         raise
     except RecursionError:
