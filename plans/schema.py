@@ -589,42 +589,40 @@ def _brief(value: Any, limit: int = 60) -> str:
 
 
 def _polygon_problem(vertices: np.ndarray) -> str | None:
-    """Why these vertices (V, 2) are not a simple polygon, or None."""
+    """Why these vertices (V, 2) are not a simple polygon, or None (every pair of edges at once:
+    MAX_VERTICES^2 pairs)."""
     count = len(vertices)
-    for i in range(count):
-        if np.array_equal(vertices[i], vertices[(i + 1) % count]):
-            return f"polygon repeats vertex {i}"
-    for i in range(count):
-        a, b = vertices[i], vertices[(i + 1) % count]
-        for j in range(i + 1, count):
-            if j == i or (j + 1) % count == i or j == (i + 1) % count:
-                continue  # neighbouring edges share a vertex
-            c, d = vertices[j], vertices[(j + 1) % count]
-            if _segments_cross(a, b, c, d):
-                return f"polygon is not simple: edges {i} and {j} cross"
+    ends = np.roll(vertices, -1, axis=0)
+    repeated = np.flatnonzero(np.all(vertices == ends, axis=1))
+    if len(repeated):
+        return f"polygon repeats vertex {repeated[0]}"
+    i, j = np.triu_indices(count, 1)
+    keep = (j != i + 1) & ((j + 1) % count != i)  # neighbouring edges share a vertex
+    i, j = i[keep], j[keep]
+    a, b, c, d = vertices[i], ends[i], vertices[j], ends[j]
+    crossed = _segments_cross(a, b, c, d)
+    if crossed.any():
+        first = np.flatnonzero(crossed)[0]
+        return f"polygon is not simple: edges {i[first]} and {j[first]} cross"
     x, y = vertices[:, 0], vertices[:, 1]
     if 0.5 * abs(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) == 0.0:
         return "polygon has zero area"
     return None
 
 
-def _segments_cross(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> bool:
-    def orient(p, q, r) -> float:
-        return float((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
+def _segments_cross(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Whether segment a-b meets segment c-d (touching counts), for rows of (n, 2) arrays."""
+    def orient(p, q, r) -> np.ndarray:
+        return (q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0])
 
-    def on_segment(p, q, r) -> bool:
-        inside_x = min(p[0], q[0]) <= r[0] <= max(p[0], q[0])
-        return inside_x and min(p[1], q[1]) <= r[1] <= max(p[1], q[1])
+    def on_segment(p, q, r) -> np.ndarray:
+        inside = (np.minimum(p, q) <= r) & (r <= np.maximum(p, q))
+        return inside[:, 0] & inside[:, 1]
 
     o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
-    if o1 * o2 < 0 and o3 * o4 < 0:
-        return True
-    return (
-        (o1 == 0 and on_segment(a, b, c))
-        or (o2 == 0 and on_segment(a, b, d))
-        or (o3 == 0 and on_segment(c, d, a))
-        or (o4 == 0 and on_segment(c, d, b))
-    )
+    return (((o1 * o2 < 0) & (o3 * o4 < 0))
+            | ((o1 == 0) & on_segment(a, b, c)) | ((o2 == 0) & on_segment(a, b, d))
+            | ((o3 == 0) & on_segment(c, d, a)) | ((o4 == 0) & on_segment(c, d, b)))
 
 
 # Semantics beyond the schema
