@@ -63,9 +63,12 @@ MAX_DURATION_S = 3600.0
 """Any time in a plan (holds, segments, knot times): one hour."""
 MAX_SAMPLES = 100_000
 """Rows of a sampled series in a plan (knots, expected samples), and components of a sequence."""
-MAX_PROGRAM_SAMPLES = 4_000_000
-"""Samples of the field program a plan is realized into (an hour at 1.1 kHz), checked before the
-program is allocated; the program itself lasts at most MAX_DURATION_S."""
+MAX_CHECK_SAMPLES = 50_000
+"""Times at which a field-sequence plan's safety check samples both arms ((last knot - first) /
+limits.check_step_s): about 4 kB each, so at most about 200 MB; 500 s at the default 10 ms."""
+MAX_PROGRAM_SAMPLES = 1_000_000
+"""Samples of the program a plan is realized into (17 min at 1 kHz, 2.8 h at 100 Hz; about 100 MB),
+checked before the program is allocated; the program itself lasts at most MAX_DURATION_S."""
 
 Coordinate = Annotated[float, Field(ge=-MAX_EXTENT_MM, le=MAX_EXTENT_MM)]
 Point = tuple[Coordinate, Coordinate]
@@ -296,7 +299,9 @@ class DepmLimits(_Document):
     epm_min_distance_mm: Annotated[float, Field(gt=0)] = 300.0
     speed_fraction: Annotated[float, Field(gt=0, le=1)] = 0.3
     accel_fraction: Annotated[float, Field(gt=0, le=1)] = 0.5
-    check_step_s: Annotated[float, Field(ge=1e-4, le=1.0)] = 0.01
+    check_step_s: Annotated[float, Field(
+        ge=1e-4, le=1.0, description=f"the safety check's time step (s); at most {MAX_CHECK_SAMPLES} "
+        "steps over the plan")] = 0.01
 
 
 class FieldSequencePlan(_PlanDocument):
@@ -344,6 +349,12 @@ class FieldSequencePlan(_PlanDocument):
             )
         if self.expected is not None and len(self.expected.U) != len(self.expected.t_s):
             raise ValueError("expected: U needs one row per t_s")
+        checks = (times[-1] - times[0]) / self.limits.check_step_s
+        if checks > MAX_CHECK_SAMPLES:
+            raise ValueError(
+                f"t_s: {times[-1] - times[0]:.6g} s checked every limits.check_step_s = "
+                f"{self.limits.check_step_s:g} s is {checks:.3g} samples; at most "
+                f"{MAX_CHECK_SAMPLES} (a larger check_step_s, or a shorter plan)")
         return self
 
     @property
@@ -406,9 +417,10 @@ class PairFormationPlan(_PlanDocument):
 
     @model_validator(mode="after")
     def _bounded(self) -> PairFormationPlan:
-        total = sum(segment.dt_s for segment in self.segments)
+        total = sum(segment.dt_s for segment in self.segments) + self.hold_s
         if total > MAX_DURATION_S:
-            raise ValueError(f"segments: {total:.6g} s in all; at most {MAX_DURATION_S:g} s")
+            raise ValueError(f"segments: {total:.6g} s in all with hold_s; at most "
+                             f"{MAX_DURATION_S:g} s")
         return self
 
     @property

@@ -125,3 +125,20 @@ def test_a_six_coil_program_that_would_last_over_an_hour_is_refused():
     with pytest.raises(PlanError, match=r"lasts \d+ s; at most 3600 s"):
         realize_global_moves(np.tile([[per_turn, 0.0], [-per_turn, 0.0]], (moves // 2 + 1, 1)), rig)
     assert realize_global_moves([[per_turn, 0.0]] * 10, rig).duration_s < MAX_DURATION_S
+
+
+def test_a_pair_program_over_the_sample_bound_is_refused_before_it_is_built():
+    from rigctl.config import StreamSettings
+    from rigctl.rigs.six_coil.pair import PairRunSettings, prepare_pair
+
+    document = json.loads((EXAMPLES / "pair-formation-change.json").read_text())
+    document.pop("expected", None)
+    segment = document["segments"][0]
+    count = 3000  # of 1 s at 1 kHz: 3e6 samples, within the plan's own bounds (segments, 1 h)
+    document["segments"] = [{**segment, "dt_s": 1.0}] * count
+    plan = parse_plan(document, "pair.json")
+    rig = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils(),
+                    stream=StreamSettings(rate_hz=1000.0))
+    assert count * 1000.0 > MAX_PROGRAM_SAMPLES
+    with pytest.raises(PlanError, match="samples of program at 1000 Hz"):
+        prepare_pair(plan, rig, PairRunSettings())
