@@ -53,6 +53,8 @@ MAX_EXTENT_MM = 10_000.0
 MAX_MOVES = 5_000
 """Moves (global-moves) and segments (pair-formation) in a plan (one loads in about 6 s)."""
 MAX_AGENTS = 64
+MAX_PLAN_BYTES = 64 * 1024 * 1024
+"""A plan file larger than this is not read (the daemon takes requests of at most 4 MiB)."""
 MAX_SHAPES = 256
 """Obstacles in a workspace."""
 MAX_VERTICES = 256
@@ -223,7 +225,7 @@ class GlobalMovesPlan(_PlanDocument):
                                 description=f"at most {MAX_AGENTS}")
     moves: list[Point] = Field(max_length=MAX_MOVES, description="shared displacements [dx, dy] "
                                f"(mm), applied in order; at most {MAX_MOVES}")
-    expected: list[list[Point]] | None = Field(
+    expected: list[Annotated[list[Point], Field(max_length=MAX_AGENTS)]] | None = Field(
         default=None, max_length=MAX_MOVES,
         description="expected[i][j]: agent j's position after move i (mm)"
     )
@@ -552,6 +554,9 @@ def plan_json_schema() -> dict:
 
 def _read_json(path: Path) -> Any:
     try:
+        if path.stat().st_size > MAX_PLAN_BYTES:
+            raise PlanError(f"{path}: {path.stat().st_size} bytes; a plan has at most "
+                            f"{MAX_PLAN_BYTES}")
         text = path.read_text()
     except FileNotFoundError:
         raise PlanError(f"{path}: no such file") from None

@@ -142,3 +142,13 @@ def test_a_pair_program_over_the_sample_bound_is_refused_before_it_is_built():
     assert count * 1000.0 > MAX_PROGRAM_SAMPLES
     with pytest.raises(PlanError, match="samples of program at 1000 Hz"):
         prepare_pair(plan, rig, PairRunSettings())
+
+
+def test_validate_does_not_read_a_plan_file_over_the_size_bound(tmp_path, capsys):
+    from rigctl.plans.schema import MAX_PLAN_BYTES
+
+    path = tmp_path / "plan.json"
+    with open(path, "wb") as file:
+        file.truncate(MAX_PLAN_BYTES + 1)  # sparse: nothing written
+    assert main(["validate", str(path)]) == 2
+    assert f"{MAX_PLAN_BYTES + 1} bytes; a plan has at most" in capsys.readouterr().err
