@@ -143,6 +143,7 @@ def plans(image: Path):
         json_values, st.sampled_from([1e300, -1e300, math.inf, -math.inf, math.nan, 10**20, 0,
                                       -1, [], {}, "", [[1e300, 0.0]], [[0.0, 0.0]]]),
         st.integers(0, 30_000).map(lambda n: [[10.0, 0.0]] * n),
+        st.floats(-1e4, 1e4), st.integers(-10, 10_000),  # within the bounds: the checks past them
     )
 
     @st.composite

@@ -6,11 +6,12 @@ Threads and who does what:
   are answered on this thread; slow ones (`runs` and `run` read the disk, `hold` and `set_field`
   wait for the rig to stream the hold) go to a worker thread and are answered when it is done, so
   nothing ever waits behind them; `load` (it realizes and allocates a whole plan) runs on a thread
-  of its own, one at a time, and is answered `deadline` when it takes over LOAD_DEADLINE_S. `estop` is carried out the moment it is read:
-  the command thread hands it to the stream process, which writes 0 A and output off to every
-  supply of the active run from its own command thread (the drivers latch at zero, so the stream
-  can send nothing else after it) and answers with the supplies it could not reach; with nothing
-  active the command thread starts zeroing the supplies directly;
+  of its own, one at a time, and is answered `deadline` when it takes over LOAD_DEADLINE_S.
+  `estop` is carried out the moment it is read: the command thread hands it to the stream
+  process, which writes 0 A and output off to every supply of the active run from its own command
+  thread (the drivers latch at zero, so the stream can send nothing else after it) and answers
+  with the supplies it could not reach; with nothing active the command thread starts zeroing the
+  supplies directly;
 - plan runs and manual holds stream in the *stream process* (`rigctl.daemon.runhost`, spawned when the
   daemon starts), so that no Python of the daemon's competes with the stream for a GIL, nor the
   stream with a reply to a client. The daemon's *run thread* (one at a time) waits for the job
@@ -602,7 +603,7 @@ class Daemon:
         except ValueError:
             known = ", ".join(c.value for c in Command)
             self._send(envelope, error_reply(request.id, ErrorCode.UNKNOWN_COMMAND,
-                                             f"unknown command {request.cmd!r}; known: {known}"))
+                                             f"unknown command {request.cmd[:40]!r}; known: {known}"))
             return
         try:
             args = COMMAND_ARGS[cmd].model_validate(request.args)
