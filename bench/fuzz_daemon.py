@@ -253,28 +253,31 @@ def main() -> int:
               "plan_other": 0, "validate_traceback": 0, "validate_other_exit": 0}
     worst = {"request_s": 0.0, "load_s": 0.0, "validate_s": 0.0}
     load_codes: dict[str, int] = {}
+    slowest: dict[str, str] = {}
     with tempfile.TemporaryDirectory() as tmp, daemon_on_bench(Path(tmp) / "runs") as daemon:
         probe, folder = Probe(daemon.endpoints.command), Path(tmp)
         image = huge_png(folder / "huge.png")
 
-        def note(kind: str, reply: dict | None, seconds: float) -> str | None:
+        def note(kind: str, reply: dict | None, seconds: float, frames: list[bytes]) -> str | None:
             counts[kind] += 1
-            worst["load_s" if kind == "plans" else "request_s"] = max(
-                worst["load_s" if kind == "plans" else "request_s"], seconds)
+            key = "load_s" if kind == "plans" else "request_s"
+            if seconds > worst[key]:
+                worst[key] = seconds
+                slowest[key] = f"{sum(map(len, frames))} bytes: {b'|'.join(frames)[:60]!r}"
             code = reply_code(reply)
             counts["no_code"] += code is None
             counts["internal"] += code == "internal"
             return code
 
         def one_request(payload: bytes) -> None:
-            note("requests", *probe.send([payload]))
+            note("requests", *probe.send([payload]), [payload])
 
         def one_frame_set(frames: list[bytes]) -> None:
-            note("raw_frames", *probe.send(frames))
+            note("raw_frames", *probe.send(frames), frames)
 
         def one_plan(text: bytes) -> None:
             payload = b'{"id":"fuzz-plan","cmd":"load","args":{"plan":' + text + b"}}"
-            code = note("plans", *probe.send([payload]))
+            code = note("plans", *probe.send([payload]), [payload])
             counts["plan_other"] += code not in PLAN_CODES | {"ok", None, "internal"}
             load_codes[str(code)] = load_codes.get(str(code), 0) + 1
             started = time.monotonic()
@@ -294,7 +297,8 @@ def main() -> int:
         alive = daemon._thread is not None and daemon._thread.is_alive()
     print(json.dumps({**counts, "daemon_exits": int(not alive),
                       "ping_after": reply_code(ping) == "ok", "load_codes": load_codes,
-                      **{f"worst_{k}": round(v, 4) for k, v in worst.items()}}))
+                      **{f"worst_{k}": round(v, 4) for k, v in worst.items()},
+                      "slowest": slowest}))
     return 0
 
 

@@ -16,12 +16,15 @@ The document for people is `docs/daemon-protocol.md`; this module is the one the
 
 from __future__ import annotations
 
+import gc
 import ipaddress
 import json
+import re
 from enum import Enum
 from typing import Annotated, Any, Literal
 from urllib.parse import urlsplit
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from rigctl.config import (  # noqa: F401  (the rig file's [daemon] table and its defaults)
@@ -136,58 +139,58 @@ class BadJson(ValueError):
     """A request frame that `decode_request` refuses (answered with `bad_json`)."""
 
 
-def _parse_int(text: str) -> int:
-    if len(text) > MAX_INT_DIGITS:
-        raise BadJson(f"an integer of {len(text)} digits (at most {MAX_INT_DIGITS})")
-    return int(text)
-
-
-_DECODER = json.JSONDecoder(parse_int=_parse_int)
-
-
 def decode_request(payload: bytes) -> Any:
     """The JSON value of a request frame, or BadJson saying why not: not UTF-8, not JSON, an
     integer over MAX_INT_DIGITS digits, nesting deeper than MAX_JSON_DEPTH, or a string with an
     unpaired surrogate (no reply could carry it). NaN and Infinity are read as JSON's Python
-    dialect has them, for the models to refuse by field."""
+    dialect has them, for the models to refuse by field. Every check runs at C speed, and an
+    ordinary request skips them (fewer than 64 brackets, no \\uD8xx, no 31 digits in a row)."""
     try:
-        data = _DECODER.decode(payload.decode("utf-8"))
-    except BadJson:
-        raise
-    except RecursionError:
-        raise BadJson(f"nested more than {MAX_JSON_DEPTH} levels deep") from None
-    except (UnicodeDecodeError, ValueError) as err:  # JSONDecodeError is a ValueError
+        text = payload.decode("utf-8")
+    except UnicodeDecodeError as err:
         raise BadJson(f"not JSON: {err}") from None
-    if isinstance(data, (dict, list)):
-        _check_tree(data)
-    elif isinstance(data, str):
-        _check_text(data)
+    if _depth(text) > MAX_JSON_DEPTH:
+        raise BadJson(f"nested more than {MAX_JSON_DEPTH} levels deep")
+    if _LONG_DIGITS.search(text):  # in a string, a float or an integer?
+        found = _LONG_INTEGER.search(_STRING.sub("", text))
+        if found:
+            raise BadJson(f"an integer of {len(found.group().lstrip('-'))} digits (at most "
+                          f"{MAX_INT_DIGITS})")
+    paused = gc.isenabled() and len(text) > 65536  # a big tree: no collections meanwhile
+    if paused:  # (3x faster: 4 MiB of small lists in 0.15 s, not 0.45 s)
+        gc.disable()
+    try:
+        data = json.loads(text)
+    except RecursionError:  # cannot happen within MAX_JSON_DEPTH; kept as the last guard
+        raise BadJson(f"nested more than {MAX_JSON_DEPTH} levels deep") from None
+    except ValueError as err:  # JSONDecodeError is a ValueError
+        raise BadJson(f"not JSON: {err}") from None
+    finally:
+        if paused:
+            gc.enable()
+    if _SURROGATE.search(text):  # an escape of one: is any unpaired?
+        try:
+            json.dumps(data, ensure_ascii=False, allow_nan=True).encode("utf-8")
+        except UnicodeEncodeError:
+            raise BadJson("a string with an unpaired surrogate (\\ud800-\\udfff)") from None
     return data
 
 
-def _check_tree(root: dict | list) -> None:
-    """Depth and strings of a decoded JSON tree, without recursion."""
-    stack = [(root, 1)]
-    while stack:
-        node, depth = stack.pop()
-        if depth > MAX_JSON_DEPTH:
-            raise BadJson(f"nested more than {MAX_JSON_DEPTH} levels deep")
-        items = node.items() if isinstance(node, dict) else enumerate(node)
-        for key, value in items:
-            if isinstance(key, str):
-                _check_text(key)
-            if isinstance(value, (dict, list)):
-                stack.append((value, depth + 1))
-            elif isinstance(value, str):
-                _check_text(value)
+_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
+_SURROGATE = re.compile(r"\\u[dD][89a-fA-F]")
+_LONG_DIGITS = re.compile(f"[0-9]{{{MAX_INT_DIGITS + 1}}}")
+_LONG_INTEGER = re.compile(rf"(?<![0-9.eE+-])-?[0-9]{{{MAX_INT_DIGITS + 1},}}(?![0-9.eE])")
+_NESTING = np.zeros(128, dtype=np.int8)
+_NESTING[[ord("["), ord("{")]], _NESTING[[ord("]"), ord("}")]] = 1, -1
 
 
-def _check_text(text: str) -> None:
-    if not text.isascii():
-        try:
-            text.encode("utf-8")
-        except UnicodeEncodeError:
-            raise BadJson("a string with an unpaired surrogate (\\ud800-\\udfff)") from None
+def _depth(text: str) -> int:
+    """How deep the brackets of a JSON text nest (strings left out); 0 below MAX_JSON_DEPTH
+    brackets in all."""
+    if text.count("[") + text.count("{") <= MAX_JSON_DEPTH:
+        return 0
+    bare = np.frombuffer(_STRING.sub("", text).encode("ascii", "replace"), dtype=np.uint8)
+    return int(np.cumsum(_NESTING[np.minimum(bare, 127)], dtype=np.int64).max(initial=0))
 
 
 class Request(_Message):

@@ -57,6 +57,11 @@ def test_what_a_request_may_hold_is_read_as_json_reads_it():
     nested = b'{"a":' * MAX_JSON_DEPTH + b"1" + b"}" * MAX_JSON_DEPTH  # at the bound: fine
     assert isinstance(decode_request(nested), dict)
     assert decode_request(b"9" * MAX_INT_DIGITS) == int("9" * MAX_INT_DIGITS)
+    long = "1" * 100  # digits in a row that are no integer: a float's, an exponent's, a string's
+    assert decode_request(f'[1.{long}, {long}.5, 1e-{long}, "{long}"]'.encode()) == [
+        float(f"1.{long}"), float(f"{long}.5"), 0.0, long]
+    with pytest.raises(BadJson, match="an integer of 31 digits"):
+        decode_request(b'{"a": "x", "b": [-' + b"1" * 31 + b"]}")
 
 
 @pytest.mark.parametrize("change, field", [
