@@ -157,3 +157,14 @@ def test_validate_does_not_read_a_plan_file_over_the_size_bound(tmp_path, capsys
         file.truncate(MAX_PLAN_BYTES + 1)  # sparse: nothing written
     assert main(["validate", str(path)]) == 2
     assert f"{MAX_PLAN_BYTES + 1} bytes; a plan has at most" in capsys.readouterr().err
+
+
+def test_the_published_schema_states_the_bounds():
+    from rigctl.plans.schema import MAX_AGENTS, MAX_VERTICES, plan_json_schema
+
+    defs = plan_json_schema()["$defs"]
+    moves = defs["GlobalMovesPlan"]["properties"]["moves"]
+    assert moves["maxItems"] == MAX_MOVES and str(MAX_MOVES) in moves["description"]
+    assert defs["GlobalMovesPlan"]["properties"]["agents"]["maxItems"] == MAX_AGENTS
+    assert defs["PolygonShape"]["properties"]["polygon"]["maxItems"] == MAX_VERTICES
+    assert defs["ImageWorkspaceSpec"]["properties"]["mm_per_px"]["minimum"] == 1e-3
