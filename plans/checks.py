@@ -86,6 +86,8 @@ def check_plan(plan: GlobalMovesPlan) -> None:
     if plan.kind != "global-moves":
         return _kind_module(plan).check(plan)
     source = plan.source
+    if not plan.moves:
+        raise PlanError(f"{source}: moves: empty; a plan makes at least one move")
     workspace = plan_workspace(plan)
     model = plan_model(plan, workspace)
     radii = model.radii

@@ -45,8 +45,37 @@ SCHEMA_ID = "rigctl.plan/1"
 RigName = Literal["six-coil", "coil-board"]  # rigs that run global-moves plans
 Contact = Literal["slide", "non-slip"]
 
-Point = tuple[float, float]
-PositiveLength = Annotated[float, Field(gt=0)]
+# Bounds: what a plan may hold, checked before anything is allocated from it, so that no number
+# in a document can make `validate` or the daemon's `load` take unbounded time or memory. Each is
+# far beyond what a lab's plan holds, and each is stated in the published schema.
+MAX_EXTENT_MM = 10_000.0
+"""|x|, |y| of every position, size and move (mm): a 10 m workspace."""
+MAX_MOVES = 5_000
+"""Moves (global-moves) and segments (pair-formation) in a plan (one loads in about 6 s)."""
+MAX_AGENTS = 64
+MAX_PLAN_BYTES = 64 * 1024 * 1024
+"""A plan file larger than this is not read (the daemon takes requests of at most 4 MiB)."""
+MAX_SHAPES = 256
+"""Obstacles in a workspace."""
+MAX_VERTICES = 256
+"""Vertices of a polygon (checked for self-crossings in O(n^2))."""
+MAX_IMAGE_PIXELS = 2048 * 2048
+"""Pixels of a workspace image (width x height, read from the PNG header before decoding)."""
+MAX_DURATION_S = 3600.0
+"""Any time in a plan (holds, segments, knot times): one hour."""
+MAX_SAMPLES = 100_000
+"""Rows of a sampled series in a plan (knots, expected samples), and components of a sequence."""
+MAX_CHECK_SAMPLES = 50_000
+"""Times at which a field-sequence plan's safety check samples both arms ((last knot - first) /
+limits.check_step_s): about 4 kB each, so at most about 200 MB; 500 s at the default 10 ms."""
+MAX_PROGRAM_SAMPLES = 1_000_000
+"""Samples of the program a plan is realized into (17 min at 1 kHz, 2.8 h at 100 Hz; about 100 MB),
+checked before the program is allocated; the program itself lasts at most MAX_DURATION_S."""
+
+Coordinate = Annotated[float, Field(ge=-MAX_EXTENT_MM, le=MAX_EXTENT_MM)]
+Point = tuple[Coordinate, Coordinate]
+PositiveLength = Annotated[float, Field(gt=0, le=MAX_EXTENT_MM)]
+Duration = Annotated[float, Field(ge=0, le=MAX_DURATION_S)]
 
 # `replay` agreement demanded by check_plan (mm).
 REPLAY_TOLERANCE_MM = 1e-6
@@ -60,14 +89,15 @@ class _Document(BaseModel):
 
 
 class RectShape(_Document):
-    rect: tuple[float, float, PositiveLength, PositiveLength] = Field(
+    rect: tuple[Coordinate, Coordinate, PositiveLength, PositiveLength] = Field(
         description="[x, y, w, h]: lower-left corner, width and height (mm)"
     )
 
 
 class PolygonShape(_Document):
     polygon: list[Point] = Field(
-        min_length=3, description="vertices [[x, y], ...] (mm), simple, either orientation"
+        min_length=3, max_length=MAX_VERTICES,
+        description=f"vertices [[x, y], ...] (mm), simple, either orientation, at most {MAX_VERTICES}"
     )
 
     @field_validator("polygon")
@@ -80,7 +110,7 @@ class PolygonShape(_Document):
 
 
 class DiskShape(_Document):
-    disk: tuple[float, float, PositiveLength] = Field(description="[cx, cy, r] (mm)")
+    disk: tuple[Coordinate, Coordinate, PositiveLength] = Field(description="[cx, cy, r] (mm)")
 
 
 _SHAPE_KEYS = ("rect", "polygon", "disk")
@@ -113,12 +143,14 @@ Shape = Annotated[
 
 class ShapeWorkspaceSpec(_Document):
     boundary: Shape
-    obstacles: list[Shape] = []
+    obstacles: list[Shape] = Field(default=[], max_length=MAX_SHAPES,
+                                   description=f"at most {MAX_SHAPES}")
 
 
 class ImageWorkspaceSpec(_Document):
-    image: str = Field(description="PNG path, relative to the plan file; dark (< 128) = obstacle")
-    mm_per_px: PositiveLength
+    image: str = Field(max_length=4096, description="PNG path, relative to the plan file; dark "
+                       f"(< 128) = obstacle; at most {MAX_IMAGE_PIXELS} pixels")
+    mm_per_px: Annotated[float, Field(ge=1e-3, le=100.0, description="1 um to 100 mm")]
     origin: Point = Field(
         default=(0.0, 0.0), description="workspace position (mm) of the image's lower-left corner"
     )
@@ -189,15 +221,18 @@ class GlobalMovesPlan(_PlanDocument):
     rig: RigName
     name: str | None = None
     workspace: WorkspaceSpec
-    agents: list[Agent] = Field(min_length=1)
-    moves: list[Point] = Field(description="shared displacements [dx, dy] (mm), applied in order")
-    expected: list[list[Point]] | None = Field(
-        default=None, description="expected[i][j]: agent j's position after move i (mm)"
+    agents: list[Agent] = Field(min_length=1, max_length=MAX_AGENTS,
+                                description=f"at most {MAX_AGENTS}")
+    moves: list[Point] = Field(max_length=MAX_MOVES, description="shared displacements [dx, dy] "
+                               f"(mm), applied in order; at most {MAX_MOVES}")
+    expected: list[Annotated[list[Point], Field(max_length=MAX_AGENTS)]] | None = Field(
+        default=None, max_length=MAX_MOVES,
+        description="expected[i][j]: agent j's position after move i (mm)"
     )
     tolerance_mm: PositiveLength = Field(
         default=1.0, description="how far a measured agent may be from expected before correcting"
     )
-    min_separation_mm: Annotated[float, Field(ge=0)] = Field(
+    min_separation_mm: Annotated[float, Field(ge=0, le=MAX_EXTENT_MM)] = Field(
         default=0.0, description="agents keep centre distance >= r_i + r_j + this (planner option)"
     )
 
@@ -221,18 +256,20 @@ class SequenceComponent(_Document):
 
     name: str
     U: Vector8 = Field(description="[Bx, By, Bz] mT, [dBx/dx, dBx/dy, dBx/dz, dBy/dy, dBy/dz] mT/m")
-    hold_s: NonNegative = Field(default=5.0, description="hold after the arms arrive (s)")
+    hold_s: Duration = Field(default=5.0, description="hold after the arms arrive (s), at most 1 h")
 
 
 class ArmPlan(_Document):
     """One arm: where its base stands and its joint knots (one row of 7 angles per `t_s`)."""
 
     name: str
-    position_mm: tuple[float, float, float] = Field(description="base position, world frame (mm)")
+    position_mm: tuple[Coordinate, Coordinate, Coordinate] = Field(
+        description="base position, world frame (mm)")
     rpy_deg: tuple[float, float, float] = Field(
         default=(0.0, 0.0, 0.0), description="base orientation, fixed-axis roll, pitch, yaw (deg)"
     )
-    joints_rad: list[Joints7] = Field(description="joint knots (rad), one row per entry of t_s")
+    joints_rad: list[Joints7] = Field(max_length=MAX_SAMPLES,
+                                      description="joint knots (rad), one row per entry of t_s")
 
 
 class Segment(_Document):
@@ -240,9 +277,9 @@ class Segment(_Document):
 
     name: str
     U: Vector8 = Field(description="requested U (mT, mT/m)")
-    start_s: NonNegative = Field(description="the transition toward this component starts")
-    reached_s: NonNegative = Field(description="the arms arrive: the hold starts")
-    end_s: NonNegative = Field(description="the hold ends (the next transition starts)")
+    start_s: Duration = Field(description="the transition toward this component starts")
+    reached_s: Duration = Field(description="the arms arrive: the hold starts")
+    end_s: Duration = Field(description="the hold ends (the next transition starts)")
     residual: Vector8 = Field(
         description="U the planned end poses make minus U requested (mT, mT/m), dipole model"
     )
@@ -251,9 +288,9 @@ class Segment(_Document):
 class ExpectedField(_Document):
     """U at the workspace centre the planned poses make (dipole model), sampled at `rate_hz`."""
 
-    rate_hz: Annotated[float, Field(gt=0)]
-    t_s: list[float]
-    U: list[Vector8] = Field(description="one row per t_s (mT, mT/m)")
+    rate_hz: Annotated[float, Field(gt=0, le=10_000)]
+    t_s: list[Duration] = Field(max_length=MAX_SAMPLES)
+    U: list[Vector8] = Field(max_length=MAX_SAMPLES, description="one row per t_s (mT, mT/m)")
 
 
 class DepmLimits(_Document):
@@ -264,7 +301,9 @@ class DepmLimits(_Document):
     epm_min_distance_mm: Annotated[float, Field(gt=0)] = 300.0
     speed_fraction: Annotated[float, Field(gt=0, le=1)] = 0.3
     accel_fraction: Annotated[float, Field(gt=0, le=1)] = 0.5
-    check_step_s: Annotated[float, Field(gt=0)] = 0.01
+    check_step_s: Annotated[float, Field(
+        ge=1e-4, le=1.0, description=f"the safety check's time step (s); at most {MAX_CHECK_SAMPLES} "
+        "steps over the plan")] = 0.01
 
 
 class FieldSequencePlan(_PlanDocument):
@@ -282,14 +321,16 @@ class FieldSequencePlan(_PlanDocument):
     tool_offset_mm: Annotated[float, Field(gt=0)] = Field(
         default=85.0, description="EPM centre along the flange z axis (mm)"
     )
-    waypoints: Annotated[int, Field(ge=2)] = 20
-    k: Annotated[int, Field(ge=1)] = 4
+    waypoints: Annotated[int, Field(ge=2, le=1000)] = 20
+    k: Annotated[int, Field(ge=1, le=100)] = 4
     limits: DepmLimits = DepmLimits()
-    sequence: list[SequenceComponent] = Field(min_length=1)
+    sequence: list[SequenceComponent] = Field(min_length=1, max_length=1000)
     interpolation: Literal["pchip"] = "pchip"
-    t_s: list[float] = Field(min_length=2, description="knot times (s), strictly increasing")
+    t_s: list[Duration] = Field(min_length=2, max_length=MAX_SAMPLES,
+                                description="knot times (s), strictly increasing, at most 1 h")
     arms: list[ArmPlan] = Field(min_length=2, max_length=2)
-    segments: list[Segment] = Field(description="one per sequence component, in order")
+    segments: list[Segment] = Field(max_length=1000,
+                                    description="one per sequence component, in order")
     expected: ExpectedField | None = None
 
     @model_validator(mode="after")
@@ -310,6 +351,12 @@ class FieldSequencePlan(_PlanDocument):
             )
         if self.expected is not None and len(self.expected.U) != len(self.expected.t_s):
             raise ValueError("expected: U needs one row per t_s")
+        checks = (times[-1] - times[0]) / self.limits.check_step_s
+        if checks > MAX_CHECK_SAMPLES:
+            raise ValueError(
+                f"t_s: {times[-1] - times[0]:.6g} s checked every limits.check_step_s = "
+                f"{self.limits.check_step_s:g} s is {checks:.3g} samples; at most "
+                f"{MAX_CHECK_SAMPLES} (a larger check_step_s, or a shorter plan)")
         return self
 
     @property
@@ -332,9 +379,9 @@ class PairAgents(_Document):
 class PairState(_Document):
     """A formation: centroid (mm), separation r (body diameters), heading of agent 1 -> 2 (deg)."""
 
-    x_mm: float
-    y_mm: float
-    r_bl: Annotated[float, Field(gt=0)]
+    x_mm: Coordinate
+    y_mm: Coordinate
+    r_bl: Annotated[float, Field(gt=0, le=MAX_EXTENT_MM)]
     phi_deg: float
 
 
@@ -345,7 +392,7 @@ class PairSegment(_Document):
     psi_deg: float
     f_x: float = Field(description="pull along x, BL/s")
     f_y: float = Field(description="pull along y, BL/s")
-    dt_s: Annotated[float, Field(gt=0)]
+    dt_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)]
 
 
 class PairFormationPlan(_PlanDocument):
@@ -362,13 +409,21 @@ class PairFormationPlan(_PlanDocument):
     r_max_bl: Annotated[float, Field(gt=0)] = 3.5
     start: PairState
     goal: PairState
-    segments: list[PairSegment]
+    segments: list[PairSegment] = Field(max_length=MAX_MOVES, description=f"at most {MAX_MOVES}")
     expected: list[PairState] | None = Field(
-        default=None, description="expected[k]: the formation after segment k")
+        default=None, max_length=MAX_MOVES, description="expected[k]: the formation after segment k")
     tolerance_bl: PositiveLength = Field(
         default=0.2, description="each agent within this of its goal position counts as reached")
-    hold_s: Annotated[float, Field(ge=0)] = Field(
-        default=3.0, description="how long execution holds the goal formation")
+    hold_s: Duration = Field(
+        default=3.0, description="how long execution holds the goal formation (at most 1 h)")
+
+    @model_validator(mode="after")
+    def _bounded(self) -> PairFormationPlan:
+        total = sum(segment.dt_s for segment in self.segments) + self.hold_s
+        if total > MAX_DURATION_S:
+            raise ValueError(f"segments: {total:.6g} s in all with hold_s; at most "
+                             f"{MAX_DURATION_S:g} s")
+        return self
 
     @property
     def size(self) -> str:
@@ -499,6 +554,9 @@ def plan_json_schema() -> dict:
 
 def _read_json(path: Path) -> Any:
     try:
+        if path.stat().st_size > MAX_PLAN_BYTES:
+            raise PlanError(f"{path}: {path.stat().st_size} bytes; a plan has at most "
+                            f"{MAX_PLAN_BYTES}")
         text = path.read_text()
     except FileNotFoundError:
         raise PlanError(f"{path}: no such file") from None
@@ -509,6 +567,10 @@ def _read_json(path: Path) -> Any:
     except json.JSONDecodeError as err:
         where = f"line {err.lineno} column {err.colno}"
         raise PlanError(f"{path}: {where}: not valid JSON: {err.msg}") from None
+    except RecursionError:
+        raise PlanError(f"{path}: not a plan: nested too deeply") from None
+    except ValueError as err:  # an integer over Python's int-str limit
+        raise PlanError(f"{path}: not a plan: {err}") from None
 
 
 def _describe(err: ValidationError, source: str) -> str:
@@ -544,42 +606,40 @@ def _brief(value: Any, limit: int = 60) -> str:
 
 
 def _polygon_problem(vertices: np.ndarray) -> str | None:
-    """Why these vertices (V, 2) are not a simple polygon, or None."""
+    """Why these vertices (V, 2) are not a simple polygon, or None (every pair of edges at once:
+    MAX_VERTICES^2 pairs)."""
     count = len(vertices)
-    for i in range(count):
-        if np.array_equal(vertices[i], vertices[(i + 1) % count]):
-            return f"polygon repeats vertex {i}"
-    for i in range(count):
-        a, b = vertices[i], vertices[(i + 1) % count]
-        for j in range(i + 1, count):
-            if j == i or (j + 1) % count == i or j == (i + 1) % count:
-                continue  # neighbouring edges share a vertex
-            c, d = vertices[j], vertices[(j + 1) % count]
-            if _segments_cross(a, b, c, d):
-                return f"polygon is not simple: edges {i} and {j} cross"
+    ends = np.roll(vertices, -1, axis=0)
+    repeated = np.flatnonzero(np.all(vertices == ends, axis=1))
+    if len(repeated):
+        return f"polygon repeats vertex {repeated[0]}"
+    i, j = np.triu_indices(count, 1)
+    keep = (j != i + 1) & ((j + 1) % count != i)  # neighbouring edges share a vertex
+    i, j = i[keep], j[keep]
+    a, b, c, d = vertices[i], ends[i], vertices[j], ends[j]
+    crossed = _segments_cross(a, b, c, d)
+    if crossed.any():
+        first = np.flatnonzero(crossed)[0]
+        return f"polygon is not simple: edges {i[first]} and {j[first]} cross"
     x, y = vertices[:, 0], vertices[:, 1]
     if 0.5 * abs(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) == 0.0:
         return "polygon has zero area"
     return None
 
 
-def _segments_cross(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> bool:
-    def orient(p, q, r) -> float:
-        return float((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
+def _segments_cross(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Whether segment a-b meets segment c-d (touching counts), for rows of (n, 2) arrays."""
+    def orient(p, q, r) -> np.ndarray:
+        return (q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0])
 
-    def on_segment(p, q, r) -> bool:
-        inside_x = min(p[0], q[0]) <= r[0] <= max(p[0], q[0])
-        return inside_x and min(p[1], q[1]) <= r[1] <= max(p[1], q[1])
+    def on_segment(p, q, r) -> np.ndarray:
+        inside = (np.minimum(p, q) <= r) & (r <= np.maximum(p, q))
+        return inside[:, 0] & inside[:, 1]
 
     o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
-    if o1 * o2 < 0 and o3 * o4 < 0:
-        return True
-    return (
-        (o1 == 0 and on_segment(a, b, c))
-        or (o2 == 0 and on_segment(a, b, d))
-        or (o3 == 0 and on_segment(c, d, a))
-        or (o4 == 0 and on_segment(c, d, b))
-    )
+    return (((o1 * o2 < 0) & (o3 * o4 < 0))
+            | ((o1 == 0) & on_segment(a, b, c)) | ((o2 == 0) & on_segment(a, b, d))
+            | ((o3 == 0) & on_segment(c, d, a)) | ((o4 == 0) & on_segment(c, d, b)))
 
 
 # Semantics beyond the schema

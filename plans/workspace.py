@@ -110,6 +110,7 @@ class Workspace:
         import cv2  # OpenCV is only needed for image workspaces
 
         path = Path(path)
+        _check_image_size(path)
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise PlanError(f"workspace image {path} does not exist or is not a readable image")
@@ -427,6 +428,24 @@ class _Polygon(_Family):
 
 
 _RECT, _DISK, _POLYGON = 0, 1, 2
+
+
+def _check_image_size(path: Path) -> None:
+    """A workspace image is a PNG of at most MAX_IMAGE_PIXELS: read from its header, before the
+    picture is decoded (a small file can hold a huge blank picture)."""
+    from rigctl.plans.schema import MAX_IMAGE_PIXELS
+
+    try:
+        with open(path, "rb") as file:
+            head = file.read(24)
+    except OSError:
+        return  # imread says it does not exist or is not readable
+    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise PlanError(f"workspace image {path} is not a PNG")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise PlanError(f"workspace image {path} is {width} x {height} pixels; at most "
+                        f"{MAX_IMAGE_PIXELS} pixels")
 
 
 def _kernel_array(values: ArrayLike, tail: tuple[int, ...]) -> np.ndarray:

@@ -3,13 +3,15 @@
 Threads and who does what:
 - the *command thread* serves a ROUTER socket, so any number of REQ clients can talk at once and a
   client that vanishes mid-request costs nothing (its reply is dropped by ZeroMQ). Quick commands
-  are answered on this thread; slow ones (`load` realizes and allocates a whole plan, `runs` and
-  `run` read the disk, `hold` and `set_field` wait for the rig to stream the hold) go to a worker
-  thread and are answered when it is done, so nothing ever waits behind them. `estop` is carried out the moment it is read:
-  the command thread hands it to the stream process, which writes 0 A and output off to every
-  supply of the active run from its own command thread (the drivers latch at zero, so the stream
-  can send nothing else after it) and answers with the supplies it could not reach; with nothing
-  active the command thread starts zeroing the supplies directly;
+  are answered on this thread; slow ones (`runs` and `run` read the disk, `hold` and `set_field`
+  wait for the rig to stream the hold) go to a worker thread and are answered when it is done, so
+  nothing ever waits behind them; `load` (it realizes and allocates a whole plan) runs on a thread
+  of its own, one at a time, and is answered `deadline` when it takes over LOAD_DEADLINE_S.
+  `estop` is carried out the moment it is read: the command thread hands it to the stream
+  process, which writes 0 A and output off to every supply of the active run from its own command
+  thread (the drivers latch at zero, so the stream can send nothing else after it) and answers
+  with the supplies it could not reach; with nothing active the command thread starts zeroing the
+  supplies directly;
 - plan runs and manual holds stream in the *stream process* (`rigctl.daemon.runhost`, spawned when the
   daemon starts), so that no Python of the daemon's competes with the stream for a GIL, nor the
   stream with a reply to a client. The daemon's *run thread* (one at a time) waits for the job
@@ -51,6 +53,7 @@ from rigctl.daemon.messages import (
     MAX_REQUEST_BYTES,
     PROTOCOL,
     STATE_HEARTBEAT_S,
+    BadJson,
     Command,
     DaemonState,
     ErrorCode,
@@ -58,6 +61,7 @@ from rigctl.daemon.messages import (
     Reply,
     Request,
     Topic,
+    decode_request,
     error_reply,
     is_loopback_endpoint,
     ok_reply,
@@ -109,6 +113,10 @@ QUICK_COMMANDS = {"status": "_cmd_status", "estop": "_cmd_estop"}
 what `Request` accepts for them (`Daemon._send_json`): `status`, which scripts poll hundreds of
 times a second, and `estop`, which must reach the supplies as soon as it can. Neither is replayed
 (`_replay_key`), and neither raises a `Refusal`."""
+
+LOAD_DEADLINE_S = 20.0
+"""A `load` not answered within this is answered `deadline` (the plan is not loaded); it runs on a
+thread of its own, so no other command waits behind it, and shutdown does not wait for it."""
 
 REPLAY_WINDOW_S = 60.0
 REPLAY_CACHE = 256
@@ -214,6 +222,21 @@ class _LoadedPlan:
 
 
 @dataclass
+class _Loading:
+    """The `load` being checked on its thread; answered once, by it or by its deadline."""
+
+    deadline: float
+    deliver: Callable[[Reply], None]
+    request_id: Any
+    answered: bool = False
+
+    def answer(self, reply: Reply) -> None:  # on the command thread
+        if not self.answered:
+            self.answered = True
+            self.deliver(reply)
+
+
+@dataclass
 class _ActiveRun:
     """The run (a plan's or a manual hold) on the run thread, and what the stream thread last did."""
 
@@ -232,18 +255,24 @@ class _ActiveRun:
 
 
 class _Wakeup:
-    """A pipe the command thread polls next to its socket: other threads write a byte to wake it."""
+    """A pipe the command thread polls next to its socket: other threads write a byte to wake it
+    (a `load` thread may still do so after the daemon closed it: then nothing happens)."""
 
     def __init__(self) -> None:
         self.read_fd, self.write_fd = os.pipe()
         os.set_blocking(self.read_fd, False)
         os.set_blocking(self.write_fd, False)
+        self._lock = threading.Lock()
+        self._closed = False
 
     def wake(self) -> None:
-        try:
-            os.write(self.write_fd, b"x")
-        except BlockingIOError:  # already full of wake-ups: the reader will run anyway
-            pass
+        with self._lock:
+            if self._closed:
+                return
+            try:
+                os.write(self.write_fd, b"x")
+            except BlockingIOError:  # already full of wake-ups: the reader will run anyway
+                pass
 
     def drain(self) -> None:
         try:
@@ -253,8 +282,10 @@ class _Wakeup:
             pass
 
     def close(self) -> None:
-        os.close(self.read_fd)
-        os.close(self.write_fd)
+        with self._lock:
+            self._closed = True
+            os.close(self.read_fd)
+            os.close(self.write_fd)
 
 
 class _TelemetryLogHandler(logging.Handler):
@@ -337,6 +368,8 @@ class Daemon:
         self._deliveries: deque[Callable[[], None]] = deque()
         self._replay: OrderedDict[bytes, tuple[float, Reply | None, list[list[bytes]]]] = OrderedDict()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="daemon-worker")
+        self._loading: _Loading | None = None
+        self.load_deadline_s = LOAD_DEADLINE_S
         self._wakeup = _Wakeup()
         self._stop = threading.Event()
         self._shutdown_requested = threading.Event()
@@ -453,6 +486,7 @@ class Daemon:
                     next_heartbeat = now + STATE_HEARTBEAT_S
                 if self._shutdown_requested.is_set() and self._shut_down_step():
                     break
+                self._check_load_deadline(now)
                 timeout = min(next_heartbeat, next_pet if watchdog else next_heartbeat) - now
                 events = dict(poller.poll(max(1, int(1000 * min(timeout, 0.5)))))
                 if self._router in events:
@@ -517,11 +551,20 @@ class Daemon:
 
     # -- requests -------------------------------------------------------------------------------
     def _on_message(self, frames: list[bytes]) -> None:
+        """One request, answered whatever it holds: an exception here is a bug, answered as
+        `internal` and logged with its traceback, and the daemon goes on serving."""
         try:
             split = frames.index(b"", 1) + 1
         except ValueError:  # a DEALER without the empty delimiter: identity, body
             split = 1
-        envelope, body = frames[:split], frames[split:]
+        envelope = frames[:split]
+        try:
+            self._answer_frames(envelope, frames[split:])
+        except Exception as err:
+            log.exception("a request failed")
+            self._send(envelope, error_reply(None, ErrorCode.INTERNAL, f"{type(err).__name__}: {err}"))
+
+    def _answer_frames(self, envelope: list[bytes], body: list[bytes]) -> None:
         if len(body) != 1:
             self._send(envelope, error_reply(None, ErrorCode.BAD_REQUEST,
                                              f"a request is one frame, got {len(body)}"))
@@ -532,21 +575,22 @@ class Daemon:
                                              f"{len(payload)} bytes; the limit is {MAX_REQUEST_BYTES}"))
             return
         try:
-            data = json.loads(payload)
-        except (UnicodeDecodeError, json.JSONDecodeError) as err:
-            self._send(envelope, error_reply(None, ErrorCode.BAD_JSON, f"not JSON: {err}"))
+            data = decode_request(payload)
+        except BadJson as err:
+            self._send(envelope, error_reply(None, ErrorCode.BAD_JSON, str(err)))
             return
         request_id = data.get("id") if isinstance(data, dict) else None
         if not isinstance(request_id, (str, int)) or isinstance(request_id, bool):
             request_id = None
-        quick = QUICK_COMMANDS.get(data.get("cmd")) if isinstance(data, dict) else None
+        cmd = data.get("cmd") if isinstance(data, dict) else None
+        quick = QUICK_COMMANDS.get(cmd) if isinstance(cmd, str) else None
         if (quick is not None and data.get("args", {}) == {}
                 and data.keys() <= {"id", "cmd", "args"} and data.get("id") == request_id):
             try:
                 result = getattr(self, quick)(None)
             except Exception:  # noqa: BLE001 - the general path below answers with the error
                 log.exception("%s failed on the quick path; answering through the general one",
-                              data["cmd"])
+                              cmd)
             else:
                 self._send_json(envelope, {"id": request_id, "ok": True, "result": result,
                                            "error": None})
@@ -561,7 +605,7 @@ class Daemon:
         except ValueError:
             known = ", ".join(c.value for c in Command)
             self._send(envelope, error_reply(request.id, ErrorCode.UNKNOWN_COMMAND,
-                                             f"unknown command {request.cmd!r}; known: {known}"))
+                                             f"unknown command {request.cmd[:40]!r}; known: {known}"))
             return
         try:
             args = COMMAND_ARGS[cmd].model_validate(request.args)
@@ -625,7 +669,9 @@ class Daemon:
             for target in targets:
                 self._send(target, reply)
 
-        if cmd in (Command.LOAD, Command.RUNS, Command.RUN, Command.HOLD, Command.SET_FIELD):
+        if cmd is Command.LOAD:
+            self._start_load(answer, deliver, request_id)
+        elif cmd in (Command.RUNS, Command.RUN, Command.HOLD, Command.SET_FIELD):
             def work() -> None:
                 reply = answer()
                 self._deliveries.append(lambda: deliver(reply))  # deque.append is thread-safe
@@ -635,20 +681,57 @@ class Daemon:
         else:
             deliver(answer())
 
+    def _start_load(self, answer: Callable[[], Reply], deliver: Callable[[Reply], None],
+                    request_id: Any) -> None:
+        """`load` on a thread of its own, one at a time, answered within `load_deadline_s`."""
+        if self._loading is not None and not self._loading.answered:
+            deliver(error_reply(request_id, ErrorCode.BUSY,
+                                "another plan is being loaded; retry when it is answered"))
+            return
+        loading = self._loading = _Loading(time.monotonic() + self.load_deadline_s, deliver,
+                                           request_id)
+
+        def work() -> None:
+            reply = answer()
+            self._deliveries.append(lambda: loading.answer(reply))
+            self._wakeup.wake()
+
+        threading.Thread(target=work, name="daemon-load", daemon=True).start()
+
+    def _check_load_deadline(self, now: float) -> None:
+        loading = self._loading
+        if loading is not None and not loading.answered and now > loading.deadline:
+            log.error("load missed its deadline (%g s)", self.load_deadline_s)
+            loading.answer(error_reply(
+                loading.request_id, ErrorCode.DEADLINE,
+                f"load: the plan was not checked within {self.load_deadline_s:g} s, so it is not "
+                "loaded (a smaller plan: fewer moves, a smaller workspace image)"))
+
     def _flush_replies(self) -> None:
         """Send the replies the worker finished (on the command thread: it owns the socket)."""
         while self._deliveries:
             self._deliveries.popleft()()
 
     def _send(self, envelope: list[bytes], reply: Reply) -> None:
-        self._send_bytes(envelope, reply.model_dump_json().encode())
+        try:
+            body = reply.model_dump_json().encode()
+        except Exception as err:  # a bug: the client still gets a reply
+            log.exception("a reply could not be encoded")
+            body = error_reply(None, ErrorCode.INTERNAL,
+                               f"the reply could not be encoded: {type(err).__name__}").model_dump_json().encode()
+        self._send_bytes(envelope, body)
 
     def _send_json(self, envelope: list[bytes], reply: dict) -> None:
         """A reply built without the models (`QUICK_COMMANDS`). Its request was checked to be
         exactly what `Request` accepts, and the bytes are what `Reply.model_dump_json` gives (the
         protocol tests compare the two). The models cost 10-40 us each when the caches are cold,
         as they are after an idle 5 ms."""
-        self._send_bytes(envelope, json.dumps(reply, separators=(",", ":"), ensure_ascii=False).encode())
+        try:
+            body = json.dumps(reply, separators=(",", ":"), ensure_ascii=False).encode()
+        except (TypeError, ValueError):  # not what the models would give: let them say why
+            self._send(envelope, Reply.model_validate(reply))
+            return
+        self._send_bytes(envelope, body)
 
     def _send_bytes(self, envelope: list[bytes], body: bytes) -> None:
         assert self._router is not None

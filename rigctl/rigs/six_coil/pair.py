@@ -56,7 +56,7 @@ from rigctl.plans.pair import (
     state_from_positions,
     state_of,
 )
-from rigctl.plans.schema import PairFormationPlan
+from rigctl.plans.schema import MAX_PROGRAM_SAMPLES, PairFormationPlan
 from rigctl.record import RunRecord
 from rigctl.rigs.six_coil.allocate import check_current_limits, field_and_pull_u
 from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings, distance_to_path
@@ -153,6 +153,10 @@ def prepare_pair(plan: PairFormationPlan, rig: RigConfig, settings: PairRunSetti
     """Every refusal, no I/O: plan checks, the rig's pull, the open-loop program's limits."""
     if rig.rig.kind != "six-coil":
         raise PlanError(f"a pair-formation plan runs on a six-coil rig, not a {rig.rig.kind} rig")
+    samples = (sum(s.dt_s for s in plan.segments) + plan.hold_s + 2 * settings.ramp_s) * rig.stream.rate_hz
+    if samples > MAX_PROGRAM_SAMPLES:  # before the program is built, a list per sample
+        raise PlanError(f"segments: {samples:.3g} samples of program at {rig.stream.rate_hz:g} Hz; "
+                        f"at most {MAX_PROGRAM_SAMPLES} (fewer or shorter segments)")
     if plan.expected is None:
         plan = simulate(plan)
     check(plan)

@@ -37,6 +37,7 @@ from numpy.typing import ArrayLike
 
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, PlanError
+from rigctl.plans.schema import MAX_DURATION_S, MAX_PROGRAM_SAMPLES
 
 logger = logging.getLogger(__name__)
 
@@ -217,6 +218,11 @@ def realize_global_moves(
     steer_rad_per_s = math.radians(fs.steering_deg_per_s)
     n_ramp = _samples(fs.ramp_s, rate)
     n_hold = _samples(fs.hold_s, rate)
+    most = (turns.sum() / fs.rolling_turns_per_s + len(moves) * (math.pi / steer_rad_per_s)) * rate \
+        + (len(moves) + 2) * (n_hold + 1) + 2 * n_ramp  # an upper bound, before any allocation
+    if most > MAX_PROGRAM_SAMPLES:
+        raise PlanError(f"moves: up to {most:.3g} samples of field program at {rate:g} Hz; "
+                        f"at most {MAX_PROGRAM_SAMPLES} (fewer or shorter moves)")
 
     fields: list[np.ndarray] = []
     segments: list[np.ndarray] = []
@@ -294,6 +300,9 @@ def realize_global_moves(
     emit(np.zeros((1, 3)), NO_MOVE, HOLD)
 
     field = np.concatenate(fields)
+    if len(field) > MAX_DURATION_S * rate:
+        raise PlanError(f"moves: the field program lasts {len(field) / rate:.0f} s; at most "
+                        f"{MAX_DURATION_S:g} s (fewer or shorter moves)")
     return FieldProgram(
         t_s=np.arange(len(field)) / rate,
         field_T=field,
