@@ -65,6 +65,11 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
     from rigctl.rigs.doctor import preflight
     from rigctl.rigs.owner import RigLock
 
+    from rigctl.daemon.messages import is_loopback_endpoint
+
+    for endpoint in (args.command, args.telemetry, args.events):  # before anything is started
+        if endpoint:
+            is_loopback_endpoint(endpoint)
     # a thread waiting for the GIL (the command thread answering `status`, the stream thread)
     # gets it within 0.1 ms instead of Python's default 5 ms
     sys.setswitchinterval(1e-4)

@@ -33,6 +33,7 @@ from rigctl.config import (  # noqa: F401  (the rig file's [daemon] table and it
     DEFAULT_TELEMETRY_ENDPOINT,
     DaemonSettings,
 )
+from rigctl.errors import ConfigError
 
 PROTOCOL = "rigctl.daemon/1"
 
@@ -374,8 +375,14 @@ def parse_telemetry(payload: bytes) -> StateMsg | ActuatorsMsg | FieldMsg | Agen
 
 
 def is_loopback_endpoint(endpoint: str) -> bool:
-    """True for endpoints no other machine can reach: ipc://, inproc://, tcp on 127/8 or ::1."""
-    parts = urlsplit(endpoint)
+    """True for endpoints no other machine can reach: ipc://, inproc://, tcp on 127/8 or ::1.
+    ConfigError for one that is not a URL (`tcp://[127.0.0.1]:5555`: brackets are for IPv6)."""
+    try:
+        parts = urlsplit(endpoint)
+        parts.port  # noqa: B018 - parses the port: raises on a bad one
+    except ValueError as err:
+        raise ConfigError(f"endpoint {endpoint!r}: {err} (e.g. tcp://127.0.0.1:5555, "
+                          "tcp://[::1]:5555)") from None
     if parts.scheme in ("ipc", "inproc"):
         return True
     if parts.scheme != "tcp":

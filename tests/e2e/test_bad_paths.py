@@ -228,3 +228,10 @@ def test_an_emulated_bench_on_a_host_that_does_not_resolve_is_refused(tmp_path):
                            "nosuchhost.invalid", "--rig-out", str(tmp_path / "b.toml")],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and done.stderr.startswith("error: --host nosuchhost.invalid")
+
+
+def test_an_endpoint_that_is_not_a_url_is_one_line(capsys):
+    assert main(["daemon", "--command", "tcp://[127.0.0.1]:5599"]) == 2  # nothing started
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "tcp://[127.0.0.1]:5599" in err and "Traceback" not in err
+
