@@ -548,9 +548,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                            help="pause at once (the field ramps down; the arms brake)")
         p.set_defaults(func=_cmd_control, verb=verb)
 
-    from rigctl.cli import watch
+    from rigctl.cli.watch import register as register_watch
 
-    watch.register(sub, _client_options, input_file("rig file")).set_defaults(func=_cmd_watch)
+    register_watch(sub, _client_options, input_file("rig file")).set_defaults(func=_cmd_watch)
 
     p = sub.add_parser("keys", help="CURVE keys for the daemon and its operators")
     keys_sub = p.add_subparsers(dest="keys_command", required=True)
