@@ -7,8 +7,8 @@ to `rigctl --version` (the interpreter and the imports, nothing else: the floor 
 now), and each refusal's own work timed in this process:
 - a second owner: `rigctl execute` while this process holds the rig's lock -> exit 2, the
   holder named (in process: `RigLock.acquire`);
-- a wrong port: the rig file with one device's port closed -> exit 2, the device named, no run
-  record (in process: `preflight`);
+- a wrong port: the rig file with one device's TCP port closed, or its serial port absent ->
+  exit 2, the device named, no run record (in process: `preflight`);
 - a bad URL: that device's URL `htp:/typo` -> exit 2, the field named (in process: `load_rig`);
 - `rigctl doctor --rig` on the healthy bench -> exit 0 (in process: `probe_rig`).
 The issue's goal: each refusal under 1 s, the doctor under 3 s.
@@ -97,12 +97,13 @@ def bench_rig(kind: str, repeat: int, tmp: Path) -> dict:
             own = in_process(lambda: RigLock(rig, "second").acquire(), RigInUse, repeat)
         out["second_owner"] = figure(wall, floor_s, done, "bench/preflight.py", own)
 
-        closed = tmp / f"{kind}-closed-port.toml"
-        host = url.rsplit(":", 1)[0]
-        closed.write_text(rig_path.read_text().replace(url, f"{host}:1"))
+        closed = tmp / f"{kind}-closed-port.toml"  # a TCP port nobody serves, a serial port absent
+        wrong = (f"{url.rsplit(':', 1)[0]}:1" if url.startswith("tcp://")
+                 else "serial:///dev/ttyNOSUCHPORT?baud=115200")
+        closed.write_text(rig_path.read_text().replace(url, wrong))
         wall, done = timed([*rigctl, "execute", plan, "--rig", str(closed), "--runs", runs], repeat)
         own = in_process(lambda: preflight(load_rig(closed)), DeviceUnreachable, repeat)
-        out["wrong_port"] = figure(wall, floor_s, done, ":1", own)
+        out["wrong_port"] = figure(wall, floor_s, done, wrong.split("?")[0], own)
         out["wrong_port"]["run_record_written"] = Path(runs).exists()
 
         typo = tmp / f"{kind}-bad-url.toml"

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import struct
 import threading
 import time
@@ -58,7 +59,7 @@ from rigctl.errors import (
     ProtocolError,
     RigError,
 )
-from rigctl.transport import DEFAULT_BAUD, Transport, open_transport
+from rigctl.transport import DEFAULT_BAUD, Transport, open_transport, parse_url
 
 if TYPE_CHECKING:
     from rigctl.config import CoilBoardSettings
@@ -215,10 +216,23 @@ class CoilBoard:
             self._transport = None
         self._parser.reset()
 
+    def _check_port_exists(self) -> None:
+        """A serial port that is not there at open is a wrong port (the bootloader's reset, which
+        the handshake retries wait out, happens on a port that exists): said at once."""
+        try:
+            kind, path, _ = parse_url(self.url)
+        except ConfigError:
+            return  # the opener says what is wrong with it
+        if kind == "serial" and not os.path.exists(path):
+            raise Disconnected(f"no serial port {path} (from {self.url}): check the rig file's "
+                               "[board] url (ls /dev/serial/by-id/)", device=self.name)
+
     def _reopen(self, within_s: float, *, why: str) -> HelloReply:
         """Re-open the URL and handshake, retrying with a bounded backoff until `within_s` passes."""
         self.link_up = False
         self._drop_transport()
+        if why == "open" and self._opener is open_transport:
+            self._check_port_exists()
         deadline = time.monotonic() + within_s
         attempt = 0
         last_error: RigError | None = None
