@@ -53,7 +53,8 @@ def _client(endpoint: str, server_key: str | None = None, client_key: str | None
 def _refused_exit(err) -> int:
     print(f"refused: {err}", file=sys.stderr)
     return EXIT_BAD_INPUT if err.code in ("plan_invalid", "limit", "bad_args", "unknown_plan",
-                                          "bad_request", "too_large", "bad_json") else EXIT_FAULT
+                                          "bad_request", "too_large", "bad_json",
+                                          "unknown_command") else EXIT_FAULT
 
 
 # -- rigctl daemon -------------------------------------------------------------------------------

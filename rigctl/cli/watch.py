@@ -110,6 +110,18 @@ def watch(endpoint: str, *, client, seconds: float | None, interval_s: float, ou
     `interval_s` on a terminal; with `seconds`, one view (text or JSON) after that long."""
     view = View(endpoint)
     tty = out.isatty() and seconds is None and not as_json
+    try:
+        _follow(view, client, endpoint, seconds, interval_s, out, tty)
+    except KeyboardInterrupt:  # Ctrl-C is how a watch ends: nothing to report, nothing stopped
+        if tty:
+            return EXIT_OK
+    if not tty:
+        print(json.dumps(view.as_dict()) if as_json else view.render(), file=out)
+    return EXIT_OK
+
+
+def _follow(view: View, client, endpoint: str, seconds: float | None, interval_s: float, out,
+            tty: bool) -> None:
     with client(endpoint) as rig:
         view.status = rig.status()
         with rig.telemetry() as telemetry:
@@ -130,9 +142,6 @@ def watch(endpoint: str, *, client, seconds: float | None, interval_s: float, ou
                 if tty:
                     out.write(CLEAR + view.render() + "\n")
                     out.flush()
-    if not tty:
-        print(json.dumps(view.as_dict()) if as_json else view.render(), file=out)
-    return EXIT_OK
 
 
 def _fresh(rig) -> dict:

@@ -65,6 +65,18 @@ def test_watch_follows_a_local_run_through_the_rig_lock(bench, tmp_path):
         _, view = watch("--rig", str(bench))
         check_view(view, bench)
         assert view["endpoint"] == holder_of(rig).control
+        # Ctrl-C is how a watch ends: exit 0, with the last view when stdout is not a terminal
+        watching = subprocess.Popen([*RIGCTL, "watch", "--rig", str(bench)],
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        wait_for(lambda: watching.poll() is None and streaming(bench), 10.0, "watching")
+        import signal
+        import time
+
+        time.sleep(1.0)  # it follows for a while (a wait on the process, not on a result)
+        watching.send_signal(signal.SIGINT)
+        out, err = watching.communicate(timeout=30)
+        assert watching.returncode == 0, err
+        assert "state   running" in out and "interrupted" not in err
     finally:
         run.terminate()
         run.wait(30)
