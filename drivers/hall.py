@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 
 PROTOCOL_VERSION = 1
 MAX_LINE_BYTES = 4096
+GARBLED_STREAK = 5  # garbled lines in a row that end a `HallStream` (fewer are skipped)
 
 
 @dataclass(frozen=True)
@@ -170,8 +171,9 @@ class HallBoard:
 class HallStream:
     """Reads a `HallBoard` in a thread; `drain()` hands over the samples read so far.
 
-    A fault in the reader (timeout, lost link, garbage) ends the thread; the next `drain()` or
-    `check()` raises it, so the caller sees it within one of its own cycles.
+    A fault in the reader (timeout, lost link, `GARBLED_STREAK` garbled lines in a row) ends the
+    thread; the next `drain()` or `check()` raises it, so the caller sees it within one of its own
+    cycles. A garbled line on its own is skipped and counted (`garbled`).
     """
 
     def __init__(self, board: HallBoard, *, max_samples: int = 1_000_000) -> None:
@@ -180,6 +182,7 @@ class HallStream:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._error: RigError | None = None
+        self.garbled = 0  # lines skipped as garbled
         self._thread = threading.Thread(target=self._run, name=f"{board.name} reader", daemon=True)
 
     def start(self) -> "HallStream":
@@ -187,9 +190,21 @@ class HallStream:
         return self
 
     def _run(self) -> None:
+        streak = 0  # garbled lines in a row
         while not self._stop.is_set():
             try:
                 sample = self.board.read()
+            except ProtocolError as err:
+                # one garbled line costs one sample (the next line is read on its own, and the
+                # sequence numbers count the loss); GARBLED_STREAK in a row is a broken link
+                streak += 1
+                self.garbled += 1
+                if streak < GARBLED_STREAK and not self._stop.is_set():
+                    log.warning("%s; the line is skipped", err)
+                    continue
+                if not self._stop.is_set():
+                    self._error = err
+                return
             except RigError as err:
                 if not self._stop.is_set():
                     self._error = err
@@ -199,6 +214,7 @@ class HallStream:
                     self._error = ProtocolError(f"Hall board reader stopped: {type(err).__name__}: "
                                                 f"{err}", device=self.board.name)
                 return
+            streak = 0
             with self._lock:
                 self._samples.append(sample)
 

@@ -125,6 +125,14 @@ class StreamSettings(_Strict):
         float, Field(gt=0, description="watchdog: a device silent this long is a fault")
     ] = 0.25
     ramp_down_s: Annotated[float, Field(ge=0, description="safe stop ramp to zero")] = 0.1
+    paused_limit_s: Annotated[float, Field(
+        gt=0, allow_inf_nan=False,
+        description="a run paused this long ramps down and ends (nothing holds current for ever)")
+    ] = 600.0
+    suspended_limit_s: Annotated[float, Field(
+        gt=0, allow_inf_nan=False,
+        description="a run suspended this long (tracking or a sensor lost) ramps down and ends")
+    ] = 60.0
 
 
 class CameraSettings(_Strict):

@@ -20,6 +20,7 @@ import time
 from contextlib import ExitStack
 from pathlib import Path
 
+from rigctl.daemon.admission import REQUEST_RATE_HZ
 from rigctl.errors import (
     EXIT_BAD_INPUT,
     EXIT_FAULT,
@@ -32,6 +33,16 @@ from rigctl.errors import (
 READY_PREFIX = "READY "
 
 log = logging.getLogger(__name__)
+
+
+def _positive_rate(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"a rate in Hz > 0, got {text!r}")
+    return value
 
 
 def _client(endpoint: str, server_key: str | None = None, client_key: str | None = None,
@@ -100,6 +111,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
             allowed_keys=args.allowed_keys or settings.allowed_keys,
             realtime_priority=args.realtime,
             currents_hz=args.currents_hz,
+            request_rate_hz=args.request_rate,
         )
         endpoints = daemon.start()
         lock.name_control(endpoints.command)  # where `rigctl estop --rig` finds this daemon
@@ -466,6 +478,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="run the stream thread at SCHED_FIFO priority PRIO where permitted")
     p.add_argument("--currents-hz", type=float, default=0.0,
                    help="publish `currents` at most this often (default 0: every stream cycle)")
+    p.add_argument("--request-rate", type=_positive_rate, default=REQUEST_RATE_HZ,
+                   metavar="HZ",
+                   help="answer at most HZ queries (status, ping, runs, run) a second over all "
+                        f"clients, in arrival order; the rest wait (default {REQUEST_RATE_HZ:g}). "
+                        "Control commands (e-stop, abort, pause, ...) never wait")
     p.set_defaults(func=_cmd_daemon)
 
     p = sub.add_parser("status", help="ask a running daemon (or a rig's owner) for its state, "

@@ -46,6 +46,7 @@ from pydantic import ValidationError
 
 from rigctl import errors
 from rigctl.config import RigConfig
+from rigctl.daemon.admission import REQUEST_RATE_HZ, Admission, is_control
 from rigctl.daemon.keys import CurveServer
 from rigctl.daemon.messages import (
     COMMAND_ARGS,
@@ -328,6 +329,7 @@ class Daemon:
         realtime_priority: int | None = None,
         currents_hz: float = 0.0,
         notifier: SystemdNotifier | None = None,
+        request_rate_hz: float = REQUEST_RATE_HZ,
     ) -> None:
         self.rig = rig
         self.runs_dir = Path(runs_dir)
@@ -371,6 +373,7 @@ class Daemon:
         self._loading: _Loading | None = None
         self.load_deadline_s = LOAD_DEADLINE_S
         self._wakeup = _Wakeup()
+        self.admission = Admission(request_rate_hz)
         self._stop = threading.Event()
         self._shutdown_requested = threading.Event()
         self._serving = threading.Event()
@@ -488,6 +491,9 @@ class Daemon:
                     break
                 self._check_load_deadline(now)
                 timeout = min(next_heartbeat, next_pet if watchdog else next_heartbeat) - now
+                queued = self.admission.next_s(now)
+                if queued is not None:
+                    timeout = min(timeout, queued)
                 events = dict(poller.poll(max(1, int(1000 * min(timeout, 0.5)))))
                 if self._router in events:
                     for _ in range(256):  # bounded batch, then look at wake-ups and timers again
@@ -495,7 +501,9 @@ class Daemon:
                             frames = self._router.recv_multipart(zmq.NOBLOCK, copy=True)
                         except zmq.Again:
                             break
-                        self._on_message(frames)
+                        self._admit(frames)
+                for frames in self.admission.ready(time.monotonic()):
+                    self._on_message(frames)
                 if self._wakeup.read_fd in events:
                     self._wakeup.drain()
                 self._flush_replies()
@@ -550,13 +558,25 @@ class Daemon:
         log.info("daemon stopped")
 
     # -- requests -------------------------------------------------------------------------------
+    def _admit(self, frames: list[bytes]) -> None:
+        """Answer a request now, let it wait for the request budget, or answer `busy`
+        (`rigctl.daemon.admission`)."""
+        split = _envelope_end(frames)
+        body = frames[split] if len(frames) == split + 1 else None
+        verdict = self.admission.offer(frames, frames[0], body, time.monotonic())
+        if verdict == "answer":
+            self._on_message(frames)
+        elif verdict == "busy":
+            request_id = is_control(body)[1] if body is not None and len(body) <= 4096 else None
+            self._send(frames[:split], error_reply(
+                request_id, ErrorCode.BUSY,
+                f"{self.admission.per_client} requests of this client are waiting already; "
+                "wait for their replies before sending more"))
+
     def _on_message(self, frames: list[bytes]) -> None:
         """One request, answered whatever it holds: an exception here is a bug, answered as
         `internal` and logged with its traceback, and the daemon goes on serving."""
-        try:
-            split = frames.index(b"", 1) + 1
-        except ValueError:  # a DEALER without the empty delimiter: identity, body
-            split = 1
+        split = _envelope_end(frames)
         envelope = frames[:split]
         try:
             self._answer_frames(envelope, frames[split:])
@@ -1121,6 +1141,15 @@ class Daemon:
                 self._device(name, "off", "e-stop: made safe directly")
             else:
                 self._device(name, "fault", f"e-stop could not reach it: {err}")
+
+
+def _envelope_end(frames: list[bytes]) -> int:
+    """Where a ROUTER message's body starts: after the empty delimiter (REQ), or after the
+    identity (a DEALER that sends none)."""
+    try:
+        return frames.index(b"", 1) + 1
+    except ValueError:
+        return 1
 
 
 def _abort_quietly(active: _ActiveRun) -> None:

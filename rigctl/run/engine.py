@@ -34,6 +34,7 @@ from rigctl.errors import LimitError, RigError, interrupt_name
 from rigctl.record import RunRecord
 from rigctl.run.actuators import Actuators
 from rigctl.run.control import EStopped, RunControl, RunState
+from rigctl.run.interruptions import HoldLimit
 from rigctl.run.summary import RunSummary
 from rigctl.stream import StreamLoop, StreamStats
 
@@ -242,6 +243,7 @@ class Run(RunControl):
         if wake is not None:
             wake(loop.wake)
         measured: np.ndarray | None = None
+        hold = HoldLimit(self.rig.stream.paused_limit_s, self.rig.stream.suspended_limit_s)
 
         def cycle(k: int) -> bool:
             nonlocal measured
@@ -255,6 +257,13 @@ class Run(RunControl):
                 self._set_state(RunState.SUSPENDED, reason=program.suspended)
             else:
                 self._set_state(RunState.PAUSED if program.paused else RunState.RUNNING)
+            if self.state is not RunState.RUNNING or hold.held is not None:
+                why = hold.over(None if self.state is RunState.RUNNING else self.state.value,
+                                time.monotonic(), program.suspended)
+                if why is not None and self._abort_reason is None:
+                    record.event("abort", reason=why)
+                    log.warning("run ended: %s", why)
+                    self.abort(why)
             measured = actuators.cycle(step.setpoints)
             record.stream_row(step.sample, step.move, step.setpoints, measured, loop.last_error_s)
             if self.on_cycle is not None:

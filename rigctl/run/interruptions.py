@@ -1,7 +1,8 @@
 """What interrupts a running program: the operator's requests, from any thread (pause at the end
 of the present move or at once, resume, abort: the program reads them on the stream thread and
 decides when each takes effect; `wake`, the stream loop's, makes the next cycle leave at once), and
-lost tracking, which suspends the run until the camera sees the agents again."""
+lost tracking, which suspends the run until the camera sees the agents again; and the limit on
+how long a run may stay paused or suspended."""
 
 from __future__ import annotations
 
@@ -93,3 +94,24 @@ class Suspension:
             self.record.event("resume", after_s=round(lost_s, 3), **info)
         self.say(f"tracking regained after {lost_s:.2f} s")
         return lost_s
+
+
+class HoldLimit:
+    """How long a run may stay paused (`paused_s`) or suspended (`suspended_s`) before it ramps
+    down and ends: no state holds current indefinitely. `over(held, now)` is called every cycle
+    with "paused", "suspended" or None (running); it gives the reason to end the run once the
+    same hold has lasted past its limit, else None."""
+
+    def __init__(self, paused_s: float, suspended_s: float) -> None:
+        self.limits = {"paused": paused_s, "suspended": suspended_s}
+        self.held: str | None = None
+        self.since = 0.0
+
+    def over(self, held: str | None, now: float, why: str | None = None) -> str | None:
+        if held != self.held:
+            self.held, self.since = held, now
+            return None
+        if held is None or now - self.since <= self.limits[held]:
+            return None
+        return (f"{held} for more than {self.limits[held]:g} s ({why or 'by the operator'}; the "
+                f"rig file's [stream] {held}_limit_s): ramped down")

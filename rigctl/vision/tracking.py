@@ -1,7 +1,9 @@
 """The tracking loop: the camera and the tracker in their own thread, publishing the robots'
 latest positions. Tracking is *lost* when no fresh frame came for `camera.timeout_s` (a frozen,
 dropped or stalled stream) or a robot was not found in `LOST_AFTER_FRAMES` frames in a row
-(black-out, occlusion). Every camera rig's run reads it.
+(black-out, occlusion). A camera whose link is gone is reopened every `REOPEN_S` for as long as
+tracking runs: the run stays suspended meanwhile, and its own limit ends it. Every camera rig's
+run reads it.
 
 `record_to(record)` also writes the tracked positions into the run record (`tracked` events, at
 most `hz` a second, from a thread of its own): the stream thread must not pay for a JSON line per
@@ -24,6 +26,7 @@ from rigctl.vision.tracker import Tracker
 log = logging.getLogger(__name__)
 
 LOST_AFTER_FRAMES = 3  # a robot unseen this many fresh frames in a row: tracking lost
+REOPEN_S = 1.0  # a camera whose driver gave up is reopened this often until tracking stops
 
 
 @dataclass(frozen=True)
@@ -172,6 +175,24 @@ class TrackingLoop:
                     return None
                 self._cond.wait(remaining)
 
+    def _reopen(self, driver: CameraDriver) -> CameraDriver | None:
+        """A new driver on the same camera once it opens; None if tracking stops first."""
+        driver.close()
+        while not self._stop.wait(REOPEN_S):
+            with self._cond:
+                self._cond.notify_all()  # waiters re-check staleness
+            fresh = CameraDriver(self.camera.url, stamped=self.camera.stamped,
+                                 timeout_s=self.camera.timeout_s,
+                                 reconnect_attempts=self.camera.reconnect_attempts)
+            try:
+                fresh.open()
+            except Disconnected:
+                continue
+            log.warning("tracking: the camera is back")
+            self._driver = fresh
+            return fresh
+        return None
+
     def _run(self) -> None:
         driver = self._driver
         assert driver is not None
@@ -184,7 +205,15 @@ class TrackingLoop:
                 with self._cond:
                     self._cond.notify_all()  # waiters re-check staleness
                 continue
-            except (Disconnected, RigError) as err:
+            except Disconnected as err:
+                # the driver spent its quick reconnections: tracking is lost (the run suspends,
+                # and ends once suspended for its limit) and the camera is reopened every second
+                log.error("tracking: %s; reopening the camera every %g s", err, REOPEN_S)
+                driver = self._reopen(driver)
+                if driver is None:
+                    return
+                continue
+            except RigError as err:
                 log.error("tracking: %s", err)
                 with self._cond:
                     self.failure = err

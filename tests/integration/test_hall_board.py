@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from rigctl.drivers.hall import HallBoard, HallStream
+from rigctl.drivers.hall import GARBLED_STREAK, HallBoard, HallStream
 from rigctl.emulators.hall.board import HallBoardServer, SensorSpec
 from rigctl.emulators.server import EmulatorServer
 
-from rigctl.errors import DeviceTimeout, Disconnected
+from rigctl.errors import DeviceTimeout, Disconnected, ProtocolError
 from rigctl.magnetics import dipole_field, dipole_gradient, field_vector_from_sensors
 from rigctl.rigs.depm.sensors import HallWatch
 from rigctl.testing import wait_for
@@ -111,3 +111,21 @@ def test_watch_reports_silence_before_the_reader_times_out(board_server):
     wait_for(lambda: watch.poll()[1] is None, 5.0, "samples again on the same link")
     assert watch.outages == 0
     watch.close()
+
+
+def test_a_garbled_line_costs_one_sample_and_a_garbled_streak_ends_the_reader(board_server):
+    server, emulated = board_server
+    board = HallBoard.open(emulated.url, timeout_s=1.0)
+    stream = HallStream(board).start()
+    wait_for(lambda: len(stream.drain()) > 0, 5.0, "samples")
+    emulated.endpoint.corrupt(1)
+    wait_for(lambda: stream.garbled == 1 and board.missed >= 1, 5.0, "the line skipped")
+    stream.drain()
+    wait_for(lambda: len(stream.drain()) > 0, 5.0, "samples after it")
+    assert stream.error is None
+    emulated.endpoint.corrupt(GARBLED_STREAK)
+    wait_for(lambda: stream.error is not None, 5.0, "the reader ended")
+    assert stream.garbled == 1 + GARBLED_STREAK
+    with pytest.raises(ProtocolError, match="hall board: not a JSON line"):
+        stream.drain()
+    stream.stop()

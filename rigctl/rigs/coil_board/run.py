@@ -25,7 +25,8 @@ viscous fluid stop when the pull stops, so "hold still" is simply zero drive: a 
 current move finish and holds zeros; a pause now ends the move at once, and on resume the run goes
 on from the measured positions (re-planning if the move was left short). Lost tracking suspends
 the run (zeros) until the particles are seen again; it is a fault of the camera only if it stays
-lost for `lost_limit_s`.
+lost for `lost_limit_s` (if set), and otherwise it ends as every rig's run does, once suspended
+for the rig file's `[stream] suspended_limit_s`.
 
 Safety as everywhere: the plan is checked before the board is opened; the board's watchdog zeroes
 the coils if this process stops talking; every exit path stops the coils; a fault of the board,
@@ -100,7 +101,7 @@ class CoilBoardRunSettings:
     `RelativeDrift`; syren_ready_timeout_s: the board's SyRens must report ready within this
     long; acquire_timeout_s: the camera must find both particles within this long; lost_limit_s:
     tracking lost (the run suspended, coils at zero) this long is a fault of the camera (None:
-    the camera's `timeout_s`, the bound of a lost frame).
+    no limit of its own; the rig file's `[stream] suspended_limit_s` ends the run).
     """
 
     drive: int = 127
@@ -273,8 +274,7 @@ class CoilBoardProgram(RequestedControl):
         self.coils_centre = np.zeros(2)
         # Particles that touch make one blob on the camera: re-planned moves keep them apart.
         self.reach = float(self.radii.sum() + max(plan.min_separation_mm, settings.keep_apart_mm))
-        self.suspension = Suspension(settings.lost_limit_s if settings.lost_limit_s is not None
-                                     else rig.camera.timeout_s)
+        self.suspension = Suspension(settings.lost_limit_s)
         self.replans = 0
         self.moves_done = 0
         self.drift = RelativeDrift()
