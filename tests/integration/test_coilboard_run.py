@@ -220,3 +220,52 @@ def test_estop_from_another_thread_zeroes_the_coils_at_once(rig, backdoor, tmp_p
     assert summary.safe
     names = [e["event"] for e in watched.events()]
     assert "estop_zeroed" in names and "safe" in names
+
+
+def with_limits(rig, **limits):
+    """The rig with its `[stream]` hold limits changed."""
+    return rig.model_copy(update={"stream": rig.stream.model_copy(update=limits)})
+
+
+def test_a_camera_freeze_of_seconds_is_ridden_out_by_default(rig, backdoor, tmp_path):
+    """The issue's case: a 5 s freeze ended the run (exit 3); with the default settings the run
+    suspends with the coils off and goes on to the goal once the camera moves again."""
+    watched = WatchedRun(rig, tmp_path)
+    try:
+        watched.mid_move()
+        backdoor.request("fault", device="camera", kind="freeze")
+        wait_for(lambda: watched.run.state == RunState.SUSPENDED, 30.0, "the run suspended")
+        coils_off(backdoor, "every coil off")
+        threading.Event().wait(5.0)  # frozen for 5 s
+        assert watched.run.state == RunState.SUSPENDED
+        backdoor.request("fault", device="camera", kind="restore")
+    except BaseException:
+        watched.run.abort()
+        watched.join()
+        raise
+    summary = watched.join()
+    assert_delivered(summary, load_plan(PLAN).tolerance_mm)
+    assert watched.states[-1] == RunState.DONE
+
+
+@pytest.mark.parametrize("held", ["suspended", "paused"])
+def test_a_run_held_past_the_rig_files_limit_ramps_down_and_ends_with_the_reason(
+        rig, backdoor, tmp_path, held):
+    limited = with_limits(rig, **{f"{held}_limit_s": 1.0})
+    watched = WatchedRun(limited, tmp_path)
+    try:
+        watched.mid_move()
+        if held == "suspended":
+            backdoor.request("fault", device="camera", kind="black_out")
+        else:
+            watched.run.pause(immediate=True)
+        summary = watched.join()
+    finally:
+        backdoor.request("fault", device="camera", kind="restore")
+    assert RunState(held) in watched.states
+    assert summary.state == "aborted" and exit_code(summary) == 3 and summary.safe
+    reason = summary.faults[-1]["reason"]
+    assert f"{held} for more than 1 s" in reason and f"{held}_limit_s" in reason, reason
+    events = watched.events()
+    assert any(e["event"] == "abort" and f"{held}_limit_s" in e["reason"] for e in events)
+    wait_for(lambda: outputs_are(backdoor, ZERO), 5.0, "every coil off")

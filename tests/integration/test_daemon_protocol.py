@@ -114,9 +114,50 @@ class StandInRuns:
         return data
 
     def prepare(self, plan, rig, *, runs_dir, on_cycles, on_state):
+        if getattr(plan, "kind", None) == "hold":
+            return StandInHold(plan, runs_dir, on_state)
         run = StandInRun(plan, runs_dir, on_cycles, on_state)
         self.runs.append(run)
         return run
+
+
+class StandInHold:
+    """A manual hold as the stream process reports one: streaming at once, until released,
+    aborted or e-stopped."""
+
+    def __init__(self, plan, runs_dir, on_state):
+        self.plan, self.info, self.on_state = plan, {"name": "hold"}, on_state
+        self.record = SimpleNamespace(path=Path(runs_dir) / "stand-in-hold")
+        self.started, self.ended = threading.Event(), threading.Event()
+        self.streaming, self.error, self.result = False, None, None
+        self.estopped = False
+
+    def execute(self):
+        self.on_state(RunState.RUNNING, {})
+        self.streaming = True
+        self.started.set()
+        self.ended.wait(60)
+        self.on_state(RunState.ESTOPPED if self.estopped else RunState.DONE, {})
+
+    def retarget(self, target, setpoints, ramp_s):
+        pass
+
+    def release(self, ramp_s):
+        self.ended.set()
+
+    def pause(self, immediate=False):
+        pass
+
+    def resume(self):
+        pass
+
+    def abort(self):
+        self.ended.set()
+
+    def estop(self):
+        self.estopped = True
+        self.ended.set()
+        return []
 
 
 @pytest.fixture
@@ -400,3 +441,99 @@ def test_a_suspended_run_is_a_state_and_comes_back_to_running(daemon, rig_client
             if msg is not None and (not states or states[-1] != msg.state.value):
                 states.append(msg.state.value)
     assert states[-4:] == ["running", "suspended", "running", "idle"]
+
+
+ACTIVE_STATES = ("running", "paused", "suspended")
+WALK_COMMANDS = {  # a command with valid arguments (execute: the plan loaded for the walk)
+    "ping": {}, "status": {}, "runs": {}, "run": {"run": "no-such-run"},
+    "load": {"plan": {"samples": 100}}, "execute": {"plan_id": None},
+    "pause": {}, "pause now": {"immediate": True}, "resume": {}, "abort": {}, "estop": {},
+    "reset": {}, "hold": {"target": {"field_mT": [1.0, 0.0, 0.0]}},
+    "set_field": {"field_mT": [1.0, 0.0, 0.0]},
+}
+
+
+def expected_cell(state: str, command: str) -> tuple[str, str]:
+    """What the daemon answers (ok or the refusal's code) and the state it settles in, per
+    docs/daemon-protocol.md, written out here rather than read from the daemon's table."""
+    if command in ("ping", "status", "runs", "load"):
+        return "ok", state
+    if command == "run":
+        return "unknown_run", state
+    if command == "estop":
+        return "ok", "estopped"
+    if command in ("execute", "hold", "set_field"):
+        return ("ok", "running") if state == "idle" else ("wrong_state", state)
+    if command in ("pause", "pause now"):
+        if state == "running":
+            return "ok", "paused"
+        return ("ok", state) if state in ("paused", "suspended") else ("wrong_state", state)
+    if command == "resume":
+        return ("ok", "running") if state == "paused" else ("wrong_state", state)
+    if command == "abort":
+        return ("ok", "idle") if state in ACTIVE_STATES else ("wrong_state", state)
+    if command == "reset":
+        return ("ok", "idle") if state in ("idle", "faulted", "estopped") else ("wrong_state", state)
+    raise AssertionError(command)
+
+
+def enter(rig, state: str) -> None:
+    """Bring the daemon from idle into `state` the way a run gets there."""
+    long = 10 ** 7
+    if state == "running":
+        load_and_execute(rig, samples=long)
+    elif state == "paused":
+        load_and_execute(rig, samples=long)
+        rig.wait_state("running", timeout_s=5)
+        rig.pause()
+    elif state == "suspended":
+        load_and_execute(rig, samples=long, suspended=[50, 2 * long])  # tracking never returns
+    elif state == "faulted":
+        load_and_execute(rig, samples=long, fault_at=50)
+    elif state == "estopped":
+        rig.estop()
+    rig.wait_state(state, timeout_s=5)
+    if state == "faulted":
+        wait_no_run(rig)
+
+
+def wait_no_run(rig) -> None:
+    deadline = time.monotonic() + 5
+    while rig.status()["run"] is not None:
+        assert time.monotonic() < deadline, "the run did not end"
+        time.sleep(0.01)
+
+
+def leave(rig) -> None:
+    """The operator's way out of any state, back to idle with nothing running."""
+    state = rig.status()["state"]
+    if state in ACTIVE_STATES:
+        rig.abort()
+        rig.wait_state("idle", "faulted", "estopped", timeout_s=5)
+    wait_no_run(rig)
+    if rig.status()["state"] != "idle":
+        rig.reset()
+    assert rig.status()["state"] == "idle" and rig.status()["run"] is None
+
+
+def test_every_command_in_every_state_is_answered_as_documented_and_every_state_has_a_way_out(
+        daemon, rig_client):
+    walk_plan = rig_client.load({"samples": 100})
+    seen = {}
+    for state in ("idle", *ACTIVE_STATES, "faulted", "estopped"):
+        for command, args in WALK_COMMANDS.items():
+            enter(rig_client, state)
+            args = {**args, "plan_id": walk_plan} if command == "execute" else args
+            cmd = "pause" if command == "pause now" else command
+            try:
+                rig_client.request(cmd, **args)
+                code = "ok"
+            except CommandRefused as refused:
+                code = refused.code
+            want_code, want_state = expected_cell(state, command)
+            settled = rig_client.wait_state(want_state, timeout_s=5)["state"] \
+                if code == want_code else rig_client.status()["state"]
+            seen[(state, command)] = (code, settled)
+            assert (code, settled) == (want_code, want_state), (state, command)
+            leave(rig_client)
+    assert len(seen) == 6 * len(WALK_COMMANDS)
