@@ -34,21 +34,21 @@ PER_CLIENT = 16
 MAX_WAITING = 4096
 
 
-def is_control(payload: bytes) -> tuple[bool, object]:
-    """Whether a request body is a control command, and its `id` (None when it has none)."""
+def peek(payload: bytes) -> tuple[str | None, object]:
+    """A request body's `cmd` and `id` (None for what it does not have, or is not a request)."""
     # imported here: the CLI reads this module's defaults without loading the wire models
     from rigctl.daemon.messages import BadJson, decode_request
 
     try:
         data = decode_request(payload)
     except BadJson:
-        return False, None
+        return None, None
     if not isinstance(data, dict):
-        return False, None
+        return None, None
     cmd, request_id = data.get("cmd"), data.get("id")
     if not isinstance(request_id, (str, int)) or isinstance(request_id, bool):
         request_id = None
-    return isinstance(cmd, str) and cmd in CONTROL, request_id
+    return (cmd if isinstance(cmd, str) else None), request_id
 
 
 class Admission:
@@ -81,7 +81,7 @@ class Admission:
         if not self._waiting and self._tokens >= 1.0:
             self._tokens -= 1.0
             return "answer"
-        if body is not None and len(body) <= MAX_BODY_BYTES and is_control(body)[0]:
+        if body is not None and len(body) <= MAX_BODY_BYTES and peek(body)[0] in CONTROL:
             return "answer"
         if (self._per_client.get(client, 0) >= self.per_client
                 or len(self._waiting) >= self.max_waiting):

@@ -6,6 +6,10 @@ gives the daemon's administrator the public file, which goes into the allow-list
 keys configured, every daemon socket is a CURVE server and a ZAP authenticator admits only the
 public keys found in that folder: a client with any other key fails the handshake and receives
 nothing at all, not even `status`.
+
+The folder is read again whenever its listing changes (polled every `ALLOW_LIST_POLL_S`): a key
+added lets its operator in, a key removed keeps them out of new connections, and the daemon
+refuses (`forbidden`) every request that still arrives on a connection made with a removed key.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import threading
 from pathlib import Path
 
 import zmq
@@ -22,6 +27,8 @@ from zmq.auth.thread import ThreadAuthenticator
 from rigctl.errors import ConfigError
 
 log = logging.getLogger(__name__)
+
+ALLOW_LIST_POLL_S = 1.0
 
 
 def new_keypair(directory: str | Path, name: str) -> tuple[Path, Path]:
@@ -77,20 +84,60 @@ def allowed_public_keys(allowed_dir: str | Path) -> list[bytes]:
     return [load_public(p) for p in sorted(folder.glob("*.key"))]
 
 
+def _listing(folder: Path) -> tuple:
+    """What changes when a key file is added, removed or rewritten."""
+    try:
+        return tuple(sorted((p.name, st.st_mtime_ns, st.st_size)
+                            for p in folder.glob("*.key") for st in [p.stat()]))
+    except OSError:
+        return ()
+
+
 class CurveServer:
-    """The daemon's CURVE identity plus the authenticator enforcing the allow-list."""
+    """The daemon's CURVE identity plus the authenticator enforcing the allow-list, which it
+    reads again when the folder changes. `allowed` holds the Z85 public keys let in now (what a
+    connection's ZAP `User-Id` is)."""
 
     def __init__(self, context: zmq.Context, secret_key_file: str | Path,
                  allowed_dir: str | Path) -> None:
         self.public, self.secret = load_secret(secret_key_file)
         self.allowed_dir = Path(allowed_dir)
-        n_allowed = len(allowed_public_keys(self.allowed_dir))
-        if n_allowed == 0:
+        self.allowed: frozenset[bytes] = frozenset(allowed_public_keys(self.allowed_dir))
+        if not self.allowed:
             log.warning("the allow-list %s is empty: no client can connect", self.allowed_dir)
         self._auth = ThreadAuthenticator(context, log=logging.getLogger(__name__ + ".zap"))
         self._auth.start()
         self._auth.configure_curve(domain="*", location=str(self.allowed_dir))
-        log.info("CURVE on; %d operator key(s) allowed from %s", n_allowed, self.allowed_dir)
+        log.info("CURVE on; %d operator key(s) allowed from %s", len(self.allowed),
+                 self.allowed_dir)
+        self._stop = threading.Event()
+        self._watcher = threading.Thread(target=self._watch, name="allow-list", daemon=True)
+        self._watcher.start()
+
+    def _watch(self) -> None:
+        seen = _listing(self.allowed_dir)
+        while not self._stop.wait(ALLOW_LIST_POLL_S):
+            now = _listing(self.allowed_dir)
+            if now != seen:
+                seen = now
+                self.reload()
+
+    def reload(self) -> None:
+        """Read the allow-list folder again (a key that cannot be read keeps the old list)."""
+        try:
+            keys = frozenset(allowed_public_keys(self.allowed_dir))
+        except ConfigError as err:
+            log.error("the allow-list was not re-read: %s; the previous one stays", err)
+            return
+        self._auth.configure_curve(domain="*", location=str(self.allowed_dir))
+        added, removed = len(keys - self.allowed), len(self.allowed - keys)
+        self.allowed = keys
+        log.warning("allow-list %s re-read: %d key(s) allowed (%d added, %d removed)",
+                    self.allowed_dir, len(keys), added, removed)
+
+    def admits(self, user_id: str | None) -> bool:
+        """Whether a request's connection (its ZAP User-Id: the client's Z85 key) is allowed now."""
+        return user_id is not None and user_id.encode() in self.allowed
 
     def secure(self, sock: zmq.Socket) -> None:
         """Make `sock` (before bind) a CURVE server with the daemon's key."""
@@ -99,6 +146,8 @@ class CurveServer:
         sock.curve_server = True
 
     def stop(self) -> None:
+        self._stop.set()
+        self._watcher.join(timeout=2 * ALLOW_LIST_POLL_S)
         self._auth.stop()
 
 

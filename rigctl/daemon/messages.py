@@ -96,6 +96,7 @@ class ErrorCode(str, Enum):
     DEVICE = "device"  # a device failed while carrying the command out
     DEADLINE = "deadline"  # `load` took longer than LOAD_DEADLINE_S: the plan is not loaded
     INTERNAL = "internal"  # a bug: logged with its traceback on the daemon's side
+    FORBIDDEN = "forbidden"  # the connection's CURVE key was removed from the allow-list
 
 
 class DaemonState(str, Enum):

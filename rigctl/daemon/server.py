@@ -46,7 +46,7 @@ from pydantic import ValidationError
 
 from rigctl import errors
 from rigctl.config import RigConfig
-from rigctl.daemon.admission import REQUEST_RATE_HZ, Admission, is_control
+from rigctl.daemon.admission import REQUEST_RATE_HZ, Admission, peek
 from rigctl.daemon.keys import CurveServer
 from rigctl.daemon.messages import (
     COMMAND_ARGS,
@@ -498,7 +498,8 @@ class Daemon:
                 if self._router in events:
                     for _ in range(256):  # bounded batch, then look at wake-ups and timers again
                         try:
-                            frames = self._router.recv_multipart(zmq.NOBLOCK, copy=True)
+                            frames = self._router.recv_multipart(zmq.NOBLOCK,
+                                                                 copy=self.curve is None)
                         except zmq.Again:
                             break
                         self._admit(frames)
@@ -558,18 +559,26 @@ class Daemon:
         log.info("daemon stopped")
 
     # -- requests -------------------------------------------------------------------------------
-    def _admit(self, frames: list[bytes]) -> None:
+    def _admit(self, received: list) -> None:
         """Answer a request now, let it wait for the request budget, or answer `busy`
-        (`rigctl.daemon.admission`)."""
+        (`rigctl.daemon.admission`); with CURVE, refuse one from a connection whose key has
+        been removed from the allow-list since it connected (frames are `zmq.Frame`s then, for
+        their ZAP `User-Id`; bytes otherwise)."""
+        user_id = None if self.curve is None else received[-1].get("User-Id")
+        frames = received if self.curve is None else [f.bytes for f in received]
         split = _envelope_end(frames)
         body = frames[split] if len(frames) == split + 1 else None
+        if self.curve is not None and not self.curve.admits(user_id):
+            self._send(frames[:split], error_reply(
+                _request_id(body), ErrorCode.FORBIDDEN, "this client's key is no longer in the daemon's "
+                "allow-list; ask the daemon's administrator"))
+            return
         verdict = self.admission.offer(frames, frames[0], body, time.monotonic())
         if verdict == "answer":
             self._on_message(frames)
         elif verdict == "busy":
-            request_id = is_control(body)[1] if body is not None and len(body) <= 4096 else None
             self._send(frames[:split], error_reply(
-                request_id, ErrorCode.BUSY,
+                _request_id(body), ErrorCode.BUSY,
                 f"{self.admission.per_client} requests of this client are waiting already; "
                 "wait for their replies before sending more"))
 
@@ -1141,6 +1150,11 @@ class Daemon:
                 self._device(name, "off", "e-stop: made safe directly")
             else:
                 self._device(name, "fault", f"e-stop could not reach it: {err}")
+
+
+def _request_id(body: bytes | None) -> Any:
+    """A request's `id` for a reply given before the request is handled (None if it has none)."""
+    return peek(body)[1] if body is not None and len(body) <= 64 * 1024 else None
 
 
 def _envelope_end(frames: list[bytes]) -> int:

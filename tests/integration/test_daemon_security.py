@@ -96,3 +96,37 @@ def test_ready_and_watchdog_go_to_the_notify_socket(tmp_path):
     finally:
         daemon.stop()
         listener.close()
+
+
+def test_the_allow_list_is_read_again_when_its_folder_changes(keys, tmp_path):
+    """Revoking a key needs no restart: removed, its open connection is refused (`forbidden`)
+    and a new one gets nothing; a key added gets in."""
+    from rigctl.client import CommandRefused
+    from rigctl.daemon.keys import ALLOW_LIST_POLL_S
+    from rigctl.testing import wait_for
+
+    daemon = Daemon(RIG, runs_dir=tmp_path, server_key=keys["server_secret"],
+                    allowed_keys=keys["allowed"], **LOOPBACK)
+    endpoint = daemon.start_thread().command
+    curve = dict(server_key=keys["server_public"])
+    try:
+        with Rig(endpoint, **curve, client_key=keys["mallory"], timeout_s=0.3, retries=0) as m:
+            with pytest.raises(DaemonUnreachable):
+                m.status()
+        allow(keys["mallory"].with_suffix(".key"), keys["allowed"])  # mallory let in
+        wait_for(lambda: len(daemon.curve.allowed) == 2, 5 * ALLOW_LIST_POLL_S + 5, "re-read")
+        with Rig(endpoint, **curve, client_key=keys["mallory"]) as m:
+            assert m.status()["state"] == "idle"
+        with Rig(endpoint, **curve, client_key=keys["alice"]) as alice:
+            assert alice.status()["state"] == "idle"  # connected while allowed
+            (keys["allowed"] / "alice.key").unlink()  # revoked
+            wait_for(lambda: len(daemon.curve.allowed) == 1, 5 * ALLOW_LIST_POLL_S + 5,
+                     "re-read")
+            with pytest.raises(CommandRefused) as refused:
+                alice.status()
+            assert refused.value.code == "forbidden"
+        with Rig(endpoint, **curve, client_key=keys["alice"], timeout_s=0.3, retries=0) as again:
+            with pytest.raises(DaemonUnreachable):
+                again.status()
+    finally:
+        daemon.stop()
