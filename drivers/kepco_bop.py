@@ -46,6 +46,7 @@ PAIR_CURRENT_RATING_A = 20.0  # BOP 50-20: +-20 A
 PAIR_VOLTAGE_RATING_V = 100.0  # two 50 V units in series
 MAX_REPLY_BYTES = 1024  # the BOP's longest message is 253 characters (manual App. B.2)
 TERMINATOR = b"\n"
+GARBLED_STREAK = 3  # unreadable measurement answers in a row that end a run (fewer are skipped)
 
 _NUMBER = re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?")
 _ERROR_ENTRY = re.compile(r'([+-]?\d+)\s*,\s*"(.*)"')
@@ -102,6 +103,9 @@ class KepcoBop:
         self._last_setpoint_A = 0.0
         self._wire = threading.Lock()  # one message at a time on the wire (e-stop comes from afar)
         self._estopped = False  # latched by emergency_zero: every setpoint leaves as 0 A
+        self._last_measured_A = 0.0
+        self._garbled_streak = 0
+        self.garbled = 0  # unreadable measurement answers skipped
 
     @property
     def last_setpoint_A(self) -> float:
@@ -269,13 +273,27 @@ class KepcoBop:
         self._awaiting_measurement = True
 
     def read_measured(self) -> float:
-        """The measured current (A) answering the last `send_setpoint`."""
+        """The measured current (A) answering the last `send_setpoint`. An unreadable answer
+        (line noise on RS-232, a garbled reply) is skipped: the setpoint went out in the same
+        message, so the cycle stands and the last good measurement is returned again (counted in
+        `garbled`); `GARBLED_STREAK` in a row is a ProtocolError. A missing answer is the
+        watchdog's (DeviceTimeout) at once."""
         if not self._awaiting_measurement:
             raise RuntimeError(f"{self.name}: read_measured() without send_setpoint()")
         try:
-            return self._number(self._read_line(), "MEAS:CURR?")
+            self._last_measured_A = self._number(self._read_line(), "MEAS:CURR?")
+        except ProtocolError as err:
+            self._garbled_streak += 1
+            self.garbled += 1
+            if self._garbled_streak >= GARBLED_STREAK:
+                raise ProtocolError(f"{err.args[0] if err.args else err} ({self._garbled_streak} "
+                                    "unreadable answers in a row)", device=self.name) from None
+            log.warning("%s; the measurement is skipped this cycle", err)
+            return self._last_measured_A
         finally:
             self._awaiting_measurement = False
+        self._garbled_streak = 0
+        return self._last_measured_A
 
     # -- stopping --------------------------------------------------------------------------------
 

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from rigctl.drivers.kepco_bop import KepcoBop
+from rigctl.drivers.kepco_bop import GARBLED_STREAK, KepcoBop
 from rigctl.emulators.kepco_bop import serve_bop
 from rigctl.emulators.server import EmulatorServer
 from rigctl.errors import DeviceError, DeviceTimeout, Disconnected, ProtocolError
@@ -124,13 +124,25 @@ def test_over_temperature_is_a_device_error_naming_it(bench, server) -> None:
         driver.output(True)
 
 
-def test_corrupt_reply_is_a_protocol_error_then_the_link_recovers(bench) -> None:
+def test_a_corrupt_reply_is_skipped_a_streak_is_a_protocol_error_then_the_link_recovers(
+        bench) -> None:
     emulated, driver = bench
     driver.configure()
+    driver.send_setpoint(0.0)
+    good = driver.read_measured()
     emulated.endpoint.corrupt(1)
     driver.send_setpoint(1.0)
-    with pytest.raises(ProtocolError, match="x\\+: unreadable reply b'\\\\xfe"):
+    assert driver.read_measured() == good and driver.garbled == 1  # the last good one again
+    driver.send_setpoint(1.0)
+    driver.read_measured()
+    emulated.endpoint.corrupt(GARBLED_STREAK)
+    for _ in range(GARBLED_STREAK - 1):
+        driver.send_setpoint(1.0)
         driver.read_measured()
+    driver.send_setpoint(1.0)
+    with pytest.raises(ProtocolError, match="x\\+: unreadable reply b'\\\\xfe.*3 unreadable"):
+        driver.read_measured()
+    assert driver.garbled == 1 + GARBLED_STREAK
     assert driver.measure_voltage() == pytest.approx(0.0)  # output is off
 
 
