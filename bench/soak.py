@@ -6,7 +6,8 @@ this measures the daemon, not the camera), and this process is the operator: it 
 the issue's hour) and samples, every `--interval` seconds, of the daemon and of its stream
 process, between two runs: the resident set (VmRSS, MB), open file descriptors (/proc/PID/fd)
 and threads. It
-reports each figure's slope over time (least squares, per hour) after a warm-up (the first
+reports each figure's slope over time (least squares, per hour; for the stream process, over the
+longest stretch of one process: the daemon replaces one that dies or hangs) after a warm-up (the first
 `--warmup-minutes`, default the lesser of 2 min and a fifth of the run: the first runs import,
 compile and fill caches), the first and last value, the runs done, any run that did not end
 cleanly, and every sample. The issue's goal: no growth in descriptors or threads, RSS under
@@ -110,8 +111,18 @@ class Sampler:
 
 
 def summarise(samples: list[dict], warmup_s: float, which: str) -> dict:
+    """First, last, min, max and the slope per hour of each figure of `which` ("daemon" or
+    "stream") after the warm-up. The stream process is replaced when one dies or hangs (the
+    daemon kills a silent one): its slope is that of the longest stretch of one process, the
+    others' samples are not one process's growth."""
     kept = [s for s in samples if s["t_s"] >= warmup_s and s[which] is not None]
-    out: dict = {}
+    if which == "stream" and kept:
+        stretches: dict[int, list[dict]] = {}
+        for s in kept:
+            stretches.setdefault(s["stream_pid"], []).append(s)
+        kept = max(stretches.values(), key=len)
+    out: dict = {"samples": len(kept),
+                 "span_s": round(kept[-1]["t_s"] - kept[0]["t_s"], 1) if kept else 0.0}
     for figure in FIGURES:
         t = [s["t_s"] for s in kept]
         v = [s[which][figure] for s in kept]
