@@ -44,7 +44,7 @@ from rigctl.client import CommandRefused, Rig
 from rigctl.config import RigConfig, dump_rig, load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.errors import DeviceError, RigError
+from rigctl.errors import DeviceError, DeviceTimeout, Disconnected, RigError
 from rigctl.record import describe_run, read_events, read_stream
 
 PHASES = ("before", "moving", "paused", "suspended", "ramping")
@@ -57,6 +57,7 @@ STREAM_PROCESS = "stream process"  # the daemon's own faults' device
 TERMINAL = {"done", "aborted", "faulted", "estopped"}
 ACTIVE = {"running", "paused", "suspended"}
 POLL_S = 0.01
+BACKDOOR_TIMEOUT_S = 10.0  # a loaded machine: the bench's answers took over 5 s
 
 
 @dataclass(frozen=True)
@@ -175,7 +176,7 @@ class RigProfile:
     safe_means: str
     suspend_with: Fault | None
     quick: tuple[tuple[str, str, str], ...]  # (path, fault label, phase) of the quick campaign
-    reset: Callable[[BackdoorClient], None] = lambda backdoor: None
+    reset: Callable[[Any], None] = lambda backdoor: None  # gets what has `request` (a backdoor)
     tune: Callable[[RigConfig], RigConfig] = lambda rig: rig
 
 
@@ -185,7 +186,7 @@ def _tune_six_coil(rig: RigConfig) -> RigConfig:
     return rig.model_copy(update={"stream": rig.stream.model_copy(update={"reply_timeout_s": 0.5})})
 
 
-def _park_arms(backdoor: BackdoorClient) -> None:
+def _park_arms(backdoor: Any) -> None:
     """Both arms at rest with no client, then parked upright (all joints 0) as the plan expects
     them before its approach."""
     _wait(lambda: all(a["mode"] == "idle" and a["connections"] == 0
@@ -203,11 +204,11 @@ PROFILES: dict[str, RigProfile] = {
         safe_means="every coil current under 50 mA",
         suspend_with=Fault("camera", "freeze"),
         tune=_tune_six_coil,
-        quick=(("daemon", "x+:drop_link", "moving"), ("daemon", "x+:overtemp", "paused"),
-               ("daemon", "x+:stall", "ramping"), ("daemon", "x+:corrupt", "suspended"),
+        quick=(("daemon", "x+:drop_link", "before"), ("daemon", "x+:stall", "moving"),
+               ("daemon", "x+:overtemp", "paused"), ("daemon", "camera:drop_link", "suspended"),
                ("daemon", f"{STREAM_PROCESS}:sigkill", "moving"),
                ("daemon", f"{STREAM_PROCESS}:sigstop", "moving"),
-               ("execute", "camera:freeze", "moving"))),
+               ("execute", "x+:drop_link", "moving"))),
     "coil-board": RigProfile(
         plan=_coil_board_plan,
         driving=lambda t: any(t["outputs"]),
@@ -243,7 +244,7 @@ def _listed(message: str, after: str) -> list[str]:
     return [name.strip() for name in found.group(1).split(",") if name.strip()]
 
 
-def bench_faults(backdoor: BackdoorClient) -> dict[str, list[str]]:
+def bench_faults(backdoor: Any) -> dict[str, list[str]]:
     """Every device of the bench and its fault kinds, as its backdoor names them (clearing kinds
     left out): it lists its devices when asked for one it lacks, a device's kinds likewise."""
     if "fault" not in backdoor.request("help")["commands"]:
@@ -384,8 +385,9 @@ class RigCampaign:
             rig = load_rig(bench_path)
             self.rig_path = self.folder / "rig.toml"
             self.rig_path.write_text(dump_rig(self.profile.tune(rig)))
-            self.backdoor = self._stack.enter_context(BackdoorClient(rig.emulation.backdoor))
-            self.faults = campaign_faults(bench_faults(self.backdoor),
+            self.backdoor = BackdoorClient(rig.emulation.backdoor, timeout_s=BACKDOOR_TIMEOUT_S)
+            self._stack.callback(lambda: self.backdoor.close())
+            self.faults = campaign_faults(bench_faults(self),
                                           all_devices=self.all_devices)
         except BaseException:
             self._stack.close()
@@ -434,18 +436,32 @@ class RigCampaign:
                            f"{', '.join(f.label for f in self.faults)}", device="bench backdoor")
         return found[0]
 
-    # -- faults --------------------------------------------------------------------------------
+    # -- the backdoor --------------------------------------------------------------------------
+    def request(self, cmd: str, **args: Any) -> dict:
+        """A backdoor request; on a timeout or a dropped connection (a loaded machine) the
+        connection is opened anew, so that a late reply cannot answer the next request, and the
+        request sent again (at most twice). A refusal (DeviceError) is the bench's answer."""
+        for attempt in range(3):
+            assert self.backdoor is not None
+            try:
+                return self.backdoor.request(cmd, **args)
+            except (DeviceTimeout, Disconnected, ValueError):  # ValueError: a torn reply line
+                url = self.backdoor.url
+                self.backdoor.close()
+                self.backdoor = BackdoorClient(url, timeout_s=BACKDOOR_TIMEOUT_S)
+                if attempt == 2:
+                    raise
+        raise AssertionError("unreachable")
+
     def truth(self) -> dict:
-        assert self.backdoor is not None
-        return self.backdoor.request("truth")
+        return self.request("truth")
 
     def inject(self, fault: Fault, pid: int | None) -> None:
         if fault.device == STREAM_PROCESS:
             if pid is not None:
                 os.kill(pid, signal.SIGKILL if fault.kind == "sigkill" else signal.SIGSTOP)
             return
-        assert self.backdoor is not None
-        self.backdoor.request("fault", device=fault.device, kind=fault.kind, **dict(fault.args))
+        self.request("fault", device=fault.device, kind=fault.kind, **dict(fault.args))
 
     def clear(self, fault: Fault, pid: int | None) -> None:
         if fault.clear is None:
@@ -455,17 +471,15 @@ class RigCampaign:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(pid, signal.SIGCONT)
             return
-        assert self.backdoor is not None
-        self.backdoor.request("fault", device=fault.device, kind=fault.clear)
+        self.request("fault", device=fault.device, kind=fault.clear)
 
     def clear_all(self) -> None:
         """Every fault the bench has, cleared (its clearing kinds), and the bench reset."""
-        assert self.backdoor is not None
         for f in self.faults:
             if f.device != STREAM_PROCESS and f.clear is not None:
-                self.backdoor.request("fault", device=f.device, kind=f.clear)
+                self.request("fault", device=f.device, kind=f.clear)
         for device in {f.device for f in self.faults if f.device != STREAM_PROCESS}:
-            self.backdoor.request("fault", device=device, kind="restore")
+            self.request("fault", device=device, kind="restore")
 
     # -- the daemon's cells --------------------------------------------------------------------
     def _daemon_ready(self) -> None:
@@ -484,7 +498,7 @@ class RigCampaign:
             if time.monotonic() > deadline:
                 raise RigError(f"the daemon did not come back to idle: {status}", device="daemon")
             time.sleep(0.05)
-        self.profile.reset(self.backdoor)
+        self.profile.reset(self)
 
     def run_daemon_cell(self, fault: Fault, phase: str) -> Cell:
         cell = Cell(self.kind, "daemon", fault.label, phase)
@@ -534,8 +548,10 @@ class RigCampaign:
             t_fault = time.monotonic()
         resumed = [False]
 
-        def while_held(now: float, status: dict) -> None:
-            if now - t_fault >= self.hold_s and not resumed[0]:
+        def while_held(now: float, status: dict, truth: dict) -> bool:
+            # before energising: the fault stays until the run has met it (it drives, or ended)
+            met = phase != "before" or status["state"] not in ACTIVE or self.profile.driving(truth)
+            if now - t_fault >= self.hold_s and met and not resumed[0]:
                 self.clear(fault, pid)
                 if phase == "suspended" and suspend is not None:
                     self.clear(suspend, pid)
@@ -543,6 +559,7 @@ class RigCampaign:
             if resumed[0] and phase == "paused" and status["state"] == "paused":
                 with contextlib.suppress(CommandRefused):
                     self.client.resume()
+            return resumed[0]
 
         self._finish(cell, t_fault, *self._watch(t_fault, while_held, self.client.status))
         if not cell.safe:
@@ -575,28 +592,32 @@ class RigCampaign:
                 shown["qd_max"] = float(_arm_speeds(truth).max())
             cell.note = (cell.note + "; " if cell.note else "") + f"not safe at the end: {shown}"
 
-    def _watch(self, t_fault: float, on_poll: Callable[[float, dict], None],
+    def _watch(self, t_fault: float, on_poll: Callable[[float, dict, dict], bool],
                status: Callable[[], dict | None]) -> tuple[float | None, float | None, bool]:
         """Poll the run's state and the emulator's truth until the run is over, the fault cleared
-        and every device safe (or `settle_s` after that at most). (when the run was first seen
-        stopped, held or ended; when every device became safe for good; safe at the end)."""
+        (`on_poll` says so, and clears it when it is time) and every device safe, or `settle_s`
+        after the clearing at most. (when the run was first seen stopped, held or ended; when
+        every device became safe for good; safe at the end)."""
         stop_at = safe_at = None
         cleared_at = None
         while True:
             now = time.monotonic()
             state = status()
-            on_poll(now, state or {"state": "idle"})
+            truth = self.truth()
+            cleared = on_poll(now, state or {"state": "idle"}, truth)
             running = state is not None and (state.get("run") is not None or
                                              state.get("state") == "running")
             if stop_at is None and (state is None or state.get("state") not in ("running",)):
                 stop_at = now
-            safe = self.profile.safe(self.truth())
+            safe = self.profile.safe(truth)
             if not safe:
                 safe_at = None
             elif safe_at is None:
                 safe_at = now
-            if now - t_fault >= self.hold_s and cleared_at is None:
+            if cleared and cleared_at is None:
                 cleared_at = now
+            if cleared_at is None and now - t_fault > 60.0 + self.settle_s:
+                return stop_at, safe_at, safe  # never met (a bug of the campaign's): say so
             if cleared_at is not None and not running and safe:
                 return stop_at, safe_at, True
             if cleared_at is not None and now - cleared_at > self.settle_s + (
@@ -611,7 +632,7 @@ class RigCampaign:
         cell = Cell(self.kind, "execute", fault.label, phase)
         self.stop_daemon()  # the rig has one owner
         self.clear_all()
-        self.profile.reset(self.backdoor)
+        self.profile.reset(self)
         runs = self.folder / "runs-execute"
         before = set(runs.glob("*")) if runs.is_dir() else set()
         out_path = self.folder / "execute.json"
@@ -634,10 +655,11 @@ class RigCampaign:
             t_fault = time.monotonic()
         cleared = [False]
 
-        def while_held(now: float, _: dict) -> None:
+        def while_held(now: float, _: dict, __: dict) -> bool:
             if now - t_fault >= self.hold_s and not cleared[0]:
                 self.clear(fault, None)
                 cleared[0] = True
+            return cleared[0]
 
         stop_at, safe_at, safe_now = self._watch(
             t_fault, while_held, lambda: None if proc.poll() is not None else {"state": "running",
@@ -712,11 +734,23 @@ def run_campaign(rigs: list[str], *, quick: bool, folder: Path | None = None,
                 todo.sort(key=lambda c: c[0] != "daemon")
                 for index, (path, fault, phase) in enumerate(todo, 1):
                     run = campaign.run_daemon_cell if path == "daemon" else campaign.run_execute_cell
-                    try:
-                        cell = run(fault, phase)
-                    except (RigError, OSError, TimeoutError) as err:
-                        cell = Cell(kind, path, fault.label, phase, note=f"campaign error: {err}")
-                        campaign.stop_daemon()  # start afresh for the next cell
+                    for attempt in (1, 2):
+                        try:
+                            cell = run(fault, phase)
+                        except Exception as err:  # noqa: BLE001 - one cell's error is its own
+                            cell = Cell(kind, path, fault.label, phase,
+                                        note=f"campaign error: {type(err).__name__}: {err}")
+                            campaign.stop_daemon()  # start afresh for the next cell
+                        # the campaign's own precondition failed (the run ended before the
+                        # phase, the bench did not answer): once more, then it counts
+                        if "phase not reached" not in cell.note and "campaign error" not in \
+                                cell.note:
+                            break
+                        if attempt == 1:
+                            _say(progress, f"  {path} {fault.label} @ {phase}: {cell.note}; "
+                                 "once more")
+                    if attempt == 2:
+                        cell.note += " (second attempt)"
                     cells.append(cell)
                     _say(progress, f"[{kind} {index}/{len(todo)}] {path} {fault.label} @ {phase}: "
                          f"{describe(cell)}")

@@ -129,6 +129,9 @@ class CoilSupplies:
         return unconfirmed
 
 
+CONFIRM_TIMEOUT_S = 0.5  # the direct make-safe waits this long for each supply's confirmation
+
+
 def zero_supplies_directly(rig: RigConfig) -> dict[str, str | None]:
     """E-stop without the stream's connections (no run active, or its process died): open each
     supply anew and tell it 0 A and output off, every supply first; then confirm each: its answer
@@ -138,11 +141,14 @@ def zero_supplies_directly(rig: RigConfig) -> dict[str, str | None]:
     supply's name -> None when it confirmed, else why not."""
     result: dict[str, str | None] = {}
     told: list[KepcoBop] = []
+    # the zero leaves at once whatever the timeout; the confirmation may wait longer than a
+    # stream cycle's reply (a loaded machine is no reason to call a supply unreachable)
+    timeout_s = max(rig.stream.reply_timeout_s, CONFIRM_TIMEOUT_S)
     for coil in rig.coils:
         try:
-            transport = open_transport(coil.url, timeout_s=rig.stream.reply_timeout_s)
+            transport = open_transport(coil.url, timeout_s=timeout_s)
             supply = KepcoBop(transport, name=coil.name, current_limit_A=coil.current_limit_A,
-                              compliance_V=coil.compliance_V, timeout_s=rig.stream.reply_timeout_s)
+                              compliance_V=coil.compliance_V, timeout_s=timeout_s)
             if supply.emergency_zero():
                 told.append(supply)
                 result[coil.name] = None
