@@ -31,6 +31,8 @@ def main() -> None:
                         help="only this cell (repeatable), e.g. daemon/x+:stall/moving")
     parser.add_argument("--all-devices", action="store_true",
                         help="every device, not one per class")
+    parser.add_argument("--cells-out", metavar="FILE",
+                        help="also append each cell, as it is done, to FILE (JSON lines)")
     parser.add_argument("--hold", type=float, default=1.5,
                         help="seconds each fault is held before it is cleared (default 1.5)")
     args = parser.parse_args()
@@ -41,9 +43,14 @@ def main() -> None:
             parser.error(str(err))
     started = time.monotonic()
     load_before = round(os.getloadavg()[0], 2)
+    def save(cell) -> None:
+        if args.cells_out:
+            with open(args.cells_out, "a") as out:
+                out.write(json.dumps(cell.as_dict()) + "\n")
+
     cells = run_campaign(list(PROFILES) if args.rig == "all" else [args.rig], quick=False,
                          progress=sys.stderr, hold_s=args.hold, all_devices=args.all_devices,
-                         only=args.cell)
+                         only=args.cell, on_cell=save)
     document = as_json(cells)
     print(json.dumps({
         "ok": document["ok"], "figures": document["figures"],

@@ -32,6 +32,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -44,7 +45,7 @@ from rigctl.client import CommandRefused, Rig
 from rigctl.config import RigConfig, dump_rig, load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.errors import DeviceError, DeviceTimeout, Disconnected, RigError
+from rigctl.errors import DeviceError, DeviceTimeout, Disconnected, RigError, Terminated
 from rigctl.record import describe_run, read_events, read_stream
 
 PHASES = ("before", "moving", "paused", "suspended", "ramping")
@@ -208,7 +209,7 @@ PROFILES: dict[str, RigProfile] = {
                ("daemon", "x+:overtemp", "paused"), ("daemon", "camera:drop_link", "suspended"),
                ("daemon", f"{STREAM_PROCESS}:sigkill", "moving"),
                ("daemon", f"{STREAM_PROCESS}:sigstop", "moving"),
-               ("execute", "x+:drop_link", "moving"))),
+               ("execute", "camera:freeze", "moving"))),
     "coil-board": RigProfile(
         plan=_coil_board_plan,
         driving=lambda t: any(t["outputs"]),
@@ -717,10 +718,29 @@ def parse_cell(name: str) -> tuple[str, str, str]:
 
 def run_campaign(rigs: list[str], *, quick: bool, folder: Path | None = None,
                  progress: TextIO | None = sys.stderr, hold_s: float = 1.5,
-                 all_devices: bool = False, only: list[str] | None = None) -> list[Cell]:
+                 all_devices: bool = False, only: list[str] | None = None,
+                 on_cell: Callable[[Cell], None] | None = None) -> list[Cell]:
     """Every rig's cells, each rig's on a bench and daemon of its own (`only`: just these
-    cells, "PATH/DEVICE:KIND/PHASE", on every rig given)."""
+    cells, "PATH/DEVICE:KIND/PHASE", on every rig given); `on_cell` is handed each cell done."""
     cells: list[Cell] = []
+    # SIGTERM ends the campaign as Ctrl-C does: every bench and daemon it started is stopped
+    previous = signal.signal(signal.SIGTERM, _interrupt) \
+        if threading.current_thread() is threading.main_thread() else None
+    try:
+        return _run_rigs(rigs, cells, quick=quick, folder=folder, progress=progress,
+                         hold_s=hold_s, all_devices=all_devices, only=only, on_cell=on_cell)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise Terminated()
+
+
+def _run_rigs(rigs: list[str], cells: list[Cell], *, quick: bool, folder: Path | None,
+              progress: TextIO | None, hold_s: float, all_devices: bool, only: list[str] | None,
+              on_cell: Callable[[Cell], None] | None) -> list[Cell]:
     with contextlib.ExitStack() as stack:
         root = folder or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="rigctl-faults-")))
         for kind in rigs:
@@ -752,6 +772,8 @@ def run_campaign(rigs: list[str], *, quick: bool, folder: Path | None = None,
                     if attempt == 2:
                         cell.note += " (second attempt)"
                     cells.append(cell)
+                    if on_cell is not None:
+                        on_cell(cell)
                     _say(progress, f"[{kind} {index}/{len(todo)}] {path} {fault.label} @ {phase}: "
                          f"{describe(cell)}")
     return cells

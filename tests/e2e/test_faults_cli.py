@@ -61,4 +61,4 @@ def test_the_quick_campaign_passes_and_its_records_say_what_it_reports(tmp_path)
     by = {(c["rig"], c["fault"]): c for c in cells}
     assert by[("coil-board", "board:stall")]["outcome"] == "faulted"
     assert by[("depm", "left:stall_joint")]["device"] == "left"
-    assert by[("six-coil", "x+:drop_link")]["device"] == "x+"
+    assert by[("six-coil", "x+:stall")]["device"] == "x+"  # a hung supply, named
