@@ -19,6 +19,7 @@ from rigctl.cli.execute import (
     cmd_execute,
     refuse_foreign_bench_flags,
 )
+from rigctl.cli.faults import register_faults
 from rigctl.cli.init import register_init
 from rigctl.cli.paths import (
     BadPath,
@@ -243,6 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     register_planners(sub)
     register_daemon(sub)
     register_init(sub)
+    register_faults(sub)
     return parser
 
 

@@ -24,6 +24,8 @@ QUICK = {
     "pair.py": ["--quick"],
     "preflight.py": ["--rig", "six-coil", "--repeat", "1"],
     "fuzz_daemon.py": ["--requests", "200", "--plans", "20"],
+    "faults.py": ["--rig", "six-coil", "--cell", "daemon/x+:drop_link/moving"],
+    "soak.py": ["--minutes", "0.3", "--interval", "2"],
 }
 
 

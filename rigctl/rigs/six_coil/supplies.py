@@ -129,21 +129,42 @@ class CoilSupplies:
         return unconfirmed
 
 
+CONFIRM_TIMEOUT_S = 0.5  # the direct make-safe waits this long for each supply's confirmation
+
+
 def zero_supplies_directly(rig: RigConfig) -> dict[str, str | None]:
     """E-stop without the stream's connections (no run active, or its process died): open each
-    supply anew, tell it 0 A and output off, close it. Best effort, never raises; returns each
-    supply's name -> None when told, else why it could not be reached."""
+    supply anew and tell it 0 A and output off, every supply first; then confirm each: its answer
+    to a measurement sent after the zero on the same connection (SCPI answers in order) proves the
+    zero was read. A link that takes the bytes but never answers (a hung supply) is not made safe
+    by a write alone: it is reported, not counted as told. Best effort, never raises; returns each
+    supply's name -> None when it confirmed, else why not."""
     result: dict[str, str | None] = {}
+    told: list[KepcoBop] = []
+    # the zero leaves at once whatever the timeout; the confirmation may wait longer than a
+    # stream cycle's reply (a loaded machine is no reason to call a supply unreachable)
+    timeout_s = max(rig.stream.reply_timeout_s, CONFIRM_TIMEOUT_S)
     for coil in rig.coils:
         try:
-            transport = open_transport(coil.url, timeout_s=rig.stream.reply_timeout_s)
+            transport = open_transport(coil.url, timeout_s=timeout_s)
             supply = KepcoBop(transport, name=coil.name, current_limit_A=coil.current_limit_A,
-                              compliance_V=coil.compliance_V, timeout_s=rig.stream.reply_timeout_s)
-            sent = supply.emergency_zero()
-            supply.close()
-            result[coil.name] = None if sent else f"{coil.url}: the e-stop message could not be sent"
+                              compliance_V=coil.compliance_V, timeout_s=timeout_s)
+            if supply.emergency_zero():
+                told.append(supply)
+                result[coil.name] = None
+            else:
+                supply.close()
+                result[coil.name] = f"{coil.url}: the e-stop message could not be sent"
         except RigError as err:
             result[coil.name] = str(err)
-        if result[coil.name] is not None:
-            log.error("e-stop: %s could not be reached: %s", coil.name, result[coil.name])
+    for supply in told:
+        try:
+            supply.measure_current()
+        except RigError as err:
+            result[supply.name] = f"the e-stop was sent but not confirmed: {err}"
+        finally:
+            supply.close()
+    for name, why in result.items():
+        if why is not None:
+            log.error("e-stop: %s could not be reached: %s", name, why)
     return result

@@ -1,0 +1,139 @@
+"""The fault campaign's judgement of a cell (`rigctl.faults`): the outcome read from a run record,
+whether a record is complete / readable / lost, the cells a campaign plans, and the matrix that
+marks failed cells. Records are written with the real `RunRecord`; runs are not started here (the
+campaign itself runs in tests/e2e/test_faults_cli.py)."""
+
+from __future__ import annotations
+
+import pytest
+
+from rigctl.faults import (
+    PHASES,
+    STREAM_PROCESS,
+    Cell,
+    campaign_faults,
+    check_record,
+    every_cell_ok,
+    figures,
+    matrix,
+    outcome_of,
+    parse_cell,
+)
+from rigctl.record import RunRecord
+
+
+def state(name: str, **info) -> dict:
+    return {"event": "state", "state": name, **info}
+
+
+def test_a_run_that_suspended_and_resumed_and_ended_done_is_named_so():
+    events = [state("running"), state("suspended", reason="tracking lost"), state("running"),
+              state("done")]
+    assert outcome_of(events, {"state": "done", "faults": []})[0] == "suspended and resumed"
+    assert outcome_of([state("running"), state("done")], {"state": "done", "faults": []}) == \
+        ("completed", None, None)
+    assert outcome_of([state("running"), state("paused"), state("running"), state("done")],
+                      {"state": "done", "faults": []})[0] == "paused and resumed"
+
+
+def test_a_device_fault_names_the_device_even_when_an_abort_ended_the_run():
+    fault = {"device": "x+", "reason": "x+: no reply within 0.5 s (watchdog)", "kind": "DeviceTimeout"}
+    summary = {"state": "aborted", "faults": [fault, {"device": None, "reason": "aborted by the "
+                                                      "operator", "kind": "Abort"}]}
+    assert outcome_of([state("running"), state("faulted"), state("aborted")], summary) == \
+        ("faulted", "x+", fault["reason"])
+    # an abort alone is an abort
+    assert outcome_of([state("running"), state("aborted")], {"state": "aborted", "faults": [
+        {"device": None, "reason": "aborted by the operator", "kind": "Abort"}]})[0] == "aborted"
+
+
+def test_estop_refusal_and_a_record_without_summary():
+    assert outcome_of([state("estopped")], {"state": "estopped", "faults": [
+        {"device": None, "reason": "emergency stop", "kind": "EStop"}]})[0] == "e-stopped"
+    assert outcome_of([], {"state": None, "faults": [], "refused": "x+: link lost"}) == \
+        ("refused", None, "x+: link lost")
+    died = {"event": "fault", "device": None, "reason": "the stream process died",
+            "kind": "StreamProcessDied"}
+    assert outcome_of([state("running"), died], None) == ("faulted", None, died["reason"])
+    assert outcome_of([state("running")], None)[0] is None  # nothing says how it ended
+
+
+def test_a_record_is_complete_readable_incomplete_or_lost(tmp_path):
+    assert check_record(None) == ("lost", None)
+    assert check_record(tmp_path / "nothing")[0] == "lost"
+
+    whole = RunRecord(tmp_path, "whole")
+    whole.write_file("plan.json", "{}")
+    whole.event("state", state="running")
+    whole.event("state", state="done")
+    whole.finish({"state": "done"})
+    assert check_record(whole.path) == ("complete", whole.path.name)
+
+    # the stream process killed: no summary, the daemon appended the fault
+    cut = RunRecord(tmp_path, "cut")
+    cut.write_file("plan.json", "{}")
+    cut.event("state", state="running")
+    cut.event("fault", device=None, reason="the stream process died", kind="StreamProcessDied")
+    cut.close()
+    assert check_record(cut.path)[0] == "readable"
+
+    # nothing says how it ended
+    open_ended = RunRecord(tmp_path, "open")
+    open_ended.event("state", state="running")
+    open_ended.close()
+    assert check_record(open_ended.path)[0] == "incomplete"
+
+    # it says it energised, but there is no stream to read
+    no_stream = RunRecord(tmp_path, "nostream")
+    no_stream.event("energised", devices=["x+"])
+    no_stream.finish({"state": "done"})
+    assert check_record(no_stream.path)[0] == "incomplete"
+
+
+KINDS = {"x+": ["drop_link", "stall", "corrupt", "overtemp"],
+         "x-": ["drop_link", "stall", "corrupt", "overtemp"],
+         "camera": ["drop_frames", "freeze", "black_out", "occlude", "drop_link"]}
+
+
+def test_one_device_stands_for_each_class_and_the_daemons_own_faults_join():
+    labels = [f.label for f in campaign_faults(KINDS)]
+    assert labels == ["x+:drop_link", "x+:stall", "x+:corrupt", "x+:overtemp",
+                      "camera:drop_frames", "camera:freeze", "camera:black_out", "camera:occlude",
+                      "camera:drop_link", f"{STREAM_PROCESS}:sigkill", f"{STREAM_PROCESS}:sigstop"]
+    assert len(campaign_faults(KINDS, all_devices=True)) == 4 + 4 + 5 + 2
+    faults = {f.label: f for f in campaign_faults(KINDS)}
+    assert faults["camera:occlude"].args == (("robot", 0),)
+    assert faults[f"{STREAM_PROCESS}:sigstop"].clear == "SIGCONT"
+    assert faults[f"{STREAM_PROCESS}:sigkill"].clear is None
+
+
+def test_cell_names_are_checked():
+    assert parse_cell("daemon/x+:stall/moving") == ("daemon", "x+:stall", "moving")
+    for bad in ("daemon/x+:stall", "local/x+:stall/moving", "daemon/x+/moving",
+                "daemon/x+:stall/flying"):
+        with pytest.raises(ValueError, match="PATH/DEVICE:KIND/PHASE"):
+            parse_cell(bad)
+    assert PHASES == ("before", "moving", "paused", "suspended", "ramping")
+
+
+def test_the_matrix_marks_a_cell_not_safe_and_the_figures_take_the_worst_stopped_cell():
+    cells = [
+        Cell("six-coil", "daemon", "x+:drop_link", "moving", outcome="faulted", device="x+",
+             fault_to_safe_s=0.3, safe=True, record="complete"),
+        Cell("six-coil", "daemon", "x+:stall", "ramping", outcome="faulted", device="x+",
+             fault_to_safe_s=None, safe=False, record="complete", note="not safe at the end"),
+        Cell("six-coil", "daemon", "camera:freeze", "moving", outcome="completed",
+             fault_to_safe_s=7.0, safe=True, record="complete"),
+        Cell("six-coil", "daemon", "x+:drop_link", "suspended", outcome="faulted",
+             fault_to_safe_s=1.2, safe=True, record="lost"),
+    ]
+    assert [c.ok for c in cells] == [True, False, True, False]
+    assert not every_cell_ok(cells) and every_cell_ok(cells[:1])
+    text = matrix(cells)
+    assert "!FAULT -" in text and "FAULT 0.30" in text and "done 7.00" in text
+    assert "4 cells, 2 failed" in text
+    assert "! six-coil daemon x+:stall @ ramping" in text
+    rig = figures(cells)["six-coil"]
+    # the run the camera fault did not stop is not a time to safe: 1.2 s (a stopped run) is
+    assert rig["worst_fault_to_safe_s"] == 1.2 and rig["failed"] == 2
+    assert rig["outcomes"] == {"faulted": 3, "completed": 1}
