@@ -47,6 +47,7 @@ from matplotlib import patches  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
+from rigctl.certificate import read_certificate, summary_line  # noqa: E402
 from rigctl.channels import Channel  # noqa: E402
 from rigctl.errors import ConfigError  # noqa: E402
 from rigctl.record import _read_journal, read_events, read_series, read_stream  # noqa: E402
@@ -610,6 +611,9 @@ def _title_lines(data: RunData, notes: list[str], width_chars: int) -> list[tupl
     lines = [(line, {"fontsize": 10.5}) for line in textwrap.wrap(head, width_chars)]
     lines.append((textwrap.shorten(verdict, width=width_chars, placeholder=" …"),
                   {"fontsize": 10, "color": colour, "fontweight": "bold"}))
+    lines.append((textwrap.shorten(summary_line(read_certificate(data.run_dir)),
+                                   width=int(1.2 * width_chars), placeholder=" …"),
+                  {"fontsize": 8.5, "color": "0.25"}))
     if notes:
         lines.append((textwrap.shorten("not in this record: " + "; ".join(notes),
                                        width=int(1.3 * width_chars), placeholder=" …"),
