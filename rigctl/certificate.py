@@ -182,10 +182,11 @@ def heating_checks(currents_A: np.ndarray, rate_hz: float, windings: Windings, *
         if not len(move_ends):
             advice = "the plan has no pauses between moves: shorten it or lower its field"
         elif rest is None:
-            advice = ("no rest between moves would do: one move alone heats it past its limit; "
-                      "lower the field, shorten the moves, or cool the coils")
+            advice = ("no rest between moves would do: one move alone heats it to its warning "
+                      "level; lower the field, shorten the moves, or cool the coils")
         else:
-            advice = f"a rest of {np.ceil(rest + 1):.0f} s between moves ({rest_key}) would pass"
+            advice = (f"a rest of {np.ceil(rest + 1):.0f} s between moves ({rest_key}) would keep "
+                      f"every coil below its warning level")
     checks = []
     for j, name in enumerate(windings.names):
         detail = f"with {margin:.0%} more Joule power for the closed loop; starts at " \

@@ -217,13 +217,14 @@ def with_rests(currents_A: np.ndarray, dt_s: float, move_ends: Sequence[int],
 
 def rest_to_pass(currents_A: np.ndarray, dt_s: float, move_ends: Sequence[int], w: Windings, *,
                  power_factor: float = 1.0, tolerance_s: float = 0.5) -> float | None:
-    """The shortest zero-current rest after every move that keeps every winding below its limit
-    (0.0 when none is needed, within `tolerance_s`), or None when no rest would do (one move alone
-    heats a winding past its limit). Bisection on the rest, each try one pass of the model."""
+    """The shortest zero-current rest after every move that keeps every winding below its warning
+    level (so that the run goes through without a pause; 0.0 when none is needed, within
+    `tolerance_s`), or None when no rest would do (one move alone heats a winding that far).
+    Bisection on the rest, each try one pass of the model."""
     def peak_margin(rest: float) -> float:
         currents, dt = with_rests(currents_A, dt_s, move_ends, rest)
         temps = winding_temperatures(currents, dt, w, power_factor=power_factor)
-        return float(np.min(w.limit_C - temps.max(axis=0)))
+        return float(np.min(w.warning_C - temps.max(axis=0)))
 
     if peak_margin(0.0) > 0:
         return 0.0

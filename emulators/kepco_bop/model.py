@@ -57,6 +57,7 @@ QUES_OVERTEMPERATURE = 8
 ERROR_QUEUE_DEPTH = 16
 
 TRIP_HYSTERESIS_K = 10.0  # a thermal cut-out closes again this far below its trip point
+THERMAL_STEP_S = 0.01  # the winding is stepped with the mean square current of this much time
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,8 @@ class BopCoilModel:
         self.winding_peak_C = self.winding_C
         self.trip_C = trip_C
         self._tripped_by_heat = False
+        self._heat_i2t = 0.0  # integral of i^2 dt (A^2 s) and time not yet given to the winding
+        self._heat_t = 0.0
         self.reset()
 
     # -- settings -------------------------------------------------------------------------------
@@ -261,8 +264,12 @@ class BopCoilModel:
             # the current protect channel takes over: the supply holds the limit current
             current = math.copysign(self.current_setpoint_A, current)
             v = self.resistance_ohm * current
-        if self.winding is not None:
-            self._heat(dt, 0.5 * (self.current_A ** 2 + current ** 2))
+        if self._winding is not None:  # exact for i^2 linear over the step; fine at dt << L/R
+            self._heat_i2t += 0.5 * (self.current_A ** 2 + current ** 2) * dt
+            self._heat_t += dt
+            if self._heat_t >= THERMAL_STEP_S:
+                self._heat(self._heat_t, self._heat_i2t / self._heat_t)
+                self._heat_i2t = self._heat_t = 0.0
         self.current_A = current
         self.voltage_V = v
         self.time_s += dt

@@ -112,9 +112,9 @@ def test_the_rest_it_suggests_is_the_shortest_that_keeps_every_winding_below_its
         currents, dt = with_rests(program, 0.01, ends, r)
         return winding_temperatures(currents, dt, w).max()
 
-    assert peak_with(rest) < 60.0 <= peak_with(rest - 0.1)
+    assert peak_with(rest) < 55.0 <= peak_with(rest - 0.1)  # below the warning: no pause
     assert rest_to_pass(program * 0.3, 0.01, ends, w) == 0.0  # cool enough without
-    one_long = np.tile([[12.0, 0.0]], (6000, 1))  # one 60 s move alone passes 60 C
+    one_long = np.tile([[12.0, 0.0]], (6000, 1))  # one 60 s move alone passes 55 C
     assert rest_to_pass(one_long, 0.01, [6000], w) is None
 
 
@@ -148,3 +148,36 @@ def test_an_injected_over_temperature_stays_until_restored_however_cool_the_wind
     assert bop.overtemperature and bop.winding_C == pytest.approx(25.0)
     bop.clear_overtemperature()
     assert not bop.overtemperature
+
+
+def test_model_and_emulated_windings_agree_within_2_K_over_ten_emulated_minutes():
+    """The six-coil bench's emulated supplies (their windings made by the bench's own
+    `emulated_winding`, R_th and C_th 5 % off the rig file's) stepped by hand through ten
+    minutes of a current program that changes every 15 s; the model is given the supplies'
+    currents every 10 ms and the rig file's data."""
+    from rigctl.config import default_six_coil_coils
+    from rigctl.emulators.bench import emulated_winding
+
+    thermal = CoilThermal(thermal_resistance_K_per_W=0.5, thermal_capacity_J_per_K=1500.0,
+                          ambient_C=22.0, max_winding_C=150.0, warning_C=140.0)
+    coils = [c.model_copy(update={"thermal": thermal}) for c in default_six_coil_coils()]
+    supplies = [BopCoilModel(c.resistance_ohm, c.inductance_H, **emulated_winding(c, 0.05))
+                for c in coils]
+    levels = np.random.default_rng(11).uniform(-14.0, 14.0, (40, 6))
+    dt, per_sample = 0.002, 5  # the bench's millisecond-scale steps; one model sample per 10 ms
+    samples, truth = [], []
+    for supply in supplies:
+        supply.set_output(True)
+    for k in range(int(600.0 / (dt * per_sample))):
+        level = levels[int(k * dt * per_sample // 15.0)]
+        for supply, amps in zip(supplies, level):
+            supply.set_current(float(amps))
+        samples.append([s.current_A for s in supplies])  # what a read-back would measure now
+        for _ in range(per_sample):
+            for supply in supplies:
+                supply.step(dt)
+        truth.append([s.winding_C for s in supplies])
+    model = winding_temperatures(np.array(samples), dt * per_sample, Windings.of_coils(coils))[1:]
+    truth = np.array(truth)
+    assert truth.max() > 22.0 + 25  # they did heat, by tens of kelvin
+    assert np.abs(model - truth).max() < 2.0

@@ -129,7 +129,8 @@ class GlobalMovesProgram:
         program = self.field_program
         return current_program_checks(
             self.rig, self.currents.currents_A, self.rate_hz,
-            move_ends=[program.move_end_index(i) for i in range(program.n_moves)],
+            # where `field.rest_s` rests: between moves, not after the last
+            move_ends=[program.move_end_index(i) for i in range(program.n_moves - 1)],
             describe=program.describe_sample)
 
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
