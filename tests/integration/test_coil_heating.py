@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
+from rigctl.plans.schema import parse_plan
 
 from rigctl.certificate import CertificateRefused, read_certificate
 from rigctl.config import (
@@ -26,7 +27,6 @@ from rigctl.config import (
     default_six_coil_coils,
 )
 from rigctl.errors import DeviceError
-from rigctl.plans.schema import parse_plan
 from rigctl.record import read_events, read_series
 from rigctl.rigs.six_coil.global_moves import Run
 from rigctl.rigs.six_coil.supplies import CoilSupplies

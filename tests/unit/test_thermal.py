@@ -5,10 +5,14 @@ import math
 
 import numpy as np
 import pytest
+from rigctl.emulators.kepco_bop.model import (
+    OVER_TEMPERATURE,
+    QUES_OVERTEMPERATURE,
+    BopCoilModel,
+)
 from scipy.integrate import solve_ivp
 
 from rigctl.config import CoilThermal
-from rigctl.emulators.kepco_bop.model import OVER_TEMPERATURE, QUES_OVERTEMPERATURE, BopCoilModel
 from rigctl.thermal import (
     Windings,
     rest_to_pass,
@@ -155,8 +159,9 @@ def test_model_and_emulated_windings_agree_within_2_K_over_ten_emulated_minutes(
     `emulated_winding`, R_th and C_th 5 % off the rig file's) stepped by hand through ten
     minutes of a current program that changes every 15 s; the model is given the supplies'
     currents every 10 ms and the rig file's data."""
-    from rigctl.config import default_six_coil_coils
     from rigctl.emulators.bench import emulated_winding
+
+    from rigctl.config import default_six_coil_coils
 
     thermal = CoilThermal(thermal_resistance_K_per_W=0.5, thermal_capacity_J_per_K=1500.0,
                           ambient_C=22.0, max_winding_C=150.0, warning_C=140.0)
