@@ -23,6 +23,7 @@ QUICK = {
     "depm.py": ["--time-scale", "8"],
     "pair.py": ["--quick"],
     "preflight.py": ["--rig", "six-coil", "--repeat", "1"],
+    "certificate.py": ["--quick"],
     "fuzz_daemon.py": ["--requests", "200", "--plans", "20"],
 }
 

@@ -186,3 +186,18 @@ def test_model_and_emulated_windings_agree_within_2_K_over_ten_emulated_minutes(
     truth = np.array(truth)
     assert truth.max() > 22.0 + 25  # they did heat, by tens of kelvin
     assert np.abs(model - truth).max() < 2.0
+
+
+def test_the_live_monitor_follows_the_model_and_says_warning_then_limit():
+    from rigctl.thermal import WindingMonitor
+
+    w = windings(2, c_th=20.0, limit=60.0, warning=55.0)
+    monitor = WindingMonitor(w)
+    states, temperature = [], w.ambient_C.copy()
+    for _ in range(3000):  # 30 s at 10 A in coil c0 (steady 25 + 75 / (1 - 0.29) C), c1 off
+        states.append(monitor.update(np.array([10.0, 0.0]), 0.01))
+        temperature = step_current(temperature, [10.0, 0.0], 0.01, w)
+    assert monitor.temperature_C == pytest.approx(temperature, rel=1e-12)
+    first_warning, first_limit = states.index("warning"), states.index("limit")
+    assert 0 < first_warning < first_limit and set(states[:first_warning]) == {"ok"}
+    assert monitor.hottest()[0] == "c0" and monitor.peak_C[1] == pytest.approx(25.0)

@@ -10,6 +10,7 @@ import numpy as np
 
 from rigctl.certificate import Check, ceiling, exposure_checks, floor, size_checks
 from rigctl.config import RigConfig
+from rigctl.magnetics import field_vector
 from rigctl.plans.depm import DepmRig, joint_trajectory
 from rigctl.plans.depm_safety import segment_point_distance
 from rigctl.plans.schema import MAX_DURATION_S
@@ -32,7 +33,7 @@ def field_sequence_checks(plan, rig: RigConfig, depm_rig: DepmRig) -> list[Check
     t, q, qdot, qddot = dense_samples(plan, limits.check_step_s)
     centre = np.asarray(limits.centre_m, dtype=float)
     checks: list[Check] = []
-    epms = []
+    epms, directions = [], []  # each arm's EPM centre and moment direction (T, 3), from one FK
     for a, arm in enumerate(depm_rig.arms):
         m = arm.model
         # the safety check's own slack (1e-9 rad): a knot exactly at a limit is in range
@@ -50,6 +51,7 @@ def field_sequence_checks(plan, rig: RigConfig, depm_rig: DepmRig) -> list[Check
         frames = arm.frames(q[a])
         epm = frames[:, 8, :3, 3]
         epms.append(epm)
+        directions.append(frames[:, 8, :3, 0])  # the flange x axis (`ArmKinematics.epm_pose`)
         clearance = np.linalg.norm(epm - centre, axis=-1) - limits.epm_radius_m
         segments = frames[:, :, :3, 3][:, np.array(m.capsule_links), :]
         links = segment_point_distance(segments, centre) - np.array(m.capsule_radii_m)
@@ -64,16 +66,15 @@ def field_sequence_checks(plan, rig: RigConfig, depm_rig: DepmRig) -> list[Check
     k = int(np.argmin(gap))
     checks.append(floor("EPM-EPM distance", "both arms", 1e3 * gap[k],
                         1e3 * limits.epm_min_distance_m, "mm", f"t = {t[k]:.2f} s"))
-    U = depm_rig.field_at_centre(q)  # (T, 8) T and T/m
+    centres = np.stack(epms, axis=1)  # (T, A, 3)
+    moments = np.stack(directions, axis=1) * depm_rig.moment_Am2
+    U = field_vector(np.broadcast_to(centre, (len(t), 3)), centres, moments)  # (T, 8) T, T/m
     checks.append(ceiling("field |B| at the centre", "workspace",
                           1e3 * np.linalg.norm(U[:, :3], axis=1).max(), rig.preflight.max_field_mT,
                           "mT"))
     checks.append(ceiling("gradient at the centre", "workspace", 1e3 * np.abs(U[:, 3:]).max(),
                           rig.preflight.max_gradient_mT_per_m, "mT/m"))
-    positions, directions = depm_rig.epm_poses(q)  # (A, T, 3)
-    checks += exposure_checks(d.exposure_points, t, np.moveaxis(positions, 0, 1),
-                              np.moveaxis(directions, 0, 1) * depm_rig.moment_Am2,
-                              d.exposure_limit_mT)
+    checks += exposure_checks(d.exposure_points, t, centres, moments, d.exposure_limit_mT)
     checks += size_checks(len(plan.t_s), MAX_KNOTS, float(plan.t_s[-1] - plan.t_s[0]),
                           MAX_DURATION_S, unit="knots")
     return checks
