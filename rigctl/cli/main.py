@@ -114,6 +114,10 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from rigctl.plans.checks import check_plan, simulate
     from rigctl.plans.schema import dump_plan, load_plan
 
+    if args.rig is not None and args.simulate:
+        raise ConfigError("--rig and --simulate: give one (certify the plan, or fill its states)")
+    if args.json and args.rig is None:
+        raise ConfigError("--json: the certificate's JSON needs --rig")
     plan = load_plan(args.file)
     if args.simulate:
         plan = simulate(plan)
