@@ -15,7 +15,8 @@ devices "x+" ... "z-" (each supply: its link's faults and `overtemp`; `restore` 
 - `{"cmd": "place", "workspace": {...plan workspace, image paths absolute...}, "agents":
   [{"position": [x, y], "radius": r}], "contact": "slide", "min_separation_mm": 0}`: put the robots
   down (what an operator does by hand); world "pair": `"pair": {physics}` and two agents;
-- `{"cmd": "truth"}`: agents' true positions (mm), axis, field (T), each coil's current (A),
+- `{"cmd": "truth"}`: agents' true positions (mm), axis, field (T), each coil's current (A) and
+  winding temperature (C, now and its peak; the windings heat by `rigctl.thermal`),
   simulated time (world "pair": the moments and the agents' separation instead of the axis);
 - `{"cmd": "mismatch", "slip": 0.85, "speed_spread": 0.05, "drift_mm_per_s": 0.0, "noise_mm": 0.2,
   "seed": 3, "field_at_robots": true}`: how the world departs from the model from the next `place`
@@ -57,6 +58,16 @@ PAIR_CAMERA_FIELD_MM = (0.0, 0.0, 20.0, 15.0)  # world "pair": a microscope over
 FIELD_REFRESH_MM = 1.0  # recompute the per-robot field maps when a robot moved this far
 
 
+def emulated_winding(coil, mismatch: float) -> dict:
+    """The emulated coil's winding (`rigctl.thermal`): the rig file's R_th and C_th `mismatch`
+    off, tripping its supply 10 K above the winding's limit (the cut-out behind rigctl's own
+    limit)."""
+    from rigctl.thermal import Windings
+
+    winding = Windings.of([coil.name], [coil.resistance_ohm], [coil.thermal]).off_by(mismatch)
+    return {"winding": winding, "trip_C": coil.thermal.max_winding_C + 10.0}
+
+
 @dataclass
 class _Supply:
     name: str
@@ -72,7 +83,8 @@ class SixCoilBench(EmulatedBench):
     tick_s = TICK_S
 
     def __init__(self, template: RigConfig | None = None, *, host: str = "127.0.0.1",
-                 mismatch: Mismatch | None = None, world: str = "rolling") -> None:
+                 mismatch: Mismatch | None = None, world: str = "rolling",
+                 thermal_mismatch: float = 0.05) -> None:
         if world not in ("rolling", "pair"):
             raise ValueError(f"unknown world {world!r}; use rolling or pair")
         super().__init__(host=host)
@@ -93,6 +105,7 @@ class SixCoilBench(EmulatedBench):
         # per-robot field per amp (n, 3, n_coils) T/A and where it was computed (n, 2) mm
         self._robot_maps: tuple[np.ndarray, np.ndarray] | None = None
         self._floor_centre_mm = np.array([200.0, 200.0])
+        self.thermal_mismatch = thermal_mismatch  # the windings' R_th, C_th off the rig file's
         self.commands.update(place=self._place_pair if world == "pair" else self._place,
                              truth=self._truth, mismatch=self._mismatch)
 
@@ -100,7 +113,8 @@ class SixCoilBench(EmulatedBench):
         coils = []
         for coil in self.template.coils:
             model = BopCoilModel(resistance_ohm=coil.resistance_ohm, inductance_H=coil.inductance_H,
-                                 current_limit_A=coil.current_limit_A, compliance_V=coil.compliance_V)
+                                 current_limit_A=coil.current_limit_A, compliance_V=coil.compliance_V,
+                                 **emulated_winding(coil, self.thermal_mismatch))
             scpi = BopScpi(model, before_command=self.advance)
             endpoint = self.server.serve_lines_tcp(scpi.handle, name=coil.name, host=self.host)
             field = loop_field(np.zeros(3), np.asarray(coil.centre_mm) * 1e-3, np.asarray(coil.axis),
@@ -188,7 +202,8 @@ class SixCoilBench(EmulatedBench):
         m = self.mismatch
         return Emulation(backdoor=self.backdoor.url, slip=m.slip,  # type: ignore[union-attr]
                          speed_spread=m.speed_spread, drift_mm_per_s=m.drift_mm_per_s,
-                         noise_mm=m.noise_mm, seed=m.seed, field_at_robots=m.field_at_robots)
+                         noise_mm=m.noise_mm, seed=m.seed, field_at_robots=m.field_at_robots,
+                         thermal_mismatch=self.thermal_mismatch)
 
     def _scene(self) -> Scene | None:
         """What the camera sees now (None: nothing placed yet, a black frame)."""
@@ -219,6 +234,8 @@ class SixCoilBench(EmulatedBench):
     def _supplies_truth(self) -> dict:
         return {"field_T": self.field_T().tolist(),
                 "currents_A": {s.name: s.model.current_A for s in self.supplies},
+                "winding_C": {s.name: s.model.winding_C for s in self.supplies},
+                "winding_peak_C": {s.name: s.model.winding_peak_C for s in self.supplies},
                 "sim_time_s": self._stepped}
 
     def _place(self, request: dict) -> dict:

@@ -72,6 +72,10 @@ class FieldSettings(_Strict):
     hold_s: Annotated[
         float, Field(ge=0, description="dwell after each segment so the coils settle (>= 5 L/R)")
     ] = 0.1
+    rest_s: Annotated[
+        float, Field(ge=0, le=3600, description="after each move's hold the field ramps to zero "
+                     "and stays off this long, so the coils cool (the pre-flight certificate says "
+                     "how long a plan needs)")] = 0.0
     initial_heading_deg: Annotated[
         float, Field(description="direction of the first field in the xy plane (magnets align)")
     ] = 0.0
@@ -89,6 +93,41 @@ class MagnetSettings(_Strict):
     min_field_mT: Annotated[
         float, Field(ge=0, description="below this the magnets do not follow the field")
     ] = 0.5
+
+
+class CoilThermal(_Strict):
+    """How a coil's winding heats (`rigctl.thermal`): one thermal resistance to the room and one
+    heat capacity (a first-order model), the copper's resistance rising with its temperature.
+
+    The defaults are a 400-turn, 200 mm air-core coil of about 26 kg of copper (2.7 mm wire,
+    1.5 ohm): C = 385 J/(kg K) x 26 kg, and natural convection from about 0.3 m^2 of winding
+    (h ~ 7 W/(m^2 K)) to the room. The limit keeps the winding's mean temperature well below
+    insulation class B (130 C), as the mean is below the hot spot. Measure R_th and C_th from a
+    heating curve (step current, winding resistance logged: docs/certificate.md).
+    """
+
+    thermal_resistance_K_per_W: Annotated[
+        float, Field(gt=0, description="winding to room, in steady state")] = 0.5
+    thermal_capacity_J_per_K: Annotated[float, Field(gt=0, description="of the winding")] = 10000.0
+    ambient_C: Annotated[float, Field(ge=-40, le=60, description="room temperature")] = 25.0
+    max_winding_C: Annotated[
+        float, Field(gt=0, le=220, description="a plan that would pass this is refused; a run "
+                     "that reaches it ramps down")] = 100.0
+    warning_C: Annotated[
+        float, Field(gt=0, le=220, description="a run that reaches this pauses at the end of the "
+                     "move")] = 90.0
+    reference_C: Annotated[
+        float, Field(ge=-40, le=60, description="temperature at which resistance_ohm holds")] = 20.0
+    alpha_per_K: Annotated[
+        float, Field(ge=0, description="temperature coefficient of the winding's resistance "
+                     "(copper: 0.00393 /K)")] = 0.00393
+
+    @model_validator(mode="after")
+    def _ordered(self) -> CoilThermal:
+        if not self.ambient_C < self.warning_C <= self.max_winding_C:
+            raise ValueError(f"need ambient_C < warning_C <= max_winding_C, got {self.ambient_C}, "
+                             f"{self.warning_C}, {self.max_winding_C}")
+        return self
 
 
 class Coil(_Strict):
@@ -109,6 +148,7 @@ class Coil(_Strict):
     inductance_H: Annotated[float, Field(gt=0)]
     current_limit_A: Annotated[float, Field(gt=0, le=20.0)] = 20.0
     compliance_V: Annotated[float, Field(gt=0, le=100.0)] = 100.0
+    thermal: CoilThermal = CoilThermal()
 
     @field_validator("axis")
     @classmethod
@@ -171,6 +211,13 @@ class CoilBoardSettings(_Strict):
     coil_directions: tuple[int, int, int, int] = Field(
         default=(1, 1, 1, 1), description="+1, or -1 for a coil wired reversed"
     )
+    supply_V: Annotated[
+        float, Field(gt=0, le=30, description="the SyRens' supply: full drive puts this on a coil "
+                     "(SyRen 10: 6-30 V)")] = 12.0
+    coil_resistance_ohm: Annotated[float, Field(gt=0, description="each coil, at reference_C")] = 6.0
+    coil_thermal: CoilThermal = Field(
+        default=CoilThermal(thermal_resistance_K_per_W=2.5, thermal_capacity_J_per_K=400.0),
+        description="each coil's winding (a small iron-core coil: about 1 kg of copper and iron)")
 
     @field_validator("coil_directions")
     @classmethod
@@ -178,6 +225,13 @@ class CoilBoardSettings(_Strict):
         if any(d not in (1, -1) for d in directions):
             raise ValueError(f"each coil direction is +1 or -1, got {list(directions)}")
         return directions
+
+
+class ExposurePoint(_Strict):
+    """A place near a dual-EPM rig where a person may be (world frame, mm)."""
+
+    name: str
+    position_mm: Vector3
 
 
 class DepmSettings(_Strict):
@@ -205,6 +259,15 @@ class DepmSettings(_Strict):
     reply_timeout_s: Annotated[float, Field(gt=0, description="watchdog on every arm/board reply")] = 0.5
     tracking_tolerance_deg: Annotated[
         float, Field(gt=0, description="measured joints this far from the commanded ones: fault")] = 5.0
+    exposure_points: list[ExposurePoint] = Field(
+        default_factory=lambda: [ExposurePoint(name="operator", position_mm=(0.0, -1200.0, 0.0)),
+                                 ExposurePoint(name="patient table edge",
+                                               position_mm=(0.0, 400.0, 0.0))],
+        description="where people may be: the pre-flight checks the EPMs' field there along the "
+                    "whole trajectory")
+    exposure_limit_mT: Annotated[
+        float, Field(gt=0, description="static field allowed at the exposure points (ICNIRP 2009: "
+                     "400 mT for the general public, any part of the body)")] = 400.0
 
     @model_validator(mode="after")
     def _same_lengths(self) -> "DepmSettings":
@@ -215,6 +278,23 @@ class DepmSettings(_Strict):
         if len(self.sensor_offsets_mm) < 3:
             raise ValueError("sensor_offsets_mm needs three sensors (eq. 24)")
         return self
+
+
+class PreflightSettings(_Strict):
+    """The pre-flight certificate (`rigctl.certificate`): the margins it allows for what a plan
+    does not say."""
+
+    heating_margin: Annotated[
+        float, Field(ge=0, le=2, description="the heating check adds this fraction to the Joule "
+                     "power of the plan's currents: the closed loop's corrections (re-plans, "
+                     "extra moves) heat the coils too")] = 0.2
+    max_field_mT: Annotated[
+        float, Field(gt=0, description="largest |B| a plan may ask for at the workspace centre")] = 100.0
+    max_gradient_mT_per_m: Annotated[
+        float, Field(gt=0, description="largest gradient term a plan may ask for there")] = 2000.0
+    scpi_round_trip_ms: Annotated[
+        float, Field(gt=0, description="a supply's LAN answer to `CURR x;:MEAS:CURR?` (measure "
+                     "it: bench/stream.py); a serial link's time is computed from its baud rate")] = 2.0
 
 
 class Emulation(_Strict):
@@ -233,6 +313,10 @@ class Emulation(_Strict):
     field_at_robots: bool = Field(
         default=False, description="each robot feels the coils' field at its own position"
     )
+    thermal_mismatch: Annotated[
+        float, Field(gt=-0.5, lt=0.5, description="the emulated coils' R_th and C_th are this "
+                     "fraction off the rig file's (the model must cope with a winding that "
+                     "differs from its data)")] = 0.05
 
 
 DEFAULT_COMMAND_ENDPOINT = "tcp://127.0.0.1:7810"
@@ -268,6 +352,7 @@ class RigConfig(_Strict):
     emulation: Emulation | None = None
     depm: DepmSettings | None = None
     board: CoilBoardSettings | None = None
+    preflight: PreflightSettings = PreflightSettings()
 
     @model_validator(mode="after")
     def _check_kind(self) -> "RigConfig":

@@ -47,6 +47,7 @@ from matplotlib import patches  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
+from rigctl.certificate import read_certificate, summary_line  # noqa: E402
 from rigctl.channels import Channel  # noqa: E402
 from rigctl.errors import ConfigError  # noqa: E402
 from rigctl.record import _read_journal, read_events, read_series, read_stream  # noqa: E402
@@ -442,6 +443,34 @@ def _actuator_panels(data: RunData, clock: str) -> list[TimePanel]:
     return panels
 
 
+def _winding_panels(data: RunData, clock: str) -> list[TimePanel]:
+    """The live winding model's estimate (`series/winding.csv`), with the windings' limits from
+    the certificate (`rigctl.certificate`), on the run's clock."""
+    series = read_series(data.run_dir, "winding")
+    if series is None or not len(series.get("t_s", ())):
+        return []
+    names = [c for c in series if c not in ("t_s", "units")]
+    certificate = read_certificate(data.run_dir) or {}
+    limits = sorted({c["limit"] for c in certificate.get("checks", [])
+                     if c["check"] == "winding temperature"})
+    t_axis, axis_clock = _on_clock(data, np.asarray(series["t_s"]), RUN_CLOCK, clock)
+
+    def draw(ax):
+        for name in names:
+            ax.plot(t_axis, series[name], linewidth=1.2, label=name)
+        for value in limits:
+            ax.axhline(value, color="tab:red", linewidth=0.9, linestyle=(0, (1, 1.5)))
+        if limits:
+            ax.plot([], [], color="tab:red", linewidth=0.9, linestyle=(0, (1, 1.5)),
+                    label="limit")
+        ax.set_ylabel("winding (°C)", fontsize=8)
+        ax.set_title("coil windings: the live thermal model's estimate", fontsize=9)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.02), borderaxespad=0.2,
+                  handlelength=1.5, frameon=False)
+
+    return [TimePanel("windings", axis_clock, draw, 1.0)]
+
+
 def _same_commands(traces: list[Trace]) -> list[list[Trace]]:
     """The traces in sets commanded alike (a coil pair in series for a uniform field): one colour
     and one legend entry each, so a trace is never hidden under its twin in another colour."""
@@ -610,6 +639,9 @@ def _title_lines(data: RunData, notes: list[str], width_chars: int) -> list[tupl
     lines = [(line, {"fontsize": 10.5}) for line in textwrap.wrap(head, width_chars)]
     lines.append((textwrap.shorten(verdict, width=width_chars, placeholder=" …"),
                   {"fontsize": 10, "color": colour, "fontweight": "bold"}))
+    lines.append((textwrap.shorten(summary_line(read_certificate(data.run_dir)),
+                                   width=int(1.2 * width_chars), placeholder=" …"),
+                  {"fontsize": 8.5, "color": "0.25"}))
     if notes:
         lines.append((textwrap.shorten("not in this record: " + "; ".join(notes),
                                        width=int(1.3 * width_chars), placeholder=" …"),
@@ -629,7 +661,8 @@ def build_figure(run_dir: str | Path) -> Figure:
     clock = PLAN_CLOCK if is_field_run else RUN_CLOCK
     paths = _agent_paths(data.plan, data.events, data.summary) if data.plan else []
     left: list[TimePanel] = _field_panels(data)
-    right: list[TimePanel] = _actuator_panels(data, clock) + _period_panel(data, clock)
+    right: list[TimePanel] = (_actuator_panels(data, clock) + _winding_panels(data, clock)
+                              + _period_panel(data, clock))
     notes = _missing(data, paths, is_field_run)
     if not paths and not left:  # one column of time panels
         left, right = right, []

@@ -17,6 +17,14 @@ that is constant over a step, so the coil current follows the exact solution of 
   decays through the coil's own resistance with the same time constant (an "active" load type
   in the manual's terms, Sec. 3.3.7); the terminal voltage reads 0.
 
+The winding heats (`rigctl.thermal`, given a `winding`): its temperature follows the Joule power
+of the coil's current over every step, and when it reaches `trip_C` the supply trips on
+over-temperature exactly as `inject_overtemperature` makes it (output off, device error 20101
+queued, questionable bit 3): the coil's thermal cut-out wired to the BOP's interlock, which is how
+a lab protects a winding (that the BOP reports it as its own over-temperature is a guess). The trip
+clears by itself once the winding has cooled `TRIP_HYSTERESIS_K` below it; the output stays off
+until switched on again.
+
 Refused settings (|I| above the rating, a compliance outside (0, rating]) post SCPI error -222
 "Data out of range" and leave the setting unchanged (BOP 1KW manual App. B, CURRent command).
 The error queue is FIFO and bounded: 15 errors are kept, the 16th becomes -350 "Too many errors"
@@ -30,6 +38,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 from typing import Literal
+
+from rigctl.thermal import Windings, step_current_one
 
 Mode = Literal["CURR", "VOLT"]
 
@@ -46,6 +56,9 @@ QUES_OVERTEMPERATURE = 8
 
 ERROR_QUEUE_DEPTH = 16
 
+TRIP_HYSTERESIS_K = 10.0  # a thermal cut-out closes again this far below its trip point
+THERMAL_STEP_S = 0.01  # the winding is stepped with the mean square current of this much time
+
 
 @dataclass(frozen=True)
 class BopStatus:
@@ -59,6 +72,7 @@ class BopStatus:
     voltage_V: float
     overtemperature: bool
     time_s: float
+    winding_C: float | None = None
 
 
 class BopCoilModel:
@@ -74,6 +88,8 @@ class BopCoilModel:
         inductance_H: float,
         current_limit_A: float = 20.0,
         compliance_V: float = 100.0,
+        winding: Windings | None = None,
+        trip_C: float | None = None,
     ) -> None:
         if resistance_ohm <= 0 or inductance_H <= 0:
             raise ValueError("resistance_ohm and inductance_H must be positive")
@@ -90,6 +106,15 @@ class BopCoilModel:
         self._errors: deque[tuple[int, str]] = deque()
         self.event_status = 0  # IEEE 488.2 standard event status register, cleared by *ESR? / *CLS
         self.questionable_event = 0  # latched questionable bits, cleared by STAT:QUES? / *CLS
+        # the winding (one, `rigctl.thermal.Windings`): its temperature, peak, and trip point
+        self.winding = winding
+        self._winding = None if winding is None else winding.one()
+        self.winding_C = None if winding is None else float(winding.ambient_C[0])
+        self.winding_peak_C = self.winding_C
+        self.trip_C = trip_C
+        self._tripped_by_heat = False
+        self._heat_i2t = 0.0  # integral of i^2 dt (A^2 s) and time not yet given to the winding
+        self._heat_t = 0.0
         self.reset()
 
     # -- settings -------------------------------------------------------------------------------
@@ -239,9 +264,30 @@ class BopCoilModel:
             # the current protect channel takes over: the supply holds the limit current
             current = math.copysign(self.current_setpoint_A, current)
             v = self.resistance_ohm * current
+        if self._winding is not None:  # exact for i^2 linear over the step; fine at dt << L/R
+            self._heat_i2t += 0.5 * (self.current_A ** 2 + current ** 2) * dt
+            self._heat_t += dt
+            if self._heat_t >= THERMAL_STEP_S:
+                self._heat(self._heat_t, self._heat_i2t / self._heat_t)
+                self._heat_i2t = self._heat_t = 0.0
         self.current_A = current
         self.voltage_V = v
         self.time_s += dt
+
+    def _heat(self, dt: float, mean_square_A2: float) -> None:
+        """The winding over `dt` with the step's mean square current; trip or recover."""
+        assert self._winding is not None and self.winding_C is not None
+        self.winding_C = step_current_one(self.winding_C, math.sqrt(mean_square_A2), dt,
+                                          self._winding)
+        self.winding_peak_C = max(self.winding_peak_C, self.winding_C)
+        if self.trip_C is None:
+            return
+        if self.winding_C >= self.trip_C and not self.overtemperature:
+            self._tripped_by_heat = True
+            self.inject_overtemperature()
+        elif self._tripped_by_heat and self.winding_C < self.trip_C - TRIP_HYSTERESIS_K:
+            self._tripped_by_heat = False
+            self.clear_overtemperature()
 
     def status(self) -> BopStatus:
         return BopStatus(
@@ -253,4 +299,5 @@ class BopCoilModel:
             voltage_V=self.voltage_V,
             overtemperature=self.overtemperature,
             time_s=self.time_s,
+            winding_C=self.winding_C,
         )

@@ -348,10 +348,24 @@ def _cmd_runs(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
+    from rigctl.certificate import read_certificate
     from rigctl.report import find_run, render_report
 
-    out = render_report(find_run(args.run, args.runs), args.output)
+    run = find_run(args.run, args.runs)
+    out = render_report(run, args.output)
     print(out)
+    certificate = read_certificate(run)
+    if certificate is None:
+        print("no pre-flight certificate in this record")
+    else:  # every check the run was allowed against, refused ones first
+        checks = sorted(certificate.get("checks") or [], key=lambda c: c["passed"])
+        print(f"pre-flight certificate: {'passed' if certificate.get('passed') else 'REFUSED'}: "
+              f"{len(checks)} checks, rig file sha256 {certificate.get('rig_hash')}, issued "
+              f"{certificate.get('issued')}")
+        for c in checks:
+            print(f"  {'ok' if c['passed'] else 'REFUSED'}: {c['check']} of {c['subject']}: "
+                  f"{c['value']:.4g} {c['unit']} (limit {c['limit']:.4g}, margin "
+                  f"{c['margin']:+.4g})" + (f"; {c['detail']}" if c.get("detail") else ""))
     return EXIT_OK
 
 

@@ -102,6 +102,10 @@ def cmd_execute(args: argparse.Namespace) -> int:
             raise ConfigError(f"a {plan.kind} plan runs with {flag} {value}")
     if args.rig is None and kind.bench_rig is not None:  # refused before a bench is started
         build(plan, kind.bench_rig(), runs_dir=args.runs, **options)
+    if args.rig is not None:  # the pre-flight certificate refuses before any device is opened
+        from rigctl.config import load_rig
+
+        build(plan, load_rig(args.rig), runs_dir=args.runs, **options)
     bench = given + implied
     world = f" ({bench[bench.index('--world') + 1]} world)" if "--world" in bench else ""
     out = None if args.quiet else sys.stderr

@@ -115,10 +115,16 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from rigctl.plans.checks import check_plan, simulate
     from rigctl.plans.schema import dump_plan, load_plan
 
+    if args.rig is not None and args.simulate:
+        raise ConfigError("--rig and --simulate: give one (certify the plan, or fill its states)")
+    if args.json and args.rig is None:
+        raise ConfigError("--json: the certificate's JSON needs --rig")
     plan = load_plan(args.file)
     if args.simulate:
         plan = simulate(plan)
     check_plan(plan)
+    if args.rig is not None:
+        return _validate_on_rig(args, plan)
     if args.simulate:
         text = dump_plan(plan)
         if args.output:
@@ -128,6 +134,32 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     print(f"OK: {args.file}: {plan.kind} plan for a {plan.rig} rig, {plan.size}",
           file=sys.stderr if args.simulate and not args.output else sys.stdout)
     return EXIT_OK
+
+
+def _validate_on_rig(args: argparse.Namespace, plan) -> int:
+    """`validate PLAN --rig RIG`: the run that `execute` would build, with no I/O, and its
+    pre-flight certificate (every check, its margin); exit 2 if refused."""
+    from rigctl.certificate import CertificateRefused
+    from rigctl.rigs import rig_kind
+
+    rig = load_rig(args.rig)
+    if plan.rig != rig.rig.kind:
+        raise PlanError(f"the plan is for a {plan.rig} rig; {args.rig} describes a "
+                        f"{rig.rig.kind} rig")
+    try:
+        certificate = rig_kind(rig.rig.kind).builder(plan.kind)(plan, rig, runs_dir="runs").certificate
+    except CertificateRefused as refused:
+        _show_certificate(args, refused.certificate)
+        raise
+    _show_certificate(args, certificate)
+    return EXIT_OK
+
+
+def _show_certificate(args: argparse.Namespace, certificate) -> None:
+    if args.json:
+        print(json.dumps(certificate.as_dict()))
+    else:
+        print("\n".join(certificate.lines()))
 
 
 def _cmd_schema(args: argparse.Namespace) -> int:
@@ -208,6 +240,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fill `expected` from the model and print the plan (or write it with -o)")
     p.add_argument("-o", "--output", type=output_file("plan"),
                    help="with --simulate: write the completed plan here")
+    p.add_argument("--rig", type=input_file("rig file"),
+                   help="also run the pre-flight on this rig: every limit (currents, voltages, "
+                   "field, coil heating, links, arms, exposure) on the whole plan, nothing opened; "
+                   "prints the certificate, exit 2 if refused (docs/certificate.md)")
+    p.add_argument("--json", action="store_true", help="with --rig: the certificate as JSON")
     p.set_defaults(func=_cmd_validate)
 
     p = sub.add_parser("schema", help="print the JSON Schema of a plan or a rig file")

@@ -193,8 +193,11 @@ class PlanRuns:
         with self._lock:
             known = self._checked.get(id(plan))
         if known is None or known[0] is not plan:
-            local = build_run(plan, rig, runs_dir=runs_dir)
-            known = (plan, local.plan, dict(local.info))  # its name, size, planned duration
+            local = build_run(plan, rig, runs_dir=runs_dir)  # the pre-flight certificate refuses here
+            certificate = local.certificate
+            known = (plan, local.plan, {**local.info, "certificate": {  # its name, size, duration
+                "passed": certificate.passed, "checks": len(certificate.checks),
+                "rig_sha256": certificate.rig_hash}})
             with self._lock:
                 self._checked[id(plan)] = known
                 while len(self._checked) > MAX_PLANS:

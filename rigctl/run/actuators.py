@@ -8,6 +8,7 @@ from typing import Protocol
 import numpy as np
 
 from rigctl.channels import Channel
+from rigctl.thermal import Windings
 
 
 class Actuators(Protocol):
@@ -15,6 +16,7 @@ class Actuators(Protocol):
 
     names: list[str]  # device names, as faults and the record name them
     channels: list[Channel]
+    windings: Windings | None  # current-driven coils the run's winding model watches, in channel order
 
     def energise(self) -> None: ...
 

@@ -29,6 +29,7 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
+from rigctl.certificate import Certificate, Check, certify
 from rigctl.config import RigConfig, dump_rig
 from rigctl.errors import LimitError, RigError, interrupt_name
 from rigctl.record import RunRecord
@@ -37,6 +38,7 @@ from rigctl.run.control import EStopped, RunControl, RunState
 from rigctl.run.interruptions import HoldLimit
 from rigctl.run.summary import RunSummary
 from rigctl.stream import StreamLoop, StreamStats
+from rigctl.thermal import WindingMonitor
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +109,10 @@ class RigProgram(Protocol):
 
     def pause(self, immediate: bool) -> None: ...
 
+    def pause_to_cool(self) -> None:
+        """A winding reached its warning: pause at the end of the move with the actuators as
+        cool as the program allows (the field off where nothing drifts without it, else held)."""
+
     def resume(self) -> None: ...
 
     def abort(self) -> None: ...
@@ -117,6 +123,9 @@ class RigProgram(Protocol):
     def finish(self, ctx: RunContext) -> Outcome: ...
 
     def close(self) -> None: ...
+
+    def checks(self) -> list[Check]:
+        """The pre-flight of the whole plan on this rig (`rigctl.certificate`), no I/O."""
 
 
 class Run(RunControl):
@@ -138,6 +147,12 @@ class Run(RunControl):
         self.on_cycle = on_cycle
         self._init_control(on_state)
         self._abort_reason: str | None = None
+        # every limit on the whole plan, before anything can be opened: refused here, no I/O
+        t0 = time.perf_counter()
+        certificate = certify(rig, program.plan.kind, getattr(program.plan, "name", None) or "plan",
+                              program.checks())
+        certificate.elapsed_s = round(time.perf_counter() - t0, 4)
+        self.certificate: Certificate = certificate.require()
 
     # -- control, from any thread ---------------------------------------------------------------
     def pause(self, immediate: bool = False) -> None:
@@ -162,6 +177,9 @@ class Run(RunControl):
         record.write_file("rig.toml", dump_rig(rig))
         record.event("prepared", rate_hz=program.rate_hz, duration_s=program.duration_s,
                      **{k: v for k, v in program.info.items() if k not in ("duration_s",)})
+        record.write_file("certificate.json", self.certificate.to_json())
+        record.event("certified", checks=len(self.certificate.checks),
+                     rig_sha256=self.certificate.rig_hash)
         started = time.monotonic()
         faults: list[dict] = []
         stats: StreamStats | None = None
@@ -244,6 +262,7 @@ class Run(RunControl):
             wake(loop.wake)
         measured: np.ndarray | None = None
         hold = HoldLimit(self.rig.stream.paused_limit_s, self.rig.stream.suspended_limit_s)
+        heat = _HeatWatch(self, actuators, record, program.rate_hz)
 
         def cycle(k: int) -> bool:
             nonlocal measured
@@ -266,6 +285,7 @@ class Run(RunControl):
                     self.abort(why)
             measured = actuators.cycle(step.setpoints)
             record.stream_row(step.sample, step.move, step.setpoints, measured, loop.last_error_s)
+            heat.update(measured)
             if self.on_cycle is not None:
                 self.on_cycle(step.sample, step.move, step.setpoints, measured)
             self.progress.update(step.move if step.stage_key is None else step.stage_key,
@@ -280,3 +300,54 @@ class Run(RunControl):
     def _say(self, text: str) -> None:
         if self.progress_out is not None:
             print(f"  {text}", file=self.progress_out, flush=True)
+
+
+class _HeatWatch:
+    """The winding model (`rigctl.thermal`) run live on the measured currents of actuators that
+    have windings: its estimate is the run record's `winding` series (written as it goes); at a
+    winding's warning the run pauses at the end of the move (once, until it cools 2 K below),
+    at its limit the run is aborted: the program ramps down."""
+
+    COOL_K = 2.0
+
+    def __init__(self, run: Run, actuators: Actuators, record: RunRecord, rate_hz: float) -> None:
+        self.run, self.record = run, record
+        windings = actuators.windings
+        self.monitor = None if windings is None else WindingMonitor(windings)
+        if self.monitor is None:
+            return
+        self.every = max(1, round(rate_hz / 10))  # ten rows a second
+        self.series = record.open_series(
+            "winding", ["t_s", *windings.names], {"t_s": "s", **dict.fromkeys(windings.names, "C")})
+        self.period = 1.0 / rate_hz
+        self.last: float | None = None
+        self.cycles = 0
+        self.warned = False
+        self.stopped = False
+
+    def update(self, measured: np.ndarray) -> None:
+        monitor = self.monitor
+        if monitor is None:
+            return
+        now = time.monotonic()
+        dt = self.period if self.last is None else now - self.last
+        self.last = now
+        state = monitor.update(measured, dt)
+        self.cycles += 1
+        if self.cycles % self.every == 1 or self.every == 1:
+            self.series.row([now - self.record.t0, *monitor.temperature_C])
+        w = monitor.windings
+        if state == "limit" and not self.stopped:
+            self.stopped = True
+            name, temperature = monitor.hottest()
+            self.record.event("thermal_limit", coil=name, winding_C=round(temperature, 2))
+            self.run.abort(f"coil {name}: winding at {temperature:.1f} C, its limit: ramped down")
+        elif state == "warning" and not self.warned:
+            self.warned = True
+            name, temperature = monitor.hottest()
+            self.record.event("thermal_warning", coil=name, winding_C=round(temperature, 2))
+            self.run._say(f"coil {name}: winding at {temperature:.1f} C (warning): pausing at the "
+                          "end of the move; resume once it has cooled")
+            self.run.program.pause_to_cool()
+        elif self.warned and (monitor.temperature_C < w.warning_C - self.COOL_K).all():
+            self.warned = False

@@ -144,6 +144,9 @@ class HoldProgram:
     def resume(self) -> None:
         raise RigError(CANNOT_PAUSE)
 
+    def pause_to_cool(self) -> None:
+        pass  # a hold cannot pause: the warning is logged, and at the limit it is released
+
     def abort(self) -> None:
         self._aborted = True
         self.release(self.rig.stream.ramp_down_s)
@@ -153,6 +156,11 @@ class HoldProgram:
         return self._aborted
 
     # -- the run --------------------------------------------------------------------------------
+    def checks(self) -> list:
+        """None of its own: the rig's hold request checked its limits, and the run's live winding
+        model watches the coils' heating while it holds."""
+        return []
+
     def start(self, ctx: RunContext) -> None:
         self._ctx = ctx
 

@@ -50,6 +50,10 @@ class RequestedControl:
     def pause(self, immediate: bool = False) -> None:
         self.requests.pause(immediate)
 
+    def pause_to_cool(self) -> None:
+        """A winding at its warning: a plain pause (the program holds as it always does)."""
+        self.requests.pause(False)
+
     def resume(self) -> None:
         self.requests.resume()
 

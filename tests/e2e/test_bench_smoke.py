@@ -23,6 +23,7 @@ QUICK = {
     "depm.py": ["--time-scale", "8"],
     "pair.py": ["--quick"],
     "preflight.py": ["--rig", "six-coil", "--repeat", "1"],
+    "certificate.py": ["--quick"],
     "fuzz_daemon.py": ["--requests", "200", "--plans", "20"],
     "faults.py": ["--rig", "six-coil", "--cell", "daemon/x+:drop_link/moving"],
     "soak.py": ["--minutes", "0.3", "--interval", "2"],

@@ -91,7 +91,7 @@ def test_a_coil_board_rig_file_has_only_its_own_tables() -> None:
     rig = RigConfig(rig=RigInfo(kind="coil-board"), board=CoilBoardSettings(url="/dev/pts/3"),
                     camera=CameraSettings(url="0"))
     written = tomllib.loads(dump_rig(rig))
-    assert set(written) == {"rig", "stream", "board", "camera"}
+    assert set(written) == {"rig", "stream", "board", "camera", "preflight"}  # every kind reads [preflight]
     assert parse_rig(written) == rig
 
 

@@ -67,3 +67,17 @@ def test_abort_while_paused():
     assert take(seq, 2) == [3, 3]
     seq.request_abort()
     assert take(seq, 5) == [2.25, 1.5, 0.75, 0, None]
+
+
+def test_a_pause_to_cool_finishes_the_move_then_ramps_off_and_back_up_on_resume():
+    seq = make()
+    assert take(seq, 1) == [1]
+    seq.request_pause(field_off=True)  # a winding at its warning
+    # the move ends at index 3 (samples 2, 3), then a 2-sample ramp from 3 A to 0, then 0 held
+    assert take(seq, 6) == [2, 3, 1.5, 0, 0, 0]
+    assert seq.paused
+    seq.request_resume()
+    # back up to the next sample (4 A) in 2 samples, then the program goes on from it (as after
+    # a pause now)
+    assert take(seq, 4) == [2, 4, 4, 5]
+    assert not seq.paused

@@ -47,6 +47,7 @@ class BoardActuators:
         self.names = [board.name]
         self.syren_ready_timeout_s = syren_ready_timeout_s
         self.channels = channels  # `board_channels`
+        self.windings = None  # voltage-driven coils: the pre-flight bounds their heating
         self.measured = np.zeros(len(self.channels))
 
     @classmethod

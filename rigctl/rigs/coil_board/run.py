@@ -307,6 +307,12 @@ class CoilBoardProgram(RequestedControl):
         self.requests.wake = wake  # a hold of zeros: the next command may as well leave now
 
     # -- the run's phases -----------------------------------------------------------------------
+    def checks(self) -> list:
+        """The pre-flight of the run's bounds (`rigctl.rigs.coil_board.certify`)."""
+        from rigctl.rigs.coil_board.certify import board_checks
+
+        return board_checks(self.rig, self.settings, self.n_moves)
+
     def start(self, ctx: RunContext) -> None:
         """Place the particles (emulated bench), start tracking them and take the first
         measurement; nothing is energised yet."""

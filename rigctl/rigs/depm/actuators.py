@@ -47,6 +47,7 @@ class ArmPair:
     def __init__(self, arms: list[KukaArm], channels: list[Channel]) -> None:
         self.arms = arms
         self.channels = channels  # `arm_channels`
+        self.windings = None  # permanent magnets: nothing heats
         self.names = [arm.name for arm in arms]
         self.measured = np.zeros(len(arms) * N_JOINTS)
         self._latched = False

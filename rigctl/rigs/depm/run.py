@@ -225,6 +225,15 @@ class FieldSequenceProgram(RequestedControl):
         return self.requests.abort_wanted
 
     # -- the run's phases -----------------------------------------------------------------------
+    def checks(self) -> list:
+        """The pre-flight of the plan's trajectories (`rigctl.rigs.depm.certify`)."""
+        from rigctl.plans.depm import DepmRig
+        from rigctl.rigs.depm.certify import field_sequence_checks
+
+        depm_rig = DepmRig(arms=self.arms, moment_Am2=self.settings.epm_moment_Am2,
+                           limits=self.limits)
+        return field_sequence_checks(self.plan, self.rig, depm_rig)
+
     def start(self, ctx: RunContext) -> None:
         self._ctx = ctx
         d = self.settings

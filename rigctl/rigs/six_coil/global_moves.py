@@ -85,6 +85,10 @@ class GlobalMovesProgram:
     def pause(self, immediate: bool = False) -> None:
         self.sequencer.request_pause(immediate)
 
+    def pause_to_cool(self) -> None:
+        """At the end of the move, the field ramped off (the magnets lie still); back on resume."""
+        self.sequencer.request_pause(field_off=True)
+
     def resume(self) -> None:
         self.sequencer.request_resume()
 
@@ -117,6 +121,17 @@ class GlobalMovesProgram:
 
     def connected(self, actuators) -> None:
         pass  # supplies start from 0 A: nothing to read
+
+    def checks(self) -> list:
+        """The pre-flight of the whole current program (`rigctl.rigs.six_coil.certify`)."""
+        from rigctl.rigs.six_coil.certify import current_program_checks
+
+        program = self.field_program
+        return current_program_checks(
+            self.rig, self.currents.currents_A, self.rate_hz,
+            # where `field.rest_s` rests: between moves, not after the last
+            move_ends=[program.move_end_index(i) for i in range(program.n_moves - 1)],
+            describe=program.describe_sample)
 
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
         step = self.sequencer.next()

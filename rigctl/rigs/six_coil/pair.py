@@ -357,6 +357,15 @@ class PairProgram(RequestedControl):
         return self._suspension.reason
 
     # -- the run's phases -----------------------------------------------------------------------
+    def checks(self) -> list:
+        """The pre-flight of the open-loop current program (`rigctl.rigs.six_coil.certify`)."""
+        from rigctl.rigs.six_coil.certify import current_program_checks
+
+        stage_of = self.prepared.stage_of
+        return current_program_checks(
+            self.rig, self.prepared.program_A, self.rate_hz, move_ends=[],
+            describe=lambda k: f"segment {int(stage_of[k])}" if stage_of[k] >= 0 else "a ramp or hold")
+
     def start(self, ctx: RunContext) -> None:
         from rigctl.vision.tracking import TrackingLoop
 

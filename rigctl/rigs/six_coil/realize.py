@@ -12,7 +12,10 @@ A move d (in the xy plane) is realized as
    B(alpha) = B0 (cos(alpha) e0 + sin(alpha) (u x e0)), alpha from 0 to 2 pi N, at
    `field.rolling_turns_per_s`. A cylinder of radius R rolling by alpha about u moves its centre by
    R alpha (u x z_hat) = R alpha d_hat, so N = |d| / (2 pi R) must be a whole number of turns;
-3. a hold of `field.hold_s` at B0 e0, so the coils settle before the next move.
+3. a hold of `field.hold_s` at B0 e0, so the coils settle before the next move;
+4. with `field.rest_s` (the pre-flight certificate says how long a plan needs), between moves
+   the field ramps to zero, stays off that long (the coils cool, the magnets lie still) and ramps
+   back up along the same direction.
 
 With whole turns (`field.whole_turns`, the default and the paper's hardware) rolling starts and
 ends with B = B0 e0, horizontal, so the field is continuous from one move to the next. Without it a
@@ -220,6 +223,8 @@ def realize_global_moves(
     n_hold = _samples(fs.hold_s, rate)
     most = (turns.sum() / fs.rolling_turns_per_s + len(moves) * (math.pi / steer_rad_per_s)) * rate \
         + (len(moves) + 2) * (n_hold + 1) + 2 * n_ramp  # an upper bound, before any allocation
+    if fs.rest_s > 0:
+        most += len(moves) * (_samples(fs.rest_s, rate) + 2 * n_ramp)
     if most > MAX_PROGRAM_SAMPLES:
         raise PlanError(f"moves: up to {most:.3g} samples of field program at {rate:g} Hz; "
                         f"at most {MAX_PROGRAM_SAMPLES} (fewer or shorter moves)")
@@ -293,6 +298,10 @@ def realize_global_moves(
             logger.debug("move %d is zero: hold only", i)
         emit(np.repeat(field_now()[None, :], n_hold, axis=0), NO_MOVE, HOLD)
         move_spans.append((move_start, count))
+        if fs.rest_s > 0 and i < len(moves) - 1:  # the coils cool: off, then back where it was
+            emit((1.0 - ramp)[:, None] * field_now(), NO_MOVE, HOLD)
+            emit(np.zeros((_samples(fs.rest_s, rate), 3)), NO_MOVE, HOLD)
+            emit(ramp[:, None] * field_now(), NO_MOVE, HOLD)
 
     if len(moves) == 0:
         emit(np.repeat(field_now()[None, :], n_hold, axis=0), NO_MOVE, HOLD)

@@ -27,6 +27,7 @@ class Sequencer:
         self._lock = threading.Lock()
         self._pause_requested = False
         self._immediate = False
+        self._field_off = False  # a pause at the end of the move that ramps the field off
         self._abort_requested = False
         self._queue: list[np.ndarray] = []  # ramp samples to send before anything else
         self._last = np.zeros(self.program.shape[1])
@@ -36,10 +37,13 @@ class Sequencer:
         # `wake`); a no-op until a loop is attached.
         self.wake: Callable[[], None] = lambda: None
 
-    def request_pause(self, immediate: bool = False) -> None:
+    def request_pause(self, immediate: bool = False, field_off: bool = False) -> None:
+        """Pause at the end of the move (`immediate`: now, ramping the field off); `field_off`:
+        at the end of the move, then ramp the field off (the coils cool)."""
         with self._lock:
             self._pause_requested = True
             self._immediate = self._immediate or immediate
+            self._field_off = self._field_off or field_off
 
     def request_resume(self) -> None:
         with self._lock:
@@ -75,9 +79,14 @@ class Sequencer:
                         continue
                     if self.index in self.boundaries:
                         self.paused = True
+                        if self._field_off:  # as a pause now from here: back up on resume
+                            self._immediate, self._field_off = True, False
+                            self._queue_ramp_to(np.zeros_like(self._last))
+                            continue
                         return self._last, self.index, -1
                 elif self.paused:  # resume
                     self.paused = False
+                    self._field_off = False
                     if self._immediate and self.index < len(self.program):
                         self._immediate = False
                         self._queue_ramp_to(self.program[self.index])

@@ -20,6 +20,7 @@ from rigctl.channels import Channel
 from rigctl.config import RigConfig
 from rigctl.drivers.kepco_bop import KepcoBop
 from rigctl.errors import RigError
+from rigctl.thermal import Windings
 from rigctl.transport import open_transport
 
 log = logging.getLogger(__name__)
@@ -35,9 +36,10 @@ class CoilSupplies:
 
     def __init__(self, supplies: list[KepcoBop], *, identities: list[str] | None = None,
                  health_period_s: float = 1.0, rate_hz: float = 100.0,
-                 channels: list[Channel] | None = None) -> None:
+                 channels: list[Channel] | None = None, windings: Windings | None = None) -> None:
         self.supplies = supplies
         self.channels = channels or []  # `supply_channels`
+        self.windings = windings  # the coils the run's winding model watches
         self.identities = identities or []
         self.names = [s.name for s in supplies]
         self.measured_A = np.zeros(len(supplies))
@@ -71,7 +73,7 @@ class CoilSupplies:
             group.stop(ramp_s=0.0)
             raise
         return cls(supplies, identities=identities, rate_hz=rig.stream.rate_hz,
-                   channels=supply_channels(rig))
+                   channels=supply_channels(rig), windings=Windings.of_coils(rig.coils))
 
     def energise(self) -> None:
         for supply in self.supplies:
