@@ -67,11 +67,11 @@ class CylinderEpms:
         b_local = np.stack([b_r * cos, b_r * sin, b_z], axis=-1)  # (K, n, 3)
         return np.einsum("kij,knj->ni", frames, b_local)  # back to the world frame, summed
 
-    def field_vector(self, point_m: np.ndarray, centres_m: np.ndarray,
-                     moments_Am2: np.ndarray) -> np.ndarray:
+    def field_vector(self, point_m: np.ndarray, centres_m: np.ndarray, moments_Am2: np.ndarray,
+                     step_m: float = GRADIENT_STEP_M) -> np.ndarray:
         """U (8,) in T and T/m at `point_m` (3,): the field and the five gradient terms (seed 003
-        eq. 6), the gradient by central differences of step GRADIENT_STEP_M."""
-        h = GRADIENT_STEP_M
+        eq. 6), the gradient by central differences of step `step_m`."""
+        h = step_m
         point = np.asarray(point_m, dtype=float).reshape(3)
         offsets = np.concatenate([np.zeros((1, 3)), h * np.eye(3), -h * np.eye(3)])
         b = self.field(point + offsets, centres_m, moments_Am2)

@@ -446,16 +446,17 @@ class FieldSequenceProgram(RequestedControl):
                 c.buffer.append(sample.field_T.reshape(-1) @ self._estimator.T * 1e3)
         if len(c.buffer) < correction.SAMPLES:
             return
-        measured = np.mean(c.buffer, axis=0)
+        measured, sem = correction.mean_and_sem(c.buffer)
         c.buffer.clear()
-        residual = float(np.max(np.abs(c.requested - measured) / self._scales))
-        c.residuals.append(residual)
+        significant = correction.significant_residual(c.requested, measured, sem)
+        residual = float(np.max(np.abs(significant) / self._scales))
+        c.residuals.append(float(np.max(np.abs(c.requested - measured) / self._scales)))
         if residual <= correction.TARGET or c.steps >= correction.MAX_STEPS:
             self._finish_correction(tl, "converged" if residual <= correction.TARGET else "steps")
             return
         q = tl.held.copy()
         dq = correction.correction_step(self.arms, self.settings.epm_moment_Am2, q, c.requested,
-                                        measured, self._scales)
+                                        c.requested - significant, self._scales)
         speed, accel = caps(self.arms, self.limits)
         move = joint_path(q, q + dq, speed, accel, one_at_a_time=False)
         found = path_violations(move, self.arms, self.limits)
