@@ -41,6 +41,11 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
         prediction_error,
     )
 
+    for flag, value in (("--plan", args.plan), ("--markers", args.markers),
+                        ("--marker-radius", args.marker_radius)):
+        if value is not None:
+            raise ConfigError(f"{flag} is for `rigctl calibrate camera`; the field is measured "
+                              "with the rig's [field_probe]")
     rig_path = Path(args.rig)
     rig = load_rig(rig_path)
     if rig.rig.kind != "six-coil":

@@ -195,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.add_argument("--open-loop", action="store_true",
                    help="do not close the loop with the rig's camera (default: closed loop "
-                   "whenever the rig has a camera)")
+                   "whenever the rig has a camera); depm: no Hall correction at the holds")
     p.add_argument("--agnostic", action="store_true",
                    help="depm rig: run the magnetic-agnostic baseline (straight joint-space moves)")
     p.add_argument("--time-scale", type=float, metavar="K",
@@ -240,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "RIG-field.yaml) and name it in the rig file; the allocator then uses it.")
     p.add_argument("what", choices=["camera", "field"])
     p.add_argument("--rig", required=True, type=input_file("rig file"),
-                   help="rig file with a [camera] table")
+                   help="rig file with a [camera] table (camera) or a [field_probe] (field)")
     p.add_argument("--plan", type=input_file("plan"),
                    help="a plan whose workspace boundary the camera sees (corners)")
     p.add_argument("--markers", help="known marker centres, 'x,y;x,y;...' in mm")
