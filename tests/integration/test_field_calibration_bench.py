@@ -29,7 +29,11 @@ def calibrated(tmp_path_factory):
     """A bench with 5 % coil errors (seed 0, the default), calibrated by the CLI."""
     folder = tmp_path_factory.mktemp("calibrate")
     with EmulatedBenchProcess("six-coil", folder / "bench.toml") as rig_path:
+        # a watchdog that tolerates a loaded CI machine (as test_closed_loop.py's `fast`)
         drawn = load_rig(rig_path)
+        drawn = drawn.model_copy(update={"stream": drawn.stream.model_copy(
+            update={"reply_timeout_s": 1.0})})
+        rig_path.write_text(dump_rig(drawn))
         with BackdoorClient(drawn.emulation.backdoor) as backdoor:
             truth = backdoor.request("coil_errors")["coils"]
             centre = np.array(backdoor.request("coil_fields", points_mm=[[0, 0, 0]])["T_per_A"][0])
