@@ -18,9 +18,23 @@ devices "x+" ... "z-" (each supply: its link's faults and `overtemp`; `restore` 
 - `{"cmd": "truth"}`: agents' true positions (mm), axis, field (T), each coil's current (A) and
   winding temperature (C, now and its peak; the windings heat by `rigctl.thermal`),
   simulated time (world "pair": the moments and the agents' separation instead of the axis);
+- `{"cmd": "coil_errors", "size": 0.05, "seed": 0}`: rebuild the coils as built (`coil_errors.py`:
+  gain, centre and axis off the rig file's by up to `size`; 0 is the ideal bench) at once;
+  replies with each true coil (`name`, `centre_mm`, `axis`, `gain`); `{"cmd": "coil_errors"}` only
+  reads them;
+- `{"cmd": "coil_fields", "points_mm": [[x, y, z], ...]}`: ground truth for tests, each true
+  coil's field per ampere at the points, `"T_per_A"` (n, 3, n_coils);
+- `{"cmd": "probe", "points_mm": [[x, y, z], ...]}`: put the Hall probe array's sensors there
+  (mm from the workspace centre; default the 27 points of a 3 x 3 x 3 grid at +-100 mm); a client
+  that connects to the probe board afterwards reads them in its `hello`;
 - `{"cmd": "mismatch", "slip": 0.85, "speed_spread": 0.05, "drift_mm_per_s": 0.0, "noise_mm": 0.2,
   "seed": 3, "field_at_robots": true}`: how the world departs from the model from the next `place`
   on (keys left out keep their value); replies with the settings in force.
+
+The coils' field is their true field (`CoilErrors`, default 5 %, `rigctl emulate six-coil
+--coil-error F --coil-seed N`): the world and the Hall probe (a Hall board on its own TCP port,
+`[field_probe]` in the rig file, docs/hall-board.md's stream) feel it; the rig file still
+describes the coils as drawn.
 
 Model mismatch (`Mismatch`, set at construction, by `rigctl emulate --slip ...`, or through the
 backdoor) is applied when the robots are placed; with `field_at_robots` each robot feels the coils'
@@ -37,6 +51,13 @@ from dataclasses import dataclass
 import numpy as np
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.camera.render import Scene
+from rigctl.emulators.coil_errors import (
+    CoilErrors,
+    TrueCoil,
+    as_calibration,
+    true_coils,
+)
+from rigctl.emulators.hall.board import HallBoardServer
 from rigctl.emulators.kepco_bop.model import BopCoilModel
 from rigctl.emulators.kepco_bop.protocol import BopScpi
 from rigctl.emulators.server import Endpoint
@@ -47,15 +68,22 @@ from rigctl.plans.pair import PairPhysics
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
 
-from rigctl.config import Emulation, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.config import (
+    Emulation,
+    FieldProbe,
+    RigConfig,
+    RigInfo,
+    default_six_coil_coils,
+)
 from rigctl.errors import ConfigError
-from rigctl.magnetics import loop_field
+from rigctl.field_calibration import probe_grid_mm
 
 PHYSICS_STEP_S = 1e-3  # simulated time per sub-step: the field turns < 3 degrees per step at 8 turns/s
 TICK_S = 5e-3  # how often the server advances the simulation when no command arrives
 CAMERA_FIELD_MM = (0.0, 0.0, 400.0, 400.0)  # what the emulated camera's picture covers
 PAIR_CAMERA_FIELD_MM = (0.0, 0.0, 20.0, 15.0)  # world "pair": a microscope over the coils' centre
 FIELD_REFRESH_MM = 1.0  # recompute the per-robot field maps when a robot moved this far
+PROBE_RATE_HZ = 50.0  # Hall probe samples per real second
 
 
 def emulated_winding(coil, mismatch: float) -> dict:
@@ -84,7 +112,8 @@ class SixCoilBench(EmulatedBench):
 
     def __init__(self, template: RigConfig | None = None, *, host: str = "127.0.0.1",
                  mismatch: Mismatch | None = None, world: str = "rolling",
-                 thermal_mismatch: float = 0.05) -> None:
+                 thermal_mismatch: float = 0.05,
+                 coil_errors: CoilErrors | None = None) -> None:
         if world not in ("rolling", "pair"):
             raise ValueError(f"unknown world {world!r}; use rolling or pair")
         super().__init__(host=host)
@@ -102,12 +131,17 @@ class SixCoilBench(EmulatedBench):
         self._stepped = 0.0  # simulated time the models have been stepped to
         self._world_at = 0.0  # simulated time the world has been stepped to
         self.mismatch = mismatch or Mismatch()
+        self.coil_errors = coil_errors or CoilErrors()
+        self.true_coils: list[TrueCoil] = true_coils(self.template.coils, self.coil_errors)
+        self.probe: HallBoardServer | None = None
         # per-robot field per amp (n, 3, n_coils) T/A and where it was computed (n, 2) mm
         self._robot_maps: tuple[np.ndarray, np.ndarray] | None = None
         self._floor_centre_mm = np.array([200.0, 200.0])
         self.thermal_mismatch = thermal_mismatch  # the windings' R_th, C_th off the rig file's
         self.commands.update(place=self._place_pair if world == "pair" else self._place,
-                             truth=self._truth, mismatch=self._mismatch)
+                             truth=self._truth, mismatch=self._mismatch,
+                             coil_errors=self._set_coil_errors, coil_fields=self._coil_fields,
+                             probe=self._place_probe)
 
     def _serve(self) -> RigConfig:
         coils = []
@@ -117,8 +151,7 @@ class SixCoilBench(EmulatedBench):
                                  **emulated_winding(coil, self.thermal_mismatch))
             scpi = BopScpi(model, before_command=self.advance)
             endpoint = self.server.serve_lines_tcp(scpi.handle, name=coil.name, host=self.host)
-            field = loop_field(np.zeros(3), np.asarray(coil.centre_mm) * 1e-3, np.asarray(coil.axis),
-                               coil.loop_radius_mm * 1e-3, coil.turns, 1.0)
+            field = self.true_coils[len(self.supplies)].field_per_amp(np.zeros(3))
             self.supplies.append(_Supply(coil.name, model, endpoint, np.asarray(field, dtype=float)))
             # `restore` clears the link's faults and lets the supply cool down (an over-temperature
             # is cleared; its output stays off until turned on again, as a real BOP's)
@@ -129,8 +162,14 @@ class SixCoilBench(EmulatedBench):
         camera = self._serve_camera(
             PAIR_CAMERA_FIELD_MM if self.world_kind == "pair" else CAMERA_FIELD_MM, tilt_deg=5.0,
             seed=1, fps=60.0)
+        probe = self.probe = HallBoardServer(
+            self.server, field_at=self._probe_field, now=self.clock.now,
+            offsets_mm=probe_grid_mm(), rate_hz=PROBE_RATE_HZ, seed=self.coil_errors.seed + 1,
+            host=self.host, name="field probe")
+        self.add_device("probe", probe.endpoint, skip=lambda r: probe.skip(int(r.get("n", 1))))
         return self.template.model_copy(
-            update={"coils": coils, "camera": camera, "emulation": self._emulation_settings()})
+            update={"coils": coils, "camera": camera, "emulation": self._emulation_settings(),
+                    "field_probe": FieldProbe(url=probe.url)})
 
     def _locked(self, fn: Callable[[], object]) -> None:
         with self._lock:
@@ -143,13 +182,24 @@ class SixCoilBench(EmulatedBench):
                  "noise_mm": args.noise, "seed": args.seed}
         mismatch = Mismatch(**{k: v for k, v in given.items() if v is not None},
                             field_at_robots=args.field_at_robots)
+        size, seed = getattr(args, "coil_error", None), getattr(args, "coil_seed", None)
+        try:
+            errors = CoilErrors(**{k: v for k, v in (("size", size), ("seed", seed)) if v is not None})
+        except ValueError as err:
+            raise ConfigError(f"--coil-error: {err}") from None
         if mismatch.slip <= 0 or mismatch.speed_spread < 0 or mismatch.drift_mm_per_s < 0 or \
                 mismatch.noise_mm < 0:
             raise ConfigError("--slip must be > 0; --speed-spread, --drift and --noise >= 0")
-        return cls(host=args.host, mismatch=mismatch, world=args.world or "rolling")
+        return cls(host=args.host, mismatch=mismatch, world=args.world or "rolling",
+                   coil_errors=errors)
 
     def served(self, rig: RigConfig) -> list[tuple[str, str]]:
-        return [(f"supply {coil.name}", str(coil.url)) for coil in rig.coils]
+        served = [(f"supply {coil.name}", str(coil.url)) for coil in rig.coils]
+        if rig.field_probe is not None:
+            errors = self.coil_errors
+            what = f"Hall probe; coil errors {errors.size:.0%}, seed {errors.seed}"
+            served.append(("probe", f"{rig.field_probe.url}  ({what})"))
+        return served
 
     # -- simulation ---------------------------------------------------------------------------
     def advance(self) -> None:
@@ -190,10 +240,7 @@ class SixCoilBench(EmulatedBench):
                 np.hypot(*(positions - self._robot_maps[1]).T)) > FIELD_REFRESH_MM:
             points = np.zeros((len(positions), 3))
             points[:, :2] = (positions - self._floor_centre_mm) * 1e-3
-            maps = np.stack([
-                loop_field(points, np.asarray(c.centre_mm) * 1e-3, np.asarray(c.axis),
-                           c.loop_radius_mm * 1e-3, c.turns, 1.0)
-                for c in self.template.coils], axis=-1)
+            maps = np.stack([c.field_per_amp(points) for c in self.true_coils], axis=-1)
             self._robot_maps = (maps, positions.copy())
         currents = np.array([s.model.current_A for s in self.supplies])
         return self._robot_maps[0] @ currents
@@ -294,6 +341,50 @@ class SixCoilBench(EmulatedBench):
         with self._lock:
             self._floor_centre_mm = 0.5 * (bounds[:2] + bounds[2:])
             self._world_at = self._stepped
-            self.world = PairWorld(workspace, positions, physics, self.template,
+            self.world = PairWorld(workspace, positions, physics, self._true_rig(),
                                    self._floor_centre_mm, self.mismatch)
         return {"agents": positions.tolist()}
+
+    # -- the coils as built, and the Hall probe --------------------------------------------------
+    def _true_rig(self) -> RigConfig:
+        """The template with the true coils as its field calibration (the pair world's coils)."""
+        return self.template.model_copy(update={"field_calibration": as_calibration(
+            self.true_coils, self.template.coils)})
+
+    def _probe_field(self, points_m: np.ndarray) -> np.ndarray:
+        """The true field (n, 3) T at the probe's sensors from the supplies' actual currents."""
+        self.advance()
+        with self._lock:
+            currents = np.array([s.model.current_A for s in self.supplies])
+            coils = self.true_coils
+        maps = np.stack([c.field_per_amp(np.asarray(points_m, dtype=float)) for c in coils], axis=-1)
+        return maps @ currents
+
+    def _set_coil_errors(self, request: dict) -> dict:
+        if "size" in request or "seed" in request:
+            errors = CoilErrors(size=float(request.get("size", self.coil_errors.size)),
+                                seed=int(request.get("seed", self.coil_errors.seed)))
+            coils = true_coils(self.template.coils, errors)
+            with self._lock:
+                self.coil_errors, self.true_coils = errors, coils
+                for supply, coil in zip(self.supplies, coils):
+                    supply.field_per_amp_T = coil.field_per_amp(np.zeros(3))
+                self._field_matrix = None
+                self._robot_maps = None
+        return {"size": self.coil_errors.size, "seed": self.coil_errors.seed,
+                "coils": [c.truth() for c in self.true_coils]}
+
+    def _coil_fields(self, request: dict) -> dict:
+        points = np.asarray(request["points_mm"], dtype=float).reshape(-1, 3) * 1e-3
+        with self._lock:
+            coils = self.true_coils
+        return {"T_per_A": np.stack([c.field_per_amp(points) for c in coils], axis=-1).tolist()}
+
+    def _place_probe(self, request: dict) -> dict:
+        points = np.asarray(request["points_mm"], dtype=float)
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 1:
+            raise ValueError("points_mm must be a list of [x, y, z] (mm)")
+        assert self.probe is not None
+        self.probe.offsets_mm = points
+        self.probe.points_m = points * 1e-3
+        return {"points_mm": points.tolist()}

@@ -3,8 +3,11 @@ server on TCP, the Hall-sensor board streaming on TCP, and a JSON backdoor, on o
 
 The field the board measures comes from the arms' *actual* joints, not from any plan: forward
 kinematics of each arm (`rigctl.kinematics`, the bases and EPM tool of the rig file) gives each
-EPM's centre and moment direction, and the dipole model (seed 003 eq. 2, superposed, eq. 8) the
-field at every sensor. An arm that lags, stalls or stops therefore shows up in the measurement.
+EPM's centre and moment direction, and the field at every sensor is that of the EPMs as they are:
+finite axially magnetised cylinders (`world/epm.py`, seed 003's 101.6 mm N52 magnets, magpylib's
+closed form), not the planner's point dipole (seed 003 eq. 2), which is 1-13 % off within 15 cm
+(`magnets="dipole"` makes the bench the planner's model again). An arm that lags, stalls or stops
+therefore shows up in the measurement, and so does the planner's model error.
 
 Simulated time is the bench's `SimClock` (`speed` simulated seconds per real second), the same for
 the arms and the board's timestamps; the arms are stepped lazily (before each command and on a
@@ -14,7 +17,8 @@ Backdoor: the table of `emulators/base.py` (`ping`, `help`, `speed`, `fault`) wi
 "right" (each arm: its link's faults, `stall_joint` with `"joint": j`, `unstall`) and "hall" (its
 link's faults, `skip` with `"n": samples`), plus:
 - `{"cmd": "truth"}`: sim time, each arm's joints, speeds, mode, watchdog state, each EPM's
-  centre (m) and moment (A m^2), and the exact U at the workspace centre (mT, mT/m);
+  centre (m) and moment (A m^2), and the exact U at the workspace centre (mT, mT/m) of the
+  bench's magnets (`"magnets"`: "cylinder" or "dipole");
 - `{"cmd": "place", "arm": "left", "q": [7 rad]}`: put an arm's joints somewhere (at rest).
 """
 
@@ -27,6 +31,7 @@ from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.hall.board import HallBoardServer
 from rigctl.emulators.kuka.arm import KST_PORT, EmulatedArm
 from rigctl.emulators.kuka.model import ArmLimits
+from rigctl.emulators.world.epm import CylinderEpms
 from rigctl.plans.depm import default_rig, rig_from_settings
 
 from rigctl.config import DepmSettings, Emulation, RigConfig, RigInfo
@@ -68,13 +73,18 @@ class DepmBench(EmulatedBench):
 
     def __init__(self, settings: DepmSettings | None = None, *, host: str = "127.0.0.1",
                  speed: float = 1.0, real_ports: bool = False, seed: int = 0,
-                 initial_q: np.ndarray | None = None, hall_rate_hz: float = HALL_RATE_HZ) -> None:
+                 initial_q: np.ndarray | None = None, hall_rate_hz: float = HALL_RATE_HZ,
+                 magnets: str = "cylinder") -> None:
+        if magnets not in ("cylinder", "dipole"):
+            raise ValueError(f"unknown magnets {magnets!r}; use cylinder or dipole")
         super().__init__(host=host, speed=speed)
         self.settings = settings or default_settings()
         self.real_ports = real_ports
         self.seed = seed
         self.initial_q = PARKED_Q if initial_q is None else np.asarray(initial_q, dtype=float)
         self.hall_rate_hz = hall_rate_hz
+        self.magnets = magnets
+        self.cylinders = CylinderEpms()
         self.kinematics = rig_from_settings(self.settings).arms
         self.arms: list[EmulatedArm] = []
         self.hall: HallBoardServer | None = None
@@ -141,16 +151,21 @@ class DepmBench(EmulatedBench):
         """The EPMs' field (n, 3) T at points (n, 3) m, arms stepped to now first."""
         self.advance()
         centres, moments = self.epms()
+        if self.magnets == "cylinder":
+            return self.cylinders.field(points_m, centres, moments)
         return dipole_field(np.asarray(points_m)[:, None, :], centres, moments).sum(axis=1)
 
     # -- backdoor -------------------------------------------------------------------------------
     def _truth(self, request: dict) -> dict:
         self.advance()
         centres, moments = self.epms()
-        u = field_vector(np.zeros(3), centres, moments) * 1e3
+        if self.magnets == "cylinder":
+            u = self.cylinders.field_vector(np.zeros(3), centres, moments) * 1e3
+        else:
+            u = field_vector(np.zeros(3), centres, moments) * 1e3
         return {"sim_time_s": self.clock.now(), "arms": {a.name: a.truth() for a in self.arms},
                 "epm_centres_m": centres.tolist(), "epm_moments_Am2": moments.tolist(),
-                "U": u.tolist()}
+                "U": u.tolist(), "magnets": self.magnets}
 
     def _place(self, request: dict) -> dict:
         arms = {arm.name: arm for arm in self.arms}

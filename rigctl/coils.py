@@ -2,7 +2,8 @@
 
 Air-core coils add linearly, so the field at a point is B = A I with A the 3 x n actuation matrix
 (T/A), each column one coil's field per ampere (`rigctl.magnetics.loop_field`, or measured and
-given in the rig file). Pulling needs the gradient too: the 8-vector U (field and the five
+given in the rig file), or from the loops a field calibration fitted when the rig file names one
+(`rigctl.field_calibration`). Pulling needs the gradient too: the 8-vector U (field and the five
 independent gradient terms, seed 003 eq. 6) per ampere. Planners, allocation and the emulated
 world all take their coil fields from here."""
 
@@ -13,7 +14,17 @@ from numpy.typing import ArrayLike
 
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, LimitError
+from rigctl.field_calibration import fitted_loops
 from rigctl.magnetics import gradient_terms, loop_field
+
+
+def coil_loops(rig: RigConfig) -> list[tuple[np.ndarray, np.ndarray, float, int, float]]:
+    """(centre m, unit axis, radius m, turns, gain) of each coil, in `rig.coils` order: the fitted
+    loops of the rig's `field_calibration` if it names one, else the rig file's (gain 1)."""
+    if rig.field_calibration is not None:
+        return fitted_loops(rig.field_calibration, [c.name for c in rig.coils])
+    return [(np.asarray(c.centre_mm, dtype=float) * 1e-3, np.asarray(c.axis, dtype=float),
+             c.loop_radius_mm * 1e-3, c.turns, 1.0) for c in rig.coils]
 
 
 def actuation_matrix(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -22,8 +33,9 @@ def actuation_matrix(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> n
     Parameters
     ----------
     rig : RigConfig
-        Its `coils` (loop of `turns` turns, `centre_mm`, `axis`, `loop_radius_mm`), or its
-        measured `actuation_matrix_T_per_A`, which takes precedence.
+        Its `coils` (loop of `turns` turns, `centre_mm`, `axis`, `loop_radius_mm`), the loops
+        its `field_calibration` fitted, or its measured `actuation_matrix_T_per_A`, which takes
+        precedence.
     point_mm : (3,) array
         Where the field is wanted, workspace frame, mm. A measured matrix only describes the
         workspace centre, so with one any other point is refused.
@@ -44,17 +56,8 @@ def actuation_matrix(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> n
             )
         return np.array(rig.actuation_matrix_T_per_A, dtype=float)
     point_m = point * 1e-3
-    columns = [
-        loop_field(
-            point_m,
-            np.asarray(coil.centre_mm) * 1e-3,
-            coil.axis,
-            coil.loop_radius_mm * 1e-3,
-            coil.turns,
-            1.0,
-        )
-        for coil in rig.coils
-    ]
+    columns = [gain * loop_field(point_m, centre, axis, radius, turns, 1.0)
+               for centre, axis, radius, turns, gain in coil_loops(rig)]
     matrix = np.stack(columns, axis=1)
     if not np.isfinite(matrix).all():
         bad = rig.coils[int(np.flatnonzero(~np.isfinite(matrix).all(axis=0))[0])].name
@@ -80,9 +83,8 @@ def coil_field_and_gradient(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0
     h = GRADIENT_STEP_MM * 1e-3
     offsets = np.concatenate([np.zeros((1, 3)), h * np.eye(3), -h * np.eye(3)])  # (7, 3)
     out = np.zeros((3, 4, len(rig.coils)))
-    for j, coil in enumerate(rig.coils):
-        b = loop_field(point + offsets, np.asarray(coil.centre_mm) * 1e-3, coil.axis,
-                       coil.loop_radius_mm * 1e-3, coil.turns, 1.0)  # (7, 3)
+    for j, (centre, axis, radius, turns, gain) in enumerate(coil_loops(rig)):
+        b = gain * loop_field(point + offsets, centre, axis, radius, turns, 1.0)  # (7, 3)
         out[:, 0, j] = b[0]
         out[:, 1:, j] = ((b[1:4] - b[4:7]) / (2.0 * h)).T
     if not np.isfinite(out).all():

@@ -30,6 +30,7 @@ from pydantic import (
 
 from rigctl.camera_model import Calibration
 from rigctl.errors import ConfigError
+from rigctl.field_calibration import FieldCalibration, load_field_calibration
 from rigctl.transport import camera_source, parse_url
 
 RigKind = Literal["six-coil", "coil-board", "depm"]
@@ -297,6 +298,19 @@ class PreflightSettings(_Strict):
                      "it: bench/stream.py); a serial link's time is computed from its baud rate")] = 2.0
 
 
+class FieldProbe(_Strict):
+    """A six-coil rig's Hall probe (array) for `rigctl calibrate field`: a Hall board stream
+    (docs/hall-board.md) whose `hello` says where its sensors are, mm from the workspace centre."""
+
+    url: DeviceUrl = Field(description="the probe board's sample stream, tcp://host:port")
+    timeout_s: Annotated[float, Field(gt=0, description="no sample this long: a fault")] = 1.0
+
+
+def _calibration_file(value):
+    """`field_calibration = "FILE.yaml"` (load_rig makes it relative to the rig file) is read."""
+    return load_field_calibration(value) if isinstance(value, (str, Path)) else value
+
+
 class Emulation(_Strict):
     """Present only in rig files written by `rigctl emulate`: where the bench's backdoor is."""
 
@@ -346,6 +360,9 @@ class RigConfig(_Strict):
         default=None,
         description="measured 3 x n_coils matrix at the workspace centre; overrides the geometry",
     )
+    field_calibration: Annotated[FieldCalibration | None, BeforeValidator(_calibration_file)] = Field(
+        default=None, description="a `rigctl calibrate field` file (YAML): the allocator's coils")
+    field_probe: FieldProbe | None = None
     stream: StreamSettings = StreamSettings()
     camera: CameraSettings | None = None
     daemon: DaemonSettings | None = None
@@ -431,16 +448,22 @@ def load_rig(path: str | Path) -> RigConfig:
         raise ConfigError(f"rig file {path} does not exist") from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
+    if isinstance(data.get("field_calibration"), str):  # a file named relative to the rig file
+        data["field_calibration"] = str(path.parent / data["field_calibration"])
     return parse_rig(data, str(path))
 
 
-SIX_COIL_TABLES = ("field", "magnets", "coils", "actuation_matrix_T_per_A")
+SIX_COIL_TABLES = ("field", "magnets", "coils", "actuation_matrix_T_per_A", "field_calibration",
+                   "field_probe")
 
 
 def dump_rig(rig: RigConfig) -> str:
     """The rig as TOML text, loadable by `load_rig`: only the tables its kind reads (a coil-board
     or depm rig has no [field], [magnets] or coils)."""
     data = rig.model_dump(mode="json", exclude_none=True)
+    data.pop("field_calibration", None)
+    if rig.field_calibration is not None and rig.field_calibration.source is not None:
+        data["field_calibration"] = rig.field_calibration.source  # named by its file, as before
     if rig.rig.kind != "six-coil":
         for key in SIX_COIL_TABLES:
             data.pop(key, None)

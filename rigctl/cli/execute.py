@@ -16,7 +16,8 @@ _RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-sc
 # constructor, one of which takes it
 _BENCH_FLAGS = {**dict.fromkeys(("--slip", "--speed-spread", "--drift", "--noise",
                                  "--field-at-robots"), ("mismatch",)),
-                "--seed": ("seed", "mismatch"), "--world": ("world",), "--firmware": ("firmware",)}
+                "--seed": ("seed", "mismatch"), "--world": ("world",), "--firmware": ("firmware",),
+                "--coil-error": ("coil_errors",), "--coil-seed": ("coil_errors",)}
 
 
 def refuse_foreign(flags: list[str], table: dict, target, where: str) -> None:

@@ -13,6 +13,11 @@ import logging
 import sys
 from pathlib import Path
 
+from rigctl.cli.calibrate_field import (
+    add_coil_error_flags,
+    add_field_flags,
+    cmd_calibrate_field,
+)
 from rigctl.cli.daemon import register as register_daemon
 from rigctl.cli.execute import (
     _add_mismatch_flags,
@@ -223,12 +228,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.add_argument("--open-loop", action="store_true",
                    help="do not close the loop with the rig's camera (default: closed loop "
-                   "whenever the rig has a camera)")
+                   "whenever the rig has a camera); depm: no Hall correction at the holds")
     p.add_argument("--agnostic", action="store_true",
                    help="depm rig: run the magnetic-agnostic baseline (straight joint-space moves)")
     p.add_argument("--time-scale", type=float, metavar="K",
                    help="depm emulated bench only: run its clock K times faster than real time")
     _add_mismatch_flags(p)
+    add_coil_error_flags(p)
     _add_bench_flags(p)
     p.set_defaults(func=cmd_execute)
 
@@ -259,24 +265,31 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where to write the rig file")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
     _add_mismatch_flags(p)
+    add_coil_error_flags(p)
     _add_bench_flags(p)
     p.set_defaults(func=_cmd_emulate)
 
-    p = sub.add_parser("calibrate", help="calibrate a device of a rig (the camera)",
-                       description="Map the camera's pixels to workspace mm from the workspace's "
-                       "corners (a plan names them) or from dark round markers at known places, "
-                       "and store the calibration in the rig file.")
-    p.add_argument("what", choices=["camera"])
+    p = sub.add_parser("calibrate", help="calibrate a device of a rig (the camera, the coils' field)",
+                       description="camera: map the camera's pixels to workspace mm from the "
+                       "workspace's corners (a plan names them) or from dark round markers at known "
+                       "places, and store the calibration in the rig file. field (six-coil): drive "
+                       "current patterns, read the Hall probe, fit each coil's gain, offset and "
+                       "misalignment, write the calibration (mag_manip-style YAML; -o, default "
+                       "RIG-field.yaml) and name it in the rig file; the allocator then uses it.")
+    p.add_argument("what", choices=["camera", "field"])
     p.add_argument("--rig", required=True, type=input_file("rig file"),
-                   help="rig file with a [camera] table")
+                   help="rig file with a [camera] table (camera) or a [field_probe] (field)")
     p.add_argument("--plan", type=input_file("plan"),
                    help="a plan whose workspace boundary the camera sees (corners)")
     p.add_argument("--markers", help="known marker centres, 'x,y;x,y;...' in mm")
     p.add_argument("--marker-radius", type=float, help="the markers' radius in mm")
-    p.add_argument("-o", "--output", type=output_file("rig file"),
-                   help="write the calibrated rig file here (default: --rig)")
+    p.add_argument("-o", "--output", type=output_file("output file"),
+                   help="camera: write the calibrated rig file here (default: --rig); field: the "
+                   "calibration file")
+    add_field_flags(p)
     coordinates_are_values(p)
-    p.set_defaults(func=_cmd_calibrate_camera)
+    p.set_defaults(func=lambda args: (cmd_calibrate_field if args.what == "field"
+                                      else _cmd_calibrate_camera)(args))
 
     register_planners(sub)
     register_daemon(sub)

@@ -27,6 +27,7 @@ QUICK = {
     "fuzz_daemon.py": ["--requests", "200", "--plans", "20"],
     "faults.py": ["--rig", "six-coil", "--cell", "daemon/x+:drop_link/moving"],
     "soak.py": ["--minutes", "0.3", "--interval", "2"],
+    "calibrate_field.py": ["--seeds", "0"],
 }
 
 

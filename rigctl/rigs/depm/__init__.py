@@ -16,7 +16,7 @@ from rigctl.rigs.base import Device, RigKind
 
 
 def _field_sequence(plan, rig: RigConfig, *, agnostic: bool = False, time_scale: float = 1.0,
-                    **run):
+                    closed_loop: bool = True, **run):
     from rigctl.rigs.depm.run import FieldSequenceRun
 
     if agnostic:
@@ -26,7 +26,7 @@ def _field_sequence(plan, rig: RigConfig, *, agnostic: bool = False, time_scale:
             print("the magnetic-agnostic baseline: straight joint moves to the plan's end poses",
                   file=run["progress_out"], flush=True)
         plan = baseline_of(plan)
-    return FieldSequenceRun(plan, rig, time_scale=time_scale, **run)
+    return FieldSequenceRun(plan, rig, time_scale=time_scale, closed_loop=closed_loop, **run)
 
 
 def _channels(rig: RigConfig) -> list[Channel]:

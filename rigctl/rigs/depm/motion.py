@@ -200,6 +200,8 @@ class Timeline:
         self._rejoin_t = 0.0
         self.finished = False
         self.rejoins = 0
+        # (plan time t, the plan's pose) -> the pose to send, if not None (the Hall correction)
+        self.correct: Callable[[float, np.ndarray], np.ndarray] | None = None
 
     @property
     def in_approach(self) -> bool:
@@ -214,7 +216,8 @@ class Timeline:
         if self.in_approach:
             return self.approach.at(self.t)
         t = min(self.plan_time_s, self.t_end_s)
-        return np.array([curve(t) for curve in self.curves])
+        pose = np.array([curve(t) for curve in self.curves])
+        return pose if self.correct is None else self.correct(t, pose)
 
     def hold(self, pose: np.ndarray) -> None:
         if self.held is None:

@@ -29,7 +29,13 @@ and the safe end. What is the dual-EPM rig's own:
    run the same way (the arms hold; the state says why) until samples come back, or faults it
    after `HALL_LOST_FAULT_S`. Abort holds the measured pose and ends. Samples taken while held are
    recorded (`held` = 1) but not measured: Table 1 is about the plan's motion.
-6. **Outcome**: the Table 1 metrics per component and the Fig. 6 cross-activation matrix
+6. **Hall correction** (closed loop, the default; `--open-loop` plays the plan's poses back):
+   at the start of each hold the plan's clock stops, the arms hold, and the inverse magnetics is
+   iterated on the measured residual (`correction`: a few small joint moves, each checked against
+   every constraint) until U is within 0.5 % of the request; the correction stays on for the rest
+   of the hold and is blended out over the next transition (checked too). Samples taken while
+   correcting are recorded as held, not measured.
+7. **Outcome**: the Table 1 metrics per component and the Fig. 6 cross-activation matrix
    (`metrics`), the lines a person reads of them (`details`); reached = every requested
    component's steady state within 2 % (docs/depm.md, "Execution and metrics").
 """
@@ -49,7 +55,9 @@ from rigctl.kinematics import ArmKinematics, base_transform
 from rigctl.magnetics import U_COMPONENTS
 from rigctl.plans.depm import joint_trajectory, plan_violations, rig_from_settings
 from rigctl.plans.depm_safety import Violation
+from rigctl.rigs.depm import correction
 from rigctl.rigs.depm.actuators import ArmPair
+from rigctl.rigs.depm.correction import HoldOffsets
 from rigctl.rigs.depm.metrics import (
     STEADY_STATE_TOLERANCE,
     cross_activation,
@@ -57,7 +65,14 @@ from rigctl.rigs.depm.metrics import (
     table1,
     windows_of,
 )
-from rigctl.rigs.depm.motion import Timeline, approach_path, caps, path_violations
+from rigctl.rigs.depm.motion import (
+    JointPath,
+    Timeline,
+    approach_path,
+    caps,
+    joint_path,
+    path_violations,
+)
 from rigctl.rigs.depm.sensors import HALL_NAME, HallWatch, sensor_estimator
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
@@ -158,13 +173,31 @@ def _distance_to_span(q: np.ndarray, targets) -> np.ndarray:
 # -- the program ----------------------------------------------------------------------------------
 
 
+class _Correcting:
+    """A hold being corrected: its window, request (mT, mT/m), the plan's pose there, the move
+    under way, the samples since it settled, the steps made and the residuals measured."""
+
+    def __init__(self, window: int, requested: np.ndarray, plan_pose: np.ndarray, *,
+                 settle_until: float) -> None:
+        self.window = window
+        self.requested = np.asarray(requested, dtype=float)
+        self.plan_pose = plan_pose
+        self.settle_until = settle_until
+        self.move: JointPath | None = None
+        self.move_t = 0.0
+        self.buffer: list[np.ndarray] = []
+        self.steps = 0
+        self.residuals: list[float] = []
+
+
 class FieldSequenceProgram(RequestedControl):
     """A field-sequence plan streamed to the two arms' servo (see the module docstring).
     Construction refuses a plan this rig must not run (ConfigError, SafetyRefusal), with no I/O."""
 
     late = "skip"
 
-    def __init__(self, plan, rig: RigConfig, *, time_scale: float = 1.0) -> None:
+    def __init__(self, plan, rig: RigConfig, *, time_scale: float = 1.0,
+                 closed_loop: bool = True) -> None:
         if rig.rig.kind != "depm" or rig.depm is None:
             raise ConfigError(f"a field-sequence plan runs on a depm rig with a [depm] table; this "
                               f"rig is {rig.rig.kind!r}")
@@ -219,6 +252,16 @@ class FieldSequenceProgram(RequestedControl):
         self.suspended_s = 0.0
         self.approach_s = 0.0
         self.plan_time_reached_s = self.t_start_s
+        # the Hall correction (closed loop): per window, the joints' offset found at its hold
+        self.closed_loop = bool(closed_loop)
+        self._offsets = HoldOffsets(np.array([w.reached_s for w in self.windows]),
+                                    np.array([w.end_s for w in self.windows]),
+                                    np.array([a.model.lower_rad for a in self.arms]),
+                                    np.array([a.model.upper_rad for a in self.arms]))
+        self._scales = correction.kind_scales([w.U for w in self.windows])
+        self._correcting: _Correcting | None = None
+        self._corrected: set[int] = set()
+        self.corrections: list[dict] = []
 
     @property
     def aborted(self) -> bool:
@@ -271,6 +314,8 @@ class FieldSequenceProgram(RequestedControl):
             raise self.refused
         speed, accel = caps(self.arms, self.limits)
         self.timeline = Timeline(approach, self.curves, self.t_start_s, self.t_end_s, speed, accel)
+        if self.closed_loop:
+            self.timeline.correct = self._offsets.apply
         self.approach_s = approach.duration_s
         self._recent = [deque([q], maxlen=TRACKING_TARGETS + 1) for q in q_now]
         self._last_target = q_now.copy()
@@ -309,6 +354,15 @@ class FieldSequenceProgram(RequestedControl):
             self._ctx.record.event("plan_done", t_plan_s=self.plan_time_reached_s)
             return None
         hold = self.requests.pause_wanted or self.suspended is not None
+        if self._correcting is None and self.closed_loop and not hold and tl.held is None \
+                and tl.rejoin is None and not tl.in_approach:
+            self._start_correction(tl)
+        if self._correcting is not None:
+            self.paused = self.requests.pause_wanted
+            if not hold:
+                self._correct(tl, dt, samples, now)
+            target = (tl.held if tl.held is not None else tl.advance(0.0)).copy()
+            return self._step(k, target, samples, "paused" if self.paused else "hall correction")
         if hold and tl.held is None:
             now_pose = self.requests.immediate and self.requests.pause_wanted and measured is not None
             tl.hold(measured.reshape(len(self.arms), -1) if now_pose else self._last_target)
@@ -366,6 +420,77 @@ class FieldSequenceProgram(RequestedControl):
                     f"not catching up since t = {since:.2f} s (tolerance "
                     f"{self.settings.tracking_tolerance_deg:g} deg): a stalled or blocked joint; "
                     "run stopped", device=arm.name)
+
+    # -- the Hall correction ---------------------------------------------------------------------
+    def _start_correction(self, tl: Timeline) -> None:
+        """At a window's hold not yet corrected: stop the plan's clock, hold, start measuring."""
+        t = tl.plan_time_s
+        due = [i for i, w in enumerate(self.windows)
+               if i not in self._corrected and w.reached_s <= t < w.end_s]
+        if not due:
+            return
+        i = due[0]
+        self._corrected.add(i)
+        pose = tl.pose_at_clock()
+        tl.hold(pose)
+        plan_pose = np.array([curve(min(t, self.t_end_s)) for curve in self.curves])
+        self._correcting = _Correcting(i, self.windows[i].U, plan_pose, settle_until=time.monotonic()
+                                       + correction.SETTLE_S)
+        self._ctx.record.event("hall_correction", window=self.windows[i].name, t_plan_s=t)
+
+    def _correct(self, tl: Timeline, dt: float, samples: list, now: float) -> None:
+        c = self._correcting
+        assert c is not None and tl.held is not None and self._estimator is not None
+        if c.move is not None:
+            c.move_t += dt
+            tl.held = c.move.at(min(c.move_t, c.move.duration_s))
+            if c.move_t >= c.move.duration_s:
+                tl.held = c.move.q_to.copy()
+                c.move = None
+                c.settle_until = now + correction.SETTLE_S
+                c.buffer.clear()
+            return
+        for sample in samples:
+            if sample.received_s >= c.settle_until:
+                c.buffer.append(sample.field_T.reshape(-1) @ self._estimator.T * 1e3)
+        if len(c.buffer) < correction.SAMPLES:
+            return
+        measured, sem = correction.mean_and_sem(c.buffer)
+        c.buffer.clear()
+        significant = correction.significant_residual(c.requested, measured, sem)
+        residual = float(np.max(np.abs(significant) / self._scales))
+        c.residuals.append(float(np.max(np.abs(c.requested - measured) / self._scales)))
+        if residual <= correction.TARGET or c.steps >= correction.MAX_STEPS:
+            self._finish_correction(tl, "converged" if residual <= correction.TARGET else "steps")
+            return
+        q = tl.held.copy()
+        dq = correction.correction_step(self.arms, self.settings.epm_moment_Am2, q, c.requested,
+                                        c.requested - significant, self._scales)
+        speed, accel = caps(self.arms, self.limits)
+        move = joint_path(q, q + dq, speed, accel, one_at_a_time=False)
+        found = path_violations(move, self.arms, self.limits)
+        if found:
+            self._finish_correction(tl, f"a step would break a constraint: {found[0]}")
+            return
+        c.move, c.move_t = move, 0.0
+        c.steps += 1
+
+    def _finish_correction(self, tl: Timeline, why: str) -> None:
+        c = self._correcting
+        assert c is not None and tl.held is not None and self._ctx is not None
+        self._correcting = None
+        self._offsets.offsets[c.window] = tl.held - c.plan_pose
+        tl.held = self._offsets.apply(tl.plan_time_s, c.plan_pose)  # the same pose, clipped
+        found = self._offsets.blend_violations(c.window, self.curves, self.arms, self.limits)
+        if found:  # the blend out would break a constraint: back to the plan's path instead
+            del self._offsets.offsets[c.window]
+            why += f"; dropped: its blend would break {found[0]}"
+        entry = {"window": self.windows[c.window].name, "steps": c.steps, "why": why,
+                 "residual_pct": [round(100 * r, 3) for r in c.residuals],
+                 "max_dq_rad": round(float(np.max(np.abs(tl.held - c.plan_pose))), 5)}
+        self.corrections.append(entry)
+        self._ctx.record.event("hall_corrected", **entry)
+        tl.release()
 
     # -- the Hall board -------------------------------------------------------------------------
     def _poll_hall(self, now: float) -> list:
@@ -452,6 +577,7 @@ class FieldSequenceProgram(RequestedControl):
             "hall_outages": 0 if self._hall is None else self._hall.outages,
             "suspended_s": round(self.suspended_s, 3),
             "rejoins": 0 if self.timeline is None else self.timeline.rejoins,
+            "hall_correction": {"on": self.closed_loop, "holds": self.corrections},
         }
 
     def close(self) -> None:
@@ -462,11 +588,14 @@ class FieldSequenceProgram(RequestedControl):
 # -- the run --------------------------------------------------------------------------------------
 
 
-def FieldSequenceRun(plan, rig: RigConfig, *, time_scale: float = 1.0, **run_options) -> EngineRun:
+def FieldSequenceRun(plan, rig: RigConfig, *, time_scale: float = 1.0, closed_loop: bool = True,
+                     **run_options) -> EngineRun:
     """The run of a field-sequence plan on a dual-EPM rig (the one engine with this program);
-    `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refuses (ConfigError, SafetyRefusal) before anything is opened."""
-    return EngineRun(FieldSequenceProgram(plan, rig, time_scale=time_scale), rig, ArmPair.connect,
-                     **run_options)
+    `closed_loop` corrects each hold on the Hall board's U (`correction`); `run_options` are the
+    engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refuses (ConfigError,
+    SafetyRefusal) before anything is opened."""
+    return EngineRun(FieldSequenceProgram(plan, rig, time_scale=time_scale, closed_loop=closed_loop),
+                     rig, ArmPair.connect, **run_options)
 
 
 # -- what a person reads --------------------------------------------------------------------------
