@@ -205,21 +205,29 @@ class RollingIdentifier:
         return np.array([e.updates for e in self.estimates])
 
     SERIES_UNITS: ClassVar[dict[str, str]] = {
-        "gain": "1", "gain_std": "1", "heading_deg": "deg", "heading_std_deg": "deg",
-        "drift_x_mm_s": "mm/s", "drift_y_mm_s": "mm/s", "moves_used": "1"}
+        "gain": "1", "gain_std": "1", "heading_deg": "deg", "heading_deg_std": "deg",
+        "drift_x_mm_s": "mm/s", "drift_y_mm_s": "mm/s", "moves_used": "count"}
 
     def series_columns(self) -> list[str]:
-        """Columns of the record's `identification` series: time, then per agent i the
-        parameters with an `_i` suffix."""
-        return ["t_s"] + [f"{name}_{i}" for i in range(self.n) for name in self.SERIES_UNITS]
+        """Columns of the record's `identification` series: `t_s`, then per agent i and
+        parameter P the column `P_i`, and `P_i_std` for its standard deviation where known."""
+        columns = ["t_s"]
+        for i in range(self.n):
+            for name in self.SERIES_UNITS:
+                columns.append(f"{name[:-4]}_{i}_std" if name.endswith("_std") else f"{name}_{i}")
+        return columns
 
     def series_units(self) -> dict[str, str]:
-        units = {"t_s": "s"}
-        units.update({f"{name}_{i}": unit for i in range(self.n)
-                      for name, unit in self.SERIES_UNITS.items()})
+        units = dict.fromkeys(self.series_columns(), "")
+        units["t_s"] = "s"
+        for i in range(self.n):
+            for name, unit in self.SERIES_UNITS.items():
+                key = f"{name[:-4]}_{i}_std" if name.endswith("_std") else f"{name}_{i}"
+                units[key] = unit
         return units
 
     def series_row(self, t_s: float) -> list[float]:
+        """One row of the series at run time t_s (s)."""
         gain_std, heading_std = self._polar_std()
         row = [t_s]
         for i, g, th, d in zip(range(self.n), self.gains, self.headings_rad, self.drift_mm_s):

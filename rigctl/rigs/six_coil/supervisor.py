@@ -52,6 +52,7 @@ from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, PlanError, RigError
 from rigctl.identify import RollingIdentifier
 from rigctl.plans.checks import plan_model
+from rigctl.plans.correction import correct_by_contact
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.rrt import RrtOptions, plan_rrt, replay
 from rigctl.plans.schema import GlobalMovesPlan, dump_plan, parse_plan
@@ -247,9 +248,9 @@ class Supervisor:
         first = self.tracking.start(acquire_timeout_s=max(5.0, 2 * self.rig.camera.timeout_s))
         self._measured_at[0] = first.positions_mm
         self._time_at[0] = first.t_source
-        self._t0 = first.t_source
+        self._t0 = record.t0 if record is not None else first.t_source  # the run's clock
         if self._series is not None:
-            self._series.row(self.identifier.series_row(0.0))
+            self._series.row(self.identifier.series_row(first.t_source - self._t0))
         self._event("tracking", frame=first.frame, positions=first.positions_mm.round(3).tolist())
         self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
         self._thread.start()
@@ -534,16 +535,29 @@ def replan_worker(plan_text: str, base_dir: str, start: np.ndarray, goals: np.nd
     than _SHORTEST_MOVE_MM are dropped (the states replayed without them)."""
     plan = parse_plan(json.loads(plan_text), "re-plan", base_dir=base_dir)
     model = plan_model(plan).with_response(gains, headings_rad)
-    options = RrtOptions(robostep_mm=robostep_mm, k=16, tolerance_mm=tolerance_mm, greedy=True,
-                         final_approach=True, goal_bias=0.05, max_nodes=20_000, nn_eps=0.5)
-    result = plan_rrt(model, start, goals, options=options, rng=np.random.default_rng(seed),
-                      time_budget_s=budget_s)
-    moves = result.moves[np.hypot(*result.moves.T) >= _SHORTEST_MOVE_MM] if len(result.moves) \
-        else result.moves
+    began = time.perf_counter()
+    # First the contact correction (push against a wall, then translate: a second or less);
+    # the RRT only when that does not reach the tolerance, and the better of the two is used.
+    correction = correct_by_contact(model, start, goals)
+    improves = correction.distance < float(np.linalg.norm(start - goals))
+    moves, nodes = (correction.moves if improves else np.zeros((0, 2))), 0
+    if correction.distance > tolerance_mm:
+        options = RrtOptions(robostep_mm=robostep_mm, k=16, tolerance_mm=tolerance_mm,
+                             greedy=True, final_approach=True, goal_bias=0.05, max_nodes=20_000,
+                             nn_eps=0.5)
+        result = plan_rrt(model, start, goals, options=options, rng=np.random.default_rng(seed),
+                          time_budget_s=budget_s)
+        nodes = result.nodes
+        if len(result.moves):
+            tree_end = replay(model, start, result.moves)[-1]
+            if float(np.linalg.norm(tree_end - goals)) < correction.distance:
+                moves = result.moves
+    moves = moves[np.hypot(*moves.T) >= _SHORTEST_MOVE_MM] if len(moves) else moves
     states = replay(model, start, moves)
     end = states[-1] if len(states) else start
     distance = float(np.linalg.norm(end - goals))
-    return Replanned(moves, states, distance, distance <= tolerance_mm, result.nodes, result.seconds)
+    return Replanned(moves, states, distance, distance <= tolerance_mm, nodes,
+                     time.perf_counter() - began)
 
 
 class ReplanWorker:
