@@ -12,9 +12,7 @@ linearly, y = H x + e (e ~ N(0, sigma^2 I)), updated move by move with the Kalma
   (`RollingIdentifier`, one estimate per agent);
 - the coil board (seed 004): the particles' relative position grows under a translation by the
   field's non-uniformity, linear in (k_along, k_across) after a log-mean linearisation
-  (`rigctl.rigs.coil_board.run.RelativeDrift` refits a `LinearEstimate` from every free move);
-- a pair (seed 002): the pull moves the pair's centre by y = k p dt along the pull's direction,
-  one gain k (`PullGainIdentifier`).
+  (`rigctl.rigs.coil_board.run.RelativeDrift` refits a `LinearEstimate` from every free move).
 
 A move a measurement shows to be off the estimate by more than `gate_sigma` standard deviations
 (an agent that met a wall, a mis-tracked frame) is left out rather than allowed to bend the
@@ -246,28 +244,3 @@ class RollingIdentifier:
             "drift_mm_s": np.round(self.drift_mm_s, 5).tolist(),
             "moves_used": self.updates.tolist(),
         }
-
-
-class PullGainIdentifier:
-    """A pair's pull gain k: the measured speed of the pair's centre along the pull is k times the
-    commanded pull (BL/s), from the camera's frames while the controller pulls."""
-
-    def __init__(self, prior_gain: float = 1.0, gain_std: float = 0.5,
-                 noise_bl: float = 0.02, walk_std: float = 0.01) -> None:
-        self.estimate = LinearEstimate(["k"], [prior_gain], [gain_std], [walk_std])
-        self.noise_bl = float(noise_bl)
-
-    def observe(self, commanded_pull_bl: float, moved_bl: float) -> bool:
-        """One interval: commanded pull times its duration (BL), and how far (BL) the pair's centre
-        moved along the pull meanwhile."""
-        if abs(commanded_pull_bl) <= 1e-9:
-            return False
-        return self.estimate.update([[commanded_pull_bl]], [moved_bl], self.noise_bl)
-
-    @property
-    def gain(self) -> float:
-        return float(self.estimate.mean[0])
-
-    @property
-    def gain_std(self) -> float:
-        return float(self.estimate.std[0])

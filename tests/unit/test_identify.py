@@ -9,7 +9,7 @@ import pytest
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.workspace import ShapeWorkspace
 
-from rigctl.identify import LinearEstimate, PullGainIdentifier, RollingIdentifier
+from rigctl.identify import LinearEstimate, RollingIdentifier
 
 BOX = ShapeWorkspace(("rect", (0.0, 0.0, 400.0, 400.0)))
 
@@ -80,16 +80,6 @@ def test_an_agent_never_seen_free_plans_with_the_others_mean():
     assert ident.gains[1] == 1.0  # its own estimate is still the prior
 
 
-def test_pull_gain_from_the_pairs_motion():
-    ident = PullGainIdentifier()
-    rng = np.random.default_rng(2)
-    for _ in range(20):
-        pull = float(rng.uniform(0.1, 0.5))
-        ident.observe(pull, 0.7 * pull + rng.normal(0.0, 0.01))
-    assert ident.gain == pytest.approx(0.7, abs=0.03)
-    assert ident.gain_std < 0.05
-
-
 # -- the model with per-agent responses -------------------------------------------------------------
 
 def test_default_response_is_the_shared_model_bit_for_bit():
@@ -139,3 +129,43 @@ def test_bad_per_agent_parameters_are_refused():
         GlobalInputModel(BOX, [5.0, 5.0], gains=[1.0])
     with pytest.raises(PlanError, match="gains must be > 0"):
         GlobalInputModel(BOX, [5.0, 5.0], gains=[1.0, -0.2])
+
+
+# -- contact corrections ----------------------------------------------------------------------------
+
+def test_a_contact_correction_fixes_a_relative_error_no_translation_can():
+    """Two robots in a 400 mm box, the right one 1.2 mm too far right of the left one: no shared
+    translation can fix that (the best, none, leaves 0.6 mm each). Pushing +x until the right
+    robot rests on the wall at x = 392 and 1.2 mm further brings the left one 1.2 mm closer; the
+    translation back then lands both. Checked by replaying the moves through the model."""
+    from rigctl.plans.correction import correct_by_contact
+
+    model = GlobalInputModel(BOX, [8.0, 8.0])
+    goals = np.array([[300.0, 200.0], [200.0, 200.0]])
+    start = goals + [[0.6, 0.0], [-0.6, 0.0]]
+    best_translation = np.linalg.norm(start + (goals - start).mean(axis=0) - goals)
+    assert best_translation == pytest.approx(0.6 * math.sqrt(2), abs=1e-9)
+    correction = correct_by_contact(model, start, goals)
+    assert correction.distance < 0.05
+    replayed = model.rollout(start, correction.moves)[-1]
+    np.testing.assert_allclose(replayed, correction.states[-1])
+    assert np.linalg.norm(replayed - goals) < 0.05
+    # it used a wall: some move pushed a robot into contact (x = 400 - 8 or x = 8)
+    xs = np.concatenate([start[None], model.rollout(start, correction.moves)])[..., 0]
+    assert np.isclose(xs, 392.0, atol=1e-6).any() or np.isclose(xs, 8.0, atol=1e-6).any()
+
+
+def test_a_contact_correction_uses_the_identified_gains():
+    """With gains 0.8 and 0.9, robots a commanded (25, -12) mm and a 0.5 mm relative error from
+    their goals: the correction planned on the identified model lands (replayed through it);
+    planned on the shared model it misses by about |0.05 (25, -12)| = 1.4 mm per robot."""
+    from rigctl.plans.correction import correct_by_contact
+
+    gains = np.array([0.8, 0.9])
+    identified = GlobalInputModel(BOX, [8.0, 8.0], gains=gains)
+    goals = np.array([[340.0, 150.0], [150.0, 260.0]])  # the right one 72 mm from a wall
+    start = goals - gains[:, None] * [25.0, -12.0] + [[0.5, 0.0], [0.0, 0.0]]
+    correction = correct_by_contact(identified, start, goals)
+    assert np.linalg.norm(identified.rollout(start, correction.moves)[-1] - goals) < 0.05
+    naive = correct_by_contact(GlobalInputModel(BOX, [8.0, 8.0]), start, goals)
+    assert np.linalg.norm(identified.rollout(start, naive.moves)[-1] - goals) > 1.5
