@@ -24,9 +24,10 @@ Each robot's own response is identified from what the camera saw (`rigctl.identi
 move, the robots whose measured path touched no wall and no other robot update their rolling gain,
 heading bias and drift (a Kalman filter per robot, with its uncertainty). Re-plans run the RRT on
 the global-input model with those per-robot responses, so the moves it chooses are the commanded
-ones and the states it expects are where each robot will really go; relative errors, which no
-shared translation can fix, are fixed by the wall contacts the planner finds in that model. A rig
-that slips 15 % with robots 10 % apart is thus corrected in a re-plan or two. The estimates go to
+ones and the states it expects are where each robot will really go. Relative errors, which no
+shared translation can fix, are fixed with a wall: a contact correction (`rigctl.plans.correction`:
+push along an axis until a robot rests on a wall, then the translation that fits best) is tried
+first, the RRT (which finds longer wall manoeuvres) when that does not reach the tolerance. The estimates go to
 the record's `identification` series after every move. Every decision is a run-record event:
 `check`, `identify`, `replan`, `suspend`, `resume`, `give_up`.
 """
@@ -204,7 +205,6 @@ class Supervisor:
         self.sequencer = SupervisedSequencer(currents, ends, ramp_samples)
         expected = np.array(plan.expected, dtype=float).reshape(-1, len(starts), 2)
         self._expected = {e: expected[i] for i, e in enumerate(ends)}
-        self._previous = {e: (expected[i - 1] if i else starts) for i, e in enumerate(ends)}
         self._fields = program.field_T.copy()
         # fractional turns for corrections (the paper's whole turns stay for the plan itself)
         self._fractional_rig = rig.model_copy(
@@ -405,12 +405,9 @@ class Supervisor:
         ends = [program.move_end_index(i) for i in range(program.n_moves)]
         begin = self.sequencer.splice(currents, ends, number)
         self._fields = np.concatenate([self._fields[:begin], program.field_T])
-        previous = start
         for i, e in enumerate(ends):
             self._commanded_at[begin + e] = commanded[i]
             self._expected[begin + e] = result.states[i]
-            self._previous[begin + e] = previous
-            previous = result.states[i]
         self._measured_at[begin] = measured
         self._time_at[begin] = self._time_at.get(sample, time.monotonic())
         self._event("replan", sample=sample, reason="end of program" if last else "off the plan",
