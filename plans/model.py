@@ -78,6 +78,13 @@ class GlobalInputModel:
     radii: (n,) mm. contact: "slide" or "non-slip". min_separation_mm: extra gap kept between agents.
     substep_mm: the longest piece of input between agent-agent checks and between wall look-ups
     while sliding (default: a quarter of the smallest radius).
+
+    gains (n,), headings_rad (n,): each agent's own response to the shared input, identified from
+    tracking (`rigctl.identify`): a move u takes agent i by gains[i] R(headings_rad[i]) u. None
+    (the default), or all ones and zeros, is the shared displacement, computed exactly as without
+    them. With them, every agent moves by its own displacement against the walls, and the agents
+    meet one another in pieces of `substep_mm` while they are close enough to (the emulated
+    world's rule: the one that moved towards the other gives way).
     """
 
     def __init__(
@@ -87,6 +94,8 @@ class GlobalInputModel:
         contact: Contact = "slide",
         min_separation_mm: float = 0.0,
         substep_mm: float | None = None,
+        gains: ArrayLike | None = None,
+        headings_rad: ArrayLike | None = None,
     ) -> None:
         self.workspace = workspace
         self.radii = np.asarray(radii, dtype=float).reshape(-1)
@@ -106,6 +115,47 @@ class GlobalInputModel:
         self._pairs = list(zip(first.tolist(), second.tolist()))
         self._pair_first, self._pair_second = first, second
         self._reach = self.radii[first] + self.radii[second] + self.min_separation_mm
+        self.gains = self._per_agent(gains, 1.0, "gains")
+        self.headings_rad = self._per_agent(headings_rad, 0.0, "headings_rad")
+        if np.any(self.gains <= 0):
+            raise PlanError(f"gains must be > 0, got {self.gains.tolist()}")
+        shared = np.all(self.gains == 1.0) and np.all(self.headings_rad == 0.0)
+        c, s = np.cos(self.headings_rad), np.sin(self.headings_rad)
+        # (n, 2, 2): agent i moves by response[i] @ u; None: the shared displacement
+        self._single: list[GlobalInputModel] | None = None  # one-agent models, made when needed
+        self._response = None if shared else self.gains[:, None, None] * np.stack(
+            [np.stack([c, -s], axis=1), np.stack([s, c], axis=1)], axis=1)
+
+    def _per_agent(self, values: ArrayLike | None, default: float, name: str) -> np.ndarray:
+        if values is None:
+            return np.full(self.n, default)
+        out = np.asarray(values, dtype=float).reshape(-1)
+        if out.shape != (self.n,) or not np.all(np.isfinite(out)):
+            raise PlanError(f"{name}: one finite value per agent ({self.n}), got {out.tolist()}")
+        return out
+
+    def with_response(self, gains: ArrayLike | None, headings_rad: ArrayLike | None
+                      ) -> GlobalInputModel:
+        """The same model with these per-agent responses (None: the shared displacement)."""
+        return GlobalInputModel(self.workspace, self.radii, self.contact, self.min_separation_mm,
+                                self.substep_mm, gains=gains, headings_rad=headings_rad)
+
+    def free_displacement(self, moves: ArrayLike) -> np.ndarray:
+        """Each agent's displacement (..., n, 2) mm under moves (..., 2) mm where nothing is in
+        its way: the move itself, or its own response's image of it."""
+        moves = np.asarray(moves, dtype=float)
+        if self._response is None:
+            return np.broadcast_to(moves[..., None, :], moves.shape[:-1] + (self.n, 2))
+        return np.einsum("nij,...j->...ni", self._response, moves)
+
+    def fit_translation(self, residual: ArrayLike) -> np.ndarray:
+        """The move (..., 2) mm whose free displacements best fit residual (..., n, 2) mm (least
+        squares): the mean residual, or sum_i A_i^T e_i / sum_i g_i^2 with responses A_i."""
+        residual = np.asarray(residual, dtype=float)
+        if self._response is None:
+            return residual.mean(axis=-2)
+        back = np.einsum("nji,...nj->...i", self._response, residual)  # sum_i A_i^T e_i
+        return back / float(np.sum(self.gains ** 2))
 
     # Public API
 
@@ -121,6 +171,10 @@ class GlobalInputModel:
         if moves.shape[-1:] != (2,):
             raise PlanError(f"moves must be (..., 2), got {moves.shape}")
         batch = np.broadcast_shapes(positions.shape[:-2], moves.shape[:-1])
+        if self._response is not None:
+            flat_p = np.broadcast_to(positions, batch + (self.n, 2)).reshape(-1, self.n, 2).copy()
+            flat_d = np.broadcast_to(moves, batch + (2,)).reshape(-1, 2)
+            return self._apply_per_agent(flat_p, flat_d).reshape(batch + (self.n, 2))
         configs = int(np.prod(positions.shape[:-2]))
         if configs < int(np.prod(batch)):
             return self._apply_shared(positions, moves, batch)
@@ -177,6 +231,78 @@ class GlobalInputModel:
         return fits
 
     # Whole moves
+
+    def _apply_per_agent(self, p: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """p (B, n, 2) mm moved in place by the shared input d (B, 2) mm, each agent by its own
+        response. The input is applied in pieces: a piece in which no agent can reach a wall
+        (clearance lower bound) and no two can meet (their gap closes at |D_i - D_j| then) is a
+        translation of each agent by its own displacement D_i; otherwise each agent meets the
+        walls alone (a one-agent model, exact) over a piece short enough that no two agents can
+        meet in it (their gap closes at most at |D_i| + |D_j|; `substep_mm` at the least), and
+        an agent that would still overlap another keeps its place before the piece."""
+        own = np.einsum("nij,bj->bni", self._response, d)  # (B, n, 2) per unit of input
+        size = np.hypot(own[..., 0], own[..., 1])  # (B, n)
+        longest = size.max(axis=1)
+        left = np.where(longest > 0, 1.0, 0.0)  # fraction of the input still to apply
+        if self._single is None:
+            self._single = [GlobalInputModel(self.workspace, [r], self.contact,
+                                             substep_mm=self.substep_mm) for r in self.radii]
+        first, second = self._pair_first, self._pair_second
+        with np.errstate(divide="ignore", invalid="ignore"):
+            relative = np.hypot(*(own[:, second] - own[:, first]).transpose(2, 0, 1))  # (B, pairs)
+            together = size[:, first] + size[:, second]
+        while True:
+            rows = np.flatnonzero(left > 0)
+            if rows.size == 0:
+                return p
+            before = p[rows]
+            room = self.workspace.clearance_lower_bound(before) - self.radii  # (R, n)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                to_wall = np.min(np.where(size[rows] > 0, room / size[rows], np.inf), axis=1)
+                if self.n > 1:
+                    gap = before[:, second] - before[:, first]
+                    slack = np.hypot(gap[..., 0], gap[..., 1]) - self._reach
+                    free_pairs = np.min(np.where(relative[rows] > 0,
+                                                 0.5 * slack / relative[rows], np.inf), axis=1)
+                    walled_pairs = np.min(np.where(together[rows] > 0,
+                                                   0.5 * slack / together[rows], np.inf), axis=1)
+                else:
+                    free_pairs = walled_pairs = np.full(rows.size, np.inf)
+            free = np.minimum(to_wall - _CONTACT_TOL, free_pairs)
+            walled = np.maximum(self.substep_mm / longest[rows], walled_pairs)
+            translate = free >= np.minimum(left[rows], walled)
+            step = np.minimum(left[rows], np.where(translate, free, walled))
+            piece = own[rows] * step[:, None, None]
+            moved = before + piece
+            hard = np.flatnonzero(~translate)
+            if hard.size:
+                for i, single in enumerate(self._single):
+                    moved[hard, i] = single._apply_flat(before[hard, i:i + 1].copy(),
+                                                        piece[hard, i])[:, 0]
+                if self.n > 1:
+                    moved[hard] = self._give_way(moved[hard], before[hard], piece[hard])
+            p[rows] = moved
+            left[rows] = np.where(step >= left[rows], 0.0, left[rows] - step)
+
+    def _give_way(self, moved: np.ndarray, before: np.ndarray, piece: np.ndarray) -> np.ndarray:
+        """moved, changed in place and returned: where two agents of moved (B, n, 2) overlap, the one whose own piece
+        (B, n, 2) pointed more towards the other goes back to `before`."""
+        for _ in range(self.n):
+            overlapping = False
+            for (i, j), reach in zip(self._pairs, self._reach):
+                gap = moved[:, j] - moved[:, i]
+                rows = np.flatnonzero(np.hypot(gap[:, 0], gap[:, 1]) < reach - _CONTACT_TOL)
+                if rows.size == 0:
+                    continue
+                overlapping = True
+                towards = before[rows, j] - before[rows, i]
+                i_gives = np.sum(piece[rows, i] * towards, axis=1) >= np.sum(
+                    piece[rows, j] * -towards, axis=1)
+                moved[rows[i_gives], i] = before[rows[i_gives], i]
+                moved[rows[~i_gives], j] = before[rows[~i_gives], j]
+            if not overlapping:
+                break
+        return moved
 
     def _apply_flat(
         self, p: np.ndarray, d: np.ndarray, shared: "_SharedLookup | None" = None

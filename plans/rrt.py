@@ -70,6 +70,13 @@ class GlobalInputPropagator(Protocol):
     def apply(self, positions: np.ndarray, moves: np.ndarray) -> np.ndarray:
         """positions (..., n, 2) mm and moves (..., 2) mm, broadcast -> positions (..., n, 2)."""
 
+    def free_displacement(self, moves: np.ndarray) -> np.ndarray:
+        """Each robot's displacement (..., n, 2) under moves (..., 2) with nothing in the way
+        (the move itself unless the robots have their own identified responses)."""
+
+    def fit_translation(self, residual: np.ndarray) -> np.ndarray:
+        """The move (..., 2) whose free displacements best fit residual (..., n, 2)."""
+
 
 @dataclass(frozen=True)
 class RrtOptions:
@@ -584,7 +591,7 @@ class _GoalSearch:
     def _approach(self, indices: np.ndarray, states: np.ndarray, improved: bool) -> None:
         """The work beyond Alg. 1 for a batch of new nodes (see the class docstring)."""
         if self.options.final_approach:
-            offsets = offset_error(states, self.goal)
+            offsets = offset_error(states, self.goal, self.model)
             closest = int(np.argmin(offsets))
             probe = (
                 self.best_distance < 3.0 * self.options.robostep_mm
@@ -633,7 +640,7 @@ class _GoalSearch:
         the workspace's clearance along every robot's segment; the first clear one is applied
         with the model and added to the tree. Returns the indices of the nodes added.
         """
-        offsets = offset_error(states, self.goal)
+        offsets = offset_error(states, self.goal, self.model)
         promising = np.flatnonzero(
             offsets < min(self.best_distance, self.translated_offset - _OFFSET_GAIN_MM)
         )
@@ -643,7 +650,7 @@ class _GoalSearch:
         promising = promising[order[:_TRANSLATIONS_PER_BATCH]]
         states, indices = states[promising], indices[promising]
         m = len(states)
-        fitted = (self.goal - states).mean(axis=1)  # (m, 2)
+        fitted = self.model.fit_translation(self.goal - states)  # (m, 2)
         legs_x = self.options.legal_moves(fitted * [1.0, 0.0])
         legs_y = self.options.legal_moves(fitted * [0.0, 1.0])
         straight = self.options.legal_moves(fitted)
@@ -690,11 +697,12 @@ def _path_clear(model: GlobalInputPropagator, starts: np.ndarray, moves: np.ndar
     is a free move; only the model's answer is ever added to the tree, so a miss costs one call.
     """
     radii = np.asarray(model.radii, dtype=float)
-    length = np.hypot(moves[:, 0], moves[:, 1])
+    each = model.free_displacement(moves)  # (m, n, 2): robots with their own response differ
+    length = np.hypot(each[..., 0], each[..., 1]).max(axis=1, initial=0.0)
     delta = 0.5 * float(radii.min())
     samples = int(np.ceil(length.max() / delta)) + 1 if len(moves) else 1
     fractions = np.linspace(0.0, 1.0, samples)
-    points = starts[:, None] + fractions[None, :, None, None] * moves[:, None, None, :]
+    points = starts[:, None] + fractions[None, :, None, None] * each[:, None, :, :]
     room = model.workspace.clearance(points) - radii  # (m, samples, n)
     needed = 0.5 * length / max(samples - 1, 1) + 1e-6
     clear = room >= needed[:, None, None]
@@ -711,15 +719,20 @@ def _sample_configurations(
     )
 
 
-def offset_error(states: np.ndarray, goal: np.ndarray) -> np.ndarray:
+def offset_error(states: np.ndarray, goal: np.ndarray,
+                 model: GlobalInputPropagator | None = None) -> np.ndarray:
     """Distance (mm) to the goal left after the best common translation, for states (..., n, 2).
 
     All robots move alike in free space, so a configuration whose robots sit at the goal's
     relative offsets is one unobstructed translation away from the goal; this is what remains
-    when that translation is done: sqrt(sum_i |(g_i - x_i) - mean_j (g_j - x_j)|^2).
+    when that translation is done: sqrt(sum_i |(g_i - x_i) - mean_j (g_j - x_j)|^2). With the
+    `model`'s own per-robot responses the translation is the one that fits them best.
     """
     residual = goal - states
-    residual = residual - residual.mean(axis=-2, keepdims=True)
+    if model is None:
+        residual = residual - residual.mean(axis=-2, keepdims=True)
+    else:
+        residual = residual - model.free_displacement(model.fit_translation(residual))
     return np.sqrt((residual**2).sum(axis=(-1, -2)))
 
 
@@ -770,7 +783,7 @@ def _descend(
     """
     moves = options.approach_moves(objective)
     state = tree.nodes[node].copy()
-    score = _score(state[None], goal, objective)[0]
+    score = _score(state[None], goal, objective, model)[0]
     added: list[int] = []
     parent = node
     for _ in range(1000):
@@ -780,13 +793,13 @@ def _descend(
             break
         step_moves = moves
         if options.final_approach and objective == "distance":
-            fitted = (goal - state).mean(axis=0)
+            fitted = model.fit_translation(goal - state)
             legs = [options.legal_move(m) for m in (fitted, fitted * [1, 0], fitted * [0, 1])]
             legs = [m for m in legs if m is not None]
             if legs:
                 step_moves = np.concatenate([moves, np.array(legs)])
         candidates = model.apply(state[None], step_moves)  # (m, n, 2)
-        scores = _score(candidates, goal, objective)
+        scores = _score(candidates, goal, objective, model)
         choice = int(np.argmin(scores))
         if not scores[choice] < score - 1e-9:
             break
@@ -797,9 +810,10 @@ def _descend(
     return np.asarray(added, dtype=np.int64)
 
 
-def _score(states: np.ndarray, goal: np.ndarray, objective: str) -> np.ndarray:
+def _score(states: np.ndarray, goal: np.ndarray, objective: str,
+           model: GlobalInputPropagator) -> np.ndarray:
     if objective == "offset":
-        return offset_error(states, goal)
+        return offset_error(states, goal, model)
     return np.sqrt(((states - goal) ** 2).sum(axis=(-1, -2)))
 
 

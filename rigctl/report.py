@@ -15,7 +15,10 @@ said in a line of text at the bottom, never shown as an empty panel):
 - **field and gradients** (dual-EPM rig): the Hall board's estimate of U (the `field` series;
   old records: `field.csv`) against the requests of the plan's segments (dashed steps), fields in
   one panel and gradients in another, each hold shaded and named;
-- **stream timing**: each cycle's period error, when the record has it.
+- **stream timing**: each cycle's period error, when the record has it;
+- **identified model** (camera rigs): the closed loop's estimates over time (the `identification`
+  series, `rigctl.identify`), one panel per unit (a rolling gain, a heading bias, a drift, the
+  coil board's non-uniformity rates), each estimate with its +-1 standard deviation shaded.
 
 Faults and e-stops (red) and re-plans (purple) are marked on every time axis. The title names the
 run (its start time and plan) and states the verdict. The dual-EPM rig's panels run on the plan's
@@ -556,6 +559,53 @@ def _period_panel(data: RunData, clock: str) -> list[TimePanel]:
     return [TimePanel("period", axis_clock, draw)]
 
 
+IDENTIFIED_LABELS = {"1": "gain (rolled / commanded)", "deg": "heading bias (deg)",
+                     "mm/s": "drift (mm/s)", "1/mm": "rate (1/mm)"}
+
+
+def _identification_panels(data: RunData, clock: str) -> list[TimePanel]:
+    """The `identification` series: per unit, every estimate (column P, or P_i for agent i) over
+    run time with P_std shaded once `moves_used_i` says a move was used (before that it is the
+    prior, drawn thin); counters (unit "count") and std columns are not drawn as lines."""
+    series = read_series(data.run_dir, "identification")
+    if series is None or len(series.get("t_s", ())) == 0:
+        return []
+    units = series["units"]
+    t_axis, axis_clock = _on_clock(data, series["t_s"], RUN_CLOCK, clock)
+    by_unit: dict[str, list[str]] = {}
+    for column, unit in units.items():
+        if column != "t_s" and unit != "count" and not column.endswith("_std"):
+            by_unit.setdefault(unit, []).append(column)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    panels = []
+    for unit, columns in by_unit.items():
+        def draw(ax, columns=columns, unit=unit):
+            for j, column in enumerate(columns):
+                colour = colours[j % len(colours)]
+                name, _, agent = column.rpartition("_")
+                label = f"{name.replace('_', ' ')}, agent {agent}" if agent.isdigit() else \
+                    column.replace("_", " ")
+                used = series.get(f"moves_used_{agent}", series.get("moves_used"))
+                known = np.ones(len(t_axis), bool) if used is None else used > 0
+                value = series[column]
+                ax.step(t_axis, np.where(known, value, np.nan), where="post", color=colour,
+                        linewidth=1.4, label=label, gid=f"identified {column}")
+                ax.step(t_axis, np.where(known, np.nan, value), where="post", color=colour,
+                        linewidth=0.7, linestyle=":", gid=f"prior {column}")
+                std = series.get(f"{column}_std")
+                if std is not None:
+                    ax.fill_between(t_axis, value - std, value + std, where=known, step="post",
+                                    color=colour, alpha=0.25, linewidth=0)
+            ax.set_ylabel(IDENTIFIED_LABELS.get(unit, unit), fontsize=8)
+            ax.set_title("identified from tracking: estimate (dotted: prior, no move used yet), "
+                         "+-1 std shaded", fontsize=9)
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.02),
+                      borderaxespad=0.2, handlelength=1.5, frameon=False)
+
+        panels.append(TimePanel(f"identified:{unit}", axis_clock, draw))
+    return panels
+
+
 def _on_clock(data: RunData, t: np.ndarray, clock: str, wanted: str) -> tuple[np.ndarray, str]:
     """Times `t` on `clock` moved to the `wanted` clock where the record says how; else as they
     are (the panel then says which clock its axis is)."""
@@ -662,7 +712,7 @@ def build_figure(run_dir: str | Path) -> Figure:
     paths = _agent_paths(data.plan, data.events, data.summary) if data.plan else []
     left: list[TimePanel] = _field_panels(data)
     right: list[TimePanel] = (_actuator_panels(data, clock) + _winding_panels(data, clock)
-                              + _period_panel(data, clock))
+                              + _period_panel(data, clock) + _identification_panels(data, clock))
     notes = _missing(data, paths, is_field_run)
     if not paths and not left:  # one column of time panels
         left, right = right, []

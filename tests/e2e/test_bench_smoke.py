@@ -16,7 +16,7 @@ QUICK = {
     "stream.py": ["--seconds", "0.5", "--rates", "100"],
     "rrt.py": ["--quick"],
     "tracker.py": ["--seconds", "0.5", "--closed-loop-runs", "0"],
-    "closed_loop.py": ["--runs", "1"],
+    "closed_loop.py": ["--runs", "1", "--random-goals", "--plan-seconds", "2"],
     "daemon.py": ["--seconds", "0.3"],
     "coilboard_link.py": ["--round-trips", "50", "--seconds", "0.5", "--trials", "1"],
     "coilboard.py": ["--pairs", "2", "--runs", "1"],

@@ -43,12 +43,13 @@ import time
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TextIO
+from typing import ClassVar, TextIO
 
 import numpy as np
 
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, DeviceTimeout, PlanError
+from rigctl.identify import LinearEstimate
 from rigctl.plans.checks import check_plan, plan_workspace
 from rigctl.plans.schema import GlobalMovesPlan
 from rigctl.plans.wall_contact import (
@@ -167,17 +168,24 @@ class RelativeDrift:
     with both rates scaled by D / (D - s), s the travel's mean offset towards the active coil
     (D = 1 / k_across: a coil's pull converges on its centre). Two coils driven together (a
     diagonal move) thus spread both gaps by k_along - k_across, not as one coil along the
-    diagonal. k_along and k_across are fitted (least squares on the log-mean gaps, pulled
-    towards the uniform model k = 0 by `prior_weight`) from every move in which both particles
-    moved freely, and used to aim Alg. 1's relative position so that the last translation lands
-    on the goals.
+    diagonal. k_along and k_across are identified (`rigctl.identify.LinearEstimate`: the
+    Gaussian posterior of the log-mean gaps' linear model, with the uniform model k = 0 as its
+    prior, of weight `prior_weight`; re-linearised from every sample, since the scales depend on
+    k_across) from every move in which both particles moved freely, with their uncertainty
+    (`std`), and used to aim Alg. 1's relative position so that the last translation lands on
+    the goals.
     """
+
+    SERIES_UNITS: ClassVar[dict[str, str]] = {
+        "k_along": "1/mm", "k_along_std": "1/mm", "k_across": "1/mm", "k_across_std": "1/mm",
+        "moves_used": "count"}
 
     def __init__(self, prior_weight: float = 0.05, k_max: float = 0.05) -> None:
         self.k_max = k_max
         self.prior_weight = prior_weight
         self.samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.k = np.zeros(2)  # (k_along, k_across) in 1/mm
+        self.std = np.full(2, np.nan)  # their standard deviations (1/mm); unknown before a move
 
     def _scales(self, middle: np.ndarray, travel: np.ndarray) -> np.ndarray:
         """(2,) factors D / (D - s) of the x and y coils that make `travel` from `middle`."""
@@ -208,11 +216,19 @@ class RelativeDrift:
                     values.append(a - b)
             a_mat, b_vec = np.array(rows), np.array(values)
             scale = self.prior_weight * max(1.0, float(np.abs(a_mat).max()))
-            a_mat = np.vstack([a_mat, scale * np.eye(2)])
-            b_vec = np.concatenate([b_vec, np.zeros(2)])
+            # the prior k ~ N(0, 1 / scale^2) for gaps measured to 1 mm: ridge least squares
+            estimate = LinearEstimate(["k_along", "k_across"], [0.0, 0.0], 1.0 / scale)
+            estimate.refit(a_mat, b_vec, 1.0)
+            residual = b_vec - a_mat @ estimate.mean
+            spread = math.sqrt(float(residual @ residual) / max(len(b_vec) - 2, 1))
             # Both are positive for coils that pull (1/d^n, towards their centres); a noisy fit
             # outside [0, k_max] would aim Alg. 1 far off.
-            self.k = np.clip(np.linalg.lstsq(a_mat, b_vec, rcond=None)[0], 0.0, self.k_max)
+            self.k = np.clip(estimate.mean, 0.0, self.k_max)
+            self.std = estimate.std * max(spread, 1e-3)  # scaled to the gaps' own scatter
+
+    def series_row(self, t_s: float) -> list[float]:
+        """A row of the record's `identification` series (`SERIES_UNITS`) at run time t_s."""
+        return [t_s, self.k[0], self.std[0], self.k[1], self.std[1], len(self.samples)]
 
     def growth(self, start_mean: np.ndarray, travel: np.ndarray, steps: int = 8) -> np.ndarray:
         """(2,) factors by which translating `travel` from `start_mean` multiplies the gaps."""
@@ -319,6 +335,10 @@ class CoilBoardProgram(RequestedControl):
         from rigctl.vision.tracking import TrackingLoop
 
         self.record, self._say = ctx.record, ctx.say
+        self._series = ctx.record.open_series(
+            "identification", ["t_s", *RelativeDrift.SERIES_UNITS],
+            {"t_s": "s", **RelativeDrift.SERIES_UNITS})
+        self._series.row(self.drift.series_row(time.monotonic() - ctx.record.t0))  # the prior
         self.suspension.record, self.suspension.say = ctx.record, ctx.say
         place_agents(ctx, self.plan, [{"position": a.start, "radius": a.radius}
                                       for a in self.plan.agents])
@@ -364,7 +384,9 @@ class CoilBoardProgram(RequestedControl):
                          replans=self.replans, drift_k=self.drift.k.tolist())
         return Outcome(
             agents=agents, reached=reached, positions_from=source, tolerance_mm=self.tolerance,
-            metrics={"moves": self.moves_done, "drift_k": [round(float(v), 6) for v in self.drift.k]},
+            metrics={"moves": self.moves_done, "drift_k": [round(float(v), 6) for v in self.drift.k],
+                     "drift_k_std": [round(float(v), 6) if np.isfinite(v) else None
+                                     for v in self.drift.std]},
             replans=self.replans, tracking=tracking,
             details=[f"moves: {self.moves_done} driven, {self.replans} re-plans from the camera"])
 
@@ -597,6 +619,7 @@ class CoilBoardProgram(RequestedControl):
             self.drift.observe(start.mean(axis=0) - self.coils_centre,
                                measured.mean(axis=0) - start.mean(axis=0),
                                start[1] - start[0], measured[1] - measured[0])
+            self._series.row(self.drift.series_row(time.monotonic() - self.record.t0))
         self.record.event("move", number=number, move=move.tolist(), expected=end.tolist(),
                           measured=measured.tolist(), lean_deg=math.degrees(lean),
                           seconds=time.monotonic() - began, interrupted=interrupted)

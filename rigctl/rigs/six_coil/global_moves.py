@@ -154,6 +154,7 @@ class GlobalMovesProgram:
         return Outcome(agents=agents, reached=reached, positions_from=positions_from,
                        tolerance_mm=tolerance, replans=closed.get("replans", 0),
                        tracking=closed.get("tracking"),
+                       metrics={"identified": closed["identified"]} if closed else {},
                        gave_up=self.supervisor.fault if self.supervisor is not None else None)
 
     def close(self) -> None:

@@ -20,10 +20,16 @@ Three threads cooperate:
   program the goals themselves are checked, with a bounded number of further re-plans before it
   gives up with a fault.
 
-The distance a turn rolls is estimated from what the camera saw (measured over expected
-displacement of the robots that moved freely), and re-planned moves are scaled by its inverse, so a
-rig that slips 15 % is corrected in one or two re-plans instead of many. Every decision is a
-run-record event: `check`, `replan`, `suspend`, `resume`, `give_up`.
+Each robot's own response is identified from what the camera saw (`rigctl.identify`): after every
+move, the robots whose measured path touched no wall and no other robot update their rolling gain,
+heading bias and drift (a Kalman filter per robot, with its uncertainty). Re-plans run the RRT on
+the global-input model with those per-robot responses, so the moves it chooses are the commanded
+ones and the states it expects are where each robot will really go. Relative errors, which no
+shared translation can fix, are fixed with a wall: a contact correction (`rigctl.plans.correction`:
+push along an axis until a robot rests on a wall, then the translation that fits best) is tried
+first, the RRT (which finds longer wall manoeuvres) when that does not reach the tolerance. The estimates go to
+the record's `identification` series after every move. Every decision is a run-record event:
+`check`, `identify`, `replan`, `suspend`, `resume`, `give_up`.
 """
 
 from __future__ import annotations
@@ -45,7 +51,9 @@ import numpy as np
 
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, PlanError, RigError
+from rigctl.identify import RollingIdentifier
 from rigctl.plans.checks import plan_model
+from rigctl.plans.correction import correct_by_contact
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.rrt import RrtOptions, plan_rrt, replay
 from rigctl.plans.schema import GlobalMovesPlan, dump_plan, parse_plan
@@ -61,6 +69,7 @@ log = logging.getLogger(__name__)
 _SHORTEST_MOVE_MM = 0.05  # re-planned moves shorter than this are left out (each costs a hold)
 REPLAN_ATTEMPTS = 3  # RRT runs (other seeds, longer budgets) before a re-plan that found no move fails
 _GAIN_LIMITS = (0.5, 1.5)  # plausible range of the rolled distance per commanded distance
+_FREE_MARGIN_MM = 0.3  # a measured path this close to a wall or another robot may have touched it
 
 
 # -- sequencing ----------------------------------------------------------------------------------
@@ -148,7 +157,8 @@ class SupervisorSettings:
     re-plans in a run before giving up; final_replans: of which at most this many after the program
     ended; replan_budget_s: RRT time budget; settle_s: wait after a move end before judging;
     rrt_tolerance_mm: what the re-plan aims for (distance in R^2n); seed: the RRT's randomness;
-    estimate_gain: scale re-planned moves by the rolled distance per commanded distance seen."""
+    estimate_gain: identify each robot's response from the moves seen and re-plan with it (False:
+    re-plan with the planner's model as it is)."""
 
     threshold_mm: float = 1.0
     goal_threshold_mm: float | None = None
@@ -195,7 +205,6 @@ class Supervisor:
         self.sequencer = SupervisedSequencer(currents, ends, ramp_samples)
         expected = np.array(plan.expected, dtype=float).reshape(-1, len(starts), 2)
         self._expected = {e: expected[i] for i, e in enumerate(ends)}
-        self._previous = {e: (expected[i - 1] if i else starts) for i, e in enumerate(ends)}
         self._fields = program.field_T.copy()
         # fractional turns for corrections (the paper's whole turns stay for the plan itself)
         self._fractional_rig = rig.model_copy(
@@ -219,7 +228,11 @@ class Supervisor:
         self._thread: threading.Thread | None = None
         self._measured_at: dict[int, np.ndarray] = {}
         self._truth_pool: ThreadPoolExecutor | None = None  # ground truth, off the decision path
-        self._scale_at = {e: 1.0 for e in ends}  # commanded / planned distance of each move
+        moves = np.array(plan.moves, dtype=float).reshape(-1, 2)
+        self._commanded_at = {e: moves[i] for i, e in enumerate(ends)}  # each move's input, mm
+        self._time_at: dict[int, float] = {}  # capture time of the frame each judgement used
+        self.identifier = RollingIdentifier(len(starts))
+        self._series = None
 
     # -- life cycle -----------------------------------------------------------------------------
     def start(self, record: RunRecord | None) -> None:
@@ -230,8 +243,14 @@ class Supervisor:
             self._truth_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="truth")
         if record is not None:
             self.tracking.record_to(record)  # the camera's positions, in the run record
+            self._series = record.open_series("identification", self.identifier.series_columns(),
+                                              self.identifier.series_units())
         first = self.tracking.start(acquire_timeout_s=max(5.0, 2 * self.rig.camera.timeout_s))
         self._measured_at[0] = first.positions_mm
+        self._time_at[0] = first.t_source
+        self._t0 = record.t0 if record is not None else first.t_source  # the run's clock
+        if self._series is not None:
+            self._series.row(self.identifier.series_row(first.t_source - self._t0))
         self._event("tracking", frame=first.frame, positions=first.positions_mm.round(3).tolist())
         self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
         self._thread.start()
@@ -260,6 +279,7 @@ class Supervisor:
         errors = np.array(self.tracking_errors_mm)
         return {
             "replans": self.replans,
+            "identified": self.identifier.summary(),
             "tracking": {
                 "mean_error_mm": round(float(errors.mean()), 4) if errors.size else None,
                 "max_error_mm": round(float(errors.max()), 4) if errors.size else None,
@@ -326,7 +346,7 @@ class Supervisor:
             # backdoor round trip to a busy emulator took milliseconds of the frame-to-command time
             self._truth_pool.submit(self._measure_tracking, measured).add_done_callback(
                 _log_failure)
-        self._update_gain(sample, measured)
+        self._identify(sample, measured, state.t_source)
         error = np.hypot(*(measured - expected).T)
         goal_error = np.hypot(*(measured - self.goals).T)
         number = len(self.decisions)
@@ -356,13 +376,17 @@ class Supervisor:
         s = self.settings
         start = self._free_start(measured)
         assert self._planner is not None
+        gains, headings = self.identifier.response() if s.estimate_gain else (None, None)
+        if gains is not None:
+            gains = np.clip(gains, *_GAIN_LIMITS)
         for attempt in range(REPLAN_ATTEMPTS):
             # an RRT that found nothing in its budget (a loaded machine grows fewer nodes) tries
             # again with other random draws and a longer budget before the run gives up
             result = self._planner.replan(
                 self._plan_text, str(self.plan.base_dir or "."), start, self.goals,
                 2.0 * math.pi * self.rig.magnets.radius_mm, s.rrt_tolerance_mm,
-                s.seed + self.replans + 1000 * attempt, s.replan_budget_s * (1 + attempt))
+                s.seed + self.replans + 1000 * attempt, s.replan_budget_s * (1 + attempt),
+                gains, headings)
             if len(result.moves):
                 break
             self._event("replan_empty", sample=sample, attempt=attempt + 1,
@@ -374,20 +398,18 @@ class Supervisor:
         self.replans += 1
         if last:
             self.final_replans += 1
-        commanded = result.moves / self.gain
+        commanded = result.moves  # the model already maps each robot's response
         program = realize_global_moves(commanded, self._fractional_rig,
                                        start_field_T=self._fields[max(sample - 1, 0)])
         currents = allocate(program, self.rig)  # a LimitError here is a fault, never a clip
         ends = [program.move_end_index(i) for i in range(program.n_moves)]
         begin = self.sequencer.splice(currents, ends, number)
         self._fields = np.concatenate([self._fields[:begin], program.field_T])
-        previous = start
         for i, e in enumerate(ends):
-            self._scale_at[begin + e] = 1.0 / self.gain
+            self._commanded_at[begin + e] = commanded[i]
             self._expected[begin + e] = result.states[i]
-            self._previous[begin + e] = previous
-            previous = result.states[i]
         self._measured_at[begin] = measured
+        self._time_at[begin] = self._time_at.get(sample, time.monotonic())
         self._event("replan", sample=sample, reason="end of program" if last else "off the plan",
                     error_mm=error.round(4).tolist(), moves=len(result.moves),
                     commanded_mm=np.round(commanded, 3).tolist(), planned_distance_mm=round(
@@ -416,23 +438,47 @@ class Supervisor:
                         p[j] += push
         return p
 
-    def _update_gain(self, sample: int, measured: np.ndarray) -> None:
-        """Distance rolled per distance commanded, from the robots that moved freely in the move
-        that ended at `sample` (expected displacement as long as the move)."""
-        before = self._measured_at.get(self._start_of(sample))
+    def _identify(self, sample: int, measured: np.ndarray, t_source: float) -> None:
+        """Update each robot's identified response from the move that ended at `sample`: the
+        robots whose measured straight path stayed clear of the walls and of the other robots
+        (by `_FREE_MARGIN_MM`) saw the commanded input act on them alone."""
+        begin = self._start_of(sample)
+        before = self._measured_at.get(begin)
         self._measured_at[sample] = measured
+        self._time_at[sample] = t_source
         if not self.settings.estimate_gain or before is None:
             return
-        expected = self._expected[sample] - self._previous[sample]
-        actual = measured - before
-        lengths = np.hypot(*expected.T)
-        longest = lengths.max()
-        free = (lengths > 5.0) & (lengths >= 0.98 * longest)
-        if not free.any():
+        commanded = self._commanded_at.get(sample)
+        if commanded is None:
             return
-        # actual = gain * commanded = gain * scale * planned
-        ratio = np.sum(actual[free] * expected[free], axis=1) / lengths[free] ** 2
-        self.gain = float(np.clip(np.mean(ratio) / self._scale_at[sample], *_GAIN_LIMITS))
+        displacement = measured - before
+        free = self._moved_freely(before, displacement)
+        dt = max(t_source - self._time_at.get(begin, t_source), 0.0)
+        used = self.identifier.observe(commanded, displacement, free, dt)
+        gains, _ = self.identifier.response()
+        self.gain = float(np.clip(gains.mean(), *_GAIN_LIMITS))
+        if self._series is not None:
+            self._series.row(self.identifier.series_row(t_source - self._t0))
+        if used.any():
+            estimate = self.identifier.summary()
+            self._event("identify", sample=sample, used=np.flatnonzero(used).tolist(),
+                        gain=estimate["gain"], gain_std=estimate["gain_std"],
+                        heading_deg=estimate["heading_deg"])
+
+    def _moved_freely(self, before: np.ndarray, displacement: np.ndarray) -> np.ndarray:
+        """(n,) True where a robot's straight path from `before` (n, 2) by `displacement` (n, 2)
+        kept `_FREE_MARGIN_MM` from every wall, and from every other robot at both ends."""
+        radii = self.model.radii
+        moved = np.hypot(*displacement.T) > 1.0
+        clear = self.model.workspace.sweep_clear(before, displacement, radii + _FREE_MARGIN_MM)
+        free = moved & np.asarray(clear, dtype=bool)
+        after = before + displacement
+        for i in range(len(before)):
+            for j in range(i + 1, len(before)):
+                reach = radii[i] + radii[j] + self.model.min_separation_mm + _FREE_MARGIN_MM
+                if min(np.hypot(*(before[j] - before[i])), np.hypot(*(after[j] - after[i]))) < reach:
+                    free[i] = free[j] = False
+        return free
 
     def _start_of(self, sample: int) -> int:
         """The sample where the move ending at `sample` began (the previous gate or splice)."""
@@ -477,22 +523,38 @@ class Replanned:
 
 
 def replan_worker(plan_text: str, base_dir: str, start: np.ndarray, goals: np.ndarray,
-                  robostep_mm: float, tolerance_mm: float, seed: int, budget_s: float) -> Replanned:
-    """Re-plan from `start` (n, 2) mm to `goals` (n, 2) mm with the RRT under the plan's model:
+                  robostep_mm: float, tolerance_mm: float, seed: int, budget_s: float,
+                  gains: np.ndarray | None = None, headings_rad: np.ndarray | None = None
+                  ) -> Replanned:
+    """Re-plan from `start` (n, 2) mm to `goals` (n, 2) mm with the RRT under the plan's model
+    with each robot's identified response (gains, headings_rad (n,); None: the shared input):
     one turn per tree move, fractional final approach, `budget_s` seconds at most. Moves shorter
     than _SHORTEST_MOVE_MM are dropped (the states replayed without them)."""
     plan = parse_plan(json.loads(plan_text), "re-plan", base_dir=base_dir)
-    model = plan_model(plan)
-    options = RrtOptions(robostep_mm=robostep_mm, k=16, tolerance_mm=tolerance_mm, greedy=True,
-                         final_approach=True, goal_bias=0.05, max_nodes=20_000, nn_eps=0.5)
-    result = plan_rrt(model, start, goals, options=options, rng=np.random.default_rng(seed),
-                      time_budget_s=budget_s)
-    moves = result.moves[np.hypot(*result.moves.T) >= _SHORTEST_MOVE_MM] if len(result.moves) \
-        else result.moves
+    model = plan_model(plan).with_response(gains, headings_rad)
+    began = time.perf_counter()
+    # First the contact correction (push against a wall, then translate: a second or less);
+    # the RRT only when that does not reach the tolerance, and the better of the two is used.
+    correction = correct_by_contact(model, start, goals)
+    improves = correction.distance < float(np.linalg.norm(start - goals))
+    moves, nodes = (correction.moves if improves else np.zeros((0, 2))), 0
+    if correction.distance > tolerance_mm:
+        options = RrtOptions(robostep_mm=robostep_mm, k=16, tolerance_mm=tolerance_mm,
+                             greedy=True, final_approach=True, goal_bias=0.05, max_nodes=20_000,
+                             nn_eps=0.5)
+        result = plan_rrt(model, start, goals, options=options, rng=np.random.default_rng(seed),
+                          time_budget_s=budget_s)
+        nodes = result.nodes
+        if len(result.moves):
+            tree_end = replay(model, start, result.moves)[-1]
+            if float(np.linalg.norm(tree_end - goals)) < correction.distance:
+                moves = result.moves
+    moves = moves[np.hypot(*moves.T) >= _SHORTEST_MOVE_MM] if len(moves) else moves
     states = replay(model, start, moves)
     end = states[-1] if len(states) else start
     distance = float(np.linalg.norm(end - goals))
-    return Replanned(moves, states, distance, distance <= tolerance_mm, result.nodes, result.seconds)
+    return Replanned(moves, states, distance, distance <= tolerance_mm, nodes,
+                     time.perf_counter() - began)
 
 
 class ReplanWorker:

@@ -1,0 +1,171 @@
+"""Identification from tracking (`rigctl.identify`) and the global-input model's per-agent
+response: estimates checked against the parameters that generated the data, the model against
+hand-worked displacements and against the shared-input model it reduces to."""
+
+import math
+
+import numpy as np
+import pytest
+from rigctl.plans.model import GlobalInputModel
+from rigctl.plans.workspace import ShapeWorkspace
+
+from rigctl.identify import LinearEstimate, RollingIdentifier
+
+BOX = ShapeWorkspace(("rect", (0.0, 0.0, 400.0, 400.0)))
+
+
+# -- the estimator --------------------------------------------------------------------------------
+
+def test_linear_estimate_matches_the_closed_form_posterior():
+    """Sequential updates equal the batch posterior (P0^-1 + H'H/s^2)^-1 computed by hand."""
+    rng = np.random.default_rng(1)
+    h = rng.normal(size=(12, 3))
+    y = h @ np.array([0.7, -1.2, 2.0]) + rng.normal(0.0, 0.1, 12)
+    estimate = LinearEstimate("abc", [0.0, 0.0, 0.0], [10.0, 10.0, 10.0])
+    for row, value in zip(h, y):
+        assert estimate.update(row[None], [value], 0.1, gate_sigma=None)
+    information = np.eye(3) / 100.0 + h.T @ h / 0.01
+    cov = np.linalg.inv(information)
+    np.testing.assert_allclose(estimate.cov, cov, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(estimate.mean, cov @ (h.T @ y / 0.01), rtol=1e-9)
+    batch = LinearEstimate("abc", [0.0, 0.0, 0.0], [10.0, 10.0, 10.0])
+    batch.refit(h, y, 0.1)
+    np.testing.assert_allclose(batch.mean, estimate.mean, rtol=1e-9)
+
+
+def test_an_outlier_beyond_the_gate_is_left_out():
+    estimate = LinearEstimate(["g"], [1.0], [0.01])
+    assert not estimate.update([[10.0]], [20.0], 0.05)  # 10 mm off a 0.1 mm prediction spread
+    assert estimate.mean[0] == 1.0 and estimate.rejected == 1
+    assert estimate.update([[10.0]], [10.1], 0.05)
+
+
+# -- rolling agents --------------------------------------------------------------------------------
+
+def _rolled(gain: float, heading: float, u: np.ndarray, drift: np.ndarray, dt: float):
+    c, s = math.cos(heading), math.sin(heading)
+    return gain * np.array([c * u[0] - s * u[1], s * u[0] + c * u[1]]) + drift * dt
+
+
+def test_rolling_identifier_recovers_each_agents_gain_heading_and_drift():
+    truth_gain = np.array([0.85 * 1.1, 0.85 * 0.92, 0.85])
+    truth_heading = np.radians([2.0, -3.0, 0.0])
+    drift = np.array([0.004, -0.003])
+    rng = np.random.default_rng(7)
+    ident = RollingIdentifier(3)
+    for k in range(12):
+        angle = rng.uniform(0, 2 * math.pi)
+        u = 10.0 * rng.integers(1, 6) * np.array([math.cos(angle), math.sin(angle)])
+        dt = float(rng.uniform(2.0, 30.0))
+        y = np.array([_rolled(g, h, u, drift, dt) for g, h in zip(truth_gain, truth_heading)])
+        y += rng.normal(0.0, 0.05, y.shape)  # tracker noise, both ends
+        free = np.array([True, True, k % 2 == 0])  # the third is against a wall every other move
+        y[2] = y[2] if free[2] else np.array([0.0, 0.0])  # a wall stopped it: not used
+        used = ident.observe(u, y, free, dt)
+        assert used.tolist() == free.tolist()
+    np.testing.assert_allclose(ident.gains, truth_gain, atol=0.004)
+    np.testing.assert_allclose(ident.headings_rad, truth_heading, atol=math.radians(0.3))
+    np.testing.assert_allclose(ident.drift_mm_s[:2], [drift, drift], atol=0.003)
+    assert np.all(ident.gain_std < 0.004) and np.all(ident.gain_std > 0)
+    assert ident.updates.tolist() == [12, 12, 6]
+
+
+def test_an_agent_never_seen_free_plans_with_the_others_mean():
+    ident = RollingIdentifier(2)
+    u = np.array([30.0, 0.0])
+    ident.observe(u, np.array([[25.5, 0.0], [0.0, 0.0]]), [True, False], 5.0)
+    gains, headings = ident.response()
+    assert gains[0] == pytest.approx(0.85, abs=0.01)
+    assert gains[1] == gains[0] and headings[1] == headings[0]
+    assert ident.gains[1] == 1.0  # its own estimate is still the prior
+
+
+# -- the model with per-agent responses -------------------------------------------------------------
+
+def test_default_response_is_the_shared_model_bit_for_bit():
+    ws = ShapeWorkspace(("rect", (0.0, 0.0, 400.0, 400.0)), [("rect", (150, 150, 25, 100))])
+    shared = GlobalInputModel(ws, [8.0, 8.0])
+    neutral = shared.with_response([1.0, 1.0], [0.0, 0.0])
+    rng = np.random.default_rng(0)
+    p = np.array([[100.0, 200.0], [120.0, 230.0]])
+    moves = rng.normal(0.0, 40.0, (50, 2))
+    assert np.array_equal(shared.apply(p, moves), neutral.apply(p, moves))
+
+
+def test_each_agent_moves_by_its_own_gain_and_heading_in_free_space():
+    model = GlobalInputModel(BOX, [5.0, 5.0], gains=[0.9, 1.1],
+                             headings_rad=[0.0, math.radians(90.0)])
+    p = np.array([[100.0, 100.0], [300.0, 300.0]])
+    out = model.apply(p, [20.0, 0.0])
+    # by hand: 0.9 * (20, 0) and 1.1 * (20, 0) turned 90 degrees = (0, 22)
+    np.testing.assert_allclose(out, [[118.0, 100.0], [300.0, 322.0]], atol=1e-9)
+
+
+def test_a_wall_stops_the_faster_agent_first():
+    """Both roll towards x = 400 from x = 350 (radius 5: contact at x = 395): the agent with gain
+    1.2 reaches the wall on 37.5 mm of input, the one with 0.9 is at 350 + 0.9 * 40 = 386."""
+    model = GlobalInputModel(BOX, [5.0, 5.0], gains=[1.2, 0.9])
+    p = np.array([[350.0, 100.0], [350.0, 300.0]])
+    out = model.apply(p, [40.0, 0.0])
+    np.testing.assert_allclose(out, [[395.0, 100.0], [386.0, 300.0]], atol=1e-6)
+    # the wall turns different gains into a relative move a shared translation cannot make
+    back = model.apply(out, [-10.0, 0.0])
+    np.testing.assert_allclose(back, [[383.0, 100.0], [377.0, 300.0]], atol=1e-6)
+
+
+def test_agents_with_different_gains_do_not_pass_through_each_other():
+    model = GlobalInputModel(BOX, [5.0, 5.0], gains=[1.5, 0.5])
+    p = np.array([[100.0, 200.0], [115.0, 200.0]])  # 5 mm apart, the fast one behind
+    out = model.apply(p, [20.0, 0.0])
+    assert bool(model.is_free(out))
+    assert np.hypot(*(out[1] - out[0])) >= 10.0 - 1e-6
+    assert out[0, 0] <= out[1, 0]  # never overtook
+
+
+def test_bad_per_agent_parameters_are_refused():
+    from rigctl.errors import PlanError
+
+    with pytest.raises(PlanError, match="gains"):
+        GlobalInputModel(BOX, [5.0, 5.0], gains=[1.0])
+    with pytest.raises(PlanError, match="gains must be > 0"):
+        GlobalInputModel(BOX, [5.0, 5.0], gains=[1.0, -0.2])
+
+
+# -- contact corrections ----------------------------------------------------------------------------
+
+def test_a_contact_correction_fixes_a_relative_error_no_translation_can():
+    """Two robots in a 400 mm box, the right one 1.2 mm too far right of the left one: no shared
+    translation can fix that (the best, none, leaves 0.6 mm each). Pushing +x until the right
+    robot rests on the wall at x = 392 and 1.2 mm further brings the left one 1.2 mm closer; the
+    translation back then lands both. Checked by replaying the moves through the model."""
+    from rigctl.plans.correction import correct_by_contact
+
+    model = GlobalInputModel(BOX, [8.0, 8.0])
+    goals = np.array([[300.0, 200.0], [200.0, 200.0]])
+    start = goals + [[0.6, 0.0], [-0.6, 0.0]]
+    best_translation = np.linalg.norm(start + (goals - start).mean(axis=0) - goals)
+    assert best_translation == pytest.approx(0.6 * math.sqrt(2), abs=1e-9)
+    correction = correct_by_contact(model, start, goals)
+    assert correction.distance < 0.05
+    replayed = model.rollout(start, correction.moves)[-1]
+    np.testing.assert_allclose(replayed, correction.states[-1])
+    assert np.linalg.norm(replayed - goals) < 0.05
+    # it used a wall: some move pushed a robot into contact (x = 400 - 8 or x = 8)
+    xs = np.concatenate([start[None], model.rollout(start, correction.moves)])[..., 0]
+    assert np.isclose(xs, 392.0, atol=1e-6).any() or np.isclose(xs, 8.0, atol=1e-6).any()
+
+
+def test_a_contact_correction_uses_the_identified_gains():
+    """With gains 0.8 and 0.9, robots a commanded (25, -12) mm and a 0.5 mm relative error from
+    their goals: the correction planned on the identified model lands (replayed through it);
+    planned on the shared model it misses by about |0.05 (25, -12)| = 1.4 mm per robot."""
+    from rigctl.plans.correction import correct_by_contact
+
+    gains = np.array([0.8, 0.9])
+    identified = GlobalInputModel(BOX, [8.0, 8.0], gains=gains)
+    goals = np.array([[340.0, 150.0], [150.0, 260.0]])  # the right one 72 mm from a wall
+    start = goals - gains[:, None] * [25.0, -12.0] + [[0.5, 0.0], [0.0, 0.0]]
+    correction = correct_by_contact(identified, start, goals)
+    assert np.linalg.norm(identified.rollout(start, correction.moves)[-1] - goals) < 0.05
+    naive = correct_by_contact(GlobalInputModel(BOX, [8.0, 8.0]), start, goals)
+    assert np.linalg.norm(identified.rollout(start, naive.moves)[-1] - goals) > 1.5
