@@ -243,6 +243,10 @@ def build_parser() -> argparse.ArgumentParser:
     register_planners(sub)
     register_daemon(sub)
     register_init(sub)
+
+    from rigctl.study.cli import register as register_study  # `rigctl study` (issue 18)
+
+    register_study(sub)
     return parser
 
 
