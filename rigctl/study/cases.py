@@ -56,6 +56,7 @@ def run_case(command: str, folder: str, case: Case, out_root: str, success: str 
     """Run one case; its row for the results table (see the module docstring)."""
     out = Path(out_root) / "cases" / case.id
     out.mkdir(parents=True, exist_ok=True)
+    started_s = time.time()  # epoch: comparable across the workers of one machine
     started = time.perf_counter()
     try:
         if command == "execute":
@@ -70,7 +71,7 @@ def run_case(command: str, folder: str, case: Case, out_root: str, success: str 
         "case_id": case.id, "seed": case.seed, "parameters": case.parameters, "status": status,
         "message": message, "success": _flag(figures.get(success)) if success else None,
         "error": _number(figures.get(error)) if error else None, "figures": figures,
-        "wall_s": wall, "record": record, "worker": f"{os.uname().nodename}:{os.getpid()}",
+        "wall_s": wall, "started_s": started_s, "record": record, "worker": f"{os.uname().nodename}:{os.getpid()}",
     }
 
 
@@ -180,6 +181,9 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
         "faults": len(summary.get("faults") or []), "safe": summary.get("safe"),
         "fault_injected_at_s": injected,
     }
+    for name, value in (summary.get("metrics") or {}).items():  # the rig's own scalar figures
+        if isinstance(value, (bool, int, float, str)):
+            figures[f"metric_{name}"] = value
     if summary.get("faults"):
         figures["_message"] = "; ".join(str(f.get("reason")) for f in summary["faults"])[:500]
     return "ok" if proc.returncode in (0, 1, 3) else "failed", figures, summary.get("run") or str(out)
