@@ -57,7 +57,7 @@ def run_case(command: str, folder: str, case: Case, out_root: str, success: str 
     out = Path(out_root) / "cases" / case.id
     out.mkdir(parents=True, exist_ok=True)
     started_s = time.time()  # epoch: comparable across the workers of one machine
-    started = time.perf_counter()
+    started, cpu = time.perf_counter(), time.process_time()
     try:
         if command == "execute":
             status, figures, record = _execute(case, Path(folder), out)
@@ -66,12 +66,12 @@ def run_case(command: str, folder: str, case: Case, out_root: str, success: str 
         message = figures.pop("_message", None)
     except Exception as err:  # noqa: BLE001 - one case's failure is its row, never the study's end
         status, figures, record, message = "error", {}, str(out), f"{type(err).__name__}: {err}"
-    wall = time.perf_counter() - started
+    wall, cpu = time.perf_counter() - started, time.process_time() - cpu
     return {
         "case_id": case.id, "seed": case.seed, "parameters": case.parameters, "status": status,
         "message": message, "success": _flag(figures.get(success)) if success else None,
         "error": _number(figures.get(error)) if error else None, "figures": figures,
-        "wall_s": wall, "started_s": started_s, "record": record, "worker": f"{os.uname().nodename}:{os.getpid()}",
+        "wall_s": wall, "cpu_s": cpu, "started_s": started_s, "record": record, "worker": f"{os.uname().nodename}:{os.getpid()}",
     }
 
 

@@ -136,6 +136,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
         if todo:
             _warm_up(spec.command)
         started = time.perf_counter()
+        progress.started = time.monotonic()
         for case in todo:
             finished(run_case(*arguments, case, *tail))
         return StudyOutcome(len(spec.cases), len(spec.cases) - len(todo), len(todo),
@@ -164,6 +165,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
                   file=progress_out, flush=True)
         client.run(_warm_up, spec.command)
         started = time.perf_counter()
+        progress.started = time.monotonic()  # the time left counts from the first case
         futures = [client.submit(run_case, *arguments, case, *tail, key=f"case-{case.id}",
                                  pure=False, retries=1) for case in todo]
         for future in as_completed(futures):

@@ -54,6 +54,17 @@ def t_interval(samples: list[float]) -> tuple[float, float, float]:
     return (mean, mean - half, mean + half)
 
 
+def _label(value: Any, width: int = 18) -> str:
+    """A parameter's value as a short label: a table's values (a fault: "x+ drop_link 0.5")."""
+    if isinstance(value, str) and value.startswith("{"):
+        try:
+            value = " ".join(str(v) for v in json.loads(value).values())
+        except ValueError:
+            pass
+    text = "none" if value is None else str(value)
+    return text if len(text) <= width else text[:width - 1] + "~"
+
+
 def _key(value: Any) -> Any:
     return value if isinstance(value, (int, float, str)) or value is None else json.dumps(value)
 
@@ -135,7 +146,7 @@ def report(folder: str | Path, output: str | Path) -> dict:
                 means = np.array([s["mean"] for s in points])
                 lows = np.array([s["low"] for s in points])
                 highs = np.array([s["high"] for s in points])
-                tag = ", ".join(f"{k} {v}" for k, v in json.loads(line).items()) or None
+                tag = ", ".join(f"{k} {_label(v)}" for k, v in json.loads(line).items()) or None
                 ax.errorbar(xs, means, yerr=[means - lows, highs - means], fmt="o-", capsize=3,
                             markersize=3, label=tag)
             if by and len(stats) > len(values):
@@ -143,7 +154,7 @@ def report(folder: str | Path, output: str | Path) -> dict:
             elif others and not by:
                 ax.set_title(f"pooled over {', '.join(others)}", fontsize=8)
             if not numeric:
-                ax.set_xticks(range(len(values)), [str(v)[:14] for v in values], rotation=30,
+                ax.set_xticks(range(len(values)), [_label(v) for v in values], rotation=20,
                               ha="right")
             if share:
                 ax.set_ylim(-0.05, 1.05)

@@ -3,7 +3,8 @@ renamed over the old one) each time a case finishes, so the table on disk is alw
 readable, and a study stopped at any instant resumes from it.
 
 Columns: `case_id`, `seed`, `status` (ok, bad_input, failed, error), `message`, `success`,
-`error`, `wall_s`, `started_s` (when it started, s since the epoch), `record` (the plan written or the run record's folder), `worker`,
+`error`, `wall_s`, `cpu_s` (the worker process's CPU time: a planner's own; an emulated run's
+children not counted), `started_s` (when it started, s since the epoch), `record` (the plan written or the run record's folder), `worker`,
 `finished_at` (UTC, ISO 8601); then one column per parameter (its own name) and one per figure the
 command reported (`fig_<name>`). A value that is not a number, a flag or a text (a list of
 points) is kept as its JSON text.
@@ -21,9 +22,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 TABLE_NAME = "results.parquet"
-FIXED = ["case_id", "seed", "status", "message", "success", "error", "wall_s", "started_s", "record",
-         "worker", "finished_at"]
-TYPES = {"seed": pa.int64(), "success": pa.bool_(), "error": pa.float64(), "wall_s": pa.float64(),
+FIXED = ["case_id", "seed", "status", "message", "success", "error", "wall_s", "cpu_s", "started_s",
+         "record", "worker", "finished_at"]
+TYPES = {"seed": pa.int64(), "success": pa.bool_(), "error": pa.float64(), "wall_s": pa.float64(), "cpu_s": pa.float64(),
          "started_s": pa.float64()}
 
 
