@@ -14,10 +14,12 @@ the pty for both emulators, the 115200-baud limits), run as a child process.
 
 Delivery on the emulated rig (`delivery`): `--runs` random start/goal pairs in the paper's 46 mm
 disk (goals and starts at least 2 mm apart and 1 mm from the wall), each planned (Alg. 1, model
-replay) and executed closed loop through the whole emulated chain in this process: the coil-board
-driver, the Python firmware on a pty, the SyRen wire, the non-uniform coils (the world's default
-physics: pull ~ 1/d^4 from poles 200 mm out, leaning to the active coil's centre) and the camera +
-tracker; the bench in its own process as `rigctl execute` starts it. A run delivers when the emulator's ground truth has both particles within `--epsilon` of
+replay) and executed closed loop through the whole emulated chain: the study
+`studies/coilboard-delivery.toml` over these plans, each case `rigctl execute --rig` on a bench of
+its own (`rigctl emulate coil-board`: the Python firmware on a pty, the SyRen wire, the
+non-uniform coils (the world's default physics: pull ~ 1/d^4 from poles 200 mm out, leaning to
+the active coil's centre) and the camera + tracker), one after another (`--workers N`: on N Dask
+workers). `seconds_per_run_median` is the run's own duration, without the bench's start. A run delivers when the emulator's ground truth has both particles within `--epsilon` of
 their goals. The world runs `--speed` (3) times faster than real time, so that 20 runs fit in a few
 minutes (about 10 s a run; a run that needs all 60 moves, ~45 s); the goal of issue 6 is at
 least 19/20. `--runs` sets the number of runs (fewer for a quick look).
@@ -72,7 +74,7 @@ def _pair(ws: ShapeWorkspace, rng: np.random.Generator) -> np.ndarray:
 
 def _summary(values: list[float], digits: int = 3) -> dict:
     ordered = sorted(values)
-    p95 = ordered[min(len(ordered) - 1, int(math.ceil(0.95 * len(ordered))) - 1)]
+    p95 = ordered[min(len(ordered) - 1, math.ceil(0.95 * len(ordered)) - 1)]
     return {"median": round(statistics.median(ordered), digits), "p95": round(p95, digits),
             "max": round(ordered[-1], digits)}
 
@@ -108,37 +110,40 @@ def bench_link() -> dict | None:
     if not script.exists():
         return None
     done = subprocess.run([sys.executable, str(script), "--round-trips", "500", "--seconds", "1",
-                           "--trials", "5"], capture_output=True, text=True, timeout=150)
+                           "--trials", "5"], capture_output=True, text=True, timeout=150, check=False)
     if done.returncode != 0:
         return {"failed": done.stderr.strip()[-500:]}
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Generator,
-                   pole_distance_mm: float | None = None) -> dict:
-    """Closed-loop runs on the emulated coil board: the bench in a process of its own (as `rigctl
-    execute` starts it), re-placed per run; the runs in this one."""
-    from rigctl.emulators.backdoor import BackdoorClient
-    from rigctl.emulators.process import EmulatedBenchProcess
-    from rigctl.plans.schema import parse_plan
+                   pole_distance_mm: float | None = None, workers: int | None = None) -> dict:
+    """Closed-loop runs on the emulated coil board: the study `studies/coilboard-delivery.toml`
+    over `runs` plans of random pairs, each case `rigctl execute` on a bench of its own (serially
+    here unless `workers` is given: then on that many Dask workers)."""
+    import tomllib
 
-    from rigctl.config import load_rig
-    from rigctl.rigs.coil_board.run import execute_coilboard
+    import pyarrow.parquet as pq
+    from rigctl.plans.schema import dump_plan, parse_plan
+
+    from rigctl.study.execution import run_study
+    from rigctl.study.spec import spec_from_dict
 
     boundary = {"disk": [0.0, 0.0, 23.0]}
     ws = ShapeWorkspace(_shape(boundary))
     region = centre_region(boundary, RADIUS_MM)
     model = GlobalInputModel(ws, [RADIUS_MM, RADIUS_MM], "non-slip")
-    results = []
-    with tempfile.TemporaryDirectory(prefix="coilboard-delivery-") as runs_dir, \
-            EmulatedBenchProcess("coil-board", Path(runs_dir) / "bench.toml") as rig_file:
-        rig = load_rig(rig_file)
-        with BackdoorClient(rig.emulation.backdoor) as backdoor:
-            backdoor.request("speed", factor=speed)
-            if pole_distance_mm is not None:  # the physics stays for every later `place`
-                backdoor.request("place", workspace={"boundary": boundary},
-                                 agents=[{"position": [0.0, 0.0], "radius": RADIUS_MM}],
-                                 physics={"pole_distance_mm": pole_distance_mm})
+    studies = Path(__file__).resolve().parents[1] / "studies"
+    data = tomllib.loads((studies / "coilboard-delivery.toml").read_text())
+    args = data["run"]["args"]
+    args["speed"] = speed
+    if pole_distance_mm is not None:  # the physics stays for every later `place`
+        args["backdoor"] = [{"cmd": "place", "workspace": {"boundary": boundary},
+                             "agents": [{"position": [0.0, 0.0], "radius": RADIUS_MM}],
+                             "physics": {"pole_distance_mm": pole_distance_mm}}]
+    planned = {}
+    with tempfile.TemporaryDirectory(prefix="coilboard-delivery-") as tmp:
+        data["cases"] = []
         for k in range(runs):
             starts, goals = _spaced_pair(ws, rng), _spaced_pair(ws, rng)
             result, chosen, _ = plan_with_model(model, region, starts, goals, epsilon / 4)
@@ -149,23 +154,33 @@ def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Gener
                            for s, g in zip(starts, chosen)],
                 "moves": result.moves.tolist(), "expected": result.states.tolist(),
                 "tolerance_mm": epsilon})
-            started = time.perf_counter()
-            summary = execute_coilboard(plan, rig, runs_dir=runs_dir, progress_out=None)
-            truth = [a.truth_error_mm for a in summary.agents]
-            results.append({
-                "delivered": not summary.faults and all(t is not None and t <= epsilon for t in truth),
-                "truth_error_mm": truth, "moves": summary.metrics["moves"], "planned_moves": len(result.moves),
-                "replans": summary.replans, "seconds": round(time.perf_counter() - started, 2),
-                "faults": [f["reason"] for f in summary.faults]})
+            path = Path(tmp) / f"delivery-{k}.json"
+            path.write_text(dump_plan(plan))
+            data["cases"].append({"plan": str(path)})
+            planned[str(path)] = len(result.moves)
+        spec = spec_from_dict(data, studies)
+        run_study(spec, Path(tmp) / "study", serial=workers is None, workers=workers,
+                  progress_out=None)
+        rows = pq.read_table(Path(tmp) / "study" / "results.parquet").to_pylist()
+    results = []
+    for r in sorted(rows, key=lambda r: int(r["plan"].rsplit("-", 1)[1].split(".")[0])):
+        truth = r["error"]
+        results.append({
+            "delivered": r["status"] == "ok" and not r.get("fig_faults") and truth is not None
+            and truth <= epsilon,
+            "truth_error_mm": truth, "moves": r.get("fig_metric_moves"),
+            "planned_moves": planned[r["plan"]], "replans": r.get("fig_replans"),
+            "seconds": r.get("fig_duration_s"), "status": r["status"],
+            "faults": [r["message"]] if r.get("fig_faults") or r["status"] != "ok" else []})
     delivered = sum(r["delivered"] for r in results)
-    errors = [e for r in results for e in r["truth_error_mm"] if e is not None]
+    errors = [r["truth_error_mm"] for r in results if r["truth_error_mm"] is not None]
+    moves = [r["moves"] for r in results if r["moves"] is not None]
     return {
         "runs": runs, "delivered": delivered, "epsilon_mm": epsilon, "world_speed": speed,
         "pole_distance_mm": pole_distance_mm or "default (200)",
-        "moves": {"median": statistics.median(r["moves"] for r in results),
-                  "max": max(r["moves"] for r in results)},
-        "replans_median": statistics.median(r["replans"] for r in results),
-        "seconds_per_run_median": statistics.median(r["seconds"] for r in results),
+        "moves": {"median": statistics.median(moves), "max": max(moves)} if moves else None,
+        "replans_median": statistics.median(r["replans"] or 0 for r in results),
+        "seconds_per_run_median": statistics.median(r["seconds"] or 0 for r in results),
         "worst_truth_error_mm": max(errors) if errors else None,
         "failures": [r for r in results if not r["delivered"]],
     }
@@ -188,6 +203,7 @@ def main() -> None:
     parser.add_argument("--epsilon", type=float, default=0.5, help="delivery tolerance, mm")
     parser.add_argument("--pole-distance", type=float, metavar="MM",
                         help="the emulated coils' distance (default: the world's 200 mm)")
+    parser.add_argument("--workers", type=int, help="run the delivery cases on N Dask workers")
     parser.add_argument("--no-link", action="store_true", help="skip bench/coilboard_link.py")
     parser.add_argument("--no-delivery", action="store_true", help="skip the emulated-rig runs")
     args = parser.parse_args()
@@ -202,7 +218,7 @@ def main() -> None:
         "link": None if args.no_link else bench_link(),
         "delivery": None if args.no_delivery else bench_delivery(
             args.runs, args.speed, args.epsilon, np.random.default_rng(args.seed + 1),
-            args.pole_distance),
+            args.pole_distance, args.workers),
     }))
 
 

@@ -47,6 +47,7 @@ from rigctl.errors import (
     interrupt_name,
 )
 from rigctl.logs import configure as configure_logs
+from rigctl.study.cli import register as register_study
 
 log = logging.getLogger("rigctl")
 
@@ -295,6 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     register_daemon(sub)
     register_init(sub)
     register_faults(sub)
+    register_study(sub)
     return parser
 
 

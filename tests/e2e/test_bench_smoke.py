@@ -28,6 +28,7 @@ QUICK = {
     "faults.py": ["--rig", "six-coil", "--cell", "daemon/x+:drop_link/moving"],
     "soak.py": ["--minutes", "0.3", "--interval", "2"],
     "calibrate_field.py": ["--seeds", "0"],
+    "study.py": ["--quick"],
 }
 
 

@@ -1,0 +1,151 @@
+"""Benchmark of studies on Dask (rigctl.study); prints ONE JSON object on stdout.
+
+- planner_sweep: the 40 cases of `studies/reachable-quick.toml` (seed 004 Fig. 8 on a 61 x 61
+  grid: 20 values of d12 x 2 and 4 moves), run serially in this process and on a LocalCluster of
+  `--workers` (2) workers, side by side in this one run (serial first, then Dask, `--repeats`
+  times alternately; each ratio is of one such pair, the median reported, and the ratio of the
+  best serial to the best Dask time, `speedup_best_of`). Goal: >= 1.8x on two
+  cores. Both sides start with the planners' kernels loaded and exclude the cluster's start-up
+  (reported apart), and both give the same fraction for every case (checked, `same_results`).
+  `overhead_ms_per_case`: per worker, the gap between the end of one case and the start of the
+  next (the scheduler's round trip), mean over the cases; goal < 50 ms. `idle_ms_per_case`:
+  (workers x wall - sum of the case times) / cases, which adds the wait for the last case.
+- campaign: `--campaign-runs` (20) cases of `studies/closed-loop.toml` (fig4-quick closed loop on
+  the emulated six-coil bench with model mismatch, one bench per seed) on two workers: the share
+  delivered (ground truth within 1 mm), wall time, and port clashes (any port two cases' benches
+  both served; must be 0).
+A machine shared with other jobs makes both ratios noisy: the load average is reported.
+
+Usage: python bench/study.py [--quick] [--workers N] [--repeats N] [--campaign-runs N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import platform
+import re
+import statistics
+import sys
+import tempfile
+import time
+import tomllib
+from collections import defaultdict
+from pathlib import Path
+
+import pyarrow.parquet as pq
+
+from rigctl.study.execution import run_study
+from rigctl.study.spec import spec_from_dict
+
+STUDIES = Path(__file__).resolve().parents[1] / "studies"
+
+
+def _spec(name: str, **changes):
+    data = tomllib.loads((STUDIES / f"{name}.toml").read_text())
+    for key, value in changes.items():
+        data[key] = value
+    return spec_from_dict(data, STUDIES)
+
+
+def _rows(folder: Path) -> list[dict]:
+    return pq.read_table(folder / "results.parquet").to_pylist()
+
+
+def _gaps_ms(rows: list[dict]) -> list[float]:
+    """Per worker, end of a case to the start of the next one, ms."""
+    by_worker = defaultdict(list)
+    for r in rows:
+        by_worker[r["worker"]].append((r["started_s"], r["wall_s"]))
+    gaps = []
+    for cases in by_worker.values():
+        cases.sort()
+        gaps += [1e3 * (b[0] - (a[0] + a[1])) for a, b in itertools.pairwise(cases)]
+    return gaps
+
+
+def planner_sweep(tmp: Path, workers: int, repeats: int, quick: bool) -> dict:
+    spec = _spec("reachable-quick", **({"parameters": {"d12": [0.2, 0.4, 0.6, 0.8, 1.0],
+                                                      "moves": [2, 4]}} if quick else {}))
+    pairs = []
+    for k in range(repeats):
+        serial = run_study(spec, tmp / f"serial-{k}", serial=True, progress_out=None)
+        started = time.perf_counter()
+        dask = run_study(spec, tmp / f"dask-{k}", workers=workers, progress_out=None)
+        total = time.perf_counter() - started
+        a, b = _rows(tmp / f"serial-{k}"), _rows(tmp / f"dask-{k}")
+        same = {r["case_id"]: r["fig_fraction"] for r in a} == {r["case_id"]: r["fig_fraction"] for r in b}
+        gaps = _gaps_ms(b)
+        pairs.append({
+            "serial_s": round(serial.wall_s, 3), "dask_s": round(dask.wall_s, 3),
+            "speedup": round(serial.wall_s / dask.wall_s, 3),
+            "cluster_start_and_warm_up_s": round(total - dask.wall_s, 2),
+            "overhead_ms_per_case": round(statistics.mean(gaps), 2) if gaps else None,
+            "overhead_ms_max": round(max(gaps), 2) if gaps else None,
+            "idle_ms_per_case": round(1e3 * (workers * dask.wall_s - dask.case_wall_s) / dask.ran, 1),
+            "case_s_sum_serial": round(serial.case_wall_s, 3),
+            "case_s_sum_dask": round(dask.case_wall_s, 3),
+            "same_results": same,
+        })
+    ratios = [p["speedup"] for p in pairs]
+    overheads = [p["overhead_ms_per_case"] for p in pairs if p["overhead_ms_per_case"] is not None]
+    return {
+        "study": "studies/reachable-quick.toml", "cases": len(spec.cases), "workers": workers,
+        "speedup_median": statistics.median(ratios), "speedup_goal": 1.8,
+        "speedup_best_of": round(min(p["serial_s"] for p in pairs) / min(p["dask_s"] for p in pairs), 3),
+        "overhead_ms_per_case_median": statistics.median(overheads) if overheads else None,
+        "overhead_goal_ms": 50, "same_results": all(p["same_results"] for p in pairs),
+        "runs": pairs,
+    }
+
+
+def campaign(tmp: Path, runs: int, workers: int) -> dict:
+    spec = _spec("closed-loop", seeds={"first": 100, "count": runs})
+    started = time.perf_counter()
+    outcome = run_study(spec, tmp / "campaign", workers=workers, progress_out=sys.stderr)
+    wall = time.perf_counter() - started
+    rows = _rows(tmp / "campaign")
+    owners: dict[int, set[str]] = defaultdict(set)
+    for r in rows:
+        bench = tmp / "campaign" / "cases" / r["case_id"] / "bench.toml"
+        for port in set(re.findall(r"127\.0\.0\.1:(\d+)", bench.read_text())):
+            owners[int(port)].add(r["case_id"])
+    delivered = [r for r in rows if r["success"]]
+    errors = [r["error"] for r in rows if r["error"] is not None]
+    return {
+        "study": "studies/closed-loop.toml", "runs": runs, "workers": outcome.workers,
+        "ran_ok": outcome.ran - outcome.not_ok, "delivered": len(delivered),
+        "delivered_share": len(delivered) / runs, "port_clashes": sum(len(c) > 1 for c in owners.values()),
+        "ports_served": len(owners), "wall_s": round(wall, 1),
+        "case_s_median": round(statistics.median(r["wall_s"] for r in rows), 1),
+        "worst_error_mm": max(errors) if errors else None,
+        "not_delivered": [{"seed": r["seed"], "state": r["fig_state"], "error_mm": r["error"],
+                           "message": r["message"]} for r in rows if not r["success"]],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="10 planner cases, 2 emulated runs")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--repeats", type=int, help="serial/Dask pairs of the sweep (default 3)")
+    parser.add_argument("--campaign-runs", type=int, help="emulated closed-loop runs (default 20)")
+    args = parser.parse_args()
+    repeats = args.repeats or (1 if args.quick else 3)
+    runs = args.campaign_runs if args.campaign_runs is not None else (2 if args.quick else 20)
+    with tempfile.TemporaryDirectory(prefix="rigctl-bench-study-") as tmp:
+        os.environ.setdefault("RIGCTL_LOCK_DIR", str(Path(tmp) / "locks"))
+        load_before = os.getloadavg()[0]
+        report = {
+            "benchmark": "study", "python": platform.python_version(), "cores": os.cpu_count(),
+            "planner_sweep": planner_sweep(Path(tmp), args.workers, repeats, args.quick),
+            "campaign": campaign(Path(tmp), runs, args.workers) if runs else None,
+            "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+        }
+    print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()
