@@ -40,6 +40,7 @@ from rigctl.daemon.messages import (
     AgentsMsg,
     FaultMsg,
     FieldMsg,
+    FrameMsg,
     LogMsg,
     StateMsg,
     StreamMsg,
@@ -186,6 +187,21 @@ class TelemetryPublisher:
             msg = AgentsMsg(seq=self._next_seq(Topic.AGENTS), t=self.now(), move=move,
                             tracked_mm=tracked, expected_mm=expected, source=source)
             self._priority.append((Topic.AGENTS.value, msg))
+            self._cond.notify()
+
+    def publish_frame(self, jpeg: bytes, width: int, height: int, t_source: float,
+                      positions_mm: list, lost: list, frame: int) -> None:
+        """A camera frame (JPEG bytes; `t_source` monotonic s), from the stream process's reader
+        thread: built here (a base64 of some 30 kB), sent by the publisher thread like `agents`."""
+        import base64
+
+        msg = FrameMsg.model_construct(
+            seq=self._next_seq(Topic.FRAME), t=self.now(), topic="frame",
+            jpeg_b64=base64.b64encode(jpeg).decode("ascii"), width=width, height=height,
+            t_source=round(t_source - self.t0, 6), positions_mm=positions_mm, lost=lost,
+            frame=frame)
+        with self._cond:
+            self._priority.append((Topic.FRAME.value, msg))
             self._cond.notify()
 
     def _next_seq(self, topic: Topic) -> int:

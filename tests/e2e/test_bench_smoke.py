@@ -24,6 +24,7 @@ QUICK = {
     "pair.py": ["--quick"],
     "preflight.py": ["--rig", "six-coil", "--repeat", "1"],
     "fuzz_daemon.py": ["--requests", "200", "--plans", "20"],
+    "console.py": ["--quick"],
 }
 
 
