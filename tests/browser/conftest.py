@@ -53,9 +53,18 @@ def screenshots(tmp_path_factory) -> Callable[[object, str], Path]:
     folder = tmp_path_factory.mktemp("screenshots")
     copy_to = os.environ.get("RIGCTL_CONSOLE_SCREENSHOTS")
 
-    def save(driver, name: str) -> Path:
+    def save(driver, name: str, full_page: bool = False) -> Path:
+        """The window as the operator sees it; `full_page`: the whole page, plots included (the
+        window grown to the page's height for the shot, then back)."""
         path = folder / f"{name}.png"
+        size = driver.get_window_size()
+        if full_page:
+            height = driver.execute_script("return document.documentElement.scrollHeight;")
+            driver.set_window_size(size["width"], height + 20)
+            driver.execute_script("return new Promise(r => requestAnimationFrame(() => r()));")
         driver.save_screenshot(str(path))
+        if full_page:
+            driver.set_window_size(size["width"], size["height"])
         if copy_to:
             Path(copy_to).mkdir(parents=True, exist_ok=True)
             shutil.copy(path, Path(copy_to) / path.name)

@@ -4,6 +4,8 @@ SyRen values on the emulated board's wire, read from its backdoor)."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from rigctl.testing import wait_for
@@ -15,6 +17,9 @@ from tests.browser.pages import (
     open_console,
     wait_page,
 )
+
+
+TRACKER_ERROR_MM = 0.5  # a particle's radius (1 mm spheres, seed 004)
 
 
 @pytest.fixture(scope="module")
@@ -39,11 +44,33 @@ def test_the_board_page_its_camera_and_estop(rig, browser, screenshots):
     first = wait_page(driver, "rigctlConsole.lastFrame", 60.0, "a camera frame drawn")
     wait_page(driver, f"rigctlConsole.lastFrame.frame > {first['frame'] + 3}", 20.0,
               "newer frames drawn")
-    truth = backdoor.request("truth")
-    assert len(js(driver, "rigctlConsole.lastFrame.positions_mm")) == len(truth["agents"])
     wait_for(lambda: driving(backdoor), 60.0, "the board driving its coils")
     assert no_horizontal_scroll(driver)
-    screenshots(driver, "coil-board-running")
+    screenshots(driver, "coil-board-running", full_page=True)
+    # paused now, the particles come to rest: what the page drew against the emulator's truth
+    click(driver, "pause-now")
+    wait_page(driver, "rigctlConsole.state === 'paused'", 30.0, "paused")
+    wait_for(lambda: not driving(backdoor), 10.0, "the coils off while paused")
+    previous = backdoor.request("truth")["agents"]
+
+    def at_rest() -> bool:
+        now = backdoor.request("truth")["agents"]
+        still = all(math.dist(a, b) < 1e-3 for a, b in zip(now, previous))
+        previous[:] = now
+        return still
+
+    wait_for(at_rest, 10.0, "the particles at rest")
+    seen = js(driver, "rigctlConsole.lastFrame.frame")
+    drawn = wait_page(driver, f"rigctlConsole.lastFrame.frame > {seen + 2} && "
+                      "rigctlConsole.lastFrame", 10.0, "frames of the particles at rest")
+    truth = backdoor.request("truth")["agents"]
+    assert len(drawn["positions_mm"]) == len(truth)
+    for tracked, real in zip(drawn["positions_mm"], truth):
+        assert math.dist(tracked, real) < TRACKER_ERROR_MM, (drawn["positions_mm"], truth)
+    screenshots(driver, "coil-board-paused")
+    click(driver, "resume")
+    wait_page(driver, "rigctlConsole.state === 'running'", 30.0, "running again")
+    wait_for(lambda: driving(backdoor), 30.0, "the board driving its coils again")
     click(driver, "estop")
     wait_for(lambda: not driving(backdoor), 5.0, "every SyRen output at zero")
     wait_page(driver, "rigctlConsole.state === 'estopped'", 10.0, "the page says estopped")

@@ -60,7 +60,7 @@ def test_the_arms_page_and_estop(rig, browser, screenshots):
         assert math.dist(arm["points_mm"][8], epm_mm) < 2.0, (arm["points_mm"][8], epm_mm)
         assert math.dist(arm["points_mm"][0], position) < 1e-6 + 0.1
     assert no_horizontal_scroll(driver)
-    screenshots(driver, "depm-paused")
+    screenshots(driver, "depm-paused", full_page=True)
     click(driver, "resume")
     wait_page(driver, "rigctlConsole.state === 'running'", 30.0, "running again")
     wait_for(lambda: moving(backdoor.request("truth")), 30.0, "the arms moving again")

@@ -128,7 +128,7 @@ def test_camera_tracked_positions_pause_resume_and_estop(rig, browser, screensho
     click(driver, "resume")
     wait_page(driver, "rigctlConsole.state === 'running'", 30.0, "running again")
     wait_for(lambda: energised(backdoor), 30.0, "the supplies energised again")
-    screenshots(driver, "six-coil-running")
+    screenshots(driver, "six-coil-running", full_page=True)
     # E-STOP from the keyboard (Escape): every emulated supply at 0 A
     driver.find_element("tag name", "body").send_keys("\ue00c")  # Keys.ESCAPE
     wait_page(driver, "rigctlConsole.estops.length && rigctlConsole.estops[0].ok", 10.0,

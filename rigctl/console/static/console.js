@@ -65,7 +65,7 @@ async function control(cmd, args = {}) {
 
 function summarise(result) {
   if (result && typeof result === "object") {
-    if (result.state) return `state ${result.state}` + (result.pending ? " (at the end of this step)" : "");
+    if (result.state) return `state ${result.state}` + (result.pending ? ` (pending: ${result.pending})` : "");
     if (result.plan_id) return `plan ${result.plan_id}`;
   }
   return "done";
@@ -208,7 +208,7 @@ function onStream(msg) {
   plots.stream.add("p99", msg.t, msg.period_error_p99_us);
   plots.stream.add("p50", msg.t, msg.period_error_p50_us);
   const late = msg.cycles ? (100 * msg.late_cycles / msg.cycles).toFixed(2) : "0";
-  plots.stream.setYLabel(`period error (us), late ${late} %`);
+  $("stream-title").textContent = `Stream period error (late cycles: ${late} %)`;
 }
 
 function drawPlots() {
@@ -349,7 +349,9 @@ function drawArms(msg) {
       ctx.beginPath(); arm.points_mm.slice(0, 8).forEach((p, j) => (j ? ctx.lineTo(X(p[v.a]), Y(p[v.b])) : ctx.moveTo(X(p[v.a]), Y(p[v.b])))); ctx.stroke();
       const epm = arm.points_mm[8];
       ctx.fillStyle = "rgba(215,21,29,.8)"; ctx.beginPath(); ctx.arc(X(epm[v.a]), Y(epm[v.b]), Math.max(3, msg.epm_radius_mm * scale), 0, 2 * Math.PI); ctx.fill();
-      ctx.fillStyle = "#1b1d21"; ctx.textAlign = "left"; ctx.fillText(arm.name, X(arm.points_mm[0][v.a]) + 6, Y(arm.points_mm[0][v.b]) + 14);
+      const bx = X(arm.points_mm[0][v.a]), right_half = bx > (left + right) / 2;
+      ctx.fillStyle = "#1b1d21"; ctx.textAlign = right_half ? "right" : "left";
+      ctx.fillText(arm.name, bx + (right_half ? -8 : 8), Y(arm.points_mm[0][v.b]) + 14);
     });
     ctx.restore();
   });
