@@ -122,6 +122,11 @@ def settle(rig: Rig) -> None:
         rig.abort()
         state = rig.wait_state("idle", "faulted", "estopped", timeout_s=60)["state"]
     if state in ("faulted", "estopped"):
+        deadline = time.monotonic() + 60
+        while rig.status().get("run") is not None:  # still stopping: reset would be `busy`
+            if time.monotonic() > deadline:
+                raise RuntimeError("the run did not stop within 60 s")
+            time.sleep(0.05)
         rig.reset()
     rig.wait_state("idle", timeout_s=60)
 
@@ -129,21 +134,24 @@ def settle(rig: Rig) -> None:
 def frame_latency(rig: Rig, driver, backdoor, plan: dict, seconds: float,
                   camera_fps: float | None) -> dict:
     """A closed-loop run with one page open: every frame the page drew, capture -> drawn."""
-    driver.execute_script("rigctlConsole.frameLatenciesMs.length = 0; rigctlConsole.frames = 0;")
     rig.execute(rig.load(plan))
     deadline = time.monotonic() + 60
     while not energised(backdoor):
         if time.monotonic() > deadline:
             raise RuntimeError("the run never energised the supplies")
         time.sleep(0.02)
+    driver.execute_script("rigctlConsole.frameLatenciesMs.length = 0; "
+                          "rigctlConsole.frameReceivedMs.length = 0; rigctlConsole.frames = 0;")
     t0 = time.monotonic()
     time.sleep(seconds)
     span = time.monotonic() - t0
     latencies = driver.execute_script("return rigctlConsole.frameLatenciesMs.slice();")
+    received = driver.execute_script("return rigctlConsole.frameReceivedMs.slice();")
     frames = driver.execute_script("return rigctlConsole.frames;")
     settle(rig)
     return {"frames_drawn": frames, "drawn_per_s": round(frames / span, 1),
             "camera_fps": camera_fps, "capture_to_drawn_ms": percentiles(latencies),
+            "capture_to_received_by_the_page_ms": percentiles(received),
             "p99_under_100_ms": bool(latencies) and float(np.percentile(latencies, 99)) < 100.0}
 
 
@@ -189,32 +197,36 @@ def estop_latency(rig: Rig, driver, backdoor, plan: dict, runs: Path, rate_hz: f
 
 
 def stream_and_status(rig: Rig, plan: dict, pages: int, seconds: float) -> dict:
-    """One run of `plan` (aborted after `seconds` of streaming) with `pages` pages open elsewhere;
-    the stream's late share from its telemetry, and `status` round trips from here."""
+    """One run of `plan` (aborted after `seconds` of streaming) with `pages` pages open; over the
+    streaming window: the stream's late share (its `stream` telemetry: late cycles / cycles) and
+    `status` round trips from this process, 50 a second."""
     telemetry = rig.telemetry(["stream"])
     rig.execute(rig.load(plan))
-    rtts = []
-    last = None
+    first = None
+    deadline = time.monotonic() + 60
+    while first is None:  # the stream has begun (the camera found the magnets, the supplies on)
+        msg = telemetry.receive(timeout_s=1.0)
+        if msg is not None and msg.cycles > 0:
+            first = msg
+        if time.monotonic() > deadline:
+            raise RuntimeError("the run never streamed")
+    rtts, last = [], first
     t_end = time.monotonic() + seconds
-    started = False
-    while time.monotonic() < t_end or not started:
+    while time.monotonic() < t_end:
         t0 = time.perf_counter()
-        status = rig.status()
+        rig.status()
         rtts.append((time.perf_counter() - t0) * 1e6)
-        started = started or status["state"] == "running"
-        if not started:
-            t_end = time.monotonic() + seconds
         msg = telemetry.receive(timeout_s=0.0)
         while msg is not None:
-            last = msg
+            last = msg if msg.cycles >= last.cycles else last
             msg = telemetry.receive(timeout_s=0.0)
         time.sleep(0.02)
     telemetry.close()
     settle(rig)
-    late = (last.late_cycles / last.cycles) if last is not None and last.cycles else None
+    cycles = last.cycles - first.cycles
+    late = (last.late_cycles - first.late_cycles) / cycles if cycles > 0 else None
     return {"pages": pages, "late_share": None if late is None else round(late, 5),
-            "cycles": None if last is None else last.cycles,
-            "status_us": percentiles(rtts, 1)}
+            "cycles": cycles, "status_us": percentiles(rtts, 1)}
 
 
 def main() -> None:
@@ -227,7 +239,8 @@ def main() -> None:
     if args.quick:
         args.seconds, args.repeats, args.pages = 2.0, 1, 2
     plan = json.loads((EXAMPLES / "fig4-two-magnets.json").read_text())
-    out: dict = {"bench": "console", "rig": "six-coil", "seconds": args.seconds}
+    out: dict = {"bench": "console", "rig": "six-coil", "seconds": args.seconds,
+                 "cpus": os.cpu_count(), "load_average_1min_before": round(os.getloadavg()[0], 2)}
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-console-") as tmp_name:
         tmp = Path(tmp_name)
         with EmulatedBenchProcess("six-coil", tmp / "bench.toml") as rig_path:
@@ -271,6 +284,7 @@ def main() -> None:
                 for driver in drivers:
                     driver.quit()
                 daemon.close()
+    out["load_average_1min_after"] = round(os.getloadavg()[0], 2)
     print(json.dumps(out))
 
 

@@ -32,8 +32,9 @@ import secrets
 import ssl
 import threading
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -105,10 +106,15 @@ def is_loopback_host(host: str) -> bool:
 
 @dataclass(eq=False)  # a page is itself: hashed by identity
 class _Page:
+    """One page's WebSocket and what waits for it: messages in order (at most PAGE_QUEUE, the
+    oldest lost first) and the newest camera frame alone (a page that falls behind skips frames
+    rather than drawing old ones late)."""
+
     ws: Any
-    queue: asyncio.Queue
+    queue: deque = field(default_factory=lambda: deque(maxlen=PAGE_QUEUE))
+    frame: bytes | None = None
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
     authenticated: bool = False
-    dropped: int = 0
 
 
 class Console:
@@ -214,7 +220,8 @@ class Console:
         host = f"[{self.host}]" if ":" in self.host else self.host
         self.port = port
         self.url = f"{self.scheme}://{host}:{port}/"
-        tasks = [asyncio.create_task(self._telemetry()), asyncio.create_task(self._poll_status())]
+        tasks = [asyncio.create_task(self._telemetry()), asyncio.create_task(self._poll_status()),
+                 asyncio.create_task(self._warm_estop())]
         self._ready.set()
         try:
             await self._stopping.wait()
@@ -246,6 +253,18 @@ class Console:
         loop = asyncio.get_running_loop()
         return await loop.run_in_executor(
             self._pools[pool], lambda: self._client(pool).request(cmd, timeout_s=timeout_s, **args))
+
+    async def _warm_estop(self) -> None:
+        """The e-stop's connection to the daemon made now (once the daemon serves), not at the
+        first e-stop."""
+        from rigctl.errors import RigError
+
+        while True:
+            try:
+                await self._request("estop", "ping")
+                return
+            except RigError:
+                await asyncio.sleep(0.5)
 
     async def _poll_status(self) -> None:
         from rigctl.errors import RigError
@@ -313,33 +332,36 @@ class Console:
             poller.register(sock, zmq.POLLIN)
         try:
             while True:
+                newest_frame = None  # of what queued meanwhile, only the newest frame goes on
                 for sock, _ in await poller.poll():
                     while True:
                         try:
                             topic, payload = await sock.recv_multipart(flags=zmq.NOBLOCK)
                         except zmq.Again:
                             break
-                        self._forward(topic.decode(), payload)
+                        if topic == b"frame":
+                            newest_frame = payload
+                        else:
+                            self._forward(topic.decode(), payload)
+                if newest_frame is not None:
+                    self._forward("frame", newest_frame)
         finally:
             for sock in sockets:
                 sock.close(linger=0)
             context.term()
 
     def _forward(self, topic: str, payload: bytes) -> None:
-        if topic == "frame":
-            msg = json.loads(payload)
-            msg["tracked_px"] = self.camera.to_px(msg["positions_mm"])
-            # the capture time on the wall clock, which the browser's own clock reads too
-            msg["t_source_unix"] = time.time() - (time.monotonic() - (self.t0 + msg["t_source"]))
-            self._broadcast(json.dumps(msg))
-        elif topic == "agents":
+        """One telemetry message to every page: as it came (a frame's pixels and wall-clock time
+        are in it already), `agents` with its positions in the camera's pixels added."""
+        if not self._pages:
+            return
+        if topic == "agents":
             msg = json.loads(payload)
             msg["tracked_px"] = self.camera.to_px(msg.get("tracked_mm") or [])
             msg["expected_px"] = self.camera.to_px(msg.get("expected_mm") or [])
             self._broadcast(json.dumps(msg))
         else:
-            text = payload.decode()
-            self._broadcast(text)
+            self._broadcast(payload, frame=topic == "frame")
             if topic == "actuators" and self.arms.available:
                 now = time.monotonic()
                 if now - self._last_arms >= 1.0 / ARMS_HZ:
@@ -351,9 +373,11 @@ class Console:
                             self._broadcast(json.dumps({"topic": "console.arms",
                                                         **self.arms.of_joints(joints)}))
 
-    def _broadcast(self, text: str) -> None:
+    def _broadcast(self, text: str | bytes, frame: bool = False) -> None:
+        """Encoded once for every page (UTF-8 JSON, sent as a text frame)."""
+        data = text.encode() if isinstance(text, str) else text
         for page in list(self._pages):
-            _offer(page, text)
+            _offer(page, data, frame)
 
     # -- HTTP -----------------------------------------------------------------------------------
     async def _headers(self, request: Any, response: Any) -> None:
@@ -424,9 +448,12 @@ class Console:
             log.warning("console: refused a WebSocket from origin %s",
                         request.headers.get("Origin"))
             raise web.HTTPForbidden(text="refused: requests from another origin")
-        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=MAX_UPLOAD_BYTES + 4096)
+        # no permessage-deflate: compressing every frame for every page would cost the daemon's
+        # process far more than the bytes it saves on a lab's network
+        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=MAX_UPLOAD_BYTES + 4096,
+                                   compress=False)
         await ws.prepare(request)
-        page = _Page(ws, asyncio.Queue(PAGE_QUEUE))
+        page = _Page(ws)
         try:
             hello = await ws.receive(timeout=HELLO_TIMEOUT_S)
             token = ""
@@ -540,26 +567,28 @@ class _Refused(Exception):
         self.code, self.message = code, message
 
 
-def _offer(page: _Page, text: str) -> None:
-    """Queue `text` for a page; a full queue loses its oldest message."""
-    if page.queue.full():
-        try:
-            page.queue.get_nowait()
-            page.dropped += 1
-        except asyncio.QueueEmpty:
-            pass
-    try:
-        page.queue.put_nowait(text)
-    except asyncio.QueueFull:
-        page.dropped += 1
+def _offer(page: _Page, text: str | bytes, frame: bool = False) -> None:
+    """Queue a message (UTF-8 JSON) for a page: a frame replaces the one not yet sent; anything
+    else queues (a full queue loses its oldest message)."""
+    data = text.encode() if isinstance(text, str) else text
+    if frame:
+        page.frame = data
+    else:
+        page.queue.append(data)
+    page.wake.set()
 
 
 async def _write(page: _Page) -> None:
-    while True:
-        text = await page.queue.get()
-        if page.ws.closed:
-            return
+    from aiohttp import WSMsgType
+
+    while not page.ws.closed:
+        await page.wake.wait()
+        page.wake.clear()
         try:
-            await page.ws.send_str(text)
+            while page.queue:
+                await page.ws.send_frame(page.queue.popleft(), WSMsgType.TEXT)
+            frame, page.frame = page.frame, None
+            if frame is not None:
+                await page.ws.send_frame(frame, WSMsgType.TEXT)
         except ConnectionError:
             return

@@ -353,7 +353,9 @@ class FrameMsg(_Telemetry):
     width: int = Field(description="the camera's frame width, px (the calibration's pixels)")
     height: int
     t_source: float = Field(description="when the picture was taken, s on the daemon's clock")
+    t_source_unix: float = Field(description="the same on the wall clock (Unix s), for a browser")
     positions_mm: list[list[float]] = Field(description="(n, 2) the tracker's positions")
+    tracked_px: list[list[float]] = Field(description="(n, 2) the same in the camera's pixels")
     lost: list[bool] = Field(description="(n,) tracking of that robot lost")
     frame: int = Field(description="fresh frames tracked before this one in this run")
 

@@ -22,7 +22,8 @@ Messages are pickled tuples over one-way pipes (`multiprocessing.connection.Conn
                      ("retarget", target, setpoints, ramp_s)  ("release", ramp_s)  (a hold's)
                      ("exit",)
     host -> daemon   ("ready", pid)   ("cycles", *CycleBatch fields; t on `time.monotonic()`)
-                     ("frame", jpeg, width, height, t_source, positions_mm, lost, frame) (below)
+                     ("frame", jpeg_b64, width, height, t_source, t_source_unix, positions_mm,
+                      tracked_px, lost, frame) (`_FrameTap`)
                      ("state", state, info, record_path, record_t0)
                      ("done", summary)   ("failed", kind, message)   ("log", level, name, text)
     host -> daemon   (asked_at, unreached), the e-stop's answer, on a pipe of its own that the
@@ -40,6 +41,7 @@ calling thread) and acknowledged with the supplies it could not reach.
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import os
@@ -100,7 +102,7 @@ class RunHost:
 
     def __init__(self, realtime_priority: int | None = None, on_frame: Any = None) -> None:
         self.realtime_priority = realtime_priority
-        self.on_frame = on_frame  # (jpeg, width, height, t_source, positions_mm, lost, frame)
+        self.on_frame = on_frame  # a "frame" message's fields (`_FrameTap`)
         self._lock = threading.Lock()  # one sender at a time on the pipe; the process handles
         self._process: Any = None
         self._down: Any = None
@@ -528,11 +530,14 @@ class _FrameTap:
     """Camera frames for the daemon's console, off the tracking thread's path: `offer` (from the
     tracking thread) keeps only the newest frame, at most FRAME_HZ a second; a thread of its own
     scales it to FRAME_MAX_WIDTH, encodes it as JPEG (OpenCV releases the GIL meanwhile) and
-    sends it up with what the tracker saw in it. A frame not yet sent when a newer one comes is
-    replaced, so a slow encoder costs frames, never memory or the stream's time."""
+    sends it up, base64 and all, with what the tracker saw in it, in mm and in the camera's pixels
+    (the run's calibration), so that the daemon and its console only pass it on. A frame not yet
+    sent when a newer one comes is replaced, so a slow encoder costs frames, never memory or the
+    stream's time."""
 
     def __init__(self, uplink: _Uplink) -> None:
         self.uplink = uplink
+        self.calibration: Any = None  # the running rig's camera calibration (set per run)
         self._cond = threading.Condition()
         self._latest: tuple | None = None
         self._last_t = -float("inf")
@@ -563,8 +568,15 @@ class _FrameTap:
             ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, FRAME_JPEG_QUALITY])
             if not ok:
                 continue
-            self.uplink.message("frame", jpeg.tobytes(), width, height, float(state.t_source),
-                                np.asarray(state.positions_mm, dtype=float).round(4).tolist(),
+            positions = np.asarray(state.positions_mm, dtype=float)
+            calibration = self.calibration
+            pixels = calibration.to_px(positions).round(1).tolist() if calibration else []
+            t_source = float(state.t_source)
+            # the capture time on the wall clock too: a browser on this machine reads that clock
+            t_source_unix = time.time() - (time.monotonic() - t_source)
+            self.uplink.message("frame", base64.b64encode(jpeg.tobytes()).decode("ascii"), width,
+                                height, t_source, round(t_source_unix, 6),
+                                positions.round(4).tolist(), pixels,
                                 [bool(x) for x in state.lost], int(state.frame))
 
 
@@ -644,6 +656,8 @@ class _Host:
         self._thread.start()
 
     def _build_run(self, plan: Any, rig: RigConfig, runs_dir: str) -> Any:
+        if self.frames is not None:
+            self.frames.calibration = rig.camera.calibration if rig.camera is not None else None
         run = build_run(
             plan, rig, runs_dir=runs_dir,
             on_cycle=lambda k, move, cmd, meas: self.uplink.cycle(

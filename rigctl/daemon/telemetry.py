@@ -189,17 +189,16 @@ class TelemetryPublisher:
             self._priority.append((Topic.AGENTS.value, msg))
             self._cond.notify()
 
-    def publish_frame(self, jpeg: bytes, width: int, height: int, t_source: float,
-                      positions_mm: list, lost: list, frame: int) -> None:
-        """A camera frame (JPEG bytes; `t_source` monotonic s), from the stream process's reader
-        thread: built here (a base64 of some 30 kB), sent by the publisher thread like `agents`."""
-        import base64
-
+    def publish_frame(self, jpeg_b64: str, width: int, height: int, t_source: float,
+                      t_source_unix: float, positions_mm: list, tracked_px: list, lost: list,
+                      frame: int) -> None:
+        """A camera frame (JPEG, base64; `t_source` monotonic s) from the stream process's reader
+        thread, sent by the publisher thread like `agents`."""
         msg = FrameMsg.model_construct(
-            seq=self._next_seq(Topic.FRAME), t=self.now(), topic="frame",
-            jpeg_b64=base64.b64encode(jpeg).decode("ascii"), width=width, height=height,
-            t_source=round(t_source - self.t0, 6), positions_mm=positions_mm, lost=lost,
-            frame=frame)
+            seq=self._next_seq(Topic.FRAME), t=self.now(), topic="frame", jpeg_b64=jpeg_b64,
+            width=width, height=height, t_source=round(t_source - self.t0, 6),
+            t_source_unix=t_source_unix, positions_mm=positions_mm, tracked_px=tracked_px,
+            lost=lost, frame=frame)
         with self._cond:
             self._priority.append((Topic.FRAME.value, msg))
             self._cond.notify()

@@ -240,3 +240,28 @@ def test_a_console_beyond_loopback_without_tls_is_refused(tmp_path):
     assert done.returncode == 2, done.stderr
     lines = [line for line in done.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "TLS" in lines[0] and "Traceback" not in done.stderr, done.stderr
+
+
+def test_the_runs_list_and_a_runs_report(rig, browser):
+    """Every run the daemon recorded is listed on the page, and its report is a PNG drawn by
+    `rigctl report` (served by the console; a run id that is no run is refused)."""
+    import urllib.error
+    import urllib.request
+
+    daemon, _ = rig
+    with daemon.client() as client:
+        runs = client.runs(limit=20)
+    assert runs, "the earlier tests of this module ran plans"
+    driver = open_console(browser, daemon)
+    click(driver, "refresh-runs")
+    listed = wait_page(driver, "[...document.querySelectorAll('#runs tbody tr')]"
+                       ".map(r => r.cells[0].textContent)", 10.0, "the runs listed")
+    assert listed == [r["id"] for r in runs]
+    with urllib.request.urlopen(f"{daemon.url}runs/{runs[0]['id']}/report.png", timeout=120) as r:
+        assert r.headers["Content-Type"] == "image/png" and r.read(8) == b"\x89PNG\r\n\x1a\n"
+    for bad in ("no-such-run", "..%2F..%2Fetc"):
+        try:
+            urllib.request.urlopen(f"{daemon.url}runs/{bad}/report.png", timeout=30)
+            raise AssertionError(f"{bad} was served")
+        except urllib.error.HTTPError as err:
+            assert err.code == 404

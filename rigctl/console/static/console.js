@@ -10,7 +10,7 @@ const nowMs = () => performance.timeOrigin + performance.now();
 
 const C = window.rigctlConsole = {
   hello: null, status: null, state: "unknown", scene: null, agents: null, frame: null,
-  frames: 0, frameLatenciesMs: [], lastFrame: null, estops: [], replies: 0, log: [],
+  frames: 0, frameLatenciesMs: [], frameReceivedMs: [], lastFrame: null, estops: [], replies: 0, log: [],
   authenticated: false, connected: false,
 };
 
@@ -244,6 +244,7 @@ function updateAgents() {
 const AGENT_COLORS = ["#ff3b3b", "#3bc4ff", "#ffd23b", "#7cff3b", "#ff7cf0", "#ffffff"];
 
 function onFrame(msg) {
+  const receivedAt = nowMs();
   const bytes = Uint8Array.from(atob(msg.jpeg_b64), (c) => c.charCodeAt(0));
   createImageBitmap(new Blob([bytes], { type: "image/jpeg" })).then((bitmap) => {
     const canvas = $("camera");
@@ -257,7 +258,8 @@ function onFrame(msg) {
     const drawnAt = nowMs();
     const latency = drawnAt - 1000 * msg.t_source_unix;
     C.frameLatenciesMs.push(latency);
-    if (C.frameLatenciesMs.length > 5000) C.frameLatenciesMs.shift();
+    C.frameReceivedMs.push(receivedAt - 1000 * msg.t_source_unix);  // capture -> on the page
+    if (C.frameLatenciesMs.length > 5000) { C.frameLatenciesMs.shift(); C.frameReceivedMs.shift(); }
     C.frames++;
     C.frame = { drawnAt };
     C.lastFrame = { frame: msg.frame, seq: msg.seq, positions_mm: msg.positions_mm, tracked_px: msg.tracked_px, latency_ms: latency, drawn_at_ms: drawnAt };
