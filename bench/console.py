@@ -13,7 +13,9 @@ emulated six-coil bench. Prints one JSON object.
   truth (every coil under 0.05 A, set by L/R) beside it;
 - ten pages watching vs none: the same plan run `--repeats` times each way, alternately; the
   stream's late share (its `stream` telemetry) and `status` p99 (this process asks 50 times a
-  second), with the spread between runs of the same kind as the run-to-run noise.
+  second), with the spread between runs of the same kind as the run-to-run noise; once with ten
+  Chromium tabs on this machine (their decoding and drawing compete with the stream for the
+  same cores), once with ten plain WebSocket clients in one process (the console's own cost).
 
     python bench/console.py                 # about 3 minutes
     python bench/console.py --quick         # one short run of each (the smoke test)
@@ -131,15 +133,29 @@ def settle(rig: Rig) -> None:
     rig.wait_state("idle", timeout_s=60)
 
 
+def start_streaming(rig: Rig, backdoor, plan: dict, attempts: int = 3) -> None:
+    """Load and execute `plan` until the supplies carry current; a run that faulted first (a
+    watchdog on a loaded machine) is reset and started again, at most `attempts` times."""
+    for attempt in range(attempts):
+        rig.execute(rig.load(plan))
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            if energised(backdoor):
+                return
+            status = rig.status()
+            if status["state"] in ("faulted", "estopped", "idle"):
+                break
+            time.sleep(0.02)
+        print(f"the run did not stream (attempt {attempt + 1}): {status['state']} "
+              f"{status.get('device')}: {status.get('reason')}", file=sys.stderr)
+        settle(rig)
+    raise RuntimeError(f"the run never energised the supplies in {attempts} attempts")
+
+
 def frame_latency(rig: Rig, driver, backdoor, plan: dict, seconds: float,
                   camera_fps: float | None) -> dict:
     """A closed-loop run with one page open: every frame the page drew, capture -> drawn."""
-    rig.execute(rig.load(plan))
-    deadline = time.monotonic() + 60
-    while not energised(backdoor):
-        if time.monotonic() > deadline:
-            raise RuntimeError("the run never energised the supplies")
-        time.sleep(0.02)
+    start_streaming(rig, backdoor, plan)
     driver.execute_script("rigctlConsole.frameLatenciesMs.length = 0; "
                           "rigctlConsole.frameReceivedMs.length = 0; rigctlConsole.frames = 0;")
     t0 = time.monotonic()
@@ -161,12 +177,7 @@ def estop_latency(rig: Rig, driver, backdoor, plan: dict, runs: Path, rate_hz: f
         rtts.append(driver.execute_async_script(
             "const done = arguments[arguments.length - 1]; const t = performance.now();"
             "rigctlConsole.request('plans').then(() => done(performance.now() - t));"))
-    rig.execute(rig.load(plan))
-    deadline = time.monotonic() + 60
-    while not energised(backdoor):
-        if time.monotonic() > deadline:
-            raise RuntimeError("the run never energised the supplies")
-        time.sleep(0.01)
+    start_streaming(rig, backdoor, plan)
     before = driver.execute_script("return rigctlConsole.estops.length;")
     driver.find_element("id", "estop").click()
     clicked_unix = driver.execute_script(f"return rigctlConsole.estops[{before}].clicked_ms;") / 1e3
@@ -229,13 +240,38 @@ def stream_and_status(rig: Rig, plan: dict, pages: int, seconds: float) -> dict:
             "cycles": cycles, "status_us": percentiles(rtts, 1)}
 
 
+def websocket_watchers(url: str, n: int) -> None:
+    """`n` WebSocket clients of the console reading everything it sends, in this process, until
+    killed: the console's own cost of pages, without a browser's decoding and drawing."""
+    import asyncio
+
+    import aiohttp
+
+    async def one(session) -> None:
+        async with session.ws_connect(url.replace("http", "ws", 1) + "ws",
+                                      origin=url.rstrip("/")) as ws:
+            await ws.send_str(json.dumps({"type": "hello", "token": ""}))
+            async for _ in ws:
+                pass
+
+    async def run() -> None:
+        async with aiohttp.ClientSession() as session:
+            await asyncio.gather(*(one(session) for _ in range(n)))
+
+    asyncio.run(run())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=15.0, help="per measured run")
     parser.add_argument("--repeats", type=int, default=2, help="runs with 0 and with 10 pages each")
     parser.add_argument("--pages", type=int, default=10)
     parser.add_argument("--quick", action="store_true", help="one short run of each")
+    parser.add_argument("--watchers-of", metavar="URL", help=argparse.SUPPRESS)  # (internal)
     args = parser.parse_args()
+    if args.watchers_of:
+        websocket_watchers(args.watchers_of, args.pages)
+        return
     if args.quick:
         args.seconds, args.repeats, args.pages = 2.0, 1, 2
     plan = json.loads((EXAMPLES / "fig4-two-magnets.json").read_text())
@@ -280,6 +316,23 @@ def main() -> None:
                                 watchers = None
                             runs[pages].append(stream_and_status(rig, plan, pages, args.seconds))
                     out["pages"] = summarise_pages(runs, args.pages)
+                    # the same without a browser: the console's own cost of the pages' sockets
+                    runs = {0: [], args.pages: []}
+                    for _ in range(args.repeats):
+                        for pages in (0, args.pages):
+                            clients = None
+                            if pages:
+                                clients = subprocess.Popen(
+                                    [sys.executable, __file__, "--watchers-of",
+                                     daemon.endpoints["console"], "--pages", str(pages)])
+                            try:
+                                runs[pages].append(stream_and_status(rig, plan, pages,
+                                                                     args.seconds))
+                            finally:
+                                if clients is not None:
+                                    clients.kill()
+                                    clients.wait()
+                    out["websocket_watchers"] = summarise_pages(runs, args.pages)
             finally:
                 for driver in drivers:
                     driver.quit()
@@ -302,7 +355,7 @@ def summarise_pages(runs: dict[int, list], pages: int) -> dict:
         diff = float(np.mean(some) - np.mean(none))
         result[key] = {"none": round(float(np.mean(none)), 5), f"{pages}_pages": round(float(np.mean(some)), 5),
                        "difference": round(diff, 5), "run_to_run_noise": round(float(noise), 5),
-                       "within_noise": abs(diff) <= noise if len(none) > 1 else None}
+                       "within_noise": bool(abs(diff) <= noise) if len(none) > 1 else None}
     return result
 
 

@@ -162,6 +162,8 @@ class Console:
         self._scene: dict = {}
         self._status: dict | None = None
         self._last_arms = 0.0
+        self._expected: list | None = None  # the running plan's positions after each move
+        self._last_move = -1
         self.url: str | None = None
 
     # -- life cycle (any thread) ---------------------------------------------------------------
@@ -295,6 +297,8 @@ class Console:
         if plan is None:
             return
         self._scene_for = key
+        self._expected = plan.get("expected") if isinstance(plan.get("expected"), list) else None
+        self._last_move = -1
         self._scene = {"topic": "console.scene", "plan_name": plan.get("name"),
                        "plan_kind": plan.get("kind"), **self.camera.of_plan(plan)}
         self._broadcast(json.dumps(self._scene))
@@ -357,6 +361,16 @@ class Console:
             return
         if topic == "agents":
             msg = json.loads(payload)
+            move = msg.get("move", -1)
+            if move >= 0:
+                self._last_move = move
+            elif self._last_move >= 0 and self._expected is not None:
+                # between moves (a pause, a ramp) the daemon says -1 and gives the starts: the
+                # agents are expected where the last move left them
+                try:
+                    msg["expected_mm"] = self._expected[self._last_move]
+                except IndexError:
+                    pass
             msg["tracked_px"] = self.camera.to_px(msg.get("tracked_mm") or [])
             msg["expected_px"] = self.camera.to_px(msg.get("expected_mm") or [])
             self._broadcast(json.dumps(msg))

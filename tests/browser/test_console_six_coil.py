@@ -51,6 +51,7 @@ def back_to_idle(daemon) -> None:
             client.abort()
             state = client.wait_state("idle", "faulted", "estopped", timeout_s=30)["state"]
         if state in ("faulted", "estopped"):
+            wait_for(lambda: client.status()["run"] is None, 30.0, "the run stopped")  # not busy
             client.reset()
         client.wait_state("idle", timeout_s=30)
 

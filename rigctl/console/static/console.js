@@ -129,7 +129,7 @@ function onHello(msg) {
   plots = {
     actuators: new TimePlot($("plot-actuators"), { yLabel: units.join(", ") }),
     field: new TimePlot($("plot-field"), { yLabel: "B (mT)" }),
-    stream: new TimePlot($("plot-stream"), { yLabel: "period error (us)" }),
+    stream: new TimePlot($("plot-stream"), { yLabel: "period error (ms)" }),
   };
   const highs = [...new Set(rig.channels.map((c) => c.high).filter((v) => v !== null))];
   const lows = [...new Set(rig.channels.map((c) => c.low).filter((v) => v !== null))];
@@ -205,17 +205,16 @@ function onField(msg) {
 
 function onStream(msg) {
   if (!plots) return;
-  plots.stream.add("p99", msg.t, msg.period_error_p99_us);
-  plots.stream.add("p50", msg.t, msg.period_error_p50_us);
+  plots.stream.add("p99", msg.t, msg.period_error_p99_us / 1000);
+  plots.stream.add("p50", msg.t, msg.period_error_p50_us / 1000);
   const late = msg.cycles ? (100 * msg.late_cycles / msg.cycles).toFixed(2) : "0";
   $("stream-title").textContent = `Stream period error (late cycles: ${late} %)`;
 }
 
-function drawPlots() {
-  if (plots) for (const p of Object.values(plots)) p.draw();
-  requestAnimationFrame(drawPlots);
-}
-requestAnimationFrame(drawPlots);
+// the plots are redrawn 5 times a second, not at every animation frame: a page watching must
+// cost its machine little (it may be the rig's own computer)
+const PLOT_PERIOD_MS = 200;
+setInterval(() => { if (plots) for (const p of Object.values(plots)) p.draw(); }, PLOT_PERIOD_MS);
 
 // -- the agents ------------------------------------------------------------------------------------
 let agentsDrawnAt = 0;

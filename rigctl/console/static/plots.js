@@ -34,7 +34,7 @@ class TimePlot {
     this.dirty = false;
     const { ctx, canvas } = this;
     const W = canvas.width, H = canvas.height;
-    const left = 62, right = 150, top = 10, bottom = 34;
+    const left = 70, right = 150, top = 10, bottom = 34;
     ctx.clearRect(0, 0, W, H);
     let tMax = -Infinity;
     for (const s of this.series.values()) if (s.t.length) tMax = Math.max(tMax, s.t[s.t.length - 1]);
