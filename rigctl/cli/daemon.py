@@ -82,6 +82,15 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
     for endpoint in (args.command, args.telemetry, args.events):  # before anything is started
         if endpoint:
             is_loopback_endpoint(endpoint)
+    if args.console is not None:  # the web console's options, checked before anything starts
+        from rigctl.console.server import check_options
+
+        check_options(args.console, args.console_cert, args.console_key, args.console_plans)
+        if (args.server_key is not None) != (args.console_client_key is not None):
+            raise ConfigError("--console with CURVE keys needs --console-client-key (an "
+                              "operator's .key_secret whose public key is in --allowed-keys)"
+                              if args.server_key else
+                              "--console-client-key is for a daemon with --server-key")
     # a thread waiting for the GIL (the command thread answering `status`, the stream thread)
     # gets it within 0.1 ms instead of Python's default 5 ms
     sys.setswitchinterval(1e-4)
@@ -112,18 +121,35 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
             realtime_priority=args.realtime,
             currents_hz=args.currents_hz,
             request_rate_hz=args.request_rate,
+            camera_frames=args.console is not None,
         )
         endpoints = daemon.start()
+        console_lines = ""
+        if args.console is not None:
+            from rigctl.console.server import Console
+
+            console = Console(rig, command_endpoint=endpoints.command, runs_dir=daemon.runs_dir,
+                              clock_origin=daemon.t0, address=args.console,
+                              token=os.environ.get("RIGCTL_CONSOLE_TOKEN") or None,
+                              cert=args.console_cert, key=args.console_key,
+                              plans_dir=args.console_plans, server_key=args.server_key,
+                              client_key=args.console_client_key)
+            url = console.start()
+            stack.callback(console.stop)
+            console_lines = (f" console={url} console_token={console.token}",
+                             f"\n  console    {url}#token={console.token}  (the token "
+                             "controls the rig: keep it to the operators)")
         lock.name_control(endpoints.command)  # where `rigctl estop --rig` finds this daemon
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: daemon.request_shutdown())
+        ready_console, human_console = console_lines or ("", "")
         print(f"{READY_PREFIX}command={endpoints.command} telemetry={endpoints.telemetry} "
-              f"events={endpoints.events}", flush=True)
+              f"events={endpoints.events}{ready_console}", flush=True)
         print(f"rigctl daemon for {rig.rig.name!r} ({rig.rig.kind}"
               f"{', emulated' if rig.emulated else ''})\n"
               f"  commands   {endpoints.command}\n  telemetry  {endpoints.telemetry}\n"
-              f"  events     {endpoints.events}\n  run records {Path(daemon.runs_dir).resolve()}",
-              file=sys.stderr, flush=True)
+              f"  events     {endpoints.events}\n  run records {Path(daemon.runs_dir).resolve()}"
+              f"{human_console}", file=sys.stderr, flush=True)
         daemon.serve_forever()
     return EXIT_OK
 
@@ -497,6 +523,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="answer at most HZ queries (status, ping, runs, run) a second over all "
                         f"clients, in arrival order; the rest wait (default {REQUEST_RATE_HZ:g}). "
                         "Control commands (e-stop, abort, pause, ...) never wait")
+    console = p.add_argument_group(
+        "web console", "a live page of the rig with its controls (docs/console.md)")
+    console.add_argument("--console", nargs="?", const="127.0.0.1:7820", metavar="ADDRESS",
+                         help="serve the operator console on HOST:PORT (default 127.0.0.1:7820; "
+                         "port 0 picks one); watching needs no key on loopback, controlling "
+                         "needs the token printed at start-up (or RIGCTL_CONSOLE_TOKEN); beyond "
+                         "loopback it needs TLS")
+    console.add_argument("--console-cert", type=input_file("TLS certificate"),
+                         help="TLS certificate chain (PEM) for the console")
+    console.add_argument("--console-key", type=input_file("TLS key"),
+                         help="the certificate's private key (PEM)")
+    console.add_argument("--console-plans", help="a folder of plans (*.json) the page can load")
+    console.add_argument("--console-client-key", type=input_file("client key"),
+                         help="with CURVE keys: the console's own operator .key_secret (its "
+                         ".key in --allowed-keys)")
     p.set_defaults(func=_cmd_daemon)
 
     p = sub.add_parser("status", help="ask a running daemon (or a rig's owner) for its state, "

@@ -116,6 +116,7 @@ class Topic(str, Enum):
     STREAM = "stream"
     FAULT = "fault"
     LOG = "log"
+    FRAME = "frame"  # camera frames (a daemon with a console only), decimated
 
 
 EVENT_TOPICS = frozenset({Topic.STATE, Topic.FAULT, Topic.LOG})
@@ -343,6 +344,23 @@ class StreamMsg(_Telemetry):
     dropped_samples: int = Field(description="telemetry samples the publisher had to drop")
 
 
+class FrameMsg(_Telemetry):
+    """A camera frame the tracker read during a closed-loop run, decimated (at most the stream
+    process's FRAME_HZ) and JPEG-encoded off the tracking thread, with what the tracker saw in it.
+    Published only by a daemon started with `--console`."""
+
+    topic: Literal["frame"] = "frame"
+    jpeg_b64: str = Field(description="the frame as JPEG, base64 (possibly scaled down)")
+    width: int = Field(description="the camera's frame width, px (the calibration's pixels)")
+    height: int
+    t_source: float = Field(description="when the picture was taken, s on the daemon's clock")
+    t_source_unix: float = Field(description="the same on the wall clock (Unix s), for a browser")
+    positions_mm: list[list[float]] = Field(description="(n, 2) the tracker's positions")
+    tracked_px: list[list[float]] = Field(description="(n, 2) the same in the camera's pixels")
+    lost: list[bool] = Field(description="(n,) tracking of that robot lost")
+    frame: int = Field(description="fresh frames tracked before this one in this run")
+
+
 class FaultMsg(_Telemetry):
     topic: Literal["fault"] = "fault"
     device: str | None
@@ -358,7 +376,7 @@ class LogMsg(_Telemetry):
 
 
 TelemetryMessage = Annotated[
-    StateMsg | ActuatorsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg,
+    StateMsg | ActuatorsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg | FrameMsg,
     Field(discriminator="topic"),
 ]
 
@@ -367,7 +385,8 @@ class _TelemetryEnvelope(_Message):
     message: TelemetryMessage
 
 
-def parse_telemetry(payload: bytes) -> StateMsg | ActuatorsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg:
+def parse_telemetry(payload: bytes) -> (StateMsg | ActuatorsMsg | FieldMsg | AgentsMsg | StreamMsg
+                                        | FaultMsg | LogMsg | FrameMsg):
     """A telemetry message from its JSON frame (pydantic ValidationError if it is not one)."""
     return _TelemetryEnvelope.model_validate_json(b'{"message":' + payload + b"}").message
 

@@ -22,6 +22,8 @@ Messages are pickled tuples over one-way pipes (`multiprocessing.connection.Conn
                      ("retarget", target, setpoints, ramp_s)  ("release", ramp_s)  (a hold's)
                      ("exit",)
     host -> daemon   ("ready", pid)   ("cycles", *CycleBatch fields; t on `time.monotonic()`)
+                     ("frame", jpeg_b64, width, height, t_source, t_source_unix, positions_mm,
+                      tracked_px, lost, frame) (`_FrameTap`)
                      ("state", state, info, record_path, record_t0)
                      ("done", summary)   ("failed", kind, message)   ("log", level, name, text)
     host -> daemon   (asked_at, unreached), the e-stop's answer, on a pipe of its own that the
@@ -39,6 +41,7 @@ calling thread) and acknowledged with the supplies it could not reach.
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import os
@@ -61,6 +64,9 @@ from rigctl.errors import RigError
 
 log = logging.getLogger("rigctl.daemon.runhost")  # also when run as `python -m rigctl.daemon.runhost`
 
+FRAME_HZ = 15.0  # camera frames passed on to the daemon (its console) at most this often
+FRAME_MAX_WIDTH = 640  # px; a wider frame is scaled down before it is encoded
+FRAME_JPEG_QUALITY = 70
 UPLINK_BATCH_S = 0.01  # the host sends cycles to the daemon at most this late
 UPLINK_MAX_QUEUED = 60_000  # cycles held for a daemon that stopped reading (a minute at 1 kHz)
 ESTOP_ACK_S = 0.25  # an e-stop the host has not acknowledged by then: kill it, zero directly
@@ -77,15 +83,16 @@ TERMINAL_STATES = {"done", "aborted", "faulted", "estopped"}  # RunState values 
 
 
 def build_run(plan: Any, rig: RigConfig, *, runs_dir: str | Path, on_cycle: Any = None,
-              on_state: Any = None) -> Any:
+              on_state: Any = None, on_frame: Any = None) -> Any:
     """The engine's run of `plan` on `rig`, prepared (a plan the rig cannot run is refused here,
     before any I/O), closed loop whenever the rig has a camera, as `rigctl execute` does. Used by
     the daemon to check a plan at load and by the stream process to run it."""
     from rigctl.rigs import rig_kind
 
     builder = rig_kind(rig.rig.kind).builder(plan.kind)
+    frames = {"on_frame": on_frame} if on_frame is not None else {}  # the console's camera view
     return builder(plan, rig, runs_dir=runs_dir, progress_out=None, on_cycle=on_cycle,
-                   on_state=on_state)
+                   on_state=on_state, **frames)
 
 
 # -- the daemon's side ----------------------------------------------------------------------------
@@ -93,8 +100,9 @@ def build_run(plan: Any, rig: RigConfig, *, runs_dir: str | Path, on_cycle: Any 
 class RunHost:
     """The stream process and the thread that reads what it sends. Thread-safe."""
 
-    def __init__(self, realtime_priority: int | None = None) -> None:
+    def __init__(self, realtime_priority: int | None = None, on_frame: Any = None) -> None:
         self.realtime_priority = realtime_priority
+        self.on_frame = on_frame  # a "frame" message's fields (`_FrameTap`)
         self._lock = threading.Lock()  # one sender at a time on the pipe; the process handles
         self._process: Any = None
         self._down: Any = None
@@ -119,7 +127,8 @@ class RunHost:
         ack_read, ack_write = os.pipe()
         process = subprocess.Popen(
             [sys.executable, "-m", "rigctl.daemon.runhost", str(down_read), str(up_write),
-             str(ack_write), str(self.realtime_priority or 0)],
+             str(ack_write), str(self.realtime_priority or 0),
+             *(["frames"] if self.on_frame is not None else [])],
             pass_fds=(down_read, up_write, ack_write), stdin=subprocess.DEVNULL)
         for fd in (down_read, up_write, ack_write):
             os.close(fd)
@@ -407,6 +416,9 @@ class RemoteRun:
             if state.value in TERMINAL_STATES:  # the stream is over: the summary takes its time
                 self._last_cycles = None
             self.on_state(state, info)
+        elif kind == "frame":
+            if self._host.on_frame is not None:
+                self._host.on_frame(*message[1:])
         elif kind == "done":
             self._result = message[1]
             self.started.set()
@@ -514,6 +526,60 @@ class _Uplink:
             self._up.send(message)
 
 
+class _FrameTap:
+    """Camera frames for the daemon's console, off the tracking thread's path: `offer` (from the
+    tracking thread) keeps only the newest frame, at most FRAME_HZ a second; a thread of its own
+    scales it to FRAME_MAX_WIDTH, encodes it as JPEG (OpenCV releases the GIL meanwhile) and
+    sends it up, base64 and all, with what the tracker saw in it, in mm and in the camera's pixels
+    (the run's calibration), so that the daemon and its console only pass it on. A frame not yet
+    sent when a newer one comes is replaced, so a slow encoder costs frames, never memory or the
+    stream's time."""
+
+    def __init__(self, uplink: _Uplink) -> None:
+        self.uplink = uplink
+        self.calibration: Any = None  # the running rig's camera calibration (set per run)
+        self._cond = threading.Condition()
+        self._latest: tuple | None = None
+        self._last_t = -float("inf")
+        self._thread = threading.Thread(target=self._serve, name="runhost-frames", daemon=True)
+        self._thread.start()
+
+    def offer(self, image: np.ndarray, state: Any) -> None:
+        now = time.monotonic()
+        if now - self._last_t < 1.0 / FRAME_HZ:
+            return
+        self._last_t = now
+        with self._cond:
+            self._latest = (image, state)
+            self._cond.notify()
+
+    def _serve(self) -> None:
+        import cv2
+
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._latest is not None)
+                (image, state), self._latest = self._latest, None
+            height, width = image.shape[:2]
+            if width > FRAME_MAX_WIDTH:
+                scale = FRAME_MAX_WIDTH / width
+                image = cv2.resize(image, (FRAME_MAX_WIDTH, round(height * scale)),
+                                   interpolation=cv2.INTER_AREA)
+            ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, FRAME_JPEG_QUALITY])
+            if not ok:
+                continue
+            positions = np.asarray(state.positions_mm, dtype=float)
+            calibration = self.calibration
+            pixels = calibration.to_px(positions).round(1).tolist() if calibration else []
+            t_source = float(state.t_source)
+            # the capture time on the wall clock too: a browser on this machine reads that clock
+            t_source_unix = time.time() - (time.monotonic() - t_source)
+            self.uplink.message("frame", base64.b64encode(jpeg.tobytes()).decode("ascii"), width,
+                                height, t_source, round(t_source_unix, 6),
+                                positions.round(4).tolist(), pixels,
+                                [bool(x) for x in state.lost], int(state.frame))
+
+
 class _ForwardLogs(logging.Handler):
     def __init__(self, uplink: _Uplink) -> None:
         super().__init__(logging.INFO)
@@ -532,8 +598,10 @@ class _ForwardLogs(logging.Handler):
 class _Host:
     """The stream process: one run at a time on its run thread; commands on the main thread."""
 
-    def __init__(self, uplink: _Uplink, acks: Any, realtime_priority: int | None) -> None:
+    def __init__(self, uplink: _Uplink, acks: Any, realtime_priority: int | None,
+                 frames: bool = False) -> None:
         self.uplink = uplink
+        self.frames = _FrameTap(uplink) if frames else None  # only for a daemon with a console
         self.acks = acks
         self.realtime_priority = realtime_priority
         self._lock = threading.Lock()
@@ -588,13 +656,16 @@ class _Host:
         self._thread.start()
 
     def _build_run(self, plan: Any, rig: RigConfig, runs_dir: str) -> Any:
+        if self.frames is not None:
+            self.frames.calibration = rig.camera.calibration if rig.camera is not None else None
         run = build_run(
             plan, rig, runs_dir=runs_dir,
             on_cycle=lambda k, move, cmd, meas: self.uplink.cycle(
                 k, move, cmd, meas, run.stream_loop.last_error_s),
             on_state=lambda state, info: self.uplink.message(
                 "state", state, info, str(run.record.path) if run.record else None,
-                run.record.t0 if run.record else None))
+                run.record.t0 if run.record else None),
+            on_frame=self.frames.offer if self.frames is not None else None)
         return run
 
     def _execute(self, build: Any, *args: Any) -> None:
@@ -624,7 +695,8 @@ def _apply(run: Any, name: str, args: tuple) -> Any:
     return getattr(run.program if name in PROGRAM_CALLS else run, name)(*args)
 
 
-def host_main(down: Any, up: Any, acks: Any, realtime_priority: int | None) -> None:
+def host_main(down: Any, up: Any, acks: Any, realtime_priority: int | None,
+              frames: bool = False) -> None:
     """The stream process's entry point (spawned by `RunHost`)."""
     sys.setswitchinterval(1e-4)  # the e-stop on the main thread gets the GIL within 0.1 ms
     # the daemon decides when to stop: a SIGTERM to the service's whole cgroup or a Ctrl-C to the
@@ -636,7 +708,7 @@ def host_main(down: Any, up: Any, acks: Any, realtime_priority: int | None) -> N
     root = logging.getLogger()
     root.handlers[:] = [_ForwardLogs(uplink)]
     root.setLevel(logging.INFO)
-    host = _Host(uplink, acks, realtime_priority)
+    host = _Host(uplink, acks, realtime_priority, frames)
     if realtime_priority:  # the e-stop is taken on this thread: ahead of the stream thread
         make_realtime(realtime_priority + 1, "stream process's command thread")
     uplink.message("ready", os.getpid())
@@ -679,7 +751,8 @@ def realtime_permitted(priority: int) -> bool:
     return result[0]
 
 
-if __name__ == "__main__":  # python -m rigctl.daemon.runhost DOWN_FD UP_FD ACK_FD PRIORITY (RunHost._spawn)
+if __name__ == "__main__":  # python -m rigctl.daemon.runhost DOWN_FD UP_FD ACK_FD PRIORITY [frames]
     host_main(Connection(int(sys.argv[1]), writable=False),
               Connection(int(sys.argv[2]), readable=False),
-              Connection(int(sys.argv[3]), readable=False), int(sys.argv[4]) or None)
+              Connection(int(sys.argv[3]), readable=False), int(sys.argv[4]) or None,
+              frames=sys.argv[5:6] == ["frames"])

@@ -164,8 +164,8 @@ class PlanRuns:
     here at load (a bad plan is refused before anything else) and streamed in the stream process
     (`rigctl.daemon.runhost`), which `start` spawns and `close` stops."""
 
-    def __init__(self, realtime_priority: int | None = None) -> None:
-        self.host = RunHost(realtime_priority)
+    def __init__(self, realtime_priority: int | None = None, on_frame: Any = None) -> None:
+        self.host = RunHost(realtime_priority, on_frame)
         self._lock = threading.Lock()
         # id(plan) -> (plan, the plan as prepared, what load says of it): a plan executed again
         # is not realized and allocated again here (on the command thread) just to be described
@@ -333,10 +333,13 @@ class Daemon:
         currents_hz: float = 0.0,
         notifier: SystemdNotifier | None = None,
         request_rate_hz: float = REQUEST_RATE_HZ,
+        camera_frames: bool = False,
     ) -> None:
         self.rig = rig
         self.runs_dir = Path(runs_dir)
-        self.factory = run_factory or PlanRuns(realtime_priority)
+        # camera_frames: publish the closed loop's camera frames (`frame`), for the console
+        self.factory = run_factory or PlanRuns(
+            realtime_priority, on_frame=self._on_frame if camera_frames else None)
         self.realtime_priority = realtime_priority
         self.currents_hz = currents_hz
         self.notifier = notifier or SystemdNotifier()
@@ -1084,6 +1087,11 @@ class Daemon:
             active.commanded = batch.commanded[-1]
         if self.publisher is not None:
             self.publisher.offer_cycles(replace(batch, t=batch.t - self.t0))
+
+    def _on_frame(self, *frame: Any) -> None:
+        """A camera frame from the stream process (`runhost._FrameTap`), on its reader thread."""
+        if self.publisher is not None:
+            self.publisher.publish_frame(*frame)
 
     def _on_run_state(self, run_state: Any, info: dict) -> None:
         value = run_state.value

@@ -40,6 +40,7 @@ from rigctl.daemon.messages import (
     AgentsMsg,
     FaultMsg,
     FieldMsg,
+    FrameMsg,
     LogMsg,
     StateMsg,
     StreamMsg,
@@ -186,6 +187,20 @@ class TelemetryPublisher:
             msg = AgentsMsg(seq=self._next_seq(Topic.AGENTS), t=self.now(), move=move,
                             tracked_mm=tracked, expected_mm=expected, source=source)
             self._priority.append((Topic.AGENTS.value, msg))
+            self._cond.notify()
+
+    def publish_frame(self, jpeg_b64: str, width: int, height: int, t_source: float,
+                      t_source_unix: float, positions_mm: list, tracked_px: list, lost: list,
+                      frame: int) -> None:
+        """A camera frame (JPEG, base64; `t_source` monotonic s) from the stream process's reader
+        thread, sent by the publisher thread like `agents`."""
+        msg = FrameMsg.model_construct(
+            seq=self._next_seq(Topic.FRAME), t=self.now(), topic="frame", jpeg_b64=jpeg_b64,
+            width=width, height=height, t_source=round(t_source - self.t0, 6),
+            t_source_unix=t_source_unix, positions_mm=positions_mm, tracked_px=tracked_px,
+            lost=lost, frame=frame)
+        with self._cond:
+            self._priority.append((Topic.FRAME.value, msg))
             self._cond.notify()
 
     def _next_seq(self, topic: Topic) -> int:

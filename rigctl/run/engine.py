@@ -85,6 +85,7 @@ class RunContext:
     record: RunRecord
     backdoor: Any
     say: Callable[[str], None]
+    on_frame: Callable[[Any, Any], None] | None = None  # a camera frame and its TrackedState
 
 
 class RigProgram(Protocol):
@@ -136,8 +137,10 @@ class Run(RunControl):
     def __init__(self, program: RigProgram, rig: RigConfig, connect: Callable[[RigConfig], Actuators],
                  *, runs_dir: str | Path = "runs", progress_out: TextIO | None = None,
                  on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-                 on_state: Callable[[RunState, dict], None] | None = None) -> None:
+                 on_state: Callable[[RunState, dict], None] | None = None,
+                 on_frame: Callable[[Any, Any], None] | None = None) -> None:
         self.program = program
+        self.on_frame = on_frame  # handed to the program's tracking loop (`TrackingLoop.tap`)
         self.plan = program.plan
         self.info = program.info
         self.rig = rig
@@ -188,7 +191,7 @@ class Run(RunControl):
         faults: list[dict] = []
         stats: StreamStats | None = None
         backdoor = BackdoorClient(rig.emulation.backdoor) if rig.emulation else None
-        ctx = RunContext(rig, record, backdoor, self._say)
+        ctx = RunContext(rig, record, backdoor, self._say, self.on_frame)
         actuators: Actuators | None = None
         unconfirmed: list[str] | None = None
         refused: LimitError | None = None

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +68,13 @@ class TrackingLoop:
         self._record = None
         self._record_period_s = 0.1
         self._recorder: threading.Thread | None = None
+        self._tap: Callable[[np.ndarray, TrackedState], None] | None = None
+
+    def tap(self, on_frame: Callable[[np.ndarray, TrackedState], None] | None) -> None:
+        """From now on, hand every fresh frame's image (h, w[, 3] uint8) and what the tracker made
+        of it to `on_frame`, on the tracking thread: it must return at once (the daemon's
+        console keeps the latest and encodes it on a thread of its own). None: no tap."""
+        self._tap = on_frame
 
     def record_to(self, record, hz: float = 10.0) -> None:
         """From now on, write the tracked positions into `record` (a `RunRecord`) as `tracked`
@@ -238,5 +246,7 @@ class TrackingLoop:
                 self.frames += 1
                 self._latest = state
                 self._cond.notify_all()
+            if self._tap is not None:
+                self._tap(frame.image, state)
 
 

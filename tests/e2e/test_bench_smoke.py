@@ -29,6 +29,7 @@ QUICK = {
     "soak.py": ["--minutes", "0.3", "--interval", "2"],
     "calibrate_field.py": ["--seeds", "0"],
     "study.py": ["--quick"],
+    "console.py": ["--quick"],
 }
 
 

@@ -346,6 +346,7 @@ class CoilBoardProgram(RequestedControl):
         self.tracking = TrackingLoop(self.rig.camera, self.radii, self.starts,
                                      roi_mm=(xmin, ymin, xmax, ymax))
         self.tracking.record_to(ctx.record)  # the camera's positions, in the run record
+        self.tracking.tap(ctx.on_frame)  # the console's camera view, if any
         self.tracking.start(self.settings.acquire_timeout_s)
         self._position = self._measure_now()
         ctx.record.event("found", positions=self._position.tolist(),

@@ -117,6 +117,7 @@ class GlobalMovesProgram:
         place_agents(ctx, plan, [{"position": list(a.start), "radius": a.radius} for a in plan.agents],
                      contact=contact_for_rig(plan.rig), min_separation_mm=plan.min_separation_mm)
         if self.supervisor is not None:
+            self.supervisor.tracking.tap(ctx.on_frame)  # the console's camera view, if any
             self.supervisor.start(ctx.record)  # the robots are found before anything is energised
 
     def connected(self, actuators) -> None:

@@ -381,6 +381,7 @@ class PairProgram(RequestedControl):
             self._tracking = TrackingLoop(self.rig.camera, np.full(2, 0.5 * d), start_mm,
                                           roi_mm=prep.problem.workspace.bounds)
             self._tracking.record_to(ctx.record)  # the camera's positions, in the run record
+            self._tracking.tap(ctx.on_frame)  # the console's camera view, if any
             first = self._tracking.start()
             ctx.record.event("tracking", positions_mm=first.positions_mm.tolist())
         self._closed = self.settings.closed_loop and self._tracking is not None

@@ -1,0 +1,1 @@
+"""The operator console of `rigctl daemon --console` (docs/console.md)."""
