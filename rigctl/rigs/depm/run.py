@@ -55,7 +55,7 @@ from rigctl.kinematics import ArmKinematics, base_transform
 from rigctl.magnetics import U_COMPONENTS
 from rigctl.plans.depm import joint_trajectory, plan_violations, rig_from_settings
 from rigctl.plans.depm_safety import Violation
-from rigctl.rigs.depm import correction
+import rigctl.rigs.depm.correction as correction
 from rigctl.rigs.depm.actuators import ArmPair
 from rigctl.rigs.depm.correction import HoldOffsets
 from rigctl.rigs.depm.metrics import (
