@@ -41,7 +41,8 @@ COMMANDS = tuple(f"plan {p}" for p in PLANNERS) + ("execute",)
 # options whose value is a file or folder: resolved against the spec's folder
 PATH_OPTIONS = {"workspace", "tree", "rig", "rig-file", "sequence", "plan", "save-tree"}
 # `execute` case keys that set up the case's emulated bench (`rigctl emulate` flags)
-BENCH_OPTIONS = ("slip", "speed-spread", "drift", "noise", "field-at-robots", "world", "firmware")
+BENCH_OPTIONS = ("slip", "speed-spread", "drift", "noise", "field-at-robots", "world", "firmware",
+                 "coil-error", "coil-seed")
 EXECUTE_KEYS = set(BENCH_OPTIONS) | {"plan", "speed", "fault", "open-loop", "seed", "backdoor"}
 # default figures: (success, error) keys of each command's JSON
 DEFAULT_FIGURES = {

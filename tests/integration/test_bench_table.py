@@ -20,8 +20,9 @@ from rigctl.transport import open_transport
 BASE = {"ping", "help", "speed", "fault"}
 # bench -> (the commands it adds, its fault devices, one device with a link and its own kinds)
 KINDS = {
-    "six-coil": ({"place", "truth", "mismatch", "camera", "floor"},
-                 ["x+", "x-", "y+", "y-", "z+", "z-", "camera"], "z-", ["overtemp"]),
+    "six-coil": ({"place", "truth", "mismatch", "camera", "floor", "coil_errors", "coil_fields",
+                  "probe"},
+                 ["x+", "x-", "y+", "y-", "z+", "z-", "camera", "probe"], "z-", ["overtemp"]),
     "coil-board": ({"place", "truth", "camera", "floor"}, ["board", "camera"], "board",
                    ["unplug", "replug", "garbage"]),
     "depm": ({"place", "truth"}, ["left", "right", "hall"], "hall", ["skip"]),

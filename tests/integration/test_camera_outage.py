@@ -35,7 +35,9 @@ def fast(rig, **stream):
 
 @pytest.fixture
 def bench(tmp_path):
-    with EmulatedBenchProcess("six-coil", tmp_path / "bench.toml") as rig_path:
+    # the ideal bench (`--coil-error 0`): what is under test is the outage, not the coils' errors
+    with EmulatedBenchProcess("six-coil", tmp_path / "bench.toml",
+                              extra_args=["--coil-error", "0"]) as rig_path:
         yield load_rig(rig_path)
 
 

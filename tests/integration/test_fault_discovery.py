@@ -17,9 +17,10 @@ CAMERA = {"drop_frames", "freeze", "black_out", "occlude", "drop_link"}
 
 BENCHES = {
     # emulators/bench.py: devices "x+" ... "z-" (each supply: its link's faults and `overtemp`)
-    # and "camera"
+    # "camera", and "probe" (its link's faults and `skip`)
     "six-coil": (SixCoilBench, {**{n: LINK | {"overtemp"} for n in
-                                   ("x+", "x-", "y+", "y-", "z+", "z-")}, "camera": CAMERA}),
+                                   ("x+", "x-", "y+", "y-", "z+", "z-")}, "camera": CAMERA,
+                                "probe": LINK | {"skip"}}),
     # emulators/coilboard/bench.py: "board" (its link's faults and `unplug`, `replug`, `garbage`)
     # and "camera"; replug ends an unplug, it is no fault of its own
     "coil-board": (lambda: CoilBoardBench(syren_startup_s=0.0),
