@@ -301,7 +301,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    try:
+        parser = build_parser()  # imports what the commands need: Ctrl-C may come meanwhile
+    except KeyboardInterrupt:
+        print("interrupted while starting: nothing is running", file=sys.stderr)
+        return EXIT_FAULT
     try:
         args = parser.parse_args(argv)
     except BadPath as err:  # before anything is done: one line (and the JSON error with --json)

@@ -331,7 +331,7 @@ def test_abort_and_estop_stop_the_arms_where_they_are(tmp_path, bench, stop):
     thread.join(60.0)
     summary = result["summary"]
     wait_for(lambda: all(a["mode"] == "idle" and a["connections"] == 0
-                         for a in arms_state(backdoor).values()), 10.0, "both arms at rest")
+                         for a in arms_state(backdoor).values()), 30.0, "both arms at rest")
     assert summary.safe and summary.unsafe_devices == []
     assert summary.state == ("aborted" if stop == "abort" else "estopped")
     assert exit_code(summary) == 3 and not summary.metrics["completed"]

@@ -6,6 +6,7 @@ truth (the supplies' currents)."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -72,6 +73,18 @@ def test_watch_follows_a_local_run_through_the_rig_lock(bench, tmp_path):
         import signal
         import time
 
+        # it has started following: its socket to the run is open (its imports are done)
+        def connected() -> bool:
+            fds = Path(f"/proc/{watching.pid}/fd")
+            for fd in os.listdir(fds):
+                try:
+                    if os.readlink(fds / fd).startswith("socket:"):
+                        return True
+                except FileNotFoundError:  # closed while we looked
+                    continue
+            return False
+
+        wait_for(connected, 30.0, "the watch connected")
         time.sleep(1.0)  # it follows for a while (a wait on the process, not on a result)
         watching.send_signal(signal.SIGINT)
         out, err = watching.communicate(timeout=30)

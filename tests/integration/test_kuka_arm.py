@@ -230,7 +230,8 @@ def test_arm_pair_emergency_zero_stops_both_and_sends_nothing_after(depm_bench):
     stopper.start()
     stopper.join()
     assert unreached == []
-    wait_for(lambda: all(t["mode"] == "idle" for t in arm_truth(depm_bench).values()), 5.0,
+    # (a state the emulator reaches, not a deadline: on a loaded machine its loop runs late)
+    wait_for(lambda: all(t["mode"] == "idle" for t in arm_truth(depm_bench).values()), 30.0,
              "both arms at rest")
     at_rest = {name: t["q"] for name, t in arm_truth(depm_bench).items()}
     last = pair.cycle(target + 0.1)  # latched: nothing is sent, the last measurement comes back
@@ -239,4 +240,6 @@ def test_arm_pair_emergency_zero_stops_both_and_sends_nothing_after(depm_bench):
     assert pair.stop(0.0) == []
     after = arm_truth(depm_bench)
     assert {name: t["q"] for name, t in after.items()} == at_rest  # nothing moved them since
-    assert all(0.0 < t["q"][1] < math.radians(0.3 * 39) + 1e-9 for t in after.values())
+    # stopped short of the last target (never past it); on a loaded machine the servo may not have
+    # left the start before the stop came, so the start itself counts
+    assert all(0.0 <= t["q"][1] < math.radians(0.3 * 39) + 1e-9 for t in after.values()), after
