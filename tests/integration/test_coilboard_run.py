@@ -10,6 +10,7 @@ end the run with the board confirmed safe."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 from pathlib import Path
@@ -83,6 +84,17 @@ class WatchedRun:
         assert self.full_drive.wait(60.0), "no move driven at full drive"
         return self.driving_move
 
+    @contextlib.contextmanager
+    def ended_if_failed(self):
+        """The test's steps; if one fails, the run is aborted and joined before the error goes on
+        (a run left streaming would hold the board for the next test)."""
+        try:
+            yield self
+        except BaseException:
+            self.run.abort()
+            self.join()
+            raise
+
     def join(self):
         self._thread.join(240.0)
         assert not self._thread.is_alive(), "the run did not end"
@@ -129,7 +141,7 @@ def assert_delivered(summary, plan_tolerance: float) -> None:
 def test_pause_holds_the_coils_at_zero_and_the_run_reaches_the_goal_on_resume(rig, backdoor,
                                                                              tmp_path):
     watched = WatchedRun(rig, tmp_path)
-    try:
+    with watched.ended_if_failed():
         first = watched.mid_move()
         watched.run.pause()  # at the end of this move
         wait_for(lambda: watched.run.state == RunState.PAUSED, 60.0, "the pause")
@@ -151,10 +163,6 @@ def test_pause_holds_the_coils_at_zero_and_the_run_reaches_the_goal_on_resume(ri
         cut = [e for e in watched.events() if e["event"] == "move" and e["number"] == second + 1]
         assert cut and cut[-1]["interrupted"]
         watched.run.resume()
-    except BaseException:
-        watched.run.abort()
-        watched.join()
-        raise
     summary = watched.join()
     assert_delivered(summary, load_plan(PLAN).tolerance_mm)
     assert watched.states.count(RunState.PAUSED) == 2
@@ -164,17 +172,13 @@ def test_pause_holds_the_coils_at_zero_and_the_run_reaches_the_goal_on_resume(ri
 def test_lost_tracking_suspends_the_run_with_the_coils_off_until_the_camera_sees_again(
         rig, backdoor, tmp_path):
     watched = WatchedRun(rig, tmp_path, CoilBoardRunSettings(lost_limit_s=120.0))
-    try:
+    with watched.ended_if_failed():
         watched.mid_move()
         backdoor.request("fault", device="camera", kind="black_out")
         wait_for(lambda: watched.run.state == RunState.SUSPENDED, 30.0, "the run suspended")
         coils_off(backdoor, "every coil off")
         assert stand_still(backdoor)
         backdoor.request("fault", device="camera", kind="restore")
-    except BaseException:
-        watched.run.abort()
-        watched.join()
-        raise
     summary = watched.join()
     assert_delivered(summary, load_plan(PLAN).tolerance_mm)
     assert RunState.SUSPENDED in watched.states and watched.states[-1] == RunState.DONE
@@ -231,7 +235,7 @@ def test_a_camera_freeze_of_seconds_is_ridden_out_by_default(rig, backdoor, tmp_
     """The issue's case: a 5 s freeze ended the run (exit 3); with the default settings the run
     suspends with the coils off and goes on to the goal once the camera moves again."""
     watched = WatchedRun(rig, tmp_path)
-    try:
+    with watched.ended_if_failed():
         watched.mid_move()
         backdoor.request("fault", device="camera", kind="freeze")
         wait_for(lambda: watched.run.state == RunState.SUSPENDED, 30.0, "the run suspended")
@@ -239,10 +243,6 @@ def test_a_camera_freeze_of_seconds_is_ridden_out_by_default(rig, backdoor, tmp_
         threading.Event().wait(5.0)  # frozen for 5 s
         assert watched.run.state == RunState.SUSPENDED
         backdoor.request("fault", device="camera", kind="restore")
-    except BaseException:
-        watched.run.abort()
-        watched.join()
-        raise
     summary = watched.join()
     assert_delivered(summary, load_plan(PLAN).tolerance_mm)
     assert watched.states[-1] == RunState.DONE
