@@ -583,8 +583,9 @@ def _identification_panels(data: RunData, clock: str) -> list[TimePanel]:
             for j, column in enumerate(columns):
                 colour = colours[j % len(colours)]
                 name, _, agent = column.rpartition("_")
-                label = f"{name.replace('_', ' ')}, agent {agent}" if agent.isdigit() else \
-                    column.replace("_", " ")
+                # the unit is the axis's: "drift_x_mm_s" is "drift x" in the legend
+                bare = name.removesuffix("_mm_s").removesuffix("_deg").replace("_", " ")
+                label = f"{bare}, agent {agent}" if agent.isdigit() else column.replace("_", " ")
                 used = series.get(f"moves_used_{agent}", series.get("moves_used"))
                 known = np.ones(len(t_axis), bool) if used is None else used > 0
                 value = series[column]
