@@ -29,6 +29,11 @@ from rigctl.kinematics import LBR_IIWA_14_R820, N_JOINTS, ArmModel
 
 SERVO_TIMEOUT_S = 0.5
 PTP_REACHED_RAD = math.radians(0.1)  # KST's own "reached" clearance for conditional PTP moves
+# a joint this close to a standing set point, and slow enough to stop within one 4 ms step, is at
+# rest there: without it the discrete tracker chatters round the point (microradians, mrad/s) for
+# as long as the steps' lengths vary, and a stopped arm takes seconds to report "idle"
+SETTLED_RAD = 1e-5
+SETTLE_STEP_S = 4e-3
 
 
 class TargetRejected(ValueError):
@@ -233,7 +238,8 @@ class LbrArmModel:
         change = np.clip(wanted - self.qd, -lim.max_accel_rad_s2 * dt, lim.max_accel_rad_s2 * dt)
         qd = self.qd + change
         q = self.q + 0.5 * (self.qd + qd) * dt
-        arrived = (np.abs(self.servo_target - q) < 1e-9) & (not moving)
+        arrived = ((np.abs(self.servo_target - q) < SETTLED_RAD)
+                   & (np.abs(qd) <= lim.max_accel_rad_s2 * SETTLE_STEP_S) & (not moving))
         q[arrived], qd[arrived] = self.servo_target[arrived], 0.0
         for j in self.stalled:
             q[j], qd[j] = self.q[j], 0.0

@@ -1135,6 +1135,7 @@ class Daemon:
         plan = active.job.plan
         expected = plan.expected if plan.kind == "global-moves" else None  # positions per move
         starts = [list(a.start) for a in plan.agents] if expected is not None else []
+        shown = -1  # the move whose expected positions are shown
         try:
             with BackdoorClient(self.rig.emulation.backdoor, timeout_s=1.0) as backdoor:
                 while not self._agents_stop.wait(1.0 / AGENTS_HZ) and self._active is active:
@@ -1142,7 +1143,12 @@ class Daemon:
                     move = active.move
                     exp = None
                     if expected is not None:
-                        exp = [list(map(float, p)) for p in (expected[move] if move >= 0 else starts)]
+                        # -1 (ramping, holding, paused): the last move's target, the starts before
+                        # the first; a closed loop's re-planned moves past the plan's: its goal
+                        if move >= 0:
+                            shown = min(move, len(expected) - 1)
+                        exp = [list(map(float, p)) for p in
+                               (expected[shown] if shown >= 0 else starts)]
                     tracked = [[round(float(x), 4) for x in p] for p in truth]
                     self.publisher.publish_agents(move, tracked, exp, "emulator ground truth")
                     if active.job.record is not None:

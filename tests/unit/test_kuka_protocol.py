@@ -207,3 +207,25 @@ def test_stalled_joint_makes_the_ptp_fail():
     run(model, 5.0)
     assert model.collect_finished() == [False]
     assert model.q[2] == 0.0
+
+
+def test_a_stopped_arm_comes_to_rest_whatever_the_steps_lengths():
+    # the emulator steps its model to the backdoor's and the client's calls: steps of any length up
+    # to the physics step. A stop brakes at full deceleration, v / a seconds, and is then at rest.
+    rng = np.random.default_rng(3)
+    model = LbrArmModel()
+    model.start_servo()
+    for k in range(100):  # a 50 Hz stream, 2 mrad a set point: moving at about 0.1 rad/s
+        model.servo_to(np.full(7, 2e-3 * (k + 1)))
+        model.step(0.02)
+    speed = np.abs(model.qd).max()
+    assert speed > 0.01
+    model.stop()
+    braking_s = speed / model.limits.max_accel_rad_s2.min()
+    elapsed = 0.0
+    while model.mode != "idle" and elapsed < braking_s + 1.0:
+        dt = float(rng.uniform(1e-5, 4e-3))
+        model.step(dt)
+        elapsed += dt
+    assert model.mode == "idle" and not np.any(model.qd)
+    assert elapsed < braking_s + 0.1
