@@ -27,7 +27,10 @@ takes, per rig:
   --rig` as a process reaching every device directly (its wall time, and the direct make-safe
   of every device timed in this process: what that command does once Python has started);
 - six coils only: the stream's late share while 20 clients (in 4 processes) ask `status` as fast
-  as they are answered, next to the same run without them (the issue: within 1 point).
+  as they are answered, next to the same run without them (the issue: within 1 point). The
+  supplies' emulator runs at SCHED_FIFO 45 (`--emulator-realtime`), above the daemon: real supplies
+  answer from processors of their own, and at normal priority the emulator's answers waited for
+  the daemon's realtime command thread, which measured that thread against the emulator instead.
 
     python bench/daemon.py                          # every rig, about 35 s each
     python bench/daemon.py --rig depm --seconds 1   # one rig, quickly
@@ -55,6 +58,7 @@ from rigctl.emulators.process import EmulatedBenchProcess
 
 from rigctl.client import Rig, Telemetry
 from rigctl.config import RigConfig, dump_rig, load_rig
+from rigctl.daemon.admission import REQUEST_RATE_HZ
 from rigctl.record import read_events
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "plans" / "examples"
@@ -119,11 +123,13 @@ RIGS = {
 }
 
 
-def start_daemon(rig_path: Path, runs: Path, log_path: Path,
-                 realtime: int = 0) -> tuple[subprocess.Popen, dict]:
+def start_daemon(rig_path: Path, runs: Path, log_path: Path, realtime: int = 0,
+                 request_rate: float | None = None) -> tuple[subprocess.Popen, dict]:
     cmd = [sys.executable, "-m", "rigctl", "daemon", "--rig", str(rig_path), "--runs", str(runs),
            "--command", "tcp://127.0.0.1:0", "--telemetry", "tcp://127.0.0.1:0",
            "--events", "tcp://127.0.0.1:0"]
+    if request_rate is not None:
+        cmd += ["--request-rate", str(request_rate)]
     if realtime:
         cmd += ["--realtime", str(realtime)]
     with open(log_path, "w") as log:  # the child keeps its own copy of the descriptor
@@ -188,6 +194,17 @@ def renice(pid: int, nice: int) -> None:
     """Every thread of process `pid` to `nice` (Linux: a nice value is a thread's)."""
     for task in Path(f"/proc/{pid}/task").iterdir():
         os.setpriority(os.PRIO_PROCESS, int(task.name), nice)
+
+
+def make_emulator_realtime(pid: int, priority: int) -> int | None:
+    """Every thread of process `pid` to SCHED_FIFO `priority` (threads it starts later inherit
+    it from the thread that starts them); the priority, or None where not permitted."""
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            os.sched_setscheduler(int(task.name), os.SCHED_FIFO, os.sched_param(priority))
+    except PermissionError:
+        return None
+    return priority
 
 
 def realtime_threads(pid: int) -> list[str]:
@@ -469,9 +486,14 @@ def bench_rig(kind: str, args: argparse.Namespace, tmp: Path) -> dict:
     with EmulatedBenchProcess(kind, tmp / "bench.toml") as rig_path:
         rig = load_rig(rig_path)
         renice(rig.emulation.pid, args.emulator_nice)
+        # the six-coil supplies' emulator only: the coil board's simavr spins a core whatever
+        # it simulates, and at SCHED_FIFO it would take that core from everything else
+        emulator_realtime = (make_emulator_realtime(rig.emulation.pid, args.emulator_realtime)
+                             if args.emulator_realtime and kind == "six-coil" else None)
         (tmp / "rig.toml").write_text(dump_rig(bench.tune(rig)))
         runs = tmp / "runs"
-        proc, endpoints = start_daemon(tmp / "rig.toml", runs, tmp / "daemon.log", args.realtime)
+        proc, endpoints = start_daemon(tmp / "rig.toml", runs, tmp / "daemon.log", args.realtime,
+                                      args.request_rate)
         try:
             with Rig(endpoints["command"], timeout_s=5.0) as client:
                 plan_id = client.load(bench.plan(args.seconds + 2.0))
@@ -492,7 +514,8 @@ def bench_rig(kind: str, args: argparse.Namespace, tmp: Path) -> dict:
         estop.update(local_estop_latency(tmp / "rig.toml", bench.plan(args.seconds + 2.0), bench,
                                          tmp))
     return {"idle": idle, "while_streaming": streaming, "telemetry_1_subscriber": one,
-            "telemetry_10_subscribers": ten, "estop": estop, "status_flood": flooded}
+            "telemetry_10_subscribers": ten, "estop": estop, "status_flood": flooded,
+            "emulator_realtime_priority": emulator_realtime}
 
 
 def main() -> None:
@@ -506,10 +529,18 @@ def main() -> None:
                         help="run the emulated devices at this nice value (default 0). They stand "
                              "in for hardware with processors of its own; on two cores their CPU "
                              "is a load a real rig does not put on the control computer")
+    parser.add_argument("--emulator-realtime", type=int, default=45, metavar="PRIO",
+                        help="run the emulated devices at SCHED_FIFO priority PRIO where "
+                             "permitted (default 45, above the daemon's: nothing on this computer "
+                             "delays a real device's answers; 0: normal scheduling). The six-coil "
+                             "supplies' emulator only")
     parser.add_argument("--realtime", type=int, default=40, metavar="PRIO",
                         help="the daemon's --realtime, as systemd/rigctl.service gives it (default "
                              "40; 0: normal scheduling). Where not permitted the daemon streams at "
                              "normal priority and says so in its log")
+    parser.add_argument("--request-rate", type=float, default=None, metavar="HZ",
+                        help="the daemon's --request-rate: queries answered per second over all "
+                             "clients (default: the daemon's own)")
     args = parser.parse_args()
     if not args.seconds > 0:
         parser.error(f"--seconds must be > 0, got {args.seconds}")
@@ -522,6 +553,7 @@ def main() -> None:
                     "load_average_1min_before": load_before,
                     "load_average_1min_after": round(os.getloadavg()[0], 2)},
         "seconds_per_measurement": args.seconds, "emulator_nice": args.emulator_nice,
+        "request_rate_hz": args.request_rate or REQUEST_RATE_HZ,
         "rigs": rigs,
     }, indent=2))
 

@@ -16,11 +16,11 @@ QUICK = {
     "stream.py": ["--seconds", "0.5", "--rates", "100"],
     "rrt.py": ["--quick"],
     "tracker.py": ["--seconds", "0.5", "--closed-loop-runs", "0"],
-    "closed_loop.py": ["--runs", "1", "--random-goals", "--plan-seconds", "2"],
+    "closed_loop.py": ["--runs", "1"],  # with --random-goals: 2 min of re-plans
     "daemon.py": ["--seconds", "0.3"],
     "coilboard_link.py": ["--round-trips", "50", "--seconds", "0.5", "--trials", "1"],
     "coilboard.py": ["--pairs", "2", "--runs", "1"],
-    "depm.py": ["--time-scale", "8"],
+    "depm.py": ["--time-scale", "8", "--no-random"],
     "pair.py": ["--quick"],
     "preflight.py": ["--rig", "six-coil", "--repeat", "1"],
     "certificate.py": ["--quick"],

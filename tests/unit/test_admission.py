@@ -37,10 +37,15 @@ def test_control_commands_never_wait_and_a_queued_query_keeps_its_place():
                 "set_field"):
         body = json.dumps({"id": "op-1", "cmd": cmd}).encode()
         assert a.offer(frames(b"op", body), b"op", body, t) == "answer", cmd
-    # what is not a control command waits, garbage included
-    for body in (b'{"cmd":"ping"}', b'{"cmd":"runs"}', b"not json", b'{"cmd":["estop"]}'):
+    # spelled with JSON escapes (json.dumps with ensure_ascii writes "\u00e9" too): still control
+    escaped = b'{"cmd": "\\u0065stop", "id": "op-\\u00e9"}'
+    assert json.loads(escaped)["cmd"] == "estop"
+    assert a.offer(frames(b"op", escaped), b"op", escaped, t) == "answer"
+    # what is not a control command waits, garbage included, and a query naming one in its id
+    for body in (b'{"cmd":"ping"}', b'{"cmd":"runs"}', b"not json", b'{"cmd":["estop"]}',
+                 b'{"cmd":"status","id":"after-estop"}'):
         assert a.offer(frames(b"y", body), b"y", body, t) == "wait"
-    assert a.waiting == 5
+    assert a.waiting == 6
 
 
 def test_a_client_with_too_many_waiting_and_a_full_queue_are_answered_busy():
