@@ -164,6 +164,16 @@ class TrackingLoop:
         return (self.failure is None and state is not None and not state.lost.any()
                 and now - state.t_tracked <= self.timeout_s)
 
+    def why_lost(self, now: float | None = None, agent: str = "robot") -> str:
+        """What is wrong while `ok` is False, naming the camera or the agents it does not see."""
+        state = self.latest()
+        now = time.monotonic() if now is None else now
+        if self.failure is not None:
+            return f"camera: {self.failure}"
+        if state is not None and state.lost.any():
+            return f"camera: {agent}(s) {np.flatnonzero(state.lost).tolist()} not found"
+        return f"camera: no fresh frame for {self.timeout_s:g} s"
+
     def wait(self, timeout_s: float) -> None:
         """Block until the next fresh frame is tracked or `timeout_s` passes."""
         with self._cond:

@@ -154,3 +154,17 @@ def test_find_dark_blobs_returns_marker_centres(rig):
     assert len(found) == 5
     nearest = np.min(np.linalg.norm(expected[:, None] - found[None], axis=2), axis=1)
     assert nearest.max() < 0.3
+
+
+def test_why_tracking_is_lost_names_the_camera_and_the_agents_it_does_not_see(rig):
+    from rigctl.config import CameraSettings
+    from rigctl.vision.tracking import TrackedState, TrackingLoop
+
+    settings = CameraSettings(url="http://127.0.0.1:9/stream", timeout_s=1.5, calibration=rig[2])
+    loop = TrackingLoop(settings, np.array([1.0, 1.0]), np.zeros((2, 2)))
+    assert loop.why_lost(0.0) == "camera: no fresh frame for 1.5 s"
+    loop._latest = TrackedState(positions_mm=np.zeros((2, 2)), lost=np.array([False, True]),
+                                t_source=0.0, t_tracked=0.0, frame=1)
+    assert loop.why_lost(0.0, "particle") == "camera: particle(s) [1] not found"
+    loop.failure = RuntimeError("gave up after 3 reconnections")
+    assert loop.why_lost(0.0) == "camera: gave up after 3 reconnections"

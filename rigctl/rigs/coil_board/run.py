@@ -559,8 +559,9 @@ class CoilBoardProgram(RequestedControl):
             state = tracking.latest()
             if not tracking.ok(now):
                 # Suspended (coils off) while the tracker looks for them.
-                self.suspension.lost(now, "tracking lost during a move (no fresh frame with both "
-                                     "particles); the coils were stopped", tracking.failure)
+                self.suspension.lost(now, f"tracking lost during a move "
+                                     f"({tracking.why_lost(now, 'particle')}); the coils were "
+                                     "stopped", tracking.failure)
                 history.clear()
                 yield ZERO
                 continue

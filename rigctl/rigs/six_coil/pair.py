@@ -508,7 +508,9 @@ class PairProgram(RequestedControl):
             else:
                 self._decide(q, now, latest)
         elif not self._tracking.ok(now) or now - self._seen_at > s.stale_s:
-            self._suspension.lost(now, "tracking lost")
+            why = (self._tracking.why_lost(now, "agent") if not self._tracking.ok(now)
+                   else f"camera: no fresh frame for {s.stale_s:g} s")
+            self._suspension.lost(now, f"tracking lost ({why})")
         if self._suspension.since is not None:
             # unseen, the agents are held where they were last seen (a held field would keep
             # moving them, and they could collide unseen)

@@ -300,12 +300,8 @@ class Supervisor:
             if not self.tracking.ok():
                 if suspension.since is None:
                     seq.hold()
-                    state = self.tracking.latest()
-                    why = ("camera: " + str(self.tracking.failure)) if self.tracking.failure else (
-                        "robot(s) %s not found" % np.flatnonzero(state.lost).tolist()
-                        if state is not None and state.lost.any()
-                        else f"no fresh frame for {self.tracking.timeout_s:g} s")
-                    suspension.lost(time.monotonic(), why, sample=seq.index)
+                    suspension.lost(time.monotonic(), self.tracking.why_lost(),
+                                    sample=seq.index)
                 self.tracking.wait(0.05)
                 continue
             if suspension.since is not None:
