@@ -174,6 +174,11 @@ class StreamSettings(_Strict):
         gt=0, allow_inf_nan=False,
         description="a run suspended this long (tracking or a sensor lost) ramps down and ends")
     ] = 60.0
+    unsafe_retry_s: Annotated[float, Field(
+        ge=0, allow_inf_nan=False,
+        description="a device without a watchdog of its own (a BOP supply) not confirmed safe "
+                    "when the run stops is reached again every 0.5 s this long before the run ends")
+    ] = 10.0
 
 
 class CameraSettings(_Strict):

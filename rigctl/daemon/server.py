@@ -848,7 +848,11 @@ class Daemon:
         return {"plan_id": plan_id, **info}
 
     def _prepare(self, plan: Any) -> RunLike:
-        return self.factory.prepare(plan, self.rig, runs_dir=self.runs_dir,
+        # the daemon reaches a device a run left unconfirmed itself, for as long as it serves
+        # (`_make_safe_when_reachable`): the run's own bounded retry is a local run's
+        rig = self.rig.model_copy(update={"stream": self.rig.stream.model_copy(
+            update={"unsafe_retry_s": 0.0})})
+        return self.factory.prepare(plan, rig, runs_dir=self.runs_dir,
                                     on_cycles=self._on_cycles, on_state=self._on_run_state)
 
     def _cmd_execute(self, args: Any) -> dict:

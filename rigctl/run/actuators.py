@@ -31,3 +31,7 @@ class Actuators(Protocol):
     def stop(self, ramp_s: float) -> list[str]:
         """Ramp down, make safe, close; never raises: the devices whose safe state is not
         confirmed."""
+
+    # A group whose devices hold their output when nobody talks to them (a Kepco BOP has no link
+    # watchdog) also has `make_safe_directly(rig) -> {name: None | why not}`, a static method: the
+    # engine reaches the devices `stop` could not confirm again with it before the run ends.

@@ -42,6 +42,8 @@ from rigctl.thermal import WindingMonitor
 
 log = logging.getLogger(__name__)
 
+REACH_AGAIN_S = 0.5  # a device not confirmed safe after the run: reached again this often
+
 
 @dataclass
 class Step:
@@ -229,6 +231,8 @@ class Run(RunControl):
                 unconfirmed = actuators.stop(0.0 if self._estop.is_set() else rig.stream.ramp_down_s)
                 self._supplies = None  # off and closed: nothing left for an e-stop to write to
                 if unconfirmed:
+                    unconfirmed = self._reach_again(type(actuators), unconfirmed, record)
+                if unconfirmed:
                     record.event("unsafe", devices=unconfirmed,
                                  reason="not confirmed safe: check these by hand")
                 else:
@@ -303,6 +307,31 @@ class Run(RunControl):
             return loop.run(cycle)
         finally:
             record.event("stream_stats", **loop.stats().as_dict())
+
+    def _reach_again(self, group: type, unconfirmed: list[str], record: RunRecord) -> list[str]:
+        """Devices `stop` could not confirm safe, of a group that holds its output unattended
+        (`make_safe_directly`): reached anew every REACH_AGAIN_S for `stream.unsafe_retry_s`, each
+        one confirmed recorded as `safe`; those still unconfirmed (Ctrl-C stops the trying)."""
+        make_safe = getattr(group, "make_safe_directly", None)
+        limit_s = self.rig.stream.unsafe_retry_s
+        if make_safe is None or limit_s <= 0:
+            return unconfirmed
+        self._say(f"not confirmed safe: {', '.join(unconfirmed)}; reaching "
+                  f"{'it' if len(unconfirmed) == 1 else 'them'} again for {limit_s:g} s")
+        left, t0 = list(unconfirmed), time.monotonic()
+        try:
+            while left and time.monotonic() - t0 < limit_s:
+                time.sleep(REACH_AGAIN_S)
+                result = make_safe(self.rig)
+                reached = [name for name in left if result.get(name, "not reached") is None]
+                if reached:
+                    left = [name for name in left if name not in reached]
+                    record.event("safe", devices=reached, reason="reached again after the run",
+                                 after_s=round(time.monotonic() - t0, 3))
+                    self._say(f"made safe once reached again: {', '.join(reached)}")
+        except KeyboardInterrupt:
+            self._say("stopped trying")
+        return left
 
     def _say(self, text: str) -> None:
         if self.progress_out is not None:

@@ -47,6 +47,12 @@ class CoilSupplies:
         self._health_every = max(1, round(health_period_s * rate_hz / max(1, len(supplies))))
         self._cycles = 0
 
+    @staticmethod
+    def make_safe_directly(rig: RigConfig) -> dict[str, str | None]:
+        """Every supply opened anew, zeroed and confirmed (`zero_supplies_directly`): a BOP holds
+        its last setpoint while its link is down, so the engine tries again once it returns."""
+        return zero_supplies_directly(rig)
+
     @classmethod
     def connect(cls, rig: RigConfig) -> CoilSupplies:
         """Open, identify and configure every supply (outputs stay off). On any failure the ones
