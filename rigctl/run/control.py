@@ -122,7 +122,14 @@ class RunControl:
         elif aborted:
             faults.append({"device": None, "reason": abort_reason or "aborted by the operator",
                            "kind": "Abort"})
-            self._set_state(RunState.ABORTED)
+            # a device that failed while the abort ramped down makes the run faulted, as the
+            # daemon says it is: the abort did not end it cleanly
+            failed = next((f for f in faults if f["device"] is not None
+                           and f["kind"] not in ("Abort", "Refused")), None)
+            if failed is not None:
+                self._set_state(RunState.FAULTED, device=failed["device"], reason=failed["reason"])
+            else:
+                self._set_state(RunState.ABORTED)
         elif not faults:
             self._set_state(RunState.DONE)
 

@@ -235,6 +235,12 @@ class Run(RunControl):
                 if unconfirmed:
                     record.event("unsafe", devices=unconfirmed,
                                  reason="not confirmed safe: check these by hand")
+                    named = {f["device"] for f in faults}
+                    for name in unconfirmed:  # e.g. its link dropped while the run ramped down
+                        if name not in named:
+                            faults.append({"device": name, "kind": "Unconfirmed",
+                                           "reason": f"{name}: not confirmed safe when the run "
+                                                     "stopped (check it by hand)"})
                 else:
                     record.event("safe", devices=actuators.names)
             self.progress.done()

@@ -61,3 +61,29 @@ def test_a_supply_whose_link_returns_is_made_safe_before_the_run_ends(tmp_path, 
             assert y_plus.model.output_on  # nothing told it: it still drives
             assert not summary.safe and summary.unsafe_devices == ["y+"]
             assert any(e["event"] == "unsafe" and e["devices"] == ["y+"] for e in events)
+
+
+def test_a_supply_lost_while_an_abort_ramps_down_makes_the_run_faulted(tmp_path):
+    with SixCoilBench() as bench:
+        rig = bench.rig.model_copy(update={"stream": StreamSettings(
+            rate_hz=200.0, ramp_down_s=3.0, unsafe_retry_s=0.0)})
+        run = Run(load_plan(PLAN), rig, runs_dir=tmp_path / "runs", progress_out=None)
+        result: dict = {}
+        thread = threading.Thread(target=lambda: result.update(summary=run.execute()))
+        thread.start()
+        y_plus = next(s for s in bench.supplies if s.name == "y+")
+        try:
+            wait_for(lambda: abs(y_plus.model.current_A) > 0.5, 60.0, "y+ driving current")
+            run.abort()
+            time.sleep(0.5)  # well inside the 3 s ramp
+            with BackdoorClient(rig.emulation.backdoor) as backdoor:
+                backdoor.request("fault", device="y+", kind="drop_link")
+                thread.join(30.0)
+                backdoor.request("fault", device="y+", kind="restore")
+        finally:
+            thread.join(30.0)
+        summary = result["summary"]
+        assert summary.state == "faulted" and not summary.safe and summary.unsafe_devices == ["y+"]
+        # the abort and y+'s fault, the state the fault's, as the daemon reports it
+        assert "Abort" in {f["kind"] for f in summary.faults}
+        assert any(f["device"] == "y+" and f["kind"] != "Abort" for f in summary.faults)
