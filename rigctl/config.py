@@ -299,8 +299,9 @@ class PreflightSettings(_Strict):
     max_gradient_mT_per_m: Annotated[
         float, Field(gt=0, description="largest gradient term a plan may ask for there")] = 2000.0
     scpi_round_trip_ms: Annotated[
-        float, Field(gt=0, description="a supply's LAN answer to `CURR x;:MEAS:CURR?` (measure "
-                     "it: bench/stream.py); a serial link's time is computed from its baud rate")] = 2.0
+        float, Field(gt=0, description="a supply's LAN answer to `CURR x;:MEAS:CURR?` (`rigctl "
+                     "doctor --rig` measures it); a serial link's time is computed from its baud "
+                     "rate")] = 2.0
 
 
 class FieldProbe(_Strict):

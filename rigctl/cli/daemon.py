@@ -239,7 +239,7 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
     from rigctl.rigs.doctor import probe_rig
 
     rig = load_rig(args.rig)
-    results = probe_rig(rig)
+    results = probe_rig(rig, timed=True)
     healthy = all(p.ok for p in results)
     if args.json:
         print(json.dumps({"rig": rig.rig.kind, "ok": healthy,

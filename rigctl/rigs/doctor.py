@@ -2,7 +2,8 @@
 what each one answered, so that a wrong port or a dead link is found before a run.
 
 One probe per device kind, each a read-only exchange on the device's own protocol: a supply's
-`*IDN?` and its error queue; the coil board's handshake (firmware, channels, watchdog) and its
+`*IDN?` and its error queue (and, from `rigctl doctor`, its query round trip against the rig
+file's `[preflight] scpi_round_trip_ms`); the coil board's handshake (firmware, channels, watchdog) and its
 STATUS (outputs must read zero); each arm's joint positions; one Hall board sample (a board at
 rest reads the earth's field, tens of microtesla); one camera frame.
 """
@@ -34,7 +35,10 @@ class Probe:
         return asdict(self)
 
 
-def _supply(rig: RigConfig, device: Device) -> str:
+ROUND_TRIPS = 20  # `MEAS:CURR?` queries timed per supply by `rigctl doctor`
+
+
+def _supply(rig: RigConfig, device: Device, timed: bool = False) -> str:
     from rigctl.drivers.kepco_bop import KepcoBop
     from rigctl.transport import open_transport
 
@@ -46,12 +50,32 @@ def _supply(rig: RigConfig, device: Device) -> str:
     try:
         identity = bop.identify()
         queue = bop.errors()
+        trips = []
+        for _ in range(ROUND_TRIPS if timed else 0):  # a query: nothing is set
+            started = time.perf_counter()
+            bop.measure_current()
+            trips.append(1e3 * (time.perf_counter() - started))
     finally:
         bop.close()
     if queue:
         raise RigError(f"{identity}; error queue: " + "; ".join(f"{c} {t}" for c, t in queue),
                        device=coil.name)
-    return f"{identity}; error queue empty"
+    return f"{identity}; error queue empty" + (_round_trip(rig, coil.url, trips) if trips else "")
+
+
+def _round_trip(rig: RigConfig, url: str, trips_ms: list[float]) -> str:
+    """The measured query round trip against what the pre-flight assumes of a LAN link
+    (`[preflight] scpi_round_trip_ms`; a serial link's time comes from its baud rate)."""
+    p50, worst = float(np.median(trips_ms)), max(trips_ms)
+    text = f"; query round trip p50 {p50:.2f} ms, max {worst:.2f} ms over {len(trips_ms)}"
+    if url.startswith("serial"):
+        return text
+    assumed = rig.preflight.scpi_round_trip_ms
+    text += f" (rig file: scpi_round_trip_ms {assumed:g})"
+    if p50 > assumed:
+        text += (f": SLOWER than the pre-flight assumes; set [preflight] scpi_round_trip_ms to "
+                 f"{worst:.2g} or more before streaming at the rate it certified")
+    return text
 
 
 def _board(rig: RigConfig, device: Device) -> str:
@@ -104,17 +128,20 @@ def _camera(rig: RigConfig, device: Device) -> str:
     return f"one frame, {width} x {height} px"
 
 
-PROBES: dict[str, Callable[[RigConfig, Device], str]] = {
+PROBES: dict[str, Callable[..., str]] = {
     "supply": _supply, "board": _board, "arm": _arm, "hall board": _hall, "camera": _camera}
 
 
-def probe_rig(rig: RigConfig) -> list[Probe]:
-    """Every device of the rig, probed in turn; never raises (a failure is that device's row)."""
+def probe_rig(rig: RigConfig, timed: bool = False) -> list[Probe]:
+    """Every device of the rig, probed in turn; never raises (a failure is that device's row).
+    `timed`: each supply's query round trip is measured too (`rigctl doctor`)."""
     results = []
     for device in rig_kind(rig.rig.kind).devices(rig):
         started = time.monotonic()
         try:
-            detail, ok = PROBES[device.kind](rig, device), True
+            probe = PROBES[device.kind]
+            detail = probe(rig, device, timed) if device.kind == "supply" else probe(rig, device)
+            ok = True
         except (RigError, OSError) as err:
             detail, ok = str(err), False
         results.append(Probe(device.name, device.kind, device.url, ok, detail,

@@ -73,3 +73,24 @@ def test_doctor_names_a_device_stopped_unplugged_or_answering_garbage(kind, tmp_
                 assert list(failed) == [shown], (fault, probes)
                 assert failed[shown], "the failure says what went wrong"
             assert all(p.ok for p in probe_rig(rig))  # restored: every device answers again
+
+
+def test_doctor_times_each_supplys_round_trip_against_the_rig_files(tmp_path):
+    from rigctl.config import dump_rig
+
+    with EmulatedBenchProcess("six-coil", tmp_path / "bench.toml") as rig_path:
+        code, report = doctor(rig_path)
+        supplies = [d for d in report["devices"] if d["kind"] == "supply"]
+        assert code == 0 and len(supplies) == 6
+        for d in supplies:
+            assert "query round trip p50" in d["detail"] and "over 20" in d["detail"], d
+            assert "(rig file: scpi_round_trip_ms 0.3)" in d["detail"], d
+        # a rig file claiming a link faster than any TCP round trip (1 us): said, not refused
+        rig = load_rig(rig_path)
+        fast = tmp_path / "fast.toml"
+        fast.write_text(dump_rig(rig.model_copy(update={"preflight": rig.preflight.model_copy(
+            update={"scpi_round_trip_ms": 0.001})})))
+        code, report = doctor(fast)
+        assert code == 0
+        for d in (d for d in report["devices"] if d["kind"] == "supply"):
+            assert "SLOWER than the pre-flight assumes" in d["detail"], d
