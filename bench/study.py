@@ -10,6 +10,9 @@
   `overhead_ms_per_case`: per worker, the gap between the end of one case and the start of the
   next (the scheduler's round trip), mean over the cases; goal < 50 ms. `idle_ms_per_case`:
   (workers x wall - sum of the case times) / cases, which adds the wait for the last case.
+  The floor, in the same run: the same cases on a plain `ProcessPoolExecutor` of as many warmed
+  workers (`speedup_process_pool`: what this machine gives two processes of this work, without
+  Dask), and Dask against it (`dask_over_pool`, 1.0: Dask costs nothing).
 - campaign: `--campaign-runs` (20) cases of `studies/closed-loop.toml` (fig4-quick closed loop on
   the emulated six-coil bench with model mismatch, one bench per seed) on two workers: the share
   delivered (ground truth within 1 mm), wall time, and port clashes (a port two cases' benches
@@ -67,6 +70,25 @@ def _gaps_ms(rows: list[dict]) -> list[float]:
     return gaps
 
 
+def _pool_wall_s(spec, out: Path, workers: int) -> tuple[float, dict]:
+    """The same cases on a plain process pool of `workers` (each warmed up as a Dask worker is):
+    the machine's own parallel floor for this work, without Dask. Wall s and fraction per case."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from rigctl.study.cases import run_case
+    from rigctl.study.execution import _warm_up
+
+    out.mkdir(parents=True, exist_ok=True)
+    with ProcessPoolExecutor(workers, initializer=_warm_up, initargs=(spec.command,)) as pool:
+        list(pool.map(time.sleep, [0.2] * workers))  # every worker started and warm
+        started = time.perf_counter()
+        rows = list(pool.map(run_case, *zip(*[(spec.command, str(spec.folder), case,
+                                                str(out.resolve()), spec.success, spec.error)
+                                               for case in spec.cases])))
+        wall = time.perf_counter() - started
+    return wall, {r["case_id"]: r["figures"].get("fraction") for r in rows}
+
+
 def planner_sweep(tmp: Path, workers: int, repeats: int, quick: bool) -> dict:
     spec = _spec("reachable-quick", **({"parameters": {"d12": [0.2, 0.4, 0.6, 0.8, 1.0],
                                                       "moves": [2, 4]}} if quick else {}))
@@ -76,12 +98,15 @@ def planner_sweep(tmp: Path, workers: int, repeats: int, quick: bool) -> dict:
         started = time.perf_counter()
         dask = run_study(spec, tmp / f"dask-{k}", workers=workers, progress_out=None)
         total = time.perf_counter() - started
+        pool_s, pooled = _pool_wall_s(spec, tmp / f"pool-{k}", workers)
         a, b = _rows(tmp / f"serial-{k}"), _rows(tmp / f"dask-{k}")
-        same = {r["case_id"]: r["fig_fraction"] for r in a} == {r["case_id"]: r["fig_fraction"] for r in b}
+        fractions = {r["case_id"]: r["fig_fraction"] for r in a}
+        same = fractions == {r["case_id"]: r["fig_fraction"] for r in b} == pooled
         gaps = _gaps_ms(b)
         pairs.append({
             "serial_s": round(serial.wall_s, 3), "dask_s": round(dask.wall_s, 3),
             "speedup": round(serial.wall_s / dask.wall_s, 3),
+            "pool_s": round(pool_s, 3), "speedup_process_pool": round(serial.wall_s / pool_s, 3),
             "cluster_start_and_warm_up_s": round(total - dask.wall_s, 2),
             "overhead_ms_per_case": round(statistics.mean(gaps), 2) if gaps else None,
             "overhead_ms_max": round(max(gaps), 2) if gaps else None,
@@ -95,6 +120,9 @@ def planner_sweep(tmp: Path, workers: int, repeats: int, quick: bool) -> dict:
     return {
         "study": "studies/reachable-quick.toml", "cases": len(spec.cases), "workers": workers,
         "speedup_median": statistics.median(ratios), "speedup_goal": 1.8,
+        # the floor: the same cases on a plain process pool, this machine's own parallel speed-up
+        "speedup_process_pool_median": statistics.median(p["speedup_process_pool"] for p in pairs),
+        "dask_over_pool_median": statistics.median(p["pool_s"] / p["dask_s"] for p in pairs),
         "speedup_best_of": round(min(p["serial_s"] for p in pairs) / min(p["dask_s"] for p in pairs), 3),
         "overhead_ms_per_case_median": statistics.median(overheads) if overheads else None,
         "overhead_goal_ms": 50, "same_results": all(p["same_results"] for p in pairs),

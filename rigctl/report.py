@@ -459,13 +459,24 @@ def _winding_panels(data: RunData, clock: str) -> list[TimePanel]:
     t_axis, axis_clock = _on_clock(data, np.asarray(series["t_s"]), RUN_CLOCK, clock)
 
     def draw(ax):
+        values = np.concatenate([np.asarray(series[name], float) for name in names])
+        low, high = float(np.nanmin(values)), float(np.nanmax(values))
         for name in names:
             ax.plot(t_axis, series[name], linewidth=1.2, label=name)
-        for value in limits:
+        # a limit far above a small rise would flatten it: the axis is the data's, and the limit
+        # is named in the legend with how far off it is
+        span = max(high - low, 1.0)
+        near = [v for v in limits if v <= high + 4 * span]
+        for value in near:
             ax.axhline(value, color="tab:red", linewidth=0.9, linestyle=(0, (1, 1.5)))
-        if limits:
+        if near:
             ax.plot([], [], color="tab:red", linewidth=0.9, linestyle=(0, (1, 1.5)),
                     label="limit")
+        for value in limits:
+            if value not in near:
+                ax.plot([], [], color="none", label=f"limit {value:g} °C\n({value - high:.0f} K above)")
+        if not near:
+            ax.set_ylim(low - 0.1 * span, high + 0.3 * span)
         ax.set_ylabel("winding (°C)", fontsize=8)
         ax.set_title("coil windings: the live thermal model's estimate", fontsize=9)
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.02), borderaxespad=0.2,
@@ -589,8 +600,12 @@ def _identification_panels(data: RunData, clock: str) -> list[TimePanel]:
                 used = series.get(f"moves_used_{agent}", series.get("moves_used"))
                 known = np.ones(len(t_axis), bool) if used is None else used > 0
                 value = series[column]
+                # agents on equal estimates would hide each other: each its own dash
+                style = ("-", "--", "-.", (0, (5, 1, 1, 1)))[int(agent) % 4] \
+                    if agent.isdigit() else "-"
                 ax.step(t_axis, np.where(known, value, np.nan), where="post", color=colour,
-                        linewidth=1.4, label=label, gid=f"identified {column}")
+                        linewidth=2.0 if style == "-" else 1.4, linestyle=style, label=label,
+                        gid=f"identified {column}")
                 ax.step(t_axis, np.where(known, np.nan, value), where="post", color=colour,
                         linewidth=0.7, linestyle=":", gid=f"prior {column}")
                 std = series.get(f"{column}_std")
