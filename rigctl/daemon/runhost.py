@@ -165,6 +165,19 @@ class RunHost:
             raise
         run._sent()
 
+    def forget_lost(self, timeout_s: float = 5.0) -> None:
+        """Wait until a process found gone has been reaped by its reader (the next `submit`
+        then spawns a new one); a process that lingers with its pipe broken is killed."""
+        with self._lock:
+            process = self._process
+        if process is None:
+            return
+        if process.poll() is None:
+            process.kill()
+        deadline = time.monotonic() + timeout_s
+        while self._process is process and time.monotonic() < deadline:
+            time.sleep(0.01)
+
     def send(self, *message: Any) -> None:
         with self._lock:
             if self._down is None:
@@ -330,14 +343,31 @@ class RemoteRun:
         self._lock = threading.Lock()
         self._submitted = False
         self._early: list[tuple] = []  # control calls made before the host had the run
+        self._stop_asked = False  # an abort or e-stop was asked: a lost run is not started again
 
     @property
     def error(self) -> Exception | None:
         return self._error
 
     def execute(self) -> Any:
-        self._host.submit(self)
-        self._done.wait()
+        for attempt in (1, 2):
+            try:
+                self._host.submit(self)
+            except HostGone as err:
+                self._error = err
+            else:
+                self._done.wait()
+            if not (attempt == 1 and isinstance(self._error, HostGone) and self.record is None
+                    and not self._stop_asked):
+                break
+            # the process died before the run began (no record yet: nothing was energised), a
+            # process killed while idle, say: once more on a new one
+            log.warning("the stream process was lost before the run began (%s); starting the "
+                        "run on a new one", self._error)
+            self._error, self._submitted, self.hung = None, False, False
+            self._done.clear()
+            self.started.clear()
+            self._host.forget_lost()
         if self._error is not None:
             raise self._error
         return self._result
@@ -362,6 +392,7 @@ class RemoteRun:
         self._control("resume")
 
     def abort(self) -> None:
+        self._stop_asked = True
         self._control("abort")
 
     def estop(self) -> list[str]:
@@ -370,6 +401,7 @@ class RemoteRun:
         Before the host has the run, nothing is energised: the e-stop goes with the run, which
         then never switches on."""
         asked = time.monotonic()
+        self._stop_asked = True
         try:
             if not self._control("estop", asked):
                 return []

@@ -245,6 +245,28 @@ def test_the_stream_process_dying_mid_run_leaves_the_supplies_off_and_the_daemon
     assert all_off(bench)
 
 
+def test_a_stream_process_killed_while_idle_is_replaced_and_the_next_run_has_its_record(
+        rig, bench, daemon):
+    plan_id = rig.load(plan("fig4-two-magnets.json"))
+    rig.execute(plan_id)  # a process that has run a plan, then sits idle
+    wait_current(bench)
+    rig.abort()
+    assert wait_run_over(rig)["state"] == "idle"
+    killed = daemon.factory.host.pid
+    os.kill(killed, signal.SIGKILL)
+    rig.execute(plan_id)  # at once: the daemon may not have seen the death yet
+    wait_current(bench)
+    assert daemon.factory.host.pid != killed
+    rig.abort()
+    status = wait_run_over(rig)
+    assert status["state"] == "idle" and status["last_fault"] is None
+    newest = rig.runs()[0]
+    assert newest["finished"]  # the run's record, whole, with its outcome
+    summary = json.loads((daemon.runs_dir / newest["id"] / "summary.json").read_text())
+    assert summary["state"] == "aborted" and summary["safe"]
+    assert all_off(bench)
+
+
 def test_a_stream_process_that_hangs_mid_run_is_killed_and_the_supplies_zeroed(rig, bench, daemon):
     plan_id = rig.load(plan("fig4-two-magnets.json"))
     rig.execute(plan_id)
