@@ -373,6 +373,9 @@ class _HeatWatch:
             "winding", ["t_s", *windings.names], {"t_s": "s", **dict.fromkeys(windings.names, "C")})
         self.period = 1.0 / rate_hz
         self.last: float | None = None
+        # a measured current is a sample of what flowed until now; a drive is what the board
+        # applies from now until the next cycle: the time since the last one had the last drive
+        self.held = None if windings.volts_per_unit is None else np.zeros(len(windings.names))
         self.cycles = 0
         self.warned = False
         self.stopped = False
@@ -384,7 +387,11 @@ class _HeatWatch:
         now = time.monotonic()
         dt = self.period if self.last is None else now - self.last
         self.last = now
-        state = monitor.update(driven, dt)
+        if self.held is None:
+            state = monitor.update(driven, dt)
+        else:
+            state = monitor.update(self.held, dt)
+            self.held[:] = driven
         self.cycles += 1
         if self.cycles % self.every == 1 or self.every == 1:
             temperatures = monitor.temperature_C.tolist()
