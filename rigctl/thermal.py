@@ -87,10 +87,13 @@ class Windings:
         return cls.of(board.coil_names, [board.coil_resistance_ohm] * n, [board.coil_thermal] * n,
                       volts_per_unit=board.supply_V / MAX_COMMAND)
 
-    def off_by(self, fraction: float) -> Windings:
-        """The same windings with R_th and C_th `fraction` larger (an emulated winding that
-        differs from its data)."""
-        return replace(self, r_th=self.r_th * (1 + fraction), c_th=self.c_th * (1 + fraction))
+    def off_by(self, fraction: ArrayLike, capacity_fraction: ArrayLike | None = None) -> Windings:
+        """The same windings with R_th `fraction` and C_th `capacity_fraction` (default: the
+        same) larger, each a scalar or one per winding (an emulated winding that differs from
+        its data)."""
+        capacity = fraction if capacity_fraction is None else capacity_fraction
+        return replace(self, r_th=self.r_th * (1 + np.asarray(fraction)),
+                       c_th=self.c_th * (1 + np.asarray(capacity)))
 
     @property
     def time_constant_s(self) -> np.ndarray:

@@ -261,3 +261,44 @@ def test_the_live_monitor_takes_the_boards_drive_as_volts_and_says_warning_then_
     assert states.index("warning") == math.ceil(warning_s / 0.02) - 1
     assert states.index("limit") == math.ceil(limit_s / 0.02) - 1
     assert monitor.hottest()[0] in ("+x", "-x")
+
+
+def test_the_emulated_board_coils_heat_by_the_syren_output_with_their_own_seeded_data():
+    from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
+
+    from rigctl.config import CoilBoardSettings
+
+    thermal = CoilThermal(thermal_resistance_K_per_W=2.5, thermal_capacity_J_per_K=4.0,
+                          ambient_C=25.0, warning_C=90.0, max_winding_C=100.0, alpha_per_K=0.0)
+    board = CoilBoardSettings(url="/dev/null", coil_thermal=thermal)
+    coils = BoardCoils(board, ThermalErrors(size=0.05, seed=3))
+    built = coils.describe()["coils"]
+    r_th = np.array([c["r_th_K_per_W"] for c in built])
+    c_th = np.array([c["c_th_J_per_K"] for c in built])
+    assert np.all(np.abs(r_th / 2.5 - 1) <= 0.05) and np.all(np.abs(c_th / 4.0 - 1) <= 0.05)
+    assert np.all(r_th != 2.5) and len(set(r_th)) == 4  # each coil its own
+    assert BoardCoils(board, ThermalErrors(size=0.05, seed=3)).describe()["coils"] == built
+    for _ in range(300):  # 30 s: +x at full output, -x at half reversed, the y coils off
+        assert coils.step(0.1, (1.0, -0.5, 0.0, 0.0)) == (1.0, -0.5, 0.0, 0.0)
+    # T = Ta + R_th V^2 / R0 (1 - exp(-t / (R_th C_th))) with the coil's own R_th, C_th, by hand
+    for j, volts in enumerate((12.0, 6.0, 0.0, 0.0)):
+        expected = 25.0 + r_th[j] * volts**2 / 6.0 * (1 - math.exp(-30.0 / (r_th[j] * c_th[j])))
+        assert coils.temperature_C[j] == pytest.approx(expected, rel=1e-9)
+
+
+def test_an_emulated_board_coil_past_its_cut_out_pulls_nothing_until_it_has_cooled():
+    from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
+
+    from rigctl.config import CoilBoardSettings
+
+    thermal = CoilThermal(thermal_resistance_K_per_W=4.0, thermal_capacity_J_per_K=1.0,
+                          ambient_C=25.0, warning_C=60.0, max_winding_C=70.0, alpha_per_K=0.0)
+    coils = BoardCoils(CoilBoardSettings(url="/dev/null", coil_thermal=thermal), ThermalErrors(0.0))
+    pulls = [coils.step(0.05, (1.0, 0.0, 0.0, 0.0))[0] for _ in range(200)]  # 10 s
+    # full output: T = 25 + 96 (1 - exp(-t / 4)) reaches the cut-out's 80 C at t = -4 ln(1 - 55/96),
+    # and off, T = 25 + 55 exp(-t / 4) is down to 70 C (10 K below) after 4 ln(55/45), by hand
+    opened = pulls.index(0.0)
+    assert opened == math.ceil(-4.0 * math.log(1 - 55.0 / 96.0) / 0.05)
+    assert pulls[opened:].index(1.0) == math.ceil(4.0 * math.log(55.0 / 45.0) / 0.05)
+    assert coils.peak_C[0] == pytest.approx(80.0, abs=0.7) and max(coils.peak_C[1:]) == 25.0
+    assert pulls.count(0.0) > 50  # it cycles on its cut-out; the other coils never heat
