@@ -87,6 +87,14 @@ class Windings:
         return cls.of(board.coil_names, [board.coil_resistance_ohm] * n, [board.coil_thermal] * n,
                       volts_per_unit=board.supply_V / MAX_COMMAND)
 
+    @classmethod
+    def of_rig(cls, rig) -> Windings | None:
+        """The windings a rig's run watches (`RigConfig`): the coil board's, the six coils', none
+        for the arms (permanent magnets)."""
+        if rig.board is not None:
+            return cls.of_board(rig.board)
+        return cls.of_coils(rig.coils) if rig.rig.kind == "six-coil" else None
+
     def off_by(self, fraction: ArrayLike, capacity_fraction: ArrayLike | None = None) -> Windings:
         """The same windings with R_th `fraction` and C_th `capacity_fraction` (default: the
         same) larger, each a scalar or one per winding (an emulated winding that differs from
