@@ -19,16 +19,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zmq
-from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
 
-from rigctl.client import Rig
 from rigctl.config import CoilThermal
-from rigctl.daemon.server import Daemon
 from rigctl.record import read_series
-from rigctl.testing import wait_for
+from rigctl.testing import daemon_on, wait_for
 
 # 6 ohm on 12 V: full drive is 24 W, T_inf = 25 + 2.5 x 24 = 85 C, tau = 2.5 x 4 = 10 s
 THERMAL = CoilThermal(thermal_resistance_K_per_W=2.5, thermal_capacity_J_per_K=4.0, ambient_C=25.0,
@@ -38,25 +35,17 @@ NAMES = ["+x", "-x", "+y", "-y"]
 
 
 @contextmanager
-def daemon_on(bench, runs: Path):
-    """(daemon, client, SUB socket on `winding`, backdoor) of a daemon on `bench`, started here."""
-    with bench:
-        daemon = Daemon(bench.rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
-                        events="tcp://127.0.0.1:0", runs_dir=runs)
-        daemon.start_thread()
-        context = zmq.Context()
+def winding_feed(bench, runs: Path):
+    """(client, SUB socket on `winding`, backdoor) of a daemon on `bench`, started here."""
+    with daemon_on(bench, runs) as (rig, backdoor, _), zmq.Context() as context:
         sub = context.socket(zmq.SUB)
         sub.setsockopt(zmq.LINGER, 0)
         sub.setsockopt(zmq.SUBSCRIBE, b"winding")
-        sub.connect(daemon.endpoints.telemetry)
+        sub.connect(rig.ping()["telemetry"]["data"])
         try:
-            with Rig(daemon.endpoints.command, timeout_s=10.0) as rig, \
-                    BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
-                yield daemon, rig, sub, backdoor
+            yield rig, sub, backdoor
         finally:
             sub.close()
-            context.term()
-            daemon.stop()
 
 
 def receive(sub, seconds: float) -> list[dict]:
@@ -82,7 +71,7 @@ def until(sub, what, timeout_s: float) -> list[dict]:
 def test_a_board_hold_heats_the_published_estimate_along_the_closed_form_and_it_cools_after(
         tmp_path):
     bench = CoilBoardBench(syren_startup_s=0.05, coil_thermal=THERMAL)
-    with daemon_on(bench, tmp_path / "runs") as (_, rig, sub, backdoor):
+    with winding_feed(bench, tmp_path / "runs") as (rig, sub, backdoor):
         assert receive(sub, 1.0) == []  # at rest at the room: nothing to tell
 
         rig.hold({"drive": [127, 0, 0, 0]}, ramp_s=0.05)
@@ -124,7 +113,7 @@ def test_a_board_hold_heats_the_published_estimate_along_the_closed_form_and_it_
 
 
 def test_the_six_coil_daemon_publishes_its_six_windings_and_the_arms_none(tmp_path):
-    with daemon_on(SixCoilBench(), tmp_path / "six") as (_, rig, sub, _):
+    with winding_feed(SixCoilBench(), tmp_path / "six") as (rig, sub, _):
         rig.set_field([2.0, 0.0, 0.0], ramp_s=0.05)
         messages = until(sub, lambda m: True, 10.0) + receive(sub, 1.0)
         rig.set_field([0.0, 0.0, 0.0], ramp_s=0.05)
@@ -133,5 +122,7 @@ def test_the_six_coil_daemon_publishes_its_six_windings_and_the_arms_none(tmp_pa
     # the defaults' 10 kJ/K windings: a few amperes for a second warm them by millikelvin
     assert np.allclose(messages[-1]["temperature_C"], 25.0, atol=0.05)
     assert messages[-1]["limit_C"] == [100.0] * 6 and messages[-1]["warning_C"] == [90.0] * 6
-    with daemon_on(DepmBench(), tmp_path / "depm") as (daemon, _, sub, _):
-        assert daemon.windings is None and receive(sub, 1.0) == []  # permanent magnets
+    with winding_feed(DepmBench(), tmp_path / "depm") as (rig, sub, _):
+        rig.hold({"joints_rad": [[0.0] * 7] * 2}, ramp_s=0.1)  # the arms held where they stand
+        assert receive(sub, 1.0) == []  # permanent magnets: nothing heats
+        rig.release()
