@@ -302,6 +302,10 @@ class PreflightSettings(_Strict):
         float, Field(gt=0, description="a supply's LAN answer to `CURR x;:MEAS:CURR?` (`rigctl "
                      "doctor --rig` measures it); a serial link's time is computed from its baud "
                      "rate")] = 2.0
+    kst_round_trip_ms: Annotated[
+        float, Field(gt=0, description="an arm's KST answer to a servo target (`jpJP_`, the "
+                     "measured joints back) over the cabinet's LAN; a guess: measure yours "
+                     "(time `KukaArm.servo`)")] = 5.0
 
 
 class FieldProbe(_Strict):

@@ -22,7 +22,8 @@ import subprocess
 import sys
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -157,6 +158,26 @@ def run_rigctl(*args: str, cwd: str | Path, timeout_s: float = 600.0,
         kwargs["capture_output"] = True
     return subprocess.run([sys.executable, "-m", "rigctl", *args], check=False, cwd=cwd, text=True,
                           timeout=timeout_s, **kwargs)
+
+
+@contextmanager
+def daemon_on(bench, runs: Path) -> Iterator[tuple[Any, Any, Path]]:
+    """(client, backdoor, runs folder) of a daemon on the emulated `bench` (not yet started),
+    both in this process, the daemon on loopback ports of its own."""
+    from rigctl.client import Rig
+    from rigctl.daemon.server import Daemon
+    from rigctl.emulators.backdoor import BackdoorClient
+
+    with bench:
+        daemon = Daemon(bench.rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
+                        events="tcp://127.0.0.1:0", runs_dir=runs)
+        daemon.start_thread()
+        try:
+            with Rig(daemon.endpoints.command, timeout_s=10.0) as rig, \
+                    BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
+                yield rig, backdoor, runs
+        finally:
+            daemon.stop()
 
 
 PAIR_WORKSPACE = Path(__file__).resolve().parents[1] / "plans" / "examples" / \

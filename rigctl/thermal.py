@@ -17,7 +17,9 @@ held over a step dt the solution is exact:
 same formula grows exponentially). A stream of piecewise-constant samples is an affine recurrence
 T_k+1 = e_k T_k + c_k, evaluated for all samples and coils at once by cumulative products
 (`winding_temperatures`). Driven by a voltage V (the coil board's SyRens), P = V^2 / R(T) falls as
-the winding warms; a step takes R at its start (`step_voltage`), exact to O(dt / tau).
+the winding warms; a step takes R at its start (`step_voltage`), exact to O(dt / tau). A
+`Windings` says which drives it (`volts_per_unit`), so that the live model (`WindingMonitor`)
+takes a run's channels as they come: supply currents, or the board's drive.
 
 Units: A, V, ohm, s, K, degrees C; arrays are (samples, coils).
 """
@@ -32,6 +34,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
+from rigctl.drivers.coilboard_frame import MAX_COMMAND
+
 COPPER_ALPHA_PER_K = 0.00393
 """Temperature coefficient of copper's resistance at 20 C."""
 
@@ -43,7 +47,9 @@ _MIN_DECAY = 1e-12  # a step longer than 27.6 time constants: at equilibrium to 
 class Windings:
     """The thermal data of n windings, each attribute (n,): R_th (K/W), C_th (J/K), the room
     (C), the resistance `resistance_ohm` at `reference_C`, alpha (1/K), and the warning and
-    maximum winding temperatures (C)."""
+    maximum winding temperatures (C). `volts_per_unit`: None for windings driven by a current
+    (their channels are in A), else the volts one channel unit puts across a winding (the coil
+    board: its SyRens' supply over full drive)."""
 
     names: tuple[str, ...]
     r_th: np.ndarray
@@ -54,16 +60,18 @@ class Windings:
     alpha: np.ndarray
     warning_C: np.ndarray
     limit_C: np.ndarray
+    volts_per_unit: float | None = None
 
     @classmethod
-    def of(cls, names: Sequence[str], resistances_ohm: Sequence[float], thermals: Sequence) -> Windings:
+    def of(cls, names: Sequence[str], resistances_ohm: Sequence[float], thermals: Sequence, *,
+           volts_per_unit: float | None = None) -> Windings:
         """From rig-file data: one resistance and one `rigctl.config.CoilThermal` per winding."""
         def col(key: str) -> np.ndarray:
             return np.array([getattr(t, key) for t in thermals], dtype=float)
 
         return cls(tuple(names), col("thermal_resistance_K_per_W"), col("thermal_capacity_J_per_K"),
                    col("ambient_C"), np.asarray(resistances_ohm, dtype=float), col("reference_C"),
-                   col("alpha_per_K"), col("warning_C"), col("max_winding_C"))
+                   col("alpha_per_K"), col("warning_C"), col("max_winding_C"), volts_per_unit)
 
     @classmethod
     def of_coils(cls, coils: Sequence) -> Windings:
@@ -73,14 +81,27 @@ class Windings:
 
     @classmethod
     def of_board(cls, board) -> Windings:
-        """The coil board's four windings (`CoilBoardSettings`), all alike."""
+        """The coil board's four windings (`CoilBoardSettings`), all alike, driven in SyRen units:
+        a drive d puts d / MAX_COMMAND of the supply across its coil."""
         n = len(board.coil_names)
-        return cls.of(board.coil_names, [board.coil_resistance_ohm] * n, [board.coil_thermal] * n)
+        return cls.of(board.coil_names, [board.coil_resistance_ohm] * n, [board.coil_thermal] * n,
+                      volts_per_unit=board.supply_V / MAX_COMMAND)
 
-    def off_by(self, fraction: float) -> Windings:
-        """The same windings with R_th and C_th `fraction` larger (an emulated winding that
-        differs from its data)."""
-        return replace(self, r_th=self.r_th * (1 + fraction), c_th=self.c_th * (1 + fraction))
+    @classmethod
+    def of_rig(cls, rig) -> Windings | None:
+        """The windings a rig's run watches (`RigConfig`): the coil board's, the six coils', none
+        for the arms (permanent magnets)."""
+        if rig.board is not None:
+            return cls.of_board(rig.board)
+        return cls.of_coils(rig.coils) if rig.rig.kind == "six-coil" else None
+
+    def off_by(self, fraction: ArrayLike, capacity_fraction: ArrayLike | None = None) -> Windings:
+        """The same windings with R_th `fraction` and C_th `capacity_fraction` (default: the
+        same) larger, each a scalar or one per winding (an emulated winding that differs from
+        its data)."""
+        capacity = fraction if capacity_fraction is None else capacity_fraction
+        return replace(self, r_th=self.r_th * (1 + np.asarray(fraction)),
+                       c_th=self.c_th * (1 + np.asarray(capacity)))
 
     @property
     def time_constant_s(self) -> np.ndarray:
@@ -150,6 +171,14 @@ def step_voltage(temperature_C: ArrayLike, voltage_V: ArrayLike, dt_s: float, w:
     tau = w.time_constant_s
     target = w.ambient_C + power * w.r_th
     return target + (t - target) * np.exp(-dt_s / tau)
+
+
+def step_voltage_one(temperature_C: float, voltage_V: float, dt_s: float, w: OneWinding) -> float:
+    """`step_voltage` for one winding in plain floats (the live model steps every stream cycle)."""
+    g = w.conductance_W_per_K
+    resistance = w.resistance_ohm * (1 + w.alpha * (temperature_C - w.reference_C))
+    target = w.ambient_C + voltage_V * voltage_V / resistance / g
+    return target + (temperature_C - target) * math.exp(-dt_s * g / w.c_th)
 
 
 def winding_temperatures(currents_A: ArrayLike, dt_s: ArrayLike, w: Windings, *,
@@ -267,8 +296,10 @@ def voltage_crossing_s(voltage_V: ArrayLike, w: Windings, threshold_C: np.ndarra
 
 
 class WindingMonitor:
-    """The model run live on measured currents: `update` advances it by one stream cycle and says
-    whether a winding is at its warning or its limit ("ok", "warning", "limit")."""
+    """The model run live on what drives the windings, a value per winding: measured currents
+    (A), or a drive of `Windings.volts_per_unit` volts per unit. `update` advances it by one
+    stream cycle and says whether a winding is at its warning or its limit ("ok", "warning",
+    "limit")."""
 
     def __init__(self, w: Windings, start_C: ArrayLike | None = None) -> None:
         self.windings = w
@@ -278,15 +309,16 @@ class WindingMonitor:
         self._one = [w.one(j) for j in range(len(w.names))]
         self._limits = [float(v) for v in w.limit_C]
         self._warnings = [float(v) for v in w.warning_C]
+        self._step = step_current_one if w.volts_per_unit is None else step_voltage_one
+        self._scale = 1.0 if w.volts_per_unit is None else float(w.volts_per_unit)
 
-    def update(self, current_A: ArrayLike, dt_s: float) -> str:
+    def update(self, drive: ArrayLike, dt_s: float) -> str:
         state = "ok"
-        temperatures = self.temperature_C
+        temperatures, step, scale = self.temperature_C, self._step, self._scale
         for j, one in enumerate(self._one):
-            t = step_current_one(float(temperatures[j]), float(current_A[j]), dt_s, one)
+            t = step(float(temperatures[j]), float(drive[j]) * scale, dt_s, one)
             temperatures[j] = t
-            if t > self.peak_C[j]:
-                self.peak_C[j] = t
+            self.peak_C[j] = max(self.peak_C[j], t)
             if t >= self._limits[j]:
                 state = "limit"
             elif t >= self._warnings[j] and state == "ok":

@@ -23,18 +23,26 @@ bytes`) and "camera", plus:
   r}], "ring": false, "physics": {...CoilBoardPhysics fields...}}`: put the particles down; with
   `ring` a disk boundary is replaced by the intestine phantom (sixty 2 mm protrusions) of the same
   diameter; `physics` overrides the world's parameters from then on;
-- `{"cmd": "truth"}`: particle positions (mm), the SyRen outputs, the firmware's counters (Python
-  firmware), simulated time.
+- `{"cmd": "truth"}`: particle positions (mm), the SyRen outputs, each coil's winding temperature
+  (C, now and its peak; the windings heat by `rigctl.thermal`, `coils.py`) and whether its thermal
+  cut-out is open, the firmware's counters (Python firmware), simulated time;
+- `{"cmd": "windings", "size": 0.05, "seed": 0, "thermal": {...CoilThermal fields...}}`: rebuild
+  the windings with R_th and C_th off the rig file's by up to `size` (`ThermalErrors`; their
+  temperatures are kept); with `thermal`, from that winding data instead, at the room's
+  temperature (the rig file keeps its own: a run must be given the same); replies with each
+  winding as built and its data; `{"cmd": "windings"}` only reads them.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 
 import numpy as np
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.camera.render import Scene
+from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
 from rigctl.emulators.coilboard.syren import SyrenBus
 from rigctl.emulators.world.coilboard import (
     CoilBoardPhysics,
@@ -44,7 +52,7 @@ from rigctl.emulators.world.coilboard import (
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
 
-from rigctl.config import CoilBoardSettings, Emulation, RigConfig, RigInfo
+from rigctl.config import CoilBoardSettings, CoilThermal, Emulation, RigConfig, RigInfo
 from rigctl.errors import ConfigError
 
 PHYSICS_TICK_S = 0.005  # real seconds between two world steps when nothing asks
@@ -58,14 +66,16 @@ class CoilBoardBench(EmulatedBench):
 
     firmware: "python" (default) or "simavr"; physics: the world's parameters; speed: simulated
     seconds per real second; syren_startup_s: the Python firmware's SyRen start-up wait (the
-    board's 2 s by default).
+    board's 2 s by default); coil_thermal: the rig file's winding data (default the board's);
+    thermal_errors: how far the emulated windings are from it.
     """
 
     tick_s = PHYSICS_TICK_S
 
     def __init__(self, *, firmware: str = "python", host: str = "127.0.0.1",
-                 physics: CoilBoardPhysics = CoilBoardPhysics(), speed: float = 1.0,
-                 syren_startup_s: float | None = None) -> None:
+                 physics: CoilBoardPhysics | None = None, speed: float = 1.0,
+                 syren_startup_s: float | None = None, coil_thermal: CoilThermal | None = None,
+                 thermal_errors: ThermalErrors | None = None) -> None:
         if firmware not in ("python", "simavr"):
             raise ConfigError(f"--firmware: python or simavr, got {firmware!r}")
         if not speed > 0:
@@ -73,15 +83,20 @@ class CoilBoardBench(EmulatedBench):
         super().__init__(host=host, speed=speed)
         self.firmware_kind = firmware
         self.title = f"coil-board bench ({firmware} firmware)"
-        self.physics = physics
+        self.physics = physics or CoilBoardPhysics()
         self.syren_startup_s = syren_startup_s
         self.bus = SyrenBus()
         self.board = None  # FirmwareEmulator (python)
         self.harness = None  # the simavr harness
         self._wire_reader = None
         self.world: CoilBoardWorld | None = None
-        self._world_at = 0.0  # simulated time the world has been stepped to
-        self.commands.update(place=self._place, truth=self._truth)
+        self._stepped = 0.0  # simulated time the coils and the world have been stepped to
+        # the rig file's [board] but its url (the firmware's pty, known once it runs)
+        thermal = {} if coil_thermal is None else {"coil_thermal": coil_thermal}
+        self.board_settings = CoilBoardSettings(url=os.devnull, reply_timeout_s=BOARD_REPLY_TIMEOUT_S,
+                                                **thermal)
+        self.coils = BoardCoils(self.board_settings, thermal_errors or ThermalErrors())
+        self.commands.update(place=self._place, truth=self._truth, windings=self._windings)
 
     def _serve(self) -> RigConfig:
         board_url = self._start_firmware()
@@ -91,9 +106,10 @@ class CoilBoardBench(EmulatedBench):
             rig=RigInfo(kind="coil-board", name=f"emulated {self.title}"),
             # The emulated board shares a process (and Python's GIL) with the camera's renderer
             # and the world: allow it more than a real board's 2 ms per reply.
-            board=CoilBoardSettings(url=board_url, reply_timeout_s=BOARD_REPLY_TIMEOUT_S),
+            board=self.board_settings.model_copy(update={"url": board_url}),
             camera=camera,
-            emulation=Emulation(backdoor=self.backdoor.url),
+            emulation=Emulation(backdoor=self.backdoor.url,
+                                thermal_mismatch=self.coils.errors.size),
         )
 
     def _start_firmware(self) -> str:
@@ -132,11 +148,14 @@ class CoilBoardBench(EmulatedBench):
 
     # -- simulation (the server's loop thread) ------------------------------------------------
     def advance(self) -> None:
-        """Step the world to the clock's now with the four outputs the SyRen bus holds."""
+        """Step the coils' windings and the world to the clock's now with the four outputs the
+        SyRen bus holds (a coil whose cut-out is open pulls nothing)."""
         now = self.clock.now()
-        if self.world is not None and now > self._world_at:
-            self.world.step(now - self._world_at, self.bus.outputs())
-        self._world_at = now
+        if now > self._stepped:
+            pulls = self.coils.step(now - self._stepped, self.bus.outputs())
+            if self.world is not None:
+                self.world.step(now - self._stepped, pulls)
+        self._stepped = now
 
     def _scene(self) -> Scene | None:
         if self.world is None:
@@ -152,6 +171,7 @@ class CoilBoardBench(EmulatedBench):
             "agents": [] if world is None else world.positions_mm.tolist(),
             "sim_time_s": None if world is None else world.time_s,
             "outputs": list(self.bus.outputs()),
+            **self.coils.truth(),
         }
         if self.board is not None:
             state = self.board.state()
@@ -160,6 +180,20 @@ class CoilBoardBench(EmulatedBench):
                                  "bad_frames": state.bad_frames,
                                  "watchdog_trips": state.watchdog_trips}
         return reply
+
+    def _windings(self, request: dict) -> dict:
+        if not {"size", "seed", "thermal"} & set(request):
+            return self.coils.describe()
+        self.advance()  # the windings heated as they were until now
+        errors = ThermalErrors(size=float(request.get("size", self.coils.errors.size)),
+                               seed=int(request.get("seed", self.coils.errors.seed)))
+        if "thermal" in request:
+            self.board_settings = self.board_settings.model_copy(
+                update={"coil_thermal": CoilThermal(**request["thermal"])})
+            self.coils = BoardCoils(self.board_settings, errors)
+        else:
+            self.coils.rebuild(errors)
+        return self.coils.describe()
 
     def _place(self, request: dict) -> dict:
         data = request["workspace"]

@@ -117,6 +117,7 @@ class Topic(str, Enum):
     FAULT = "fault"
     LOG = "log"
     FRAME = "frame"  # camera frames (a daemon with a console only), decimated
+    WINDING = "winding"  # the live winding model's estimate (rigs whose coils heat)
 
 
 EVENT_TOPICS = frozenset({Topic.STATE, Topic.FAULT, Topic.LOG})
@@ -361,6 +362,22 @@ class FrameMsg(_Telemetry):
     frame: int = Field(description="fresh frames tracked before this one in this run")
 
 
+class WindingMsg(_Telemetry):
+    """The live winding model's estimate (`rigctl.thermal`, docs/certificate.md) of a rig whose
+    coils heat, ten times a second: while a run streams, its own model's (what its record's
+    `winding` series holds, `t` when it held); between runs the last estimate cooling at zero
+    drive by the same model, from which the next run starts."""
+
+    topic: Literal["winding"] = "winding"
+    names: list[str] = Field(description="the windings, in the rig file's coil order")
+    temperature_C: list[float] = Field(description="each winding's estimated temperature")
+    warning_C: list[float] = Field(description="each winding's warning level: a run pauses at "
+                                   "the end of the move")
+    limit_C: list[float] = Field(description="each winding's limit: a run ramps down")
+    state: Literal["ok", "warning", "limit"] = Field(description="the highest level a winding is at")
+    source: Literal["run", "cooling"] = Field(description="a run's model, or cooling since one")
+
+
 class FaultMsg(_Telemetry):
     topic: Literal["fault"] = "fault"
     device: str | None
@@ -376,7 +393,8 @@ class LogMsg(_Telemetry):
 
 
 TelemetryMessage = Annotated[
-    StateMsg | ActuatorsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg | FrameMsg,
+    StateMsg | ActuatorsMsg | FieldMsg | AgentsMsg | StreamMsg | FaultMsg | LogMsg | FrameMsg
+    | WindingMsg,
     Field(discriminator="topic"),
 ]
 
@@ -386,7 +404,7 @@ class _TelemetryEnvelope(_Message):
 
 
 def parse_telemetry(payload: bytes) -> (StateMsg | ActuatorsMsg | FieldMsg | AgentsMsg | StreamMsg
-                                        | FaultMsg | LogMsg | FrameMsg):
+                                        | FaultMsg | LogMsg | FrameMsg | WindingMsg):
     """A telemetry message from its JSON frame (pydantic ValidationError if it is not one)."""
     return _TelemetryEnvelope.model_validate_json(b'{"message":' + payload + b"}").message
 

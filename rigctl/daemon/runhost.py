@@ -17,13 +17,14 @@ any plan's (a `rigctl.run.hold.HoldPlan`), whose program also takes `retarget` a
 
 Messages are pickled tuples over one-way pipes (`multiprocessing.connection.Connection`):
 
-    daemon -> host   ("run", plan, rig, runs_dir)   ("pause", immediate)
+    daemon -> host   ("run", plan, rig, runs_dir, winding_start_C)   ("pause", immediate)
                      ("resume",)  ("abort",)  ("estop", asked_at)  ("event", name, fields)
                      ("retarget", target, setpoints, ramp_s)  ("release", ramp_s)  (a hold's)
                      ("exit",)
     host -> daemon   ("ready", pid)   ("cycles", *CycleBatch fields; t on `time.monotonic()`)
                      ("frame", jpeg_b64, width, height, t_source, t_source_unix, positions_mm,
                       tracked_px, lost, frame) (`_FrameTap`)
+                     ("winding", t, temperatures_C, state) (the run's live winding model, 10 Hz)
                      ("state", state, info, record_path, record_t0)
                      ("done", summary)   ("failed", kind, message)   ("log", level, name, text)
     host -> daemon   (asked_at, unreached), the e-stop's answer, on a pipe of its own that the
@@ -59,7 +60,7 @@ import numpy as np
 
 from rigctl import errors
 from rigctl.config import RigConfig
-from rigctl.daemon.telemetry import CycleBatch
+from rigctl.daemon.telemetry import CycleBatch, WindingEstimate
 from rigctl.errors import RigError
 
 log = logging.getLogger("rigctl.daemon.runhost")  # also when run as `python -m rigctl.daemon.runhost`
@@ -83,26 +84,30 @@ TERMINAL_STATES = {"done", "aborted", "faulted", "estopped"}  # RunState values 
 
 
 def build_run(plan: Any, rig: RigConfig, *, runs_dir: str | Path, on_cycle: Any = None,
-              on_state: Any = None, on_frame: Any = None) -> Any:
+              on_state: Any = None, on_frame: Any = None, **windings: Any) -> Any:
     """The engine's run of `plan` on `rig`, prepared (a plan the rig cannot run is refused here,
     before any I/O), closed loop whenever the rig has a camera, as `rigctl execute` does. Used by
-    the daemon to check a plan at load and by the stream process to run it."""
+    the daemon to check a plan at load and by the stream process to run it (`windings`: the
+    engine's `on_winding` and `winding_start_C`)."""
     from rigctl.rigs import rig_kind
 
     builder = rig_kind(rig.rig.kind).builder(plan.kind)
     frames = {"on_frame": on_frame} if on_frame is not None else {}  # the console's camera view
     return builder(plan, rig, runs_dir=runs_dir, progress_out=None, on_cycle=on_cycle,
-                   on_state=on_state, **frames)
+                   on_state=on_state, **frames, **windings)
 
 
 # -- the daemon's side ----------------------------------------------------------------------------
 
 class RunHost:
-    """The stream process and the thread that reads what it sends. Thread-safe."""
+    """The stream process and the thread that reads what it sends. Thread-safe. `windings` (a
+    rig whose coils heat) takes each run's live estimate, and gives each run its start."""
 
-    def __init__(self, realtime_priority: int | None = None, on_frame: Any = None) -> None:
+    def __init__(self, realtime_priority: int | None = None, on_frame: Any = None,
+                 windings: WindingEstimate | None = None) -> None:
         self.realtime_priority = realtime_priority
         self.on_frame = on_frame  # a "frame" message's fields (`_FrameTap`)
+        self.windings = windings
         self._lock = threading.Lock()  # one sender at a time on the pipe; the process handles
         self._process: Any = None
         self._down: Any = None
@@ -156,8 +161,9 @@ class RunHost:
             if self._down is None:
                 raise HostGone("the stream process exited as it started: see the daemon's log")
             self._current = run
+        start = None if self.windings is None else self.windings.start_C()
         try:
-            self.send(*run.job)
+            self.send(*run.job, start)  # the windings as warm as the last run left them
         except HostGone:
             with self._lock:
                 if self._current is run:
@@ -448,6 +454,9 @@ class RemoteRun:
             if state.value in TERMINAL_STATES:  # the stream is over: the summary takes its time
                 self._last_cycles = None
             self.on_state(state, info)
+        elif kind == "winding":
+            if self._host.windings is not None:
+                self._host.windings.from_run(*message[1:])
         elif kind == "frame":
             if self._host.on_frame is not None:
                 self._host.on_frame(*message[1:])
@@ -687,7 +696,8 @@ class _Host:
                                         daemon=True)
         self._thread.start()
 
-    def _build_run(self, plan: Any, rig: RigConfig, runs_dir: str) -> Any:
+    def _build_run(self, plan: Any, rig: RigConfig, runs_dir: str,
+                   winding_start_C: list[float] | None = None) -> Any:
         if self.frames is not None:
             self.frames.calibration = rig.camera.calibration if rig.camera is not None else None
         run = build_run(
@@ -697,7 +707,10 @@ class _Host:
             on_state=lambda state, info: self.uplink.message(
                 "state", state, info, str(run.record.path) if run.record else None,
                 run.record.t0 if run.record else None),
-            on_frame=self.frames.offer if self.frames is not None else None)
+            on_frame=self.frames.offer if self.frames is not None else None,
+            on_winding=lambda t, temperatures, state: self.uplink.message(
+                "winding", t, temperatures, state),
+            winding_start_C=winding_start_C)
         return run
 
     def _execute(self, build: Any, *args: Any) -> None:

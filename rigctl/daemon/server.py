@@ -75,10 +75,11 @@ from rigctl.daemon.runhost import (
     realtime_permitted,
 )
 from rigctl.daemon.sdnotify import SystemdNotifier
-from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
+from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher, WindingEstimate
 from rigctl.errors import ConfigError, LimitError, PlanError, RigError
 from rigctl.rigs import rig_kind
 from rigctl.run.hold import CANNOT_PAUSE, HoldPlan
+from rigctl.thermal import Windings
 
 log = logging.getLogger(__name__)
 
@@ -164,8 +165,9 @@ class PlanRuns:
     here at load (a bad plan is refused before anything else) and streamed in the stream process
     (`rigctl.daemon.runhost`), which `start` spawns and `close` stops."""
 
-    def __init__(self, realtime_priority: int | None = None, on_frame: Any = None) -> None:
-        self.host = RunHost(realtime_priority, on_frame)
+    def __init__(self, realtime_priority: int | None = None, on_frame: Any = None,
+                 windings: WindingEstimate | None = None) -> None:
+        self.host = RunHost(realtime_priority, on_frame, windings)
         self._lock = threading.Lock()
         # id(plan) -> (plan, the plan as prepared, what load says of it): a plan executed again
         # is not realized and allocated again here (on the command thread) just to be described
@@ -337,9 +339,13 @@ class Daemon:
     ) -> None:
         self.rig = rig
         self.runs_dir = Path(runs_dir)
+        # the windings' estimate (`winding`), a run's live model or cooling since (None: no coil)
+        windings = Windings.of_rig(rig)
+        self.windings = None if windings is None else WindingEstimate(windings)
         # camera_frames: publish the closed loop's camera frames (`frame`), for the console
         self.factory = run_factory or PlanRuns(
-            realtime_priority, on_frame=self._on_frame if camera_frames else None)
+            realtime_priority, on_frame=self._on_frame if camera_frames else None,
+            windings=self.windings)
         self.realtime_priority = realtime_priority
         self.currents_hz = currents_hz
         self.notifier = notifier or SystemdNotifier()
@@ -436,7 +442,7 @@ class Daemon:
             self.publisher = TelemetryPublisher(
                 self.context, telemetry, events, channels=self.channels,
                 actuation_matrix_T_per_A=self._actuation, currents_hz=self.currents_hz,
-                secure=secure, clock_origin=self.t0)
+                secure=secure, clock_origin=self.t0, windings=self.windings)
         except zmq.ZMQError as err:
             router.close(linger=0)
             raise ConfigError(f"cannot bind the daemon's sockets: {err}") from None

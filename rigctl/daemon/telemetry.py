@@ -10,6 +10,10 @@ actuation matrix) and, at `stream_hz`, period-error statistics, a few short burs
 second. Sends use `zmq.NOBLOCK`; a PUB socket never blocks anyway, it drops for a subscriber
 whose queue (`DATA_SEND_HWM` messages) is full.
 
+A rig whose coils heat also has `winding`, ten times a second (`WindingEstimate`): the running
+run's live winding model as its stream process reports it, and between runs the last estimate
+cooling, from which the next run starts, until the windings are back at the room.
+
 `state`, `fault` and `log` are never dropped on our side: they go into their own queue, which
 wakes the publisher at once and is emptied before any sample, and out through a second PUB
 socket (the events socket) whose per-subscriber queues hold `EVENTS_SEND_HWM` messages, so a
@@ -45,7 +49,9 @@ from rigctl.daemon.messages import (
     StateMsg,
     StreamMsg,
     Topic,
+    WindingMsg,
 )
+from rigctl.thermal import WindingMonitor, Windings
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +81,52 @@ class CycleBatch:
                                       "period_error_s")))
 
 
+class WindingEstimate:
+    """The daemon's estimate of its windings: a run's live model, taken as the stream process
+    reports it (`from_run`, ten times a second), and while none reports, the last estimate
+    cooling at zero drive by the same model (`rigctl.thermal.WindingMonitor`), so that what is
+    published never falls back to the room when a run ends, nor does the next run start from it
+    (`start_C` is its start). Thread-safe."""
+
+    QUIET_S = 0.5  # no report from a run for this long: it has ended, the windings cool
+    AT_REST_K = 0.05  # cooled this close to the room: nothing to publish until a run heats them
+
+    def __init__(self, windings: Windings) -> None:
+        self.windings = windings
+        self._monitor = WindingMonitor(windings)
+        self._lock = threading.Lock()
+        self._at = time.monotonic()  # when the estimate holds
+        self._heard = -float("inf")  # when a run last reported
+        self._state = "ok"
+
+    def from_run(self, t: float, temperatures_C: list[float], state: str) -> None:
+        """A run's estimate at monotonic `t`."""
+        with self._lock:
+            self._monitor.temperature_C[:] = temperatures_C
+            self._at, self._heard, self._state = t, time.monotonic(), state
+
+    def now(self) -> tuple[float, list[float], str, str] | None:
+        """(monotonic s it holds at, C per winding, "ok"/"warning"/"limit", "run"/"cooling"), or
+        None at rest: no run reports and every winding is back at the room."""
+        with self._lock:
+            now = time.monotonic()
+            if now - self._heard < self.QUIET_S:
+                return self._at, self._monitor.temperature_C.tolist(), self._state, "run"
+            if now > self._at:
+                self._state = self._monitor.update(np.zeros(len(self.windings.names)), now - self._at)
+                self._at = now
+            temperatures = self._monitor.temperature_C
+            if (np.abs(temperatures - self.windings.ambient_C) < self.AT_REST_K).all():
+                return None
+            return self._at, temperatures.tolist(), self._state, "cooling"
+
+    def start_C(self) -> list[float]:
+        """Where the next run's model starts: the estimate now."""
+        self.now()
+        with self._lock:
+            return self._monitor.temperature_C.tolist()
+
+
 @dataclass
 class PublisherStats:
     dropped: int = 0  # samples dropped from the in-memory queue (publisher too slow)
@@ -85,7 +137,7 @@ class TelemetryPublisher:
     """Owns the data and events PUB sockets (bound by `start`) and the publisher thread.
 
     `offer_cycles` is for the thread that hands cycles over; `publish_event` and `publish_agents`
-    for any thread.
+    for any thread; `windings` (None: nothing heats) is published at `winding_hz`.
     Rates in Hz; a rate of 0 means every sample.
     """
 
@@ -104,6 +156,8 @@ class TelemetryPublisher:
         batch_s: float = TELEMETRY_BATCH_S,
         secure: Callable[[zmq.Socket], None] | None = None,
         clock_origin: float | None = None,
+        windings: WindingEstimate | None = None,
+        winding_hz: float = 10.0,
     ) -> None:
         self.context = context
         self.channel_names = [c.name for c in channels]
@@ -112,6 +166,8 @@ class TelemetryPublisher:
         self.currents_period = 1.0 / currents_hz if currents_hz > 0 else 0.0
         self.field_period = 1.0 / field_hz if field_hz > 0 else 0.0
         self.stream_period = 1.0 / stream_hz if stream_hz > 0 else 0.0
+        self.windings = windings
+        self.winding_period = 1.0 / winding_hz
         self.t0 = time.monotonic() if clock_origin is None else clock_origin
         self._data = self._bind(data_endpoint, DATA_SEND_HWM, secure)
         self._events = self._bind(events_endpoint, EVENTS_SEND_HWM, secure)
@@ -211,7 +267,7 @@ class TelemetryPublisher:
 
     # -- the publisher thread -------------------------------------------------------------------
     def _serve(self) -> None:
-        next_batch = time.monotonic() + self.batch_s
+        next_batch = next_winding = time.monotonic() + self.batch_s
         while True:
             with self._cond:
                 self._cond.wait_for(lambda: self._priority or self._stopping,
@@ -231,6 +287,11 @@ class TelemetryPublisher:
                 self.stats.dropped = self._offered - self._consumed - queued
                 if chunks:
                     self._publish_batch(CycleBatch.joined(chunks))
+            now = time.monotonic()
+            if self.windings is not None and now >= next_winding:
+                # ten a second on average; after a stall the next one, not a burst
+                next_winding = max(next_winding + self.winding_period, now)
+                self._publish_winding(self.windings)
             if stopping:
                 return
 
@@ -241,6 +302,17 @@ class TelemetryPublisher:
             self.stats.sent[topic] += 1
         except zmq.Again:  # PUB drops rather than blocks; kept for completeness
             log.debug("telemetry %s dropped", topic)
+
+    def _publish_winding(self, estimate: WindingEstimate) -> None:
+        now = estimate.now()
+        if now is None:
+            return
+        at, temperatures, state, source = now
+        w = estimate.windings
+        self._send("winding", WindingMsg(
+            seq=self._next_seq(Topic.WINDING), t=round(at - self.t0, 6), names=list(w.names),
+            temperature_C=[round(t, 4) for t in temperatures], warning_C=w.warning_C.tolist(),
+            limit_C=w.limit_C.tolist(), state=state, source=source))
 
     def _publish_batch(self, batch: CycleBatch) -> None:
         if self._pending_reset is not None:

@@ -16,7 +16,9 @@ class Actuators(Protocol):
 
     names: list[str]  # device names, as faults and the record name them
     channels: list[Channel]
-    windings: Windings | None  # current-driven coils the run's winding model watches, in channel order
+    # the coils the run's winding model watches, in channel order: their channels are currents,
+    # or a drive of `Windings.volts_per_unit` volts per unit
+    windings: Windings | None
 
     def energise(self) -> None: ...
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TextIO
@@ -140,9 +140,16 @@ class Run(RunControl):
                  *, runs_dir: str | Path = "runs", progress_out: TextIO | None = None,
                  on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
                  on_state: Callable[[RunState, dict], None] | None = None,
-                 on_frame: Callable[[Any, Any], None] | None = None) -> None:
+                 on_frame: Callable[[Any, Any], None] | None = None,
+                 on_winding: Callable[[float, list[float], str], None] | None = None,
+                 winding_start_C: Sequence[float] | None = None) -> None:
         self.program = program
         self.on_frame = on_frame  # handed to the program's tracking loop (`TrackingLoop.tap`)
+        # the live winding model's estimate ten times a second (monotonic s, C per winding, its
+        # state), and where it starts (None: the room; a daemon's windings still warm from the
+        # last run: `rigctl.daemon.telemetry.WindingEstimate`)
+        self.on_winding = on_winding
+        self.winding_start_C = winding_start_C
         self.plan = program.plan
         self.info = program.info
         self.rig = rig
@@ -345,17 +352,20 @@ class Run(RunControl):
 
 
 class _HeatWatch:
-    """The winding model (`rigctl.thermal`) run live on the measured currents of actuators that
-    have windings: its estimate is the run record's `winding` series (written as it goes); at a
-    winding's warning the run pauses at the end of the move (once, until it cools 2 K below),
-    at its limit the run is aborted: the program ramps down."""
+    """The winding model (`rigctl.thermal`) run live on what the actuators report driving their
+    windings, whichever drives them (`Windings.volts_per_unit`): the supplies' measured currents,
+    or the drive the coil board applied (its SyRens put a voltage on the coils, whose current
+    nothing measures). Its estimate is the run record's `winding` series (written as it goes)
+    and the run's `on_winding`, ten a second; at a winding's warning the run pauses at the end
+    of the move (once, until it cools 2 K below), at its limit the run is aborted: the program
+    ramps down (the board stops its coils at once)."""
 
     COOL_K = 2.0
 
     def __init__(self, run: Run, actuators: Actuators, record: RunRecord, rate_hz: float) -> None:
         self.run, self.record = run, record
         windings = actuators.windings
-        self.monitor = None if windings is None else WindingMonitor(windings)
+        self.monitor = None if windings is None else WindingMonitor(windings, run.winding_start_C)
         if self.monitor is None:
             return
         self.every = max(1, round(rate_hz / 10))  # ten rows a second
@@ -363,21 +373,31 @@ class _HeatWatch:
             "winding", ["t_s", *windings.names], {"t_s": "s", **dict.fromkeys(windings.names, "C")})
         self.period = 1.0 / rate_hz
         self.last: float | None = None
+        # a measured current is a sample of what flowed until now; a drive is what the board
+        # applies from now until the next cycle: the time since the last one had the last drive
+        self.held = None if windings.volts_per_unit is None else np.zeros(len(windings.names))
         self.cycles = 0
         self.warned = False
         self.stopped = False
 
-    def update(self, measured: np.ndarray) -> None:
+    def update(self, driven: np.ndarray) -> None:
         monitor = self.monitor
         if monitor is None:
             return
         now = time.monotonic()
         dt = self.period if self.last is None else now - self.last
         self.last = now
-        state = monitor.update(measured, dt)
+        if self.held is None:
+            state = monitor.update(driven, dt)
+        else:
+            state = monitor.update(self.held, dt)
+            self.held[:] = driven
         self.cycles += 1
         if self.cycles % self.every == 1 or self.every == 1:
-            self.series.row([now - self.record.t0, *monitor.temperature_C])
+            temperatures = monitor.temperature_C.tolist()
+            self.series.row([now - self.record.t0, *temperatures])
+            if self.run.on_winding is not None:
+                self.run.on_winding(now, temperatures, state)
         w = monitor.windings
         if state == "limit" and not self.stopped:
             self.stopped = True

@@ -23,7 +23,7 @@ KINDS = {
     "six-coil": ({"place", "truth", "mismatch", "camera", "floor", "coil_errors", "coil_fields",
                   "probe"},
                  ["x+", "x-", "y+", "y-", "z+", "z-", "camera", "probe"], "z-", ["overtemp"]),
-    "coil-board": ({"place", "truth", "camera", "floor"}, ["board", "camera"], "board",
+    "coil-board": ({"place", "truth", "camera", "floor", "windings"}, ["board", "camera"], "board",
                    ["unplug", "replug", "garbage"]),
     "depm": ({"place", "truth"}, ["left", "right", "hall"], "hall", ["skip"]),
 }

@@ -7,35 +7,17 @@ the six coils. The six-coil hold through the client (`set_field`): test_daemon_b
 import math
 import subprocess
 import sys
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
-from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
 
-from rigctl.client import CommandRefused, Rig
-from rigctl.daemon.server import Daemon
+from rigctl.client import CommandRefused
 from rigctl.record import read_events
-from rigctl.testing import wait_for
-
-
-@contextmanager
-def daemon_on(bench, runs: Path):
-    """(client, backdoor, runs folder) of a daemon on `bench`, started here."""
-    with bench:
-        daemon = Daemon(bench.rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
-                        events="tcp://127.0.0.1:0", runs_dir=runs)
-        daemon.start_thread()
-        try:
-            with Rig(daemon.endpoints.command, timeout_s=10.0) as rig, \
-                    BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
-                yield rig, backdoor, runs
-        finally:
-            daemon.stop()
+from rigctl.testing import daemon_on, wait_for
 
 
 @pytest.fixture

@@ -158,3 +158,25 @@ def test_validate_with_a_rig_prints_the_certificate_and_refuses_with_exit_2(tmp_
     assert refused.stderr.startswith("error: pre-flight: refused, nothing energised: REFUSED: "
                                      "winding temperature of coil")
     assert "REFUSED" in refused.stdout.splitlines()[1]  # the certificate, refused checks first
+
+
+def test_each_arm_s_link_is_checked_against_the_servo_period():
+    from rigctl.emulators.depm import default_settings
+
+    from rigctl.config import PreflightSettings
+    from rigctl.rigs.depm.run import FieldSequenceProgram
+
+    plan = load_plan(EXAMPLES / "depm-plan.json")
+    rig = RigConfig(rig=RigInfo(kind="depm"), depm=default_settings(),
+                    preflight=PreflightSettings(kst_round_trip_ms=6.0))
+    links = [c for c in FieldSequenceProgram(plan, rig).checks() if c.check == "link time per cycle"]
+    assert [c.subject for c in links] == ["arm left (KST servo target and answer)",
+                                          "arm right (KST servo target and answer)"]
+    # 50 targets a second: 80 % of 20 ms is 16 ms for one 6 ms round trip (the arms overlap)
+    assert all(c.passed and c.value == pytest.approx(6.0) and c.limit == pytest.approx(16.0)
+               for c in links)
+    fast = rig.model_copy(update={"depm": rig.depm.model_copy(update={"servo_rate_hz": 200.0})})
+    refused = [c for c in FieldSequenceProgram(plan, fast).checks() if not c.passed]
+    # at 200 Hz the link may take 4 ms of each 5 ms cycle: 6 ms does not fit
+    assert [c.check for c in refused] == ["link time per cycle"] * 2
+    assert refused[0].limit == pytest.approx(4.0) and refused[0].margin == pytest.approx(-2.0)

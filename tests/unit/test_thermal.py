@@ -201,3 +201,104 @@ def test_the_live_monitor_follows_the_model_and_says_warning_then_limit():
     first_warning, first_limit = states.index("warning"), states.index("limit")
     assert 0 < first_warning < first_limit and set(states[:first_warning]) == {"ok"}
     assert monitor.hottest()[0] == "c0" and monitor.peak_C[1] == pytest.approx(25.0)
+
+
+# -- windings driven by a voltage (the coil board's SyRens) ---------------------------------------
+
+def board_windings(*, alpha=0.00393, r_th=2.5, c_th=4.0, warning=60.0, limit=70.0):
+    """Four coil-board windings of 6 ohm on a 12 V supply, driven in SyRen units (12/127 V each)."""
+    from rigctl.config import CoilBoardSettings
+
+    thermal = CoilThermal(thermal_resistance_K_per_W=r_th, thermal_capacity_J_per_K=c_th,
+                          ambient_C=25.0, warning_C=warning, max_winding_C=limit, alpha_per_K=alpha)
+    return Windings.of_board(CoilBoardSettings(url="/dev/null", coil_thermal=thermal))
+
+
+def test_without_alpha_a_held_voltage_gives_the_first_order_step_response():
+    from rigctl.thermal import step_voltage_one
+
+    w = board_windings(alpha=0.0)
+    # T(t) = Ta + R_th V^2 / R0 (1 - exp(-t / (R_th C))): 8 V on 6 ohm, tau = 10 s, by hand
+    t, temperature = 0.0, 25.0
+    for dt in (0.02,) * 500 + (1.0,) * 20:
+        temperature = step_voltage_one(temperature, 8.0, dt, w.one(2))
+        t += dt
+        expected = 25.0 + 2.5 * 8.0**2 / 6.0 * (1 - math.exp(-t / 10.0))
+        assert temperature == pytest.approx(expected, rel=1e-12)
+
+
+def test_with_alpha_the_voltage_step_follows_an_ode_solver():
+    from rigctl.thermal import step_voltage_one
+
+    w = board_windings()
+
+    def rhs(t, temperature):  # C dT/dt = V^2 / (R0 (1 + alpha (T - 20))) - (T - Ta) / R_th
+        volts = 12.0 if t < 30.0 else 4.0
+        return (volts**2 / (6.0 * (1 + 0.00393 * (temperature - 20.0)))
+                - (temperature - 25.0) / 2.5) / 4.0
+
+    solved = solve_ivp(rhs, (0, 60.0), [25.0], rtol=1e-10, atol=1e-10, max_step=0.01,
+                       dense_output=True)
+    temperature = 25.0
+    for k in range(3000):  # the stream's 50 Hz
+        temperature = step_voltage_one(temperature, 12.0 if k < 1500 else 4.0, 0.02, w.one(0))
+        if k % 250 == 249:
+            assert temperature == pytest.approx(solved.sol((k + 1) * 0.02)[0], abs=0.01)
+
+
+def test_the_live_monitor_takes_the_boards_drive_as_volts_and_says_warning_then_limit():
+    from rigctl.thermal import WindingMonitor
+
+    w = board_windings(alpha=0.0, warning=50.0, limit=60.0)
+    assert w.volts_per_unit == pytest.approx(12.0 / 127)
+    monitor = WindingMonitor(w)
+    states = [monitor.update(np.array([127, -127, 0, 0]), 0.02) for _ in range(2500)]  # 50 s
+    # full drive, either sense: 12 V, 24 W, steady 25 + 60 C, tau 10 s; the others stay cold
+    expected = 25.0 + 60.0 * (1 - math.exp(-50.0 / 10.0))
+    assert monitor.temperature_C == pytest.approx([expected, expected, 25.0, 25.0], rel=1e-9)
+    # it reaches 50 C at t = -tau ln(1 - 25/60) and 60 C at -tau ln(1 - 35/60), by hand
+    warning_s, limit_s = -10.0 * math.log(1 - 25.0 / 60.0), -10.0 * math.log(1 - 35.0 / 60.0)
+    assert states.index("warning") == math.ceil(warning_s / 0.02) - 1
+    assert states.index("limit") == math.ceil(limit_s / 0.02) - 1
+    assert monitor.hottest()[0] in ("+x", "-x")
+
+
+def test_the_emulated_board_coils_heat_by_the_syren_output_with_their_own_seeded_data():
+    from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
+
+    from rigctl.config import CoilBoardSettings
+
+    thermal = CoilThermal(thermal_resistance_K_per_W=2.5, thermal_capacity_J_per_K=4.0,
+                          ambient_C=25.0, warning_C=90.0, max_winding_C=100.0, alpha_per_K=0.0)
+    board = CoilBoardSettings(url="/dev/null", coil_thermal=thermal)
+    coils = BoardCoils(board, ThermalErrors(size=0.05, seed=3))
+    built = coils.describe()["coils"]
+    r_th = np.array([c["r_th_K_per_W"] for c in built])
+    c_th = np.array([c["c_th_J_per_K"] for c in built])
+    assert np.all(np.abs(r_th / 2.5 - 1) <= 0.05) and np.all(np.abs(c_th / 4.0 - 1) <= 0.05)
+    assert np.all(r_th != 2.5) and len(set(r_th)) == 4  # each coil its own
+    assert BoardCoils(board, ThermalErrors(size=0.05, seed=3)).describe()["coils"] == built
+    for _ in range(300):  # 30 s: +x at full output, -x at half reversed, the y coils off
+        assert coils.step(0.1, (1.0, -0.5, 0.0, 0.0)) == (1.0, -0.5, 0.0, 0.0)
+    # T = Ta + R_th V^2 / R0 (1 - exp(-t / (R_th C_th))) with the coil's own R_th, C_th, by hand
+    for j, volts in enumerate((12.0, 6.0, 0.0, 0.0)):
+        expected = 25.0 + r_th[j] * volts**2 / 6.0 * (1 - math.exp(-30.0 / (r_th[j] * c_th[j])))
+        assert coils.temperature_C[j] == pytest.approx(expected, rel=1e-9)
+
+
+def test_an_emulated_board_coil_past_its_cut_out_pulls_nothing_until_it_has_cooled():
+    from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
+
+    from rigctl.config import CoilBoardSettings
+
+    thermal = CoilThermal(thermal_resistance_K_per_W=4.0, thermal_capacity_J_per_K=1.0,
+                          ambient_C=25.0, warning_C=60.0, max_winding_C=70.0, alpha_per_K=0.0)
+    coils = BoardCoils(CoilBoardSettings(url="/dev/null", coil_thermal=thermal), ThermalErrors(0.0))
+    pulls = [coils.step(0.05, (1.0, 0.0, 0.0, 0.0))[0] for _ in range(200)]  # 10 s
+    # full output: T = 25 + 96 (1 - exp(-t / 4)) reaches the cut-out's 80 C at t = -4 ln(1 - 55/96),
+    # and off, T = 25 + 55 exp(-t / 4) is down to 70 C (10 K below) after 4 ln(55/45), by hand
+    opened = pulls.index(0.0)
+    assert opened == math.ceil(-4.0 * math.log(1 - 55.0 / 96.0) / 0.05)
+    assert pulls[opened:].index(1.0) == math.ceil(4.0 * math.log(55.0 / 45.0) / 0.05)
+    assert coils.peak_C[0] == pytest.approx(80.0, abs=0.7) and max(coils.peak_C[1:]) == 25.0
+    assert pulls.count(0.0) > 50  # it cycles on its cut-out; the other coils never heat

@@ -23,6 +23,7 @@ from rigctl.channels import Channel
 from rigctl.config import RigConfig
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.errors import ConfigError, DeviceTimeout, RigError
+from rigctl.thermal import Windings
 
 log = logging.getLogger(__name__)
 
@@ -42,12 +43,15 @@ class BoardActuators:
     """The connected coil board of a rig (`connect`), as one actuator group of four channels."""
 
     def __init__(self, board: CoilBoard, channels: list[Channel], *,
-                 syren_ready_timeout_s: float = SYREN_READY_TIMEOUT_S) -> None:
+                 syren_ready_timeout_s: float = SYREN_READY_TIMEOUT_S,
+                 windings: Windings | None = None) -> None:
         self.board = board
         self.names = [board.name]
         self.syren_ready_timeout_s = syren_ready_timeout_s
         self.channels = channels  # `board_channels`
-        self.windings = None  # voltage-driven coils: the pre-flight bounds their heating
+        # the coils the run's winding model watches, heated by the drive the board applies
+        # (no current is measured: the SyRens drive a voltage)
+        self.windings = windings
         self.measured = np.zeros(len(self.channels))
 
     @classmethod
@@ -58,7 +62,7 @@ class BoardActuators:
         if rig.board is None:
             raise ConfigError("the rig has no [board] table: it is not a coil board")
         return cls(CoilBoard.from_settings(rig.board), board_channels(rig),
-                   syren_ready_timeout_s=syren_ready_timeout_s)
+                   syren_ready_timeout_s=syren_ready_timeout_s, windings=Windings.of_board(rig.board))
 
     def energise(self) -> None:
         """Wait until the board reports its SyRen drivers ready (SYREN_READY), which it does once

@@ -44,7 +44,7 @@ def board_checks(rig: RigConfig, settings, n_moves: int) -> list[Check]:
     checks = [ceiling("drive", "every coil", settings.drive, board.max_command, "SyRen units",
                       "a move's stronger coil; the board refuses more")]
     w = Windings.of_board(board)
-    volts = np.full(len(w.names), board.supply_V * settings.drive / 127)
+    volts = np.full(len(w.names), settings.drive * w.volts_per_unit)
     longest = settings.max_moves * settings.move_timeout_s
     temperature = np.array(w.ambient_C, dtype=float)
     step = float(w.time_constant_s.min()) / 200

@@ -2,13 +2,20 @@
 plan's joint trajectories sampled every `check_step_s` and at every knot: each arm's joint range,
 speed and acceleration (as shares of the joints' maxima), the keep-out sphere (EPM and links),
 the EPM-EPM distance, the field and gradient at the workspace centre, the static field at the
-rig file's exposure points, and the plan's size and duration."""
+rig file's exposure points, each arm's link per stream cycle, and the plan's size and duration."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from rigctl.certificate import Check, ceiling, exposure_checks, floor, size_checks
+from rigctl.certificate import (
+    Check,
+    ceiling,
+    exposure_checks,
+    floor,
+    link_checks,
+    size_checks,
+)
 from rigctl.config import RigConfig
 from rigctl.magnetics import field_vector
 from rigctl.plans.depm import DepmRig, joint_trajectory
@@ -26,7 +33,19 @@ def dense_samples(plan, step_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
             np.array([c.derivative(2)(t) for c in curves]))
 
 
-def field_sequence_checks(plan, rig: RigConfig, depm_rig: DepmRig) -> list[Check]:
+def arm_link_checks(rig: RigConfig, rate_hz: float) -> list[Check]:
+    """Each arm's KST link per stream cycle: a servo target and its answer, one round trip
+    (`[preflight] kst_round_trip_ms`; the two arms' exchanges overlap, `ArmPair.cycle`, and some
+    300 bytes take 25 us of a 100 Mbit/s link), against 80 % of the period at `rate_hz`."""
+    d = rig.depm
+    assert d is not None
+    seconds = rig.preflight.kst_round_trip_ms * 1e-3
+    return link_checks({f"arm {name} (KST servo target and answer)": seconds
+                        for name in d.arm_names}, rate_hz)
+
+
+def field_sequence_checks(plan, rig: RigConfig, depm_rig: DepmRig, rate_hz: float) -> list[Check]:
+    """Every check of a field-sequence plan streamed at `rate_hz` (real cycles per second)."""
     d = rig.depm
     assert d is not None
     limits = depm_rig.limits
@@ -75,6 +94,7 @@ def field_sequence_checks(plan, rig: RigConfig, depm_rig: DepmRig) -> list[Check
     checks.append(ceiling("gradient at the centre", "workspace", 1e3 * np.abs(U[:, 3:]).max(),
                           rig.preflight.max_gradient_mT_per_m, "mT/m"))
     checks += exposure_checks(d.exposure_points, t, centres, moments, d.exposure_limit_mT)
+    checks += arm_link_checks(rig, rate_hz)
     checks += size_checks(len(plan.t_s), MAX_KNOTS, float(plan.t_s[-1] - plan.t_s[0]),
                           MAX_DURATION_S, unit="knots")
     return checks

@@ -275,7 +275,7 @@ class FieldSequenceProgram(RequestedControl):
 
         depm_rig = DepmRig(arms=self.arms, moment_Am2=self.settings.epm_moment_Am2,
                            limits=self.limits)
-        return field_sequence_checks(self.plan, self.rig, depm_rig)
+        return field_sequence_checks(self.plan, self.rig, depm_rig, self.rate_hz)
 
     def start(self, ctx: RunContext) -> None:
         self._ctx = ctx
