@@ -24,6 +24,8 @@ import struct
 from dataclasses import astuple, dataclass
 from typing import ClassVar
 
+from rigctl.config import BOARD_FULL_SCALE
+
 SYNC = 0xA5
 MAX_PAYLOAD = 16
 HEADER_BYTES = 4  # SYNC LEN SEQ TYPE
@@ -35,7 +37,7 @@ STALE_PARTIAL_S = 0.020
 PROTOCOL_VERSION = 1
 CHANNELS = 4
 WATCHDOG_MS = 200
-MAX_COMMAND = 127  # a coil command is -127..127; -128 is refused (BAD_VALUE)
+MAX_COMMAND = BOARD_FULL_SCALE  # a coil command is -127..127; -128 is refused (BAD_VALUE)
 HEARTBEAT_S = 0.100  # the host sends something at least this often
 
 # Request types (host -> board)

@@ -33,6 +33,8 @@ from rigctl.errors import ConfigError
 from rigctl.field_calibration import FieldCalibration, load_field_calibration
 from rigctl.transport import camera_source, parse_url
 
+BOARD_FULL_SCALE = 127  # a coil-board drive is -127..127 (a SyRen's full scale; the wire's MAX_COMMAND)
+
 RigKind = Literal["six-coil", "coil-board", "depm"]
 
 Vector3 = tuple[float, float, float]
@@ -212,7 +214,8 @@ class CoilBoardSettings(_Strict):
     reconnect_s: Annotated[
         float, Field(ge=0, description="how long to try re-opening the board after an unplug")
     ] = 3.0
-    max_command: Annotated[int, Field(ge=1, le=127, description="largest |coil command| allowed")] = 127
+    max_command: Annotated[int, Field(ge=1, le=BOARD_FULL_SCALE,
+                                      description="largest |coil command| allowed")] = BOARD_FULL_SCALE
     coil_names: tuple[str, str, str, str] = ("+x", "-x", "+y", "-y")
     coil_directions: tuple[int, int, int, int] = Field(
         default=(1, 1, 1, 1), description="+1, or -1 for a coil wired reversed"
@@ -224,6 +227,11 @@ class CoilBoardSettings(_Strict):
     coil_thermal: CoilThermal = Field(
         default=CoilThermal(thermal_resistance_K_per_W=2.5, thermal_capacity_J_per_K=400.0),
         description="each coil's winding (a small iron-core coil: about 1 kg of copper and iron)")
+
+    @property
+    def volts_per_unit(self) -> float:
+        """A drive d puts d / BOARD_FULL_SCALE of the supply across its coil."""
+        return self.supply_V / BOARD_FULL_SCALE
 
     @field_validator("coil_directions")
     @classmethod

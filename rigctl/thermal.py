@@ -34,8 +34,6 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.drivers.coilboard_frame import MAX_COMMAND
-
 COPPER_ALPHA_PER_K = 0.00393
 """Temperature coefficient of copper's resistance at 20 C."""
 
@@ -82,10 +80,10 @@ class Windings:
     @classmethod
     def of_board(cls, board) -> Windings:
         """The coil board's four windings (`CoilBoardSettings`), all alike, driven in SyRen units:
-        a drive d puts d / MAX_COMMAND of the supply across its coil."""
+        a drive d puts d / 127 of the supply across its coil (`volts_per_unit`)."""
         n = len(board.coil_names)
         return cls.of(board.coil_names, [board.coil_resistance_ohm] * n, [board.coil_thermal] * n,
-                      volts_per_unit=board.supply_V / MAX_COMMAND)
+                      volts_per_unit=board.volts_per_unit)
 
     @classmethod
     def of_rig(cls, rig) -> Windings | None:
