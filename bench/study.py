@@ -76,10 +76,10 @@ def _pool_wall_s(spec, out: Path, workers: int) -> tuple[float, dict]:
     from concurrent.futures import ProcessPoolExecutor
 
     from rigctl.study.cases import run_case
-    from rigctl.study.execution import _warm_up
+    from rigctl.study.execution import set_up_worker
 
     out.mkdir(parents=True, exist_ok=True)
-    with ProcessPoolExecutor(workers, initializer=_warm_up, initargs=(spec.command,)) as pool:
+    with ProcessPoolExecutor(workers, initializer=set_up_worker, initargs=(spec.command,)) as pool:
         list(pool.map(time.sleep, [0.2] * workers))  # every worker started and warm
         started = time.perf_counter()
         rows = list(pool.map(run_case, *zip(*[(spec.command, str(spec.folder), case,
@@ -166,10 +166,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="10 planner cases, 2 emulated runs")
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--repeats", type=int, help="serial/Dask pairs of the sweep (default 3)")
+    parser.add_argument("--repeats", type=int, help="serial/Dask pairs of the sweep (default 5)")
     parser.add_argument("--campaign-runs", type=int, help="emulated closed-loop runs (default 20)")
     args = parser.parse_args()
-    repeats = args.repeats or (1 if args.quick else 3)
+    repeats = args.repeats or (1 if args.quick else 5)
     runs = args.campaign_runs if args.campaign_runs is not None else (2 if args.quick else 20)
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-study-") as tmp:
         os.environ.setdefault("RIGCTL_LOCK_DIR", str(Path(tmp) / "locks"))

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
+from threadpoolctl import threadpool_limits
+
 from rigctl.study.cases import run_case
 from rigctl.study.spec import StudySpec
 from rigctl.study.table import ResultsTable
@@ -55,6 +57,42 @@ def default_workers() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         return os.cpu_count() or 1
+
+
+ONE_CASE_PER_CORE = 1
+"""BLAS threads per case. A study runs one case per core; OpenBLAS's own threads (one per core
+by default) then only compete with the other cases, and even alone they do not pay: the 40 cases
+of `studies/reachable-quick.toml` took as long on one thread as on two, for half the CPU time
+(measured, `bench/study.py`). Dask's nanny sets OMP_NUM_THREADS=1 in its workers for the same
+reason; the limit is set here too so that a serial run and a lab's own `dask worker` match."""
+
+
+LOCAL_CLUSTER_CONFIG = {
+    # The nanny's default MALLOC_TRIM_THRESHOLD_=65536 fixes glibc's mmap threshold, so every
+    # large numpy temporary is a fresh mmap: the planners ran 3-4x slower in a worker than here
+    # (measured). Unset, glibc's own adaptive thresholds apply, as in this process.
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    # On a machine of as many workers as cores, every cycle the scheduler, the nannies (both in
+    # this process) and the workers' event loops spend is taken from a case. Dask's own upkeep, at
+    # its defaults, kept this process 5 % busy with no case running; with these, 1 % (measured,
+    # `LocalCluster` of 2 idle for 5 s): the event-loop health check every 20 ms, the system
+    # monitor every 0.5 s and the memory monitor every 0.1 s are slowed, and the statistical
+    # profiler (a sample of the case's stack every 10 ms, taking the GIL from it) is off. Work
+    # stealing is off: a study's cases are independent, queued at the scheduler and handed to a
+    # worker only as it frees up (`worker-saturation`), so there is nothing to steal.
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.scheduler.work-stealing": False,
+}
+"""Dask settings of the LocalCluster `run_study` starts (a lab's own cluster keeps its own)."""
+
+
+def set_up_worker(command: str) -> None:
+    """A process that runs cases: one BLAS thread (`ONE_CASE_PER_CORE`), the planners warm."""
+    threadpool_limits(ONE_CASE_PER_CORE)
+    _warm_up(command)
 
 
 def _warm_up(command: str) -> None:
@@ -133,12 +171,13 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
             on_result(result)
 
     if serial or not todo:
-        if todo:
-            _warm_up(spec.command)
-        started = time.perf_counter()
-        progress.started = time.monotonic()
-        for case in todo:
-            finished(run_case(*arguments, case, *tail))
+        with threadpool_limits(ONE_CASE_PER_CORE):
+            if todo:
+                _warm_up(spec.command)
+            started = time.perf_counter()
+            progress.started = time.monotonic()
+            for case in todo:
+                finished(run_case(*arguments, case, *tail))
         return StudyOutcome(len(spec.cases), len(spec.cases) - len(todo), len(todo),
                             progress.not_ok, time.perf_counter() - started, None, 1, case_wall)
 
@@ -148,10 +187,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
     logging.getLogger("distributed").setLevel(logging.ERROR)
     cluster = None
     if scheduler is None:
-        # The nanny's default MALLOC_TRIM_THRESHOLD_=65536 fixes glibc's mmap threshold, so every
-        # large numpy temporary is a fresh mmap: the planners ran 3-4x slower in a worker than
-        # here (measured). Unset, glibc's own adaptive thresholds apply, as in this process.
-        with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        with dask.config.set(LOCAL_CLUSTER_CONFIG):
             cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1,
                                    processes=True, dashboard_address="127.0.0.1:0",
                                    silence_logs=logging.ERROR)
@@ -163,7 +199,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
             print(f"study {spec.name}: {len(todo)} cases on {n_workers} Dask workers "
                   f"(scheduler {client.scheduler.address}); dashboard {dashboard}",
                   file=progress_out, flush=True)
-        client.run(_warm_up, spec.command)
+        client.run(set_up_worker, spec.command)
         started = time.perf_counter()
         progress.started = time.monotonic()  # the time left counts from the first case
         futures = [client.submit(run_case, *arguments, case, *tail, key=f"case-{case.id}",
