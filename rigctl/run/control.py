@@ -91,8 +91,12 @@ class RunControl:
         # thread that took the e-stop, or else by this one), and when this thread saw it
         asked = self._estop_at or seen
         direct = self._estop_zeroed_at
+        told = min(done, direct or done)
         record.event("estop_zeroed",
-                     after_request_s=round(min(done, direct or done) - asked, 6),
+                     after_request_s=round(told - asked, 6),
+                     # on the wall clock too, for a client on this machine to measure from its
+                     # own click or request (bench/console.py: the page's E-STOP click)
+                     told_unix=round(time.time() - (time.monotonic() - told), 6),
                      seen_after_request_s=round(seen - asked, 6),
                      stream_zeroed_after_request_s=round(done - asked, 6),
                      direct=direct is not None)
