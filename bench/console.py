@@ -10,8 +10,9 @@ emulated six-coil bench. Prints one JSON object.
   record's `estop_zeroed.told_unix` (this machine's wall clock: every supply told 0 A and off), and
   the page's click -> the reply (the daemon replies once the stream process has written 0 A and
   output off to every supply: an upper bound), next to one stream period plus the page's own
-  WebSocket round trip (a request the console answers itself); the run record's `estop_zeroed` (daemon received -> every supply told) and the bench's
-  truth (every coil under 0.05 A, set by L/R) beside it;
+  WebSocket round trip (a request the console answers itself); the run record's `estop_zeroed`
+  (daemon received -> every supply told) and the bench's truth (every coil under 0.05 A, set by
+  L/R) beside it;
 - ten pages watching vs none: the same plan run `--repeats` times each way, alternately; the
   stream's late share (its `stream` telemetry) and `status` p99 (this process asks 50 times a
   second), with the spread between runs of the same kind as the run-to-run noise; once with ten
