@@ -141,7 +141,8 @@ def open_loop_controls(plan: PairFormationPlan, rate_hz: float,
     held = max(0, round(plan.hold_s * rate_hz))
     flipped = (np.arange(held) // per) % 2 == 1  # the hold as arrays: it may be 10^5 samples
     hold = np.zeros((held, 3))
-    hold[:, 0] = np.where(flipped, hold_field_angle(goal_phi, True), hold_field_angle(goal_phi, False))
+    hold[:, 0] = np.where(flipped, hold_field_angle(goal_phi, True),
+                          hold_field_angle(goal_phi, False))
     last = hold[-1, 0] if held else rows[-1][0]
     down = np.zeros((ramp, 3))
     down[:, 0] = last
