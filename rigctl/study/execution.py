@@ -8,8 +8,8 @@ because its scheduler and workers are plain Python processes started with `dask 
 `dask worker` (no object store, no resources to declare) and its `LocalCluster` starts in a
 second on a laptop (`docs/studies.md`).
 
-Results go into the study's table (`table.ResultsTable`) as each case finishes, on the client's
-side: the one writer. Cases already in the table are not submitted, so a study stopped at any
+Results go into the study's table (`table.ResultsTable`: its journal at once, the Parquet file at
+least every second and at the end) as each case finishes, on the client's side: the one writer. Cases already in the table are not submitted, so a study stopped at any
 point (Ctrl-C, a killed process) resumes by running the same command again.
 """
 
@@ -143,7 +143,8 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
               on_result: Callable[[dict], None] | None = None) -> StudyOutcome:
     """Run the spec's cases not yet in `out`'s table: serially here, on a LocalCluster of `workers`
     (default: one per core), or on the Dask scheduler at `scheduler`. Every finished case is in
-    the table before the next result is read."""
+    the table's journal before the next result is read, and in the table when this returns or
+    raises."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / STUDY_FILE).write_text(json.dumps({
@@ -176,8 +177,11 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
                 _warm_up(spec.command)
             started = time.perf_counter()
             progress.started = time.monotonic()
-            for case in todo:
-                finished(run_case(*arguments, case, *tail))
+            try:
+                for case in todo:
+                    finished(run_case(*arguments, case, *tail))
+            finally:
+                table.write()
         return StudyOutcome(len(spec.cases), len(spec.cases) - len(todo), len(todo),
                             progress.not_ok, time.perf_counter() - started, None, 1, case_wall)
 
@@ -208,6 +212,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
             finished(future.result())
         wall = time.perf_counter() - started
     finally:
+        table.write()
         client.close()
         if cluster is not None:
             cluster.close()

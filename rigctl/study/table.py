@@ -1,6 +1,10 @@
-"""A study's results: one Parquet table, a row per finished case, rewritten whole (a temporary file
-renamed over the old one) each time a case finishes, so the table on disk is always complete and
-readable, and a study stopped at any instant resumes from it.
+"""A study's results: one Parquet table, a row per finished case. Each finished case is appended at
+once to a journal beside it (`results.journal.jsonl`, a JSON line per row); the table is rewritten
+whole from every row (a temporary file renamed over the old one, so it is always complete and
+readable) at most every WRITE_EVERY_S while cases finish and when the study ends, and the journal
+is then emptied. A study stopped at any instant, killed included, resumes from both: no finished
+case runs again. (Rewriting the table after every case cost 23 ms per case at 5000 rows, 61 s for
+the first 5000 cases, and grows with the square of the study.)
 
 Columns: `case_id`, `seed`, `status` (ok, bad_input, failed, error), `message`, `success`,
 `error`, `wall_s`, `cpu_s` (the worker process's CPU time: a planner's own; an emulated run's
@@ -15,6 +19,7 @@ from __future__ import annotations
 import datetime
 import json
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +27,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 TABLE_NAME = "results.parquet"
+JOURNAL_NAME = "results.journal.jsonl"
+WRITE_EVERY_S = 1.0
 FIXED = ["case_id", "seed", "status", "message", "success", "error", "wall_s", "cpu_s", "started_s",
          "record", "worker", "finished_at"]
 TYPES = {"seed": pa.int64(), "success": pa.bool_(), "error": pa.float64(), "wall_s": pa.float64(), "cpu_s": pa.float64(),
@@ -57,34 +64,67 @@ def _column(values: list[Any], kind: pa.DataType | None = None) -> pa.Array:
 
 
 class ResultsTable:
-    """The rows of `folder/results.parquet`: read at start, one row added per finished case."""
+    """The rows of `folder/results.parquet` and its journal: read at start, one row added per
+    finished case (`add`), the table written by `write` (at most every WRITE_EVERY_S from `add`;
+    call it once more at the end)."""
 
     def __init__(self, folder: str | Path) -> None:
         self.path = Path(folder) / TABLE_NAME
-        self.rows: list[dict[str, Any]] = []
+        self.journal = Path(folder) / JOURNAL_NAME
+        self._rows: dict[str, dict[str, Any]] = {}
         if self.path.exists():
-            self.rows = pq.read_table(self.path).to_pylist()
+            self._rows = {r["case_id"]: r for r in pq.read_table(self.path).to_pylist()}
+        if self.journal.exists():
+            for line in self.journal.read_text().splitlines():
+                try:
+                    row = json.loads(line)
+                except ValueError:
+                    continue  # the last line of a journal killed mid-write
+                self._rows[row["case_id"]] = row
+        self._written_at = float("-inf")
+        self._unwritten = self.journal.exists()  # rows of a stopped run that the table lacks
+
+    @property
+    def rows(self) -> list[dict[str, Any]]:
+        return list(self._rows.values())
 
     def done_ids(self, *, retry_failed: bool = False) -> set[str]:
         """Ids of the cases already in the table (with `retry_failed`: only those that ran ok)."""
-        return {r["case_id"] for r in self.rows if not retry_failed or r["status"] == "ok"}
+        return {i for i, r in self._rows.items() if not retry_failed or r["status"] == "ok"}
 
     def add(self, result: dict[str, Any]) -> None:
-        """Add (or replace, by case id) one case's row and write the table."""
+        """Add (or replace, by case id) one case's row: in the journal now, in the table at the
+        next write (now, if the last was WRITE_EVERY_S ago)."""
         row = flat_row(result)
-        self.rows = [r for r in self.rows if r["case_id"] != row["case_id"]] + [row]
-        self.write()
+        self._rows.pop(row["case_id"], None)  # a replaced row goes to the end, as it finished last
+        self._rows[row["case_id"]] = row
+        self.journal.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.journal, "a") as journal:
+            journal.write(json.dumps(row) + "\n")
+        self._unwritten = True
+        if time.monotonic() - self._written_at >= WRITE_EVERY_S:
+            self.write()
+
+    def table(self) -> pa.Table:
+        rows = self.rows
+        names = list(dict.fromkeys(FIXED + [k for r in rows for k in r]))
+        return pa.table({n: _column([r.get(n) for r in rows], TYPES.get(n)) for n in names})
 
     def write(self) -> None:
-        names = list(dict.fromkeys(FIXED + [k for r in self.rows for k in r]))
-        table = pa.table({n: _column([r.get(n) for r in self.rows], TYPES.get(n)) for n in names})
+        """The table from every row, whole or not at all; then the journal emptied."""
+        if not self._unwritten and self.path.exists():
+            return
+        table = self.table()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         pq.write_table(table, tmp)
         os.replace(tmp, self.path)  # whole or not at all
+        self.journal.unlink(missing_ok=True)  # (killed before this: its rows are in both)
+        self._written_at, self._unwritten = time.monotonic(), False
 
 
 def read_results(folder_or_file: str | Path) -> pa.Table:
-    """A study's table, from its folder or the Parquet file itself."""
+    """A study's table, from its folder (the journal's rows included: a study stopped before its
+    last write) or the Parquet file itself."""
     path = Path(folder_or_file)
-    return pq.read_table(path / TABLE_NAME if path.is_dir() else path)
+    return ResultsTable(path).table() if path.is_dir() else pq.read_table(path)

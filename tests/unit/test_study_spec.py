@@ -107,6 +107,29 @@ def test_the_table_keeps_rows_through_a_reopen_and_replaces_a_case_by_id(tmp_pat
     assert rows["a"]["start"] == "[[1.0, 2.0]]" and rows["b"]["fig_distance"] is None
 
 
+def test_a_study_killed_between_two_writes_of_the_table_keeps_every_finished_case(tmp_path,
+                                                                                 monkeypatch) -> None:
+    from rigctl.study import table as results
+
+    monkeypatch.setattr(results, "WRITE_EVERY_S", 1e9)  # after the first, no write until asked
+    row = {"case_id": "a", "seed": 1, "status": "ok", "message": "", "success": True,
+           "error": 0.5, "wall_s": 0.5, "record": "r", "worker": "w",
+           "parameters": {"k": 4}, "figures": {"solved": True}}
+    table = ResultsTable(tmp_path)
+    table.add(row)  # the first add writes the table
+    table.add({**row, "case_id": "b", "parameters": {"k": 5}})
+    on_disk = pq.read_table(tmp_path / "results.parquet").to_pylist()
+    assert [r["case_id"] for r in on_disk] == ["a"]  # b is in the journal only
+    with open(tmp_path / "results.journal.jsonl", "a") as journal:
+        journal.write('{"case_id": "c", "sta')  # killed in the middle of a line
+    resumed = ResultsTable(tmp_path)  # as `rigctl study` does when run again
+    assert resumed.done_ids() == {"a", "b"}
+    assert {r["case_id"]: r["k"] for r in results.read_results(tmp_path).to_pylist()} == {"a": 4, "b": 5}
+    resumed.write()
+    assert {r["case_id"] for r in pq.read_table(tmp_path / "results.parquet").to_pylist()} == {"a", "b"}
+    assert not (tmp_path / "results.journal.jsonl").exists()
+
+
 def test_the_wilson_interval_matches_its_closed_form() -> None:
     # 0 of 10: [0, z^2 / (n + z^2)]; 5 of 10 symmetric about 0.5
     low, high = wilson(0, 10)
