@@ -9,8 +9,9 @@ because its scheduler and workers are plain Python processes started with `dask 
 second on a laptop (`docs/studies.md`).
 
 Results go into the study's table (`table.ResultsTable`: its journal at once, the Parquet file at
-least every second and at the end) as each case finishes, on the client's side: the one writer. Cases already in the table are not submitted, so a study stopped at any
-point (Ctrl-C, a killed process) resumes by running the same command again.
+most every second and at the end) as each case finishes, on the client's side: the one writer.
+Cases already in the table are not submitted, so a study stopped at any point (Ctrl-C, a killed
+process) resumes by running the same command again.
 """
 
 from __future__ import annotations
