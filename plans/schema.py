@@ -66,6 +66,9 @@ MAX_DURATION_S = 3600.0
 """Any time in a plan (holds, segments, knot times): one hour."""
 MAX_SAMPLES = 100_000
 """Rows of a sampled series in a plan (knots, expected samples), and components of a sequence."""
+# Lists that may be long (samples, moves, vertices) are `fail_fast`: validation stops at the first
+# bad item of the list, so one list of 20,000 bad rows is one problem, not 119,226 of them whose
+# listing took a fuzzed `load` past a second.
 MAX_CHECK_SAMPLES = 50_000
 """Times at which a field-sequence plan's safety check samples both arms ((last knot - first) /
 limits.check_step_s): about 4 kB each, so at most about 200 MB; 500 s at the default 10 ms."""
@@ -96,7 +99,7 @@ class RectShape(_Document):
 
 
 class PolygonShape(_Document):
-    polygon: list[Point] = Field(
+    polygon: list[Point] = Field(fail_fast=True,
         min_length=3, max_length=MAX_VERTICES,
         description=f"vertices [[x, y], ...] (mm), simple, either orientation, at most {MAX_VERTICES}"
     )
@@ -224,9 +227,11 @@ class GlobalMovesPlan(_PlanDocument):
     workspace: WorkspaceSpec
     agents: list[Agent] = Field(min_length=1, max_length=MAX_AGENTS,
                                 description=f"at most {MAX_AGENTS}")
-    moves: list[Point] = Field(max_length=MAX_MOVES, description="shared displacements [dx, dy] "
-                               f"(mm), applied in order; at most {MAX_MOVES}")
-    expected: list[Annotated[list[Point], Field(max_length=MAX_AGENTS)]] | None = Field(
+    moves: list[Point] = Field(fail_fast=True, max_length=MAX_MOVES,
+                               description="shared displacements [dx, dy] (mm), applied in order; "
+                               f"at most {MAX_MOVES}")
+    expected: Annotated[list[Annotated[list[Point], Field(max_length=MAX_AGENTS)]],
+                        Field(fail_fast=True)] | None = Field(
         default=None, max_length=MAX_MOVES,
         description="expected[i][j]: agent j's position after move i (mm)"
     )
@@ -269,7 +274,7 @@ class ArmPlan(_Document):
     rpy_deg: tuple[float, float, float] = Field(
         default=(0.0, 0.0, 0.0), description="base orientation, fixed-axis roll, pitch, yaw (deg)"
     )
-    joints_rad: list[Joints7] = Field(max_length=MAX_SAMPLES,
+    joints_rad: list[Joints7] = Field(fail_fast=True, max_length=MAX_SAMPLES,
                                       description="joint knots (rad), one row per entry of t_s")
 
 
@@ -290,8 +295,9 @@ class ExpectedField(_Document):
     """U at the workspace centre the planned poses make (dipole model), sampled at `rate_hz`."""
 
     rate_hz: Annotated[float, Field(gt=0, le=10_000)]
-    t_s: list[Duration] = Field(max_length=MAX_SAMPLES)
-    U: list[Vector8] = Field(max_length=MAX_SAMPLES, description="one row per t_s (mT, mT/m)")
+    t_s: list[Duration] = Field(fail_fast=True, max_length=MAX_SAMPLES)
+    U: list[Vector8] = Field(fail_fast=True, max_length=MAX_SAMPLES,
+                                                    description="one row per t_s (mT, mT/m)")
 
 
 class DepmLimits(_Document):
@@ -327,7 +333,7 @@ class FieldSequencePlan(_PlanDocument):
     limits: DepmLimits = DepmLimits()
     sequence: list[SequenceComponent] = Field(min_length=1, max_length=1000)
     interpolation: Literal["pchip"] = "pchip"
-    t_s: list[Duration] = Field(min_length=2, max_length=MAX_SAMPLES,
+    t_s: list[Duration] = Field(fail_fast=True, min_length=2, max_length=MAX_SAMPLES,
                                 description="knot times (s), strictly increasing, at most 1 h")
     arms: list[ArmPlan] = Field(min_length=2, max_length=2)
     segments: list[Segment] = Field(max_length=1000,
@@ -410,8 +416,9 @@ class PairFormationPlan(_PlanDocument):
     r_max_bl: Annotated[float, Field(gt=0)] = 3.5
     start: PairState
     goal: PairState
-    segments: list[PairSegment] = Field(max_length=MAX_MOVES, description=f"at most {MAX_MOVES}")
-    expected: list[PairState] | None = Field(
+    segments: list[PairSegment] = Field(fail_fast=True, max_length=MAX_MOVES,
+                                        description=f"at most {MAX_MOVES}")
+    expected: Annotated[list[PairState], Field(fail_fast=True)] | None = Field(
         default=None, max_length=MAX_MOVES, description="expected[k]: the formation after segment k")
     tolerance_bl: PositiveLength = Field(
         default=0.2, description="each agent within this of its goal position counts as reached")

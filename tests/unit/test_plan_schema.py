@@ -110,14 +110,20 @@ def test_messages_name_the_field_by_its_json_path():
 
 def test_a_plan_with_thousands_of_problems_lists_the_first_twenty_and_counts_the_rest():
     data = json.loads((EXAMPLES / "depm-plan.json").read_text())
-    data["t_s"] = ["late"] * 5000  # 5000 rows, each not a number: one problem each
+    data["t_s"] = ["late"] * 5000  # a long list stops at its first bad row
+    with pytest.raises(PlanError) as refused:
+        parse_plan(data, "plan.json")
+    assert str(refused.value) == ("plan.json: t_s.0: Input should be a valid number, unable to "
+                                  "parse string as a number")
+    data = json.loads((EXAMPLES / "depm-plan.json").read_text())
+    data["sequence"] = [5] * 500  # 500 components, each not an object: one problem each
     with pytest.raises(PlanError) as refused:
         parse_plan(data, "plan.json")
     lines = str(refused.value).splitlines()
     assert len(lines) == 21
-    assert lines[0] == "plan.json: t_s.0: Input should be a valid number, unable to parse string as a number"
-    assert lines[19].startswith("plan.json: t_s.19: ")
-    assert lines[20] == "plan.json: and 4980 more problems like these"
+    assert lines[0].startswith("plan.json: sequence.0: Input should be")
+    assert lines[19].startswith("plan.json: sequence.19: ")
+    assert lines[20] == "plan.json: and 480 more problems like these"
 
 
 def test_invalid_json_says_where(tmp_path):
