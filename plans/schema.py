@@ -297,7 +297,7 @@ class ExpectedField(_Document):
     rate_hz: Annotated[float, Field(gt=0, le=10_000)]
     t_s: list[Duration] = Field(fail_fast=True, max_length=MAX_SAMPLES)
     U: list[Vector8] = Field(fail_fast=True, max_length=MAX_SAMPLES,
-                                                    description="one row per t_s (mT, mT/m)")
+                             description="one row per t_s (mT, mT/m)")
 
 
 class DepmLimits(_Document):

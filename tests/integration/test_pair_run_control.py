@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -231,7 +232,9 @@ def test_estop_zeroes_every_supply_from_the_calling_thread(plan_file, bench, tmp
     run = Driven(plan_file, bench, tmp_path / "runs").start()
     run.after_cycles(150)
     assert any(abs(s.model.current_A) > 0.5 for s in bench.supplies)
+    asked_unix = time.time()
     assert run.run.estop() == []  # every supply reached
+    returned_unix = time.time()
     wait_for(lambda: all(not s.model.output_on and s.model.current_setpoint_A == 0.0
                          and abs(s.model.current_A) < 1e-3 for s in bench.supplies),
              2.0, "every emulated supply off at 0 A")
@@ -244,6 +247,8 @@ def test_estop_zeroes_every_supply_from_the_calling_thread(plan_file, bench, tmp
     assert set(zeroed[0]) >= {"after_request_s", "seen_after_request_s",
                               "stream_zeroed_after_request_s"}
     assert 0 <= zeroed[0]["after_request_s"] <= zeroed[0]["stream_zeroed_after_request_s"]
+    # the same instant on the wall clock (the console's bench measures the page's click to it)
+    assert asked_unix - 0.01 <= zeroed[0]["told_unix"] <= returned_unix + 0.01
 
 
 def test_an_estop_before_the_supplies_connect_never_energises(plan_file, bench, tmp_path):

@@ -117,3 +117,38 @@ def test_max_planar_gradient_is_feasible_everywhere_and_close_to_the_true_limit(
     # the field alone takes b0 / (2 b) per coil: about 6.5 A of the 20 A at 2 mT
     b_per_amp = MU0 * 400 * 0.04 / (2 * (0.04 + 0.35**2) ** 1.5)
     assert worst_current(0.0) == pytest.approx(b0 / (2 * b_per_amp), rel=1e-6)
+
+
+def _slew_by_hand(program, rig, share=0.9):
+    """The slew rule sample by sample, written from its statement: each step moves every current
+    towards its (clipped) target by at most (share V_max - R |I_target|) / (L f) amps."""
+    r = np.array([c.resistance_ohm for c in rig.coils])
+    inductance = np.array([c.inductance_H for c in rig.coils])
+    v_max = np.array([c.compliance_V for c in rig.coils])
+    limit = np.array([c.current_limit_A for c in rig.coils])
+    out, last = [], np.zeros(program.shape[1])
+    for target in program:
+        target = np.minimum(np.maximum(target, -limit), limit)
+        room = np.maximum(share * v_max - r * np.abs(target), 0.0) / (inductance * rig.stream.rate_hz)
+        last = last + np.minimum(np.maximum(target - last, -room), room)
+        out.append(last)
+    return np.array(out).reshape(program.shape)
+
+
+def test_the_slew_limit_gives_the_sample_by_sample_program_on_holds_dithers_and_ramps():
+    from rigctl.rigs.six_coil.pair import slew_limited
+
+    rng = np.random.default_rng(7)
+    steps = rng.normal(0, 12, size=(30, 6))
+    dither = np.array([[3, -2, 1, 0, 5, -5], [-3, 2, 1, 0, 4, -4]], float)
+    programs = [
+        np.repeat(steps, rng.integers(1, 300, size=30), axis=0),  # piecewise constant, jumps
+        np.tile(np.repeat(dither, 50, axis=0), (40, 1)),  # the hold's dither, 40 flips each way
+        np.repeat(steps, 20, axis=0) + rng.normal(0, 0.5, size=(600, 6)),  # changing every row
+        np.zeros((0, 6)),
+    ]
+    for program in programs:
+        got = slew_limited(program, RIG)
+        assert np.array_equal(got, _slew_by_hand(program, RIG))
+    held = slew_limited(np.repeat(steps[:1], 400, axis=0), RIG)
+    assert np.array_equal(held[-1], np.clip(steps[0], -20, 20))  # a long stretch reaches its target

@@ -229,6 +229,8 @@ def slew_limited(program: np.ndarray, rig: RigConfig) -> np.ndarray:
     out = np.empty_like(program)
     last = np.zeros(program.shape[1])
     settled: dict[tuple[bytes, bytes], np.ndarray] = {}  # (from, target): its steps, then still
+    if not len(program):
+        return out
     changes = np.flatnonzero(np.any(program[1:] != program[:-1], axis=1)) + 1
     for a, b in itertools.pairwise([0, *changes.tolist(), len(program)]):
         target = program[a]
