@@ -6,7 +6,9 @@ energising, mid-move, paused, suspended, ramping down) through the daemon, and e
 mid-move through a local `rigctl execute`, on every rig (`rigctl.faults`). Per rig: the cells, how
 many failed, the count per outcome, the worst time from a fault to every device safe among the
 cells the fault stopped (read from the emulator: coil currents under 50 mA, SyRen outputs 0, arms
-at rest) and which cell it was, and the records complete / readable; then every failed cell in full.
+at rest) and which cell it was, the worst time from the run's decision to stop to every device's
+commands turned toward safe (the record's `stopping` event) against the stream period, and the
+records complete / readable; then every failed cell in full.
 
     python bench/faults.py                                   # every rig: about 40 minutes
     python bench/faults.py --rig depm                        # one rig

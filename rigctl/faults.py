@@ -88,6 +88,10 @@ class Cell:
     fault_to_stop_s: float | None = None  # the run seen stopped (or paused/suspended) after it
     fault_to_safe_s: float | None = None  # every device safe in the emulator's truth, for good
     stop_to_safe_s: float | None = None  # from the run seen stopped (10-20 ms resolution)
+    # from the run's decision to stop (its loop's last cycle, or the error that ended it) to every
+    # device's commands turned toward safe (the record's `stopping`), against one stream period
+    decision_to_stopping_s: float | None = None
+    stream_period_s: float | None = None
     safe: bool = False
     safe_before_clear: bool | None = None  # safe before the fault was cleared (a link restored)
     record: str = "none"  # complete / readable / incomplete / lost / none (no run began)
@@ -322,6 +326,17 @@ def check_record(run_dir: Path | None) -> tuple[str, str | None]:
     ends = any(e.get("event") == "fault" or (e.get("event") == "state" and e.get("state") in
                                               TERMINAL) for e in events)
     return ("readable" if ends else "incomplete"), run_dir.name
+
+
+def stop_latency(events: list[dict]) -> tuple[float | None, float | None]:
+    """(seconds from the run's decision to stop to every device's commands turned toward safe,
+    the run's stream period) from its record's `stopping` and `prepared` events; None for what
+    the record does not hold (no run streamed, or its process was killed before it stopped)."""
+    stopping = next((e for e in events if e.get("event") == "stopping"), None)
+    prepared = next((e for e in events if e.get("event") == "prepared"), None)
+    rate = (prepared or {}).get("rate_hz")
+    return (None if stopping is None else stopping.get("after_decision_s"),
+            1.0 / rate if rate else None)
 
 
 def outcome_of(events: list[dict], summary: dict | None) -> tuple[str | None, str | None, str | None]:
@@ -574,7 +589,9 @@ class RigCampaign:
         if new:
             summary_path = new[-1] / "summary.json"
             summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
-            cell.outcome, cell.device, cell.reason = outcome_of(read_events(new[-1]), summary)
+            events = read_events(new[-1])
+            cell.outcome, cell.device, cell.reason = outcome_of(events, summary)
+            cell.decision_to_stopping_s, cell.stream_period_s = stop_latency(events)
         return cell
 
     def _finish(self, cell: Cell, t_fault: float, stop_at: float | None, safe_at: float | None,
@@ -678,7 +695,9 @@ class RigCampaign:
         with contextlib.suppress(json.JSONDecodeError, OSError):
             summary = json.loads(out_path.read_text())
         if new:
-            cell.outcome, cell.device, cell.reason = outcome_of(read_events(new[-1]), summary)
+            events = read_events(new[-1])
+            cell.outcome, cell.device, cell.reason = outcome_of(events, summary)
+            cell.decision_to_stopping_s, cell.stream_period_s = stop_latency(events)
         elif summary is not None and "error" in summary:
             cell.outcome, cell.reason = "refused", str(summary["error"].get("message"))
         cell.note = (cell.note + "; " if cell.note else "") + f"exit {proc.returncode}"
@@ -828,6 +847,12 @@ def matrix(cells: list[Cell]) -> str:
                 row += f"{('' if c.ok or c.outcome == 'n/a' else '!') + text:<{width + 6}}"
             lines.append(row.rstrip())
         lines.append("")
+    for rig, figs in figures(cells).items():
+        worst, period = figs["worst_decision_to_stopping_s"], figs["stream_period_s"]
+        if worst is not None and period is not None:
+            lines.append(f"{rig}: decision to stop -> commands toward safe: worst "
+                         f"{worst * 1e3:.2f} ms ({figs['worst_stopping_cell']}), one stream "
+                         f"period {period * 1e3:.1f} ms: {'within' if worst <= period else 'OVER'}")
     failed = [c for c in cells if not c.ok and c.outcome != "n/a"]
     lines.append(f"{len(cells)} cells, {len(failed)} failed (a failed cell: no named outcome, a "
                  "device not safe at the end, a record lost or unreadable, or its phase not reached)")
@@ -845,6 +870,9 @@ def figures(cells: list[Cell]) -> dict:
         stopped = [c for c in group if c.outcome in ("faulted", "e-stopped", "aborted")
                    and c.fault_to_safe_s is not None]
         worst = max(stopped, key=lambda c: c.fault_to_safe_s, default=None)  # type: ignore[arg-type]
+        timed = [c for c in group if c.decision_to_stopping_s is not None]
+        slowest = max(timed, key=lambda c: c.decision_to_stopping_s, default=None)  # type: ignore[arg-type]
+        periods = {c.stream_period_s for c in timed if c.stream_period_s is not None}
         counts: dict[str, int] = {}
         for c in group:
             counts[c.outcome or "none"] = counts.get(c.outcome or "none", 0) + 1
@@ -853,6 +881,12 @@ def figures(cells: list[Cell]) -> dict:
                     "worst_fault_to_safe_s": None if worst is None else worst.fault_to_safe_s,
                     "worst_cell": None if worst is None else f"{worst.path} {worst.fault} @ "
                     f"{worst.phase}",
+                    "worst_decision_to_stopping_s": None if slowest is None
+                    else slowest.decision_to_stopping_s,
+                    "worst_stopping_cell": None if slowest is None else f"{slowest.path} "
+                    f"{slowest.fault} @ {slowest.phase}",
+                    "stream_period_s": min(periods) if periods else None,
+                    "stopping_timed": len(timed),
                     "records": {r: sum(c.record == r for c in group)
                                 for r in dict.fromkeys(c.record for c in group)}}
     return out

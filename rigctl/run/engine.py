@@ -159,6 +159,7 @@ class Run(RunControl):
         self.on_cycle = on_cycle
         self._init_control(on_state)
         self._abort_reason: str | None = None
+        self._decided_at: float | None = None  # when the stream loop decided to end (monotonic)
         # every limit on the whole plan, before anything can be opened: refused here, no I/O
         t0 = time.perf_counter()
         certificate = certify(rig, program.plan.kind, getattr(program.plan, "name", None) or "plan",
@@ -235,7 +236,13 @@ class Run(RunControl):
         finally:
             if actuators is not None:
                 # an e-stop during this ramp cuts it short (the drivers latch at zero)
-                unconfirmed = actuators.stop(0.0 if self._estop.is_set() else rig.stream.ramp_down_s)
+                ramp_s = 0.0 if self._estop.is_set() else rig.stream.ramp_down_s
+                # from here every command to every device is on its way to safe: how long after
+                # the run decided to stop (the loop's last cycle, or the error that ended it)
+                now = time.monotonic()
+                record.event("stopping", ramp_s=ramp_s, after_decision_s=round(
+                    now - (self._decided_at if self._decided_at is not None else now), 6))
+                unconfirmed = actuators.stop(ramp_s)
                 self._supplies = None  # off and closed: nothing left for an e-stop to write to
                 if unconfirmed:
                     unconfirmed = self._reach_again(type(actuators), unconfirmed, record)
@@ -291,10 +298,12 @@ class Run(RunControl):
         def cycle(k: int) -> bool:
             nonlocal measured
             if self._estop.is_set():
+                self._decided_at = time.monotonic()
                 self._finish_estop(actuators, record)
                 return False
             step = program.next(k, measured)
             if step is None:
+                self._decided_at = time.monotonic()
                 return False
             if program.suspended is not None:
                 self._set_state(RunState.SUSPENDED, reason=program.suspended)
@@ -318,6 +327,10 @@ class Run(RunControl):
 
         try:
             return loop.run(cycle)
+        except BaseException:  # a device's error (or Ctrl-C) ended the loop: decided now
+            if self._decided_at is None:
+                self._decided_at = time.monotonic()
+            raise
         finally:
             record.event("stream_stats", **loop.stats().as_dict())
 

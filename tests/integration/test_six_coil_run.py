@@ -77,6 +77,11 @@ def test_pulling_one_supply_link_mid_run_stops_safely_and_names_it(bench, tmp_pa
     run = Path(summary.run)
     events = [json.loads(line) for line in (run / "events.jsonl").read_text().splitlines()]
     assert any(e["event"] == "fault" and e["device"] == "y+" for e in events)
+    # the ramp began after the fault was recorded, and its delay is counted from before that
+    fault_t = next(e["t"] for e in events if e["event"] == "fault")
+    stopping = next(e for e in events if e["event"] == "stopping")
+    assert stopping["t"] >= fault_t and stopping["ramp_s"] == bench.rig.stream.ramp_down_s
+    assert stopping["after_decision_s"] >= stopping["t"] - fault_t - 1e-6
     assert json.loads((run / "summary.json").read_text())["faults"][0]["device"] == "y+"
 
 

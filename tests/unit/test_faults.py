@@ -18,6 +18,7 @@ from rigctl.faults import (
     matrix,
     outcome_of,
     parse_cell,
+    stop_latency,
 )
 from rigctl.record import RunRecord
 
@@ -137,3 +138,25 @@ def test_the_matrix_marks_a_cell_not_safe_and_the_figures_take_the_worst_stopped
     # the run the camera fault did not stop is not a time to safe: 1.2 s (a stopped run) is
     assert rig["worst_fault_to_safe_s"] == 1.2 and rig["failed"] == 2
     assert rig["outcomes"] == {"faulted": 3, "completed": 1}
+
+
+def test_the_stop_latency_is_read_from_the_record_and_its_worst_is_held_to_one_period():
+    events = [{"t": 0.0, "event": "prepared", "rate_hz": 1000.0},
+              {"t": 2.0, "event": "fault", "device": "x+"},
+              {"t": 2.0004, "event": "stopping", "ramp_s": 0.2, "after_decision_s": 0.0004}]
+    assert stop_latency(events) == (0.0004, 0.001)
+    assert stop_latency(events[:1]) == (None, 0.001)  # killed before it stopped: no time
+    assert stop_latency([]) == (None, None)
+    cells = [Cell("six-coil", "daemon", "x+:drop_link", "moving", outcome="faulted", safe=True,
+                  record="complete", decision_to_stopping_s=0.0004, stream_period_s=0.001),
+             Cell("six-coil", "execute", "x+:stall", "moving", outcome="faulted", safe=True,
+                  record="complete", decision_to_stopping_s=0.0031, stream_period_s=0.001),
+             Cell("six-coil", "daemon", "stream:SIGKILL", "moving", outcome="faulted", safe=True,
+                  record="readable")]
+    rig = figures(cells)["six-coil"]
+    assert rig["worst_decision_to_stopping_s"] == 0.0031 and rig["stopping_timed"] == 2
+    assert rig["worst_stopping_cell"] == "execute x+:stall @ moving"
+    assert rig["stream_period_s"] == 0.001
+    assert "worst 3.10 ms (execute x+:stall @ moving), one stream period 1.0 ms: OVER" \
+        in matrix(cells)
+    assert "one stream period 1.0 ms: within" in matrix(cells[:1])
