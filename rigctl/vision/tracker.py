@@ -11,7 +11,9 @@ Robots are dark discs on a brighter floor. Each frame:
    few rounds of weighted k-means seeded with where the robots are predicted to be, which for two
    equal discs in contact converges to their centres (the bisector of two touching equal discs is
    their common tangent);
-3. map: pixel -> mm through the calibration (lens distortion removed first);
+3. map: pixel -> mm through the calibration (lens distortion removed first); a detection whose
+   centre is off the floor a robot can stand on (outside the workspace's boundary, inside an
+   obstacle: a dish's dark rim, a drawn wall) is not a robot and is dropped;
 4. associate: predicted positions (constant velocity) against detections by the Hungarian method,
    each robot only within its gate (a few radii; the gate of a lost robot grows with every frame it
    is missed, so it is found again where it reappears). A robot matched nowhere is `lost`: its
@@ -29,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -106,7 +108,8 @@ class Tracker:
 
     calibration: pixel -> floor mapping; radii_mm: (n,); initial_mm: (n, 2) where the robots are put
     (the plan's start); roi_mm: (xmin, ymin, xmax, ymax) of the floor to search (the workspace's
-    bounds; None: the whole picture).
+    bounds; None: the whole picture); on_floor: points (m, 2) mm -> (m,) bool, where a robot's
+    centre can be (the workspace's free floor; None: anywhere in the picture).
     """
 
     def __init__(
@@ -116,6 +119,7 @@ class Tracker:
         initial_mm: ArrayLike,
         *,
         roi_mm: Sequence[float] | None = None,
+        on_floor: Callable[[np.ndarray], np.ndarray] | None = None,
         settings: TrackerSettings = TrackerSettings(),
     ) -> None:
         self.calibration = calibration
@@ -126,6 +130,7 @@ class Tracker:
         if n == 0 or np.any(self.radii_mm <= 0):
             raise ValueError("need at least one robot, each with a positive radius")
         self.roi_mm = None if roi_mm is None else tuple(float(v) for v in roi_mm)
+        self.on_floor = on_floor
         self.velocities_mm_s = np.zeros((n, 2))
         self.pixels = calibration.to_px(self.positions_mm)
         self.frames_unseen = np.ones(n, dtype=int)  # not seen yet
@@ -144,6 +149,9 @@ class Tracker:
         """Track the robots in a picture (H, W, 3) BGR or (H, W) grey taken at `t_s` (s, any clock)."""
         dt = self._advance_clock(t_s)
         detections = self.detect(image)
+        if self.on_floor is not None and detections:
+            on = self.on_floor(self.calibration.to_mm(np.array([d.pixel for d in detections])))
+            detections = [d for d, keep in zip(detections, on) if keep]
         self._associate(detections, dt)
         self.frames += 1
         return self.robots

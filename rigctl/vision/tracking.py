@@ -47,15 +47,18 @@ class TrackingLoop:
     """The camera and the tracker in their own thread, publishing the latest `TrackedState`.
 
     camera: the rig's camera settings (url, stamped, timeout_s, calibration); radii_mm (n,),
-    initial_mm (n, 2) where the robots were put; roi_mm: the workspace's bounds.
+    initial_mm (n, 2) where the robots were put; roi_mm: the workspace's bounds; on_floor: where a
+    robot's centre can be (`Tracker`).
     """
 
     def __init__(self, camera: CameraSettings, radii_mm: np.ndarray, initial_mm: np.ndarray, *,
-                 roi_mm: tuple[float, float, float, float] | None = None) -> None:
+                 roi_mm: tuple[float, float, float, float] | None = None,
+                 on_floor: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         if camera.calibration is None:
             raise ConfigError("the rig's camera has no calibration: run `rigctl calibrate camera`")
         self.camera = camera
-        self.tracker = Tracker(camera.calibration, radii_mm, initial_mm, roi_mm=roi_mm)
+        self.tracker = Tracker(camera.calibration, radii_mm, initial_mm, roi_mm=roi_mm,
+                               on_floor=on_floor)
         self.timeout_s = camera.timeout_s
         self.frames = 0  # fresh frames tracked
         self.lost_frames = 0  # frames missed (dropped, repeated) or with a robot not found

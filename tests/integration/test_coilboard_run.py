@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from rigctl.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
-
-from rigctl.config import load_rig
 from rigctl.rigs.coil_board.run import CoilBoardRun, CoilBoardRunSettings
 from rigctl.run.control import RunState
 from rigctl.run.summary import exit_code
@@ -269,3 +269,70 @@ def test_a_run_held_past_the_rig_files_limit_ramps_down_and_ends_with_the_reason
     events = watched.events()
     assert any(e["event"] == "abort" and f"{held}_limit_s" in e["reason"] for e in events)
     wait_for(lambda: outputs_are(backdoor, ZERO), 5.0, "every coil off")
+
+
+def test_a_particle_hidden_before_the_run_is_a_fault_of_the_camera_before_anything_is_energised(
+        rig, backdoor, tmp_path):
+    """The fault campaign's cell (camera:occlude @ before): the camera must not take the dish's
+    dark rim for the hidden particle (it did, and the run drove on a false position)."""
+    backdoor.request("fault", device="camera", kind="occlude", robot=0)
+    try:
+        watched = WatchedRun(rig, tmp_path, CoilBoardRunSettings(acquire_timeout_s=2.0))
+        summary = watched.join()
+    finally:
+        backdoor.request("fault", device="camera", kind="restore")
+    assert summary.state == "faulted" and exit_code(summary) == 3
+    assert [f["device"] for f in summary.faults] == ["camera"]
+    assert "not found" in summary.faults[0]["reason"]
+    names = [e["event"] for e in watched.events()]
+    assert "energised" not in names and "found" not in names
+    assert summary.safe
+
+
+def test_a_measured_position_alg_1_pulls_into_its_region_does_not_re_plan_every_cycle(rig):
+    """A particle measured just outside the planning region (on the rim, within the tracker's
+    noise) is moved into it for Alg. 1, so the planned states start off the measured ones; the
+    loop must drive Alg. 1's moves, not re-plan again each cycle without ever yielding (it starved
+    the stream process until the daemon killed it). The moves are driven by a perfect rig here:
+    each ends exactly where Alg. 1 expects."""
+    from rigctl.faults import _coil_board_plan
+    from rigctl.plans.schema import parse_plan
+    from rigctl.rigs.coil_board import run as board_run
+
+    plan = parse_plan(_coil_board_plan())  # the campaign's plan, where the storm was seen
+    program = board_run.CoilBoardProgram(plan, rig)
+    # where the camera had them then: radius 0.5 on a 23 mm dish, so the region's radius is 22.5
+    measured = np.array([[-23.217, 2.556], [5.108, -21.929]])
+    assert not program.region.contains(measured[0])[0]
+    program._position = measured
+    program.record = type("Record", (), {"event": lambda self, *a, **k: None})()
+    driven = []
+
+    def perfect(move, start, end):
+        driven.append(move)
+        yield board_run.ZERO
+        return end
+
+    program._drive = perfect
+    replan = program._replan
+
+    def bounded(position):  # the storm re-planned inside one `next`: make it fail, not hang
+        if program.replans >= 50:
+            raise AssertionError("50 re-plans")
+        return replan(position)
+
+    program._replan = bounded
+    commands = program._run_moves()
+    replans_without_driving = 0
+    for _ in range(200):
+        before = (program.replans, len(driven))
+        try:
+            next(commands)
+        except StopIteration:
+            break
+        if len(driven) == before[1]:
+            replans_without_driving += program.replans - before[0]
+    else:
+        pytest.fail("the loop did not end within 200 commands")
+    assert program.reached
+    assert replans_without_driving == 0 and program.replans <= 1

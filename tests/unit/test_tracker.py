@@ -9,9 +9,9 @@ import math
 
 import numpy as np
 import pytest
+
 from rigctl.emulators.camera.render import CameraModel, Renderer, Scene
 from rigctl.plans.workspace import ShapeWorkspace
-
 from rigctl.vision.tracker import Tracker, TrackerSettings, find_dark_blobs
 
 RADIUS = 5.0
@@ -168,3 +168,27 @@ def test_why_tracking_is_lost_names_the_camera_and_the_agents_it_does_not_see(ri
     assert loop.why_lost(0.0, "particle") == "camera: particle(s) [1] not found"
     loop.failure = RuntimeError("gave up after 3 reconnections")
     assert loop.why_lost(0.0) == "camera: gave up after 3 reconnections"
+
+
+def test_a_dark_rim_off_the_floor_is_not_taken_for_a_hidden_robot():
+    # A dish: a disc of floor inside a dark rim, the camera's picture a square around it. With
+    # robot 0 under a glare disc from the first frame, the nearest dark thing within the
+    # acquisition gate is a piece of the rim, where no robot's centre can be.
+    dish = ShapeWorkspace(("disk", (0, 0, 23.0)), [])
+    camera = CameraModel.overhead(dish.bounds, tilt_deg=12, tilt_azimuth_deg=35, yaw_deg=4,
+                                  distortion=(-0.1, 0.02))
+    renderer, calibration = Renderer(camera, seed=0), camera.calibration()
+    put = np.array([[-4.0, -5.0], [-4.0, 5.0]])
+    scene = Scene(dish, put, np.full(2, 0.5), np.array([[-4.0, -5.0, 0.8]]))
+
+    def track(on_floor):
+        tracker = Tracker(calibration, 0.5, put, roi_mm=dish.bounds, on_floor=on_floor)
+        for k in range(10):
+            robots = tracker.update(renderer.render(scene), t_s=k / 60.0)
+        return robots
+
+    fooled = track(None)[0]  # what the floor test is for: the rim is taken for robot 0
+    assert not fooled.lost and math.hypot(*fooled.position_mm) > 23.0
+    hidden, seen = track(dish.contains)
+    assert hidden.lost and not seen.lost
+    np.testing.assert_allclose(seen.position_mm, put[1], atol=0.1)

@@ -344,7 +344,8 @@ class CoilBoardProgram(RequestedControl):
                                       for a in self.plan.agents])
         xmin, ymin, xmax, ymax = self.workspace.bounds
         self.tracking = TrackingLoop(self.rig.camera, self.radii, self.starts,
-                                     roi_mm=(xmin, ymin, xmax, ymax))
+                                     roi_mm=(xmin, ymin, xmax, ymax),
+                                     on_floor=self.workspace.contains)
         self.tracking.record_to(ctx.record)  # the camera's positions, in the run record
         self.tracking.tap(ctx.on_frame)  # the console's camera view, if any
         self.tracking.start(self.settings.acquire_timeout_s)
@@ -408,6 +409,11 @@ class CoilBoardProgram(RequestedControl):
         index = 0
         position = self._position
         assert position is not None
+        # Where the particles should be now: the end of the last move driven, or where they were
+        # measured when the moves were (re-)planned. A skipped move leaves it (nothing moved), so
+        # a measured position Alg. 1 had to pull into its region is not "off the plan" again and
+        # again (a re-plan every cycle that never drove and never yielded to the stream).
+        reference: np.ndarray | None = None
         while True:
             if self.requests.pause_wanted:
                 yield from self._hold()
@@ -420,12 +426,12 @@ class CoilBoardProgram(RequestedControl):
             if self.moves_done >= s.max_moves:
                 self._say(f"stopping after {self.moves_done} moves: worst error {error:.3f} mm")
                 return
-            follow = (expected is not None and index < len(moves) and (index == 0 or float(np.max(
-                np.hypot(*(position - expected[index - 1]).T))) <= s.follow_fraction * self.tolerance))
+            follow = (expected is not None and index < len(moves) and (reference is None or float(
+                np.max(np.hypot(*(position - reference).T))) <= s.follow_fraction * self.tolerance))
             if not follow:
                 # inline, on the stream thread: the coils are at zero and the particles still
                 moves, expected = self._replan(position)
-                index = 0
+                index, reference = 0, position
                 if not len(moves) or np.hypot(*moves.T).max() < s.skip_mm:
                     self._say(f"Alg. 1 finds no move the rig can make that improves on "
                               f"{error:.3f} mm")
@@ -438,6 +444,7 @@ class CoilBoardProgram(RequestedControl):
             self._say(f"move {self.moves_done}: ({move[0]:+.2f}, {move[1]:+.2f}) mm"
                       + ("" if follow else " (re-planned)"))
             position = yield from self._drive(move, position, end)
+            reference = end
 
     def _hold(self) -> Commands:
         """A pause: zeros until resumed (or aborted: `next` ends the run)."""
@@ -675,7 +682,8 @@ class CoilBoardProgram(RequestedControl):
 def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *,
                  settings: CoilBoardRunSettings = CoilBoardRunSettings(), **run_options) -> EngineRun:
     """The run of a two-particle plan on a coil board (the one engine with `CoilBoardProgram`);
-    `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refusals (PlanError, ConfigError) raise here, before anything is opened."""
+    `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refusals
+    (PlanError, ConfigError) raise here, before anything is opened."""
     program = CoilBoardProgram(plan, rig, settings=settings)
     connect = functools.partial(BoardActuators.connect,
                                 syren_ready_timeout_s=settings.syren_ready_timeout_s)

@@ -214,7 +214,8 @@ class Supervisor:
         self._planner: ReplanWorker | None = None
         self._plan_text = dump_plan(plan)
         bounds = self.model.workspace.bounds
-        self.tracking = TrackingLoop(rig.camera, self.model.radii, starts, roi_mm=bounds)
+        self.tracking = TrackingLoop(rig.camera, self.model.radii, starts, roi_mm=bounds,
+                                     on_floor=self.model.workspace.contains)
         self.gain = 1.0
         self.replans = 0
         self.final_replans = 0
