@@ -29,10 +29,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from rigctl.emulators.bench import emulated_winding
-from rigctl.emulators.depm import default_settings as depm_settings
-from rigctl.emulators.kepco_bop.model import BopCoilModel
-from rigctl.plans.schema import load_plan
 
 from rigctl.certificate import certify
 from rigctl.config import (
@@ -42,6 +38,10 @@ from rigctl.config import (
     RigInfo,
     default_six_coil_coils,
 )
+from rigctl.emulators.bench import emulated_winding
+from rigctl.emulators.depm import default_settings as depm_settings
+from rigctl.emulators.kepco_bop.model import BopCoilModel
+from rigctl.plans.schema import load_plan
 from rigctl.rigs import rig_kind
 from rigctl.thermal import Windings, step_current, winding_temperatures
 

@@ -19,7 +19,8 @@ replay) and executed closed loop through the whole emulated chain: the study
 its own (`rigctl emulate coil-board`: the Python firmware on a pty, the SyRen wire, the
 non-uniform coils (the world's default physics: pull ~ 1/d^4 from poles 200 mm out, leaning to
 the active coil's centre) and the camera + tracker), one after another (`--workers N`: on N Dask
-workers). `seconds_per_run_median` is the run's own duration, without the bench's start. A run delivers when the emulator's ground truth has both particles within `--epsilon` of
+workers). `seconds_per_run_median` is the run's own duration, without the bench's start. A run
+delivers when the emulator's ground truth has both particles within `--epsilon` of
 their goals. The world runs `--speed` (3) times faster than real time, so that 20 runs fit in a few
 minutes (about 10 s a run; a run that needs all 60 moves, ~45 s); the goal of issue 6 is at
 least 19/20. `--runs` sets the number of runs (fewer for a quick look).
@@ -43,6 +44,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.wall_contact import centre_region, plan_with_model
 from rigctl.plans.workspace import ShapeWorkspace
@@ -124,8 +126,8 @@ def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Gener
     import tomllib
 
     import pyarrow.parquet as pq
-    from rigctl.plans.schema import dump_plan, parse_plan
 
+    from rigctl.plans.schema import dump_plan, parse_plan
     from rigctl.study.execution import run_study
     from rigctl.study.spec import spec_from_dict
 

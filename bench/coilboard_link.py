@@ -28,12 +28,12 @@ import tempfile
 import time
 
 import numpy as np
+
 from rigctl.drivers import coilboard_frame as proto
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.emulators.coilboard.firmware import serve_in_child_process
 from rigctl.emulators.coilboard.syren import BAUD as SYREN_BAUD
 from rigctl.emulators.coilboard.syren import SyrenBus, SyrenWireReader
-
 from rigctl.errors import RigError
 
 BAUD = 115200

@@ -29,7 +29,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from rigctl.config import load_rig
 from rigctl.emulators.process import EmulatedBenchProcess
+from rigctl.errors import PlanError
 from rigctl.plans.depm import (
     baseline_of,
     eight_components,
@@ -39,9 +42,6 @@ from rigctl.plans.depm import (
     plan_violations,
 )
 from rigctl.plans.schema import SequenceComponent
-
-from rigctl.config import load_rig
-from rigctl.errors import PlanError
 from rigctl.rigs.depm.metrics import cross_activation, table1, windows_of
 from rigctl.rigs.depm.run import FieldSequenceRun, SafetyRefusal
 

@@ -220,9 +220,8 @@ def validate_in_process(text: bytes, folder: Path) -> tuple[int, str]:
 @contextlib.contextmanager
 def daemon_on_bench(runs_dir: Path):
     """A daemon (the real plan runs, its stream process) on the emulated six-coil bench."""
-    from rigctl.emulators.bench import SixCoilBench
-
     from rigctl.daemon.server import Daemon
+    from rigctl.emulators.bench import SixCoilBench
 
     with SixCoilBench() as bench:
         daemon = Daemon(bench.rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",

@@ -126,7 +126,6 @@ def bench_decide():
         state_of,
     )
     from rigctl.plans.schema import load_plan
-
     from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings
 
     plan = load_plan(EXAMPLES / PROBLEMS["microfactory"][0])

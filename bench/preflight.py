@@ -29,9 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from rigctl.emulators.process import EmulatedBenchProcess
-
 from rigctl.config import RigConfig, load_rig
+from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.errors import ConfigError
 from rigctl.rigs.doctor import DeviceUnreachable, preflight, probe_rig
 from rigctl.rigs.owner import RigInUse, RigLock

@@ -45,6 +45,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.rrt import RrtOptions, plan_rrt
 from rigctl.plans.workspace import ShapeWorkspace, Workspace, warm_up

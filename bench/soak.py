@@ -30,10 +30,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from rigctl.emulators.process import EmulatedBenchProcess
 
 from rigctl.client import CommandRefused, Rig
 from rigctl.config import dump_rig, load_rig
+from rigctl.emulators.process import EmulatedBenchProcess
 
 FIGURES = ("rss_MB", "fds", "threads")
 

@@ -19,11 +19,11 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from rigctl.drivers.kepco_bop import KepcoBop
-from rigctl.emulators.process import EmulatedBenchProcess
 
 from rigctl.coils import actuation_matrix
 from rigctl.config import load_rig
+from rigctl.drivers.kepco_bop import KepcoBop
+from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.rigs.six_coil.allocate import currents_for_field
 from rigctl.stream import StreamLoop
 from rigctl.transport import open_transport

@@ -26,11 +26,11 @@ import time
 
 import cv2
 import numpy as np
+
 from rigctl.drivers.camera import CameraDriver
 from rigctl.emulators.camera import CameraModel, Renderer, Scene, serve_camera
 from rigctl.emulators.server import EmulatorServer
 from rigctl.plans.workspace import ShapeWorkspace
-
 from rigctl.vision.tracker import Tracker
 
 RADIUS_MM = 5.0

@@ -49,7 +49,6 @@ from rigctl.drivers.coilboard_frame import (
     HelloReply,
     Status,
 )
-
 from rigctl.errors import (
     ConfigError,
     DeviceError,

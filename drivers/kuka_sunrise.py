@@ -12,7 +12,8 @@ The KST server application listens on TCP port 30001 and speaks ASCII lines, fie
   `stopDirectServoJoints` -> `done`;
 - `end`: the server closes the session.
 
-Angles in rad, sent with full double precision. Every reply is checked; a silent robot raises `DeviceTimeout`, a lost link
+Angles in rad, sent with full double precision. Every reply is checked; a silent robot raises
+`DeviceTimeout`, a lost link
 `Disconnected`, a `nak` `DeviceError`, garbage `ProtocolError`; all name the arm. After a timeout the
 next command first discards whatever is pending, so a late reply is never taken for a new answer.
 `close()` stops a running servo stream and ends the session; it never raises.

@@ -4,7 +4,8 @@ asyncio server thread.
 
 The simulation is advanced lazily and in fixed sub-steps of simulated time: before every SCPI command
 and on a periodic tick, `advance()` steps every supply's R-L model and the world up to "now"
-(the bench's `SimClock`: monotonic time times the speed factor). The world feels the field made by the supplies' *actual*
+(the bench's `SimClock`: monotonic time times the speed factor). The world feels the field made by
+the supplies' *actual*
 currents, computed from each coil's own geometry with the closed-form loop field, not through the
 allocator's actuation matrix, so an error in allocation or in the realizer shows up as a magnet in
 the wrong place.
@@ -49,6 +50,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+from rigctl.config import (
+    Emulation,
+    FieldProbe,
+    RigConfig,
+    RigInfo,
+    default_six_coil_coils,
+)
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.camera.render import Scene
 from rigctl.emulators.coil_errors import (
@@ -63,20 +72,12 @@ from rigctl.emulators.kepco_bop.protocol import BopScpi
 from rigctl.emulators.server import Endpoint
 from rigctl.emulators.world.pair import PairWorld
 from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
+from rigctl.errors import ConfigError
+from rigctl.field_calibration import probe_grid_mm
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.pair import PairPhysics
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
-
-from rigctl.config import (
-    Emulation,
-    FieldProbe,
-    RigConfig,
-    RigInfo,
-    default_six_coil_coils,
-)
-from rigctl.errors import ConfigError
-from rigctl.field_calibration import probe_grid_mm
 
 PHYSICS_STEP_S = 1e-3  # simulated time per sub-step: the field turns < 3 degrees per step at 8 turns/s
 TICK_S = 5e-3  # how often the server advances the simulation when no command arrives

@@ -27,17 +27,17 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
+
+from rigctl.config import DepmSettings, Emulation, PreflightSettings, RigConfig, RigInfo
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.hall.board import HallBoardServer
 from rigctl.emulators.kuka.arm import KST_PORT, EmulatedArm
 from rigctl.emulators.kuka.model import ArmLimits
 from rigctl.emulators.world.epm import CylinderEpms
-from rigctl.plans.depm import default_rig, rig_from_settings
-
-from rigctl.config import DepmSettings, Emulation, PreflightSettings, RigConfig, RigInfo
 from rigctl.errors import ConfigError
 from rigctl.kinematics import DEFAULT_BASES
 from rigctl.magnetics import dipole_field, field_vector
+from rigctl.plans.depm import default_rig, rig_from_settings
 
 TICK_S = 5e-3
 HALL_RATE_HZ = 100.0  # samples per real second

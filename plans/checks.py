@@ -10,11 +10,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+from rigctl.errors import PlanError
 from rigctl.plans.model import Contact, GlobalInputModel
 from rigctl.plans.schema import REPLAY_TOLERANCE_MM, GlobalMovesPlan, load_workspace
 from rigctl.plans.workspace import Workspace
-
-from rigctl.errors import PlanError
 
 
 def contact_for_rig(rig: str) -> Contact:
@@ -127,7 +127,8 @@ def _kind_module(plan):
     """The planner module that owns a plan kind's semantics (`check`, `simulate`)."""
     import importlib
 
-    return importlib.import_module({"field-sequence": "rigctl.plans.depm", "pair-formation": "rigctl.plans.pair"}[plan.kind])
+    modules = {"field-sequence": "rigctl.plans.depm", "pair-formation": "rigctl.plans.pair"}
+    return importlib.import_module(modules[plan.kind])
 
 
 class WorkspaceSource:

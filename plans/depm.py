@@ -38,16 +38,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
-from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
-from rigctl.plans.schema import (
-    SCHEMA_ID,
-    ArmPlan,
-    DepmLimits,
-    ExpectedField,
-    FieldSequencePlan,
-    Segment,
-    SequenceComponent,
-)
 from scipy.interpolate import PchipInterpolator
 
 from rigctl.errors import PlanError
@@ -59,6 +49,16 @@ from rigctl.kinematics import (
     base_transform,
 )
 from rigctl.magnetics import actuation_matrix, cylinder_moment, field_vector
+from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
+from rigctl.plans.schema import (
+    SCHEMA_ID,
+    ArmPlan,
+    DepmLimits,
+    ExpectedField,
+    FieldSequencePlan,
+    Segment,
+    SequenceComponent,
+)
 
 log = logging.getLogger(__name__)
 

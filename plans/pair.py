@@ -293,8 +293,9 @@ class PairProblem:
 def hull_workspace(spec) -> object | None:
     """The workspace with every polygon obstacle replaced by its convex hull (rects and disks are
     convex already), for rejecting samples inside obstacles' hulls; None for image workspaces."""
-    from rigctl.plans.workspace import ShapeWorkspace, _shape_tuple
     from scipy.spatial import ConvexHull
+
+    from rigctl.plans.workspace import ShapeWorkspace, _shape_tuple
 
     if not hasattr(spec, "boundary"):
         return None
@@ -978,10 +979,9 @@ def run_cli(args) -> int:
         return EXIT_SOLVED if result["stlc"] else EXIT_NOT_SOLVED
     if not args.workspace or not args.output:
         raise PlanError("plan pair: give --workspace, --start, --goal and -o (or --check CONFIG)")
+    from rigctl.config import load_rig
     from rigctl.plans.checks import WorkspaceSource
     from rigctl.plans.schema import dump_plan, parse_plan
-
-    from rigctl.config import load_rig
 
     start_doc = _formation_arg(args.start, "--start")
     goal_doc = _formation_arg(args.goal, "--goal")

@@ -16,7 +16,8 @@ the distribution the tree grows with (docs/rrt.md discusses it).
 Departures from the paper are options, all off by default (`RrtOptions`): goal bias, greedy descent
 toward the goal from each new best node, and a final approach with shorter moves and the common
 translation that best fits the remaining error. Randomness comes only from the
-`numpy.random.Generator` passed in: the same seed and the same options give the same tree, unless a time budget stops it.
+`numpy.random.Generator` passed in: the same seed and the same options give the same tree, unless a
+time budget stops it.
 """
 
 from __future__ import annotations

@@ -444,7 +444,7 @@ def _shortest_contact(a, edge, normal, offset, start, goal) -> float:
 
 def _disk_steps(region: DiskRegion, positions: np.ndarray, goals: np.ndarray, reach: float,
                 push: float = 0.0) -> list:
-    R, O = region.radius, region.centre
+    R, O = region.radius, region.centre  # noqa: E741 (the paper's O, the disk's centre)
     margin = _MARGIN_REL * region.size
     goal_delta = goals[1] - goals[0]
     steps = []

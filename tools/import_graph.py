@@ -1,6 +1,10 @@
 """Import graph of the rigctl package (every import, those inside functions included): prints the
 module cycles and the imports that go up a layer. Usage: python3 tools/import_graph.py REPO_ROOT"""
-import ast, pathlib, sys, collections
+import ast
+import collections
+import pathlib
+import sys
+
 ROOT = pathlib.Path(sys.argv[1])
 DIRS = {"rigctl": "rigctl", "drivers": "rigctl.drivers", "emulators": "rigctl.emulators", "plans": "rigctl.plans"}
 mods = {}

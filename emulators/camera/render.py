@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
-from rigctl.plans.workspace import Workspace
 
 from rigctl.camera_model import Calibration
+from rigctl.plans.workspace import Workspace
 
 log = logging.getLogger(__name__)
 

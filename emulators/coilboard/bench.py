@@ -40,6 +40,8 @@ import dataclasses
 import os
 
 import numpy as np
+
+from rigctl.config import CoilBoardSettings, CoilThermal, Emulation, RigConfig, RigInfo
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.camera.render import Scene
 from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
@@ -49,11 +51,9 @@ from rigctl.emulators.world.coilboard import (
     CoilBoardWorld,
     intestine_ring_spec,
 )
+from rigctl.errors import ConfigError
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
-
-from rigctl.config import CoilBoardSettings, CoilThermal, Emulation, RigConfig, RigInfo
-from rigctl.errors import ConfigError
 
 PHYSICS_TICK_S = 0.005  # real seconds between two world steps when nothing asks
 CAMERA_FIELD_MM = (-30.0, -30.0, 30.0, 30.0)  # what the camera sees, round the coils' centre

@@ -30,8 +30,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from rigctl.emulators.server import Session
 from rigctl.emulators.kuka.model import N_JOINTS, LbrArmModel, TargetRejected
+from rigctl.emulators.server import Session
 
 log = logging.getLogger(__name__)
 

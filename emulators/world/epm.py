@@ -10,7 +10,8 @@ within 15 cm of a magnet's centre it differs by 1-13 % (the issue's figure; chec
 cylinder (`magpylib.core.magnet_cylinder_axial_Bfield`, Derby and Olbert 2010), which the field's
 community maintains and tests against its own consistency suite: the reason to take it rather
 than write the elliptic integrals here (its core kernel, called on every magnet's local
-coordinates at once, costs ~0.2 ms for the board's three sensors; the object interface ~5 ms). Gradients (for the backdoor's exact U) are central differences.
+coordinates at once, costs ~0.2 ms for the board's three sensors; the object interface ~5 ms).
+Gradients (for the backdoor's exact U) are central differences.
 """
 
 from __future__ import annotations

@@ -22,12 +22,12 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike
-from rigctl.emulators.world.rolling import Mismatch
-from rigctl.plans.pair import PairPhysics
 
 from rigctl.coils import coil_field_and_gradient
 from rigctl.config import RigConfig
+from rigctl.emulators.world.rolling import Mismatch
 from rigctl.magnetics import MU0
+from rigctl.plans.pair import PairPhysics
 
 ACTUATED_FIELD_T = 1e-4
 """`min_separation_mm` counts only while the coils make at least this field (the run is on)."""

@@ -71,13 +71,11 @@ def _refused_exit(err) -> int:
 # -- rigctl daemon -------------------------------------------------------------------------------
 def _cmd_daemon(args: argparse.Namespace) -> int:
     from rigctl.config import load_rig
-    from rigctl.daemon.messages import DaemonSettings
+    from rigctl.daemon.messages import DaemonSettings, is_loopback_endpoint
     from rigctl.daemon.server import Daemon
     from rigctl.emulators.process import EmulatedBenchProcess
     from rigctl.rigs.doctor import preflight
     from rigctl.rigs.owner import RigLock
-
-    from rigctl.daemon.messages import is_loopback_endpoint
 
     for endpoint in (args.command, args.telemetry, args.events):  # before anything is started
         if endpoint:

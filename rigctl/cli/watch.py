@@ -67,7 +67,8 @@ class View:
         s = self.status
         rig = s.get("rig")
         lines = [f"rigctl watch: {rig['name']} ({rig['kind']})" if rig else "rigctl watch",
-                 f"  {s.get('owner', 'rigctl daemon')} at {self.endpoint}   {time.strftime('%H:%M:%S')}   Ctrl-C to stop watching",
+                 f"  {s.get('owner', 'rigctl daemon')} at {self.endpoint}   "
+                 f"{time.strftime('%H:%M:%S')}   Ctrl-C to stop watching",
                  "", f"state   {s.get('state', '?')}"
                  + (f"  ({s.get('device') or ''}{': ' if s.get('device') else ''}{s['reason']})"
                     if s.get("reason") else "")]

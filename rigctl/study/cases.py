@@ -71,7 +71,8 @@ def run_case(command: str, folder: str, case: Case, out_root: str, success: str 
         "case_id": case.id, "seed": case.seed, "parameters": case.parameters, "status": status,
         "message": message, "success": _flag(figures.get(success)) if success else None,
         "error": _number(figures.get(error)) if error else None, "figures": figures,
-        "wall_s": wall, "cpu_s": cpu, "started_s": started_s, "record": record, "worker": f"{os.uname().nodename}:{os.getpid()}",
+        "wall_s": wall, "cpu_s": cpu, "started_s": started_s, "record": record,
+        "worker": f"{os.uname().nodename}:{os.getpid()}",
     }
 
 

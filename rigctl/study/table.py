@@ -8,7 +8,8 @@ the first 5000 cases, and grows with the square of the study.)
 
 Columns: `case_id`, `seed`, `status` (ok, bad_input, failed, error), `message`, `success`,
 `error`, `wall_s`, `cpu_s` (the worker process's CPU time: a planner's own; an emulated run's
-children not counted), `started_s` (when it started, s since the epoch), `record` (the plan written or the run record's folder), `worker`,
+children not counted), `started_s` (when it started, s since the epoch), `record` (the plan written
+or the run record's folder), `worker`,
 `finished_at` (UTC, ISO 8601); then one column per parameter (its own name) and one per figure the
 command reported (`fig_<name>`). A value that is not a number, a flag or a text (a list of
 points) is kept as its JSON text.
@@ -31,8 +32,8 @@ JOURNAL_NAME = "results.journal.jsonl"
 WRITE_EVERY_S = 1.0
 FIXED = ["case_id", "seed", "status", "message", "success", "error", "wall_s", "cpu_s", "started_s",
          "record", "worker", "finished_at"]
-TYPES = {"seed": pa.int64(), "success": pa.bool_(), "error": pa.float64(), "wall_s": pa.float64(), "cpu_s": pa.float64(),
-         "started_s": pa.float64()}
+TYPES = {"seed": pa.int64(), "success": pa.bool_(), "error": pa.float64(), "wall_s": pa.float64(),
+         "cpu_s": pa.float64(), "started_s": pa.float64()}
 
 
 def flat_row(result: dict[str, Any]) -> dict[str, Any]:

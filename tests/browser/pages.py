@@ -10,11 +10,10 @@ import sys
 import time
 from pathlib import Path
 
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.process import EmulatedBenchProcess
-
 from rigctl.client import Rig
 from rigctl.config import dump_rig, load_rig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"

@@ -18,7 +18,6 @@ from tests.browser.pages import (
     wait_page,
 )
 
-
 TRACKER_ERROR_MM = 0.5  # a particle's radius (1 mm spheres, seed 004)
 
 

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.process import EmulatedBenchProcess
 
 from rigctl.client import Rig
 from rigctl.config import load_rig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.record import read_events, read_stream
 from rigctl.testing import plan_pair, wait_for
 

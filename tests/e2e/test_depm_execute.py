@@ -16,15 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.plans.depm import EPM_MOMENT_AM2
-from rigctl.plans.schema import load_plan, parse_plan
 
 from rigctl.cli.main import build_parser, main
 from rigctl.config import load_rig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.kinematics import DEFAULT_BASES, default_arms
 from rigctl.magnetics import U_COMPONENTS, field_vector
+from rigctl.plans.depm import EPM_MOMENT_AM2
+from rigctl.plans.schema import load_plan, parse_plan
 from rigctl.record import read_events, read_series, read_stream
 from rigctl.rigs.depm.run import FieldSequenceRun
 from rigctl.run.control import RunState

@@ -8,10 +8,10 @@ import subprocess
 import sys
 
 import pytest
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.process import EmulatedBenchProcess
 
 from rigctl.config import load_rig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
 
 # rig kind -> (a backdoor fault that breaks one device's link, that device)
 BROKEN = {"six-coil": ({"cmd": "fault", "device": "y-", "kind": "drop_link"}, "y-"),

@@ -21,11 +21,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.process import EmulatedBenchProcess
 
 from rigctl.client import DaemonUnreachable, Rig
 from rigctl.config import load_rig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.record import read_events
 from rigctl.rigs.owner import holder_of
 from rigctl.testing import wait_for

@@ -19,11 +19,10 @@ import sys
 import time
 from pathlib import Path
 
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.process import EmulatedBenchProcess
-
 from rigctl.client import Rig
 from rigctl.config import load_rig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.testing import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]

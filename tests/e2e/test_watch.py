@@ -12,11 +12,11 @@ import sys
 from pathlib import Path
 
 import pytest
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.process import EmulatedBenchProcess
 
 from rigctl.client import Rig
 from rigctl.config import load_rig
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.rigs.owner import holder_of
 from rigctl.testing import wait_for
 
@@ -118,7 +118,9 @@ def test_watch_follows_the_daemon_a_run_and_a_hold(bench, tmp_path):
             # a held field: constant currents, so what the view measured is what the emulated
             # supplies carry
             rig.hold({"field_mT": [2.0, 0.0, 1.0]}, ramp_s=0.05)
-            held = lambda: backdoor.request("truth")["currents_A"]
+            def held():
+                return backdoor.request("truth")["currents_A"]
+
             first = held()
             wait_for(lambda: all(abs(a - first[k]) < 1e-3 for k, a in held().items())
                      or first.update(held()), 5.0, "the coils settled")

@@ -9,11 +9,11 @@ import time
 
 import numpy as np
 import pytest
+
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
-
 from rigctl.errors import DeviceError
 from rigctl.transport import open_transport
 

@@ -12,11 +12,11 @@ import time
 from pathlib import Path
 
 import pytest
+
+from rigctl.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
-
-from rigctl.config import load_rig
 from rigctl.rigs.six_coil.global_moves import Run
 from rigctl.testing import wait_for
 

@@ -12,9 +12,6 @@ import time
 
 import numpy as np
 import pytest
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.bench import SixCoilBench
-from rigctl.plans.schema import parse_plan
 
 from rigctl.certificate import CertificateRefused, read_certificate
 from rigctl.config import (
@@ -26,7 +23,10 @@ from rigctl.config import (
     StreamSettings,
     default_six_coil_coils,
 )
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.bench import SixCoilBench
 from rigctl.errors import DeviceError
+from rigctl.plans.schema import parse_plan
 from rigctl.record import read_events, read_series
 from rigctl.rigs.six_coil.global_moves import Run
 from rigctl.rigs.six_coil.supplies import CoilSupplies

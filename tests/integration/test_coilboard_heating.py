@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from rigctl.config import CoilThermal, load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
-
-from rigctl.config import CoilThermal, load_rig
 from rigctl.record import read_events, read_series
 from rigctl.rigs import rig_kind
 from rigctl.rigs.coil_board.run import CoilBoardRun

@@ -27,10 +27,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.emulators.coilboard.firmware import FirmwareEmulator
 from rigctl.emulators.coilboard.syren import SyrenBus, SyrenWireReader
-
 from rigctl.errors import DeviceTimeout, Disconnected
 from rigctl.stream import StreamLoop
 from rigctl.testing import wait_for

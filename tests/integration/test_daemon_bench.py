@@ -12,12 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.bench import SixCoilBench
 
 from rigctl.client import CommandRefused, Rig
 from rigctl.config import StreamSettings
 from rigctl.daemon.server import Daemon
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.bench import SixCoilBench
 from rigctl.record import read_events, read_stream
 from rigctl.testing import plan_pair, wait_for
 

@@ -15,12 +15,12 @@ from pathlib import Path
 import pytest
 import zmq
 from hypothesis import HealthCheck, given, settings
-from rigctl.plans.schema import MAX_IMAGE_PIXELS
 
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
 from rigctl.daemon.messages import HARD_MAX_MESSAGE_BYTES, Command
 from rigctl.daemon.server import Daemon
 from rigctl.errors import PlanError
+from rigctl.plans.schema import MAX_IMAGE_PIXELS
 
 _spec = importlib.util.spec_from_file_location(
     "fuzz_daemon", Path(__file__).resolve().parents[2] / "bench" / "fuzz_daemon.py")

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from rigctl.client import CommandRefused
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
-
-from rigctl.client import CommandRefused
 from rigctl.record import read_events
 from rigctl.testing import daemon_on, wait_for
 

@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zmq
+
+from rigctl.config import CoilThermal
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
-
-from rigctl.config import CoilThermal
 from rigctl.record import read_series
 from rigctl.testing import daemon_on, wait_for
 

@@ -5,11 +5,11 @@ over the bench's real backdoor; the answer must be what each bench module's docs
 from __future__ import annotations
 
 import pytest
+
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
-
 from rigctl.faults import bench_faults
 
 LINK = {"drop_link", "stall", "corrupt"}  # emulators/base.py: a device with a link

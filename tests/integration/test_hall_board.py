@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from rigctl.drivers.hall import GARBLED_STREAK, HallBoard, HallStream
 from rigctl.emulators.hall.board import HallBoardServer, SensorSpec
 from rigctl.emulators.server import EmulatorServer
-
 from rigctl.errors import DeviceTimeout, Disconnected, ProtocolError
 from rigctl.magnetics import dipole_field, dipole_gradient, field_vector_from_sensors
 from rigctl.rigs.depm.sensors import HallWatch

@@ -8,11 +8,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+
+from rigctl.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
-
-from rigctl.config import load_rig
 from rigctl.record import read_series
 from rigctl.report import build_figure
 from rigctl.rigs.six_coil.global_moves import Run

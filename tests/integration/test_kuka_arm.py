@@ -8,11 +8,11 @@ import threading
 
 import numpy as np
 import pytest
+
 from rigctl.drivers.kuka_sunrise import KukaArm
 from rigctl.emulators.depm import DepmBench
 from rigctl.emulators.kuka.arm import EmulatedArm, SimClock
 from rigctl.emulators.server import EmulatorServer
-
 from rigctl.errors import DeviceError, Disconnected
 from rigctl.rigs.depm.actuators import ArmPair
 from rigctl.testing import wait_for

@@ -11,11 +11,11 @@ import time
 from pathlib import Path
 
 import pytest
+
+from rigctl.config import StreamSettings
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.plans.schema import load_plan
-
-from rigctl.config import StreamSettings
 from rigctl.record import read_events
 from rigctl.rigs.six_coil.global_moves import Run
 from rigctl.testing import wait_for

@@ -10,7 +10,6 @@ from __future__ import annotations
 from rigctl.drivers.kepco_bop import KepcoBop
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
-
 from rigctl.rigs.six_coil.supplies import zero_supplies_directly
 from rigctl.testing import wait_for
 from rigctl.transport import open_transport

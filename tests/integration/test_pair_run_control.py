@@ -21,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from rigctl.cli.main import main
+from rigctl.config import StreamSettings
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.plans.pair import interagent_forces
 from rigctl.plans.schema import load_plan
-
-from rigctl.cli.main import main
-from rigctl.config import StreamSettings
 from rigctl.record import read_events, read_stream
 from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings, hold_field_angle
 from rigctl.run.control import RunState

@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 import pytest
+
+from rigctl.coils import u_actuation_matrix
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.world.pair import PairWorld
@@ -22,8 +24,6 @@ from rigctl.plans.pair import (
     state_from_positions,
 )
 from rigctl.plans.workspace import ShapeWorkspace
-
-from rigctl.coils import u_actuation_matrix
 from rigctl.rigs.six_coil.allocate import currents_for_u, field_and_pull_u
 from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.testing import wait_for
@@ -132,7 +132,6 @@ def run_closed_loop(plan_name, *, offset_bl=(0.0, 0.0), noise_bl=0.01, max_s=60.
         state_of,
     )
     from rigctl.plans.schema import load_plan
-
     from rigctl.rigs.six_coil.pursuit import (
         PairPursuit,
         PursuitSettings,
@@ -206,10 +205,9 @@ def test_a_frozen_camera_holds_the_agents_unseen_and_the_run_resumes(tmp_path):
     import threading
     from pathlib import Path
 
-    from rigctl.plans.schema import load_plan
-
     from rigctl.cli.main import main
     from rigctl.config import StreamSettings
+    from rigctl.plans.schema import load_plan
     from rigctl.rigs.six_coil.pair import PairRun
     from rigctl.testing import wait_for
 

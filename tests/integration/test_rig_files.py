@@ -11,6 +11,7 @@ from urllib.parse import urlsplit
 
 import pytest
 import tomli_w
+
 from rigctl.emulators.process import EmulatedBenchProcess
 
 

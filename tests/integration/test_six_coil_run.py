@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.emulators.bench import SixCoilBench
-from rigctl.plans.schema import load_plan
 
 from rigctl.config import FieldSettings
+from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.bench import SixCoilBench
 from rigctl.errors import DeviceError, LimitError
+from rigctl.plans.schema import load_plan
 from rigctl.rigs.six_coil.global_moves import execute_plan, prepare
 from rigctl.testing import wait_for
 

@@ -7,11 +7,11 @@ import time
 
 import numpy as np
 import pytest
+
+from rigctl.config import CameraSettings
 from rigctl.emulators.camera import CameraModel, Renderer, Scene, serve_camera
 from rigctl.emulators.server import EmulatorServer
 from rigctl.plans.workspace import ShapeWorkspace
-
-from rigctl.config import CameraSettings
 from rigctl.record import RunRecord, read_events
 from rigctl.testing import wait_for
 from rigctl.vision.tracking import TrackingLoop

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import tomli_w
 from pydantic import ValidationError
-from rigctl.emulators.camera.render import CameraModel, Renderer, Scene
-from rigctl.plans.workspace import ShapeWorkspace
 
 from rigctl.camera_model import Calibration, CalibrationError
+from rigctl.emulators.camera.render import CameraModel, Renderer, Scene
+from rigctl.plans.workspace import ShapeWorkspace
 from rigctl.vision.calibration import (
     boundary_corners_mm,
     calibrate_picture,
@@ -135,7 +135,6 @@ def test_boundary_corners_come_counter_clockwise():
 
 def test_the_floor_corners_are_the_free_floors_where_walls_line_the_boundary():
     from rigctl.plans.workspace import ShapeWorkspace
-
     from rigctl.vision.calibration import floor_corners_mm
 
     walls = [("rect", (0, 0, 400, 50)), ("rect", (0, 350, 400, 50)), ("rect", (0, 0, 50, 400)),

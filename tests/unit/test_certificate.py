@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rigctl.plans.schema import load_plan
 from scipy.optimize import brentq
 
 from rigctl.certificate import exposure_checks, rig_hash
@@ -21,6 +20,7 @@ from rigctl.config import (
     default_six_coil_coils,
     dump_rig,
 )
+from rigctl.plans.schema import load_plan
 from rigctl.rigs.coil_board.certify import board_checks, drive_for_limit
 from rigctl.rigs.coil_board.run import CoilBoardRunSettings
 from rigctl.rigs.six_coil.certify import current_program_checks
@@ -120,7 +120,6 @@ def test_the_field_of_a_dipole_at_an_exposure_point_on_its_axis():
 
 def test_the_depm_example_plan_is_certified_and_a_tighter_exposure_limit_refuses_it():
     from rigctl.emulators.depm import default_settings
-
     from rigctl.rigs.depm.run import FieldSequenceProgram
 
     plan = load_plan(EXAMPLES / "depm-plan.json")
@@ -161,9 +160,8 @@ def test_validate_with_a_rig_prints_the_certificate_and_refuses_with_exit_2(tmp_
 
 
 def test_each_arm_s_link_is_checked_against_the_servo_period():
-    from rigctl.emulators.depm import default_settings
-
     from rigctl.config import PreflightSettings
+    from rigctl.emulators.depm import default_settings
     from rigctl.rigs.depm.run import FieldSequenceProgram
 
     plan = load_plan(EXAMPLES / "depm-plan.json")

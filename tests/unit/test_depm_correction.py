@@ -5,9 +5,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from rigctl.plans.depm import default_rig, joints_at
 from rigctl.plans.schema import load_plan
-
 from rigctl.rigs.depm.correction import (
     HoldOffsets,
     correction_step,

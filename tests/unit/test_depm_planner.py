@@ -14,14 +14,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rigctl.plans import depm
-from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
-from rigctl.plans.schema import SequenceComponent, dump_plan, load_plan, parse_plan
 from scipy.interpolate import PchipInterpolator
 
 from rigctl.errors import LimitError, PlanError
 from rigctl.kinematics import default_arms
 from rigctl.magnetics import dipole_field
+from rigctl.plans import depm
+from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
+from rigctl.plans.schema import SequenceComponent, dump_plan, load_plan, parse_plan
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 # KUKA LBR iiwa 14 R820 maximum joint speeds (deg/s, KUKA specification), written out.
@@ -91,7 +91,9 @@ def test_operational_paths_stay_outside_and_on_their_side():
     assert np.all(paths @ rig.side(0) >= -1e-12)
     assert np.all(distance[2, 1:-1] > distance[0, 1:-1])  # the bulged alternative is farther out
     # the base path is linear in (theta, rho, z) about the vertical axis (eq. 12): halfway check
-    theta = lambda p: np.arctan2(p[1], -p[0])  # measured from the left arm's side (-x)
+    def theta(p):  # measured from the left arm's side (-x)
+        return np.arctan2(p[1], -p[0])
+
     mid = paths[0, 5]
     assert theta(mid) == pytest.approx(0.5 * (theta(start) + theta(end)), abs=1e-9)
     rho = 0.5 * (np.hypot(*start[:2]) + np.hypot(*end[:2]))

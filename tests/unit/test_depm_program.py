@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rigctl.emulators.depm import default_settings
-from rigctl.plans.schema import load_plan
 
 from rigctl.config import Emulation, RigConfig, RigInfo
+from rigctl.emulators.depm import default_settings
 from rigctl.errors import ConfigError, LimitError
+from rigctl.plans.schema import load_plan
 from rigctl.rigs.depm.run import (
     FieldSequenceProgram,
     SafetyRefusal,

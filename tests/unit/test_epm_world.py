@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from magpylib.func import cylinder_field
-from rigctl.emulators.world.epm import CylinderEpms
 from scipy.spatial.transform import Rotation
 
+from rigctl.emulators.world.epm import CylinderEpms
 from rigctl.magnetics import MU0, dipole_field, field_vector
 
 PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "depm-plan.json"

@@ -3,10 +3,10 @@ emulated coil errors, and the fit against loops whose true parameters the test c
 
 import numpy as np
 import pytest
-from rigctl.emulators.coil_errors import CoilErrors, as_calibration, true_coils
 
 from rigctl.coils import actuation_matrix
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils, dump_rig, load_rig
+from rigctl.emulators.coil_errors import CoilErrors, as_calibration, true_coils
 from rigctl.errors import ConfigError
 from rigctl.field_calibration import (
     load_field_calibration,

@@ -6,9 +6,9 @@ import json
 
 import numpy as np
 import pytest
+
 from rigctl.drivers.hall import HallBoard
 from rigctl.emulators.hall.board import HallSensorModel, SensorSpec, sample_line
-
 from rigctl.errors import ConfigError, DeviceTimeout, ProtocolError
 from rigctl.magnetics import (
     MU0,

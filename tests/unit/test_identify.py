@@ -6,10 +6,10 @@ import math
 
 import numpy as np
 import pytest
-from rigctl.plans.model import GlobalInputModel
-from rigctl.plans.workspace import ShapeWorkspace
 
 from rigctl.identify import LinearEstimate, RollingIdentifier
+from rigctl.plans.model import GlobalInputModel
+from rigctl.plans.workspace import ShapeWorkspace
 
 BOX = ShapeWorkspace(("rect", (0.0, 0.0, 400.0, 400.0)))
 

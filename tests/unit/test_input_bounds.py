@@ -10,13 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rigctl.plans.schema import (
-    MAX_DURATION_S,
-    MAX_MOVES,
-    MAX_PROGRAM_SAMPLES,
-    MAX_VERTICES,
-    parse_plan,
-)
 
 from rigctl.cli.main import main
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
@@ -27,6 +20,13 @@ from rigctl.daemon.messages import (
     decode_request,
 )
 from rigctl.errors import PlanError
+from rigctl.plans.schema import (
+    MAX_DURATION_S,
+    MAX_MOVES,
+    MAX_PROGRAM_SAMPLES,
+    MAX_VERTICES,
+    parse_plan,
+)
 from rigctl.rigs.six_coil.realize import realize_global_moves
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"

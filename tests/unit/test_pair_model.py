@@ -15,8 +15,15 @@ import numpy as np
 import pytest
 
 from rigctl.plans.pair import (
-    ZERO_RADIAL_ANGLE_RAD, PairPhysics, agent_positions, controllability, interagent_forces,
-    lie_bracket_matrix, rollout, state_from_positions, step_state,
+    ZERO_RADIAL_ANGLE_RAD,
+    PairPhysics,
+    agent_positions,
+    controllability,
+    interagent_forces,
+    lie_bracket_matrix,
+    rollout,
+    state_from_positions,
+    step_state,
 )
 
 MU0 = 4e-7 * math.pi

@@ -13,6 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from rigctl.cli.main import main
+from rigctl.errors import PlanError
 from rigctl.plans.pair import (
     PairPhysics,
     PairPlannerOptions,
@@ -27,9 +30,6 @@ from rigctl.plans.pair import (
 )
 from rigctl.plans.schema import load_plan
 from rigctl.plans.workspace import ShapeWorkspace
-
-from rigctl.cli.main import main
-from rigctl.errors import PlanError
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 WS = ShapeWorkspace(("rect", (0, 0, 20, 14)), [("rect", (6, 0, 1, 8)), ("disk", (11, 5, 1.2))])

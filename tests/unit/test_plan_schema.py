@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from rigctl.errors import PlanError
 from rigctl.plans.checks import check_plan, contact_for_rig, plan_workspace, simulate
 from rigctl.plans.schema import (
     GlobalMovesPlan,
@@ -18,8 +20,6 @@ from rigctl.plans.schema import (
     parse_plan,
     plan_json_schema,
 )
-
-from rigctl.errors import PlanError
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 
@@ -61,7 +61,8 @@ def problem(data, source="plan.json") -> str:
 def test_all_three_shape_spellings_validate():
     workspace = {
         "boundary": {"polygon": [[0, 0], [400, 0], [400, 400], [0, 400]]},
-        "obstacles": [{"rect": [10, 20, 30, 40]}, {"disk": [200, 200, 25]}, {"polygon": [[300, 300], [320, 300], [310, 330]]}],
+        "obstacles": [{"rect": [10, 20, 30, 40]}, {"disk": [200, 200, 25]},
+                      {"polygon": [[300, 300], [320, 300], [310, 330]]}],
     }
     plan = parse_plan(plan_data(workspace=workspace), "plan.json")
     assert isinstance(plan, GlobalMovesPlan)
@@ -72,7 +73,8 @@ def test_all_three_shape_spellings_validate():
 
 
 def test_obstacles_are_optional_and_the_disk_can_be_the_boundary():
-    plan = parse_plan(plan_data(workspace={"boundary": {"disk": [0, 0, 50]}}, agents=[{"start": [0, 0], "goal": [10, 0], "radius": 2}]))
+    plan = parse_plan(plan_data(workspace={"boundary": {"disk": [0, 0, 50]}},
+                                agents=[{"start": [0, 0], "goal": [10, 0], "radius": 2}]))
     assert plan.workspace.obstacles == []
 
 
@@ -170,7 +172,8 @@ def test_check_plan_catches_an_agent_starting_inside_the_l():
 
 
 def test_check_plan_catches_overlapping_agents():
-    agents = [{"start": [100, 100], "goal": [100, 300], "radius": 8}, {"start": [110, 100], "goal": [300, 300], "radius": 8}]
+    agents = [{"start": [100, 100], "goal": [100, 300], "radius": 8},
+              {"start": [110, 100], "goal": [300, 300], "radius": 8}]
     with pytest.raises(PlanError, match="agents.1.start: overlaps agent 0"):
         check_plan(parse_plan(plan_data(agents=agents)))
 

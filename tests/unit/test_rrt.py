@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
+
+from rigctl.cli.main import main as plan_main
+from rigctl.errors import PlanError
+from rigctl.plans.checks import check_plan
 from rigctl.plans.rrt import (
     NearestNodeIndex,
     RrtOptions,
@@ -12,8 +19,7 @@ from rigctl.plans.rrt import (
     plan_rrt,
     replay,
 )
-
-from rigctl.errors import PlanError
+from rigctl.plans.schema import load_plan
 
 # ---------------------------------------------------------------- nearest neighbours and the tree
 
@@ -278,13 +284,6 @@ def test_time_budget_stops_early(model):
 
 # ---------------------------------------------------------------- the command line
 
-import json  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-from rigctl.plans.checks import check_plan
-from rigctl.plans.schema import load_plan  # noqa: E402
-
-from rigctl.cli.main import main as plan_main  # noqa: E402
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 ROBOTS = ["--start", "60,300", "--start", "60,250", "--goal", "330,300", "--goal", "330,200"]

@@ -6,8 +6,8 @@ from __future__ import annotations
 import math
 
 import pytest
-from rigctl.emulators.base import SimClock, bench_class
 
+from rigctl.emulators.base import SimClock, bench_class
 from rigctl.errors import ConfigError
 
 

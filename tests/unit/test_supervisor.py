@@ -6,13 +6,13 @@ import math
 
 import numpy as np
 import pytest
+
+from rigctl.config import FieldSettings, RigConfig, RigInfo, default_six_coil_coils
 from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
+from rigctl.errors import PlanError
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
-
-from rigctl.config import FieldSettings, RigConfig, RigInfo, default_six_coil_coils
-from rigctl.errors import PlanError
 from rigctl.rigs.six_coil.allocate import CurrentProgram
 from rigctl.rigs.six_coil.realize import realize_global_moves
 from rigctl.rigs.six_coil.supervisor import SupervisedSequencer

@@ -5,14 +5,14 @@ import math
 
 import numpy as np
 import pytest
+from scipy.integrate import solve_ivp
+
+from rigctl.config import CoilThermal
 from rigctl.emulators.kepco_bop.model import (
     OVER_TEMPERATURE,
     QUES_OVERTEMPERATURE,
     BopCoilModel,
 )
-from scipy.integrate import solve_ivp
-
-from rigctl.config import CoilThermal
 from rigctl.thermal import (
     Windings,
     rest_to_pass,
@@ -159,9 +159,8 @@ def test_model_and_emulated_windings_agree_within_2_K_over_ten_emulated_minutes(
     `emulated_winding`, R_th and C_th 5 % off the rig file's) stepped by hand through ten
     minutes of a current program that changes every 15 s; the model is given the supplies'
     currents every 10 ms and the rig file's data."""
-    from rigctl.emulators.bench import emulated_winding
-
     from rigctl.config import default_six_coil_coils
+    from rigctl.emulators.bench import emulated_winding
 
     thermal = CoilThermal(thermal_resistance_K_per_W=0.5, thermal_capacity_J_per_K=1500.0,
                           ambient_C=22.0, max_winding_C=150.0, warning_C=140.0)
@@ -264,9 +263,8 @@ def test_the_live_monitor_takes_the_boards_drive_as_volts_and_says_warning_then_
 
 
 def test_the_emulated_board_coils_heat_by_the_syren_output_with_their_own_seeded_data():
-    from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
-
     from rigctl.config import CoilBoardSettings
+    from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
 
     thermal = CoilThermal(thermal_resistance_K_per_W=2.5, thermal_capacity_J_per_K=4.0,
                           ambient_C=25.0, warning_C=90.0, max_winding_C=100.0, alpha_per_K=0.0)
@@ -287,9 +285,8 @@ def test_the_emulated_board_coils_heat_by_the_syren_output_with_their_own_seeded
 
 
 def test_an_emulated_board_coil_past_its_cut_out_pulls_nothing_until_it_has_cooled():
-    from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
-
     from rigctl.config import CoilBoardSettings
+    from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
 
     thermal = CoilThermal(thermal_resistance_K_per_W=4.0, thermal_capacity_J_per_K=1.0,
                           ambient_C=25.0, warning_C=60.0, max_winding_C=70.0, alpha_per_K=0.0)

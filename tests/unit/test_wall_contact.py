@@ -8,6 +8,9 @@ import math
 
 import numpy as np
 import pytest
+
+from rigctl.cli.main import main as cli_main
+from rigctl.errors import PlanError
 from rigctl.plans.checks import check_plan
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.schema import load_plan
@@ -23,9 +26,6 @@ from rigctl.plans.wall_contact import (
     reachable_fraction,
 )
 from rigctl.plans.workspace import ShapeWorkspace
-
-from rigctl.cli.main import main as cli_main
-from rigctl.errors import PlanError
 
 RADIUS = 0.5
 EPSILON = 0.01

@@ -7,10 +7,10 @@ import math
 
 import numpy as np
 import pytest
-from rigctl.plans.wall_contact import centre_region
-from rigctl.plans.wall_contact_3d import plan_two_particles_3d, prism_region
 
 from rigctl.errors import PlanError
+from rigctl.plans.wall_contact import centre_region
+from rigctl.plans.wall_contact_3d import plan_two_particles_3d, prism_region
 
 RADIUS = 0.5
 HEIGHT = 10.0

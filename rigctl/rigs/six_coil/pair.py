@@ -710,7 +710,8 @@ def _details(metrics: dict) -> list[str]:
 def PairRun(plan: PairFormationPlan, rig: RigConfig, *, closed_loop: bool | None = None,
             settings: PairRunSettings = PairRunSettings(), **run_options) -> EngineRun:
     """The run of a pair-formation plan on a six-coil rig (the one engine with `PairProgram`);
-    `closed_loop`, if given, overrides the settings'; `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refuses a bad plan
+    `closed_loop`, if given, overrides the settings'; `run_options` are the engine's (`runs_dir`,
+    `progress_out`, `on_cycle`, `on_state`). Refuses a bad plan
     without I/O."""
     if closed_loop is not None:
         settings = replace(settings, closed_loop=closed_loop)

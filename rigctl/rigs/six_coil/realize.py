@@ -22,7 +22,8 @@ ends with B = B0 e0, horizontal, so the field is continuous from one move to the
 move of N + f turns (the closed loop's corrections) ends with B tilted out of the floor plane by the
 roll: B = B0 (cos(theta) h + sin(theta) z) with h horizontal. The next steering turns h about z and
 keeps theta (the magnet keeps lying on the floor and turns about z), and the next roll starts at the
-angle theta in its own rolling plane, so the field stays continuous; a move is then any length. The program starts with a ramp of |B| from 0 to B0 along `field.initial_heading_deg` and ends,
+angle theta in its own rolling plane, so the field stays continuous; a move is then any length. The
+program starts with a ramp of |B| from 0 to B0 along `field.initial_heading_deg` and ends,
 after the last move's hold, with a ramp back to 0 (and one final sample at exactly 0).
 
 Every phase lasts a whole number of sample periods at `stream.rate_hz`, rounded up, so phase
