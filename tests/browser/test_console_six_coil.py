@@ -159,9 +159,13 @@ def test_estop_button_and_a_fault_named_by_device(rig, browser, screenshots):
         reason = driver.find_element("id", "reason").text
         assert reason.startswith("x+"), reason
         assert any(line.startswith("FAULT x+") for line in js(driver, "rigctlConsole.log"))
-        health = js(driver, "Object.fromEntries([...document.querySelectorAll('#devices tr')]"
-                    ".map(r => [r.cells[0].textContent, r.cells[1].textContent]))")
-        # fault while the run stops; then unsafe (its link down, not confirmed at 0 A)
+        # fault while the run stops; then unsafe (its link down, not confirmed at 0 A). The device
+        # table comes with the next status, which may follow the state's event by a refresh.
+        table = ("Object.fromEntries([...document.querySelectorAll('#devices tr')]"
+                 ".map(r => [r.cells[0].textContent, r.cells[1].textContent]))")
+        wait_page(driver, f"['fault', 'unsafe'].includes({table}['x+'])", 10.0,
+                  "the device table names x+ faulted or unsafe")
+        health = js(driver, table)
         assert health["x+"] in ("fault", "unsafe"), health
         screenshots(driver, "six-coil-faulted")
     finally:

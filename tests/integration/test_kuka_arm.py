@@ -14,6 +14,7 @@ from rigctl.emulators.depm import DepmBench
 from rigctl.emulators.kuka.arm import EmulatedArm, SimClock
 from rigctl.emulators.server import EmulatorServer
 from rigctl.errors import DeviceError, Disconnected
+from rigctl.kinematics import LBR_IIWA_14_R820
 from rigctl.rigs.depm.actuators import ArmPair
 from rigctl.testing import wait_for
 
@@ -240,6 +241,11 @@ def test_arm_pair_emergency_zero_stops_both_and_sends_nothing_after(depm_bench):
     assert pair.stop(0.0) == []
     after = arm_truth(depm_bench)
     assert {name: t["q"] for name, t in after.items()} == at_rest  # nothing moved them since
-    # stopped short of the last target (never past it); on a loaded machine the servo may not have
-    # left the start before the stop came, so the start itself counts
-    assert all(0.0 <= t["q"][1] < math.radians(0.3 * 39) + 1e-9 for t in after.values()), after
+    # stopped between the start (on a loaded machine the servo may not have left it before the stop
+    # came) and the last target plus A2's braking distance from its full speed: the servo follows
+    # the targets with their feed-forward speed, and a stop brakes from whatever speed it finds
+    # (a loaded machine bunches the cycles, so that speed can reach the data sheet's 85 deg/s)
+    a2 = 1
+    braking = LBR_IIWA_14_R820.max_speed[a2] ** 2 / (2 * LBR_IIWA_14_R820.max_accel[a2])
+    assert all(0.0 <= t["q"][a2] < math.radians(0.3 * 39) + braking + 1e-9
+               for t in after.values()), after
