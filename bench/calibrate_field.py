@@ -69,10 +69,11 @@ def rolling_errors(model, true_centre: np.ndarray, headings: int = 8, turns: int
 
     A = actuation_matrix(model)
     radius = model.magnets.radius_mm
+    floor = GlobalInputModel(Workspace.from_spec(parse_workspace(
+        {"boundary": {"rect": [0, 0, 1000, 1000]}})), np.array([1.0]))
     worst_distance = worst_heading = 0.0
     for heading in np.arange(headings) * 2 * np.pi / headings:
-        spec = parse_workspace({"boundary": {"rect": [0, 0, 1000, 1000]}})
-        world = RollingMagnetWorld(GlobalInputModel(Workspace.from_spec(spec), np.array([1.0])),
+        world = RollingMagnetWorld(floor,
                                    np.array([[500.0, 500.0]]), rolling_radius_mm=radius,
                                    min_field_T=model.magnets.min_field_mT * 1e-3)
         d = np.array([np.cos(heading), np.sin(heading), 0.0])

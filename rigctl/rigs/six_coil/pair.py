@@ -415,7 +415,8 @@ class PairProgram(RequestedControl):
                      pair=plan.agents.model_dump())
         if self.rig.camera is not None:  # the agents are found before anything is energised
             self._tracking = TrackingLoop(self.rig.camera, np.full(2, 0.5 * d), start_mm,
-                                          roi_mm=prep.problem.workspace.bounds)
+                                          roi_mm=prep.problem.workspace.bounds,
+                                          on_floor=prep.problem.workspace.contains)
             self._tracking.record_to(ctx.record)  # the camera's positions, in the run record
             self._tracking.tap(ctx.on_frame)  # the console's camera view, if any
             first = self._tracking.start()
