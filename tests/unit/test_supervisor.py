@@ -1,6 +1,6 @@
 """The pieces of the closed loop that need no camera: fractional turns realized and rolled by the
 emulated world, the world's model mismatch against hand-worked distances, and the supervised
-sequencer's gates, splices and holds."""
+sequencer's gates, splices and holds, and the re-plan budget."""
 
 import math
 
@@ -15,7 +15,7 @@ from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
 from rigctl.rigs.six_coil.allocate import CurrentProgram
 from rigctl.rigs.six_coil.realize import realize_global_moves
-from rigctl.rigs.six_coil.supervisor import SupervisedSequencer
+from rigctl.rigs.six_coil.supervisor import ReplanBudget, SupervisedSequencer, SupervisorSettings
 
 TURN_MM = 10.0
 R = TURN_MM / (2 * math.pi)
@@ -213,3 +213,35 @@ def test_a_closed_replan_worker_leaves_no_descriptor_open():
     for worker in kept:
         worker.close()
     assert open_fds() == before
+
+
+def test_corrections_that_keep_gaining_ground_are_not_cut_off_on_the_way():
+    # 20 re-plans on the way, each 2 mm nearer the goals than the one before: none is stalled, so a
+    # budget of 3 stalled re-plans never refuses (the old flat count of 12 stopped such runs)
+    budget = ReplanBudget(SupervisorSettings(max_replans=40, stalled_replans=3, progress_mm=1.0))
+    assert [budget.charge(60.0 - 2 * i, last=False) for i in range(20)] == [None] * 20
+    assert (budget.total, budget.stalled, budget.best_mm) == (20, 0, 22.0)
+
+
+def test_re_plans_that_gain_less_than_progress_mm_are_charged_and_end_the_run():
+    budget = ReplanBudget(SupervisorSettings(stalled_replans=2, progress_mm=1.0))
+    assert budget.charge(10.0, last=False) is None  # the first: progress from nowhere
+    assert budget.charge(9.5, last=False) is None  # 0.5 mm better: stalled 1
+    assert budget.charge(12.0, last=False) is None  # worse: stalled 2
+    assert budget.charge(8.4, last=False) is None  # 1.1 mm better than the best, 9.5: not stalled
+    why = budget.charge(8.0, last=False)  # 0.4 mm better, and two stalled already
+    assert why is not None and "ran out of corrections on the way" in why and "2 corrections" in why
+    assert budget.total == 4
+    assert budget.charge(20.0, last=False, landed=1) is None  # farther, but a move landed: headway
+    assert budget.stalled == 2
+
+
+def test_the_end_of_program_and_the_whole_run_keep_their_own_caps():
+    budget = ReplanBudget(SupervisorSettings(max_replans=5, final_replans=2))
+    assert budget.charge(3.0, last=True) is None
+    assert budget.charge(2.0, last=True) is None
+    assert "2 re-plans at the end of the program" in budget.charge(1.0, last=True)
+    assert budget.charge(50.0, last=False) is None  # on the way, still allowed: 3 of 5 used
+    assert budget.charge(40.0, last=False) is None
+    assert budget.charge(30.0, last=False) is None
+    assert "5 re-plans are used up" in budget.charge(20.0, last=False)

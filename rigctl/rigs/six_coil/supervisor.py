@@ -153,22 +153,59 @@ class SupervisedSequencer(Sequencer):
 class SupervisorSettings:
     """threshold_mm: after a move, a robot farther than this from the expected state re-plans;
     goal_threshold_mm: at the end, every robot must be this close to its goal (None: 3/4 of the
-    plan's tolerance, leaving room for the tracker's error); max_replans:
-    re-plans in a run before giving up; final_replans: of which at most this many after the program
-    ended; replan_budget_s: RRT time budget; settle_s: wait after a move end before judging;
-    rrt_tolerance_mm: what the re-plan aims for (distance in R^2n); seed: the RRT's randomness;
+    plan's tolerance, leaving room for the tracker's error); max_replans: re-plans in a run before
+    giving up, however much they gain (bounds the run's time); stalled_replans: re-plans on the way
+    that found the robots no closer to their goals than at an earlier re-plan (by progress_mm in
+    R^2n) before giving up, so corrections that keep gaining ground are not cut off mid-route;
+    final_replans: at most this many after the program ended; replan_budget_s: RRT time budget;
+    settle_s: wait after a move end before judging; rrt_tolerance_mm: what the re-plan aims for
+    (distance in R^2n); seed: the RRT's randomness;
     estimate_gain: identify each robot's response from the moves seen and re-plan with it (False:
     re-plan with the planner's model as it is)."""
 
     threshold_mm: float = 1.0
     goal_threshold_mm: float | None = None
-    max_replans: int = 12
+    max_replans: int = 40
+    stalled_replans: int = 6
+    progress_mm: float = 1.0
     final_replans: int = 6
     replan_budget_s: float = 2.0
     settle_s: float = 0.05
     rrt_tolerance_mm: float = 0.3
     seed: int = 0
     estimate_gain: bool = True
+
+
+class ReplanBudget:
+    """How many more corrections a run may make. A re-plan on the way is charged as stalled only
+    when the run made no headway since the one before: no move of that correction landed on its
+    plan (`landed`, the moves judged within the threshold since), and the robots are no closer to
+    their goals (distance in R^2n) than at the best earlier re-plan by `progress_mm`. (The goal
+    distance alone is no measure: a route round an obstacle takes the robots away from their goals
+    for a while.) Every re-plan counts against `max_replans`, those after the program ended against
+    `final_replans`. `charge` returns None while the run may re-plan, else why it may not."""
+
+    def __init__(self, settings: SupervisorSettings) -> None:
+        self.settings = settings
+        self.total = self.stalled = self.final = 0
+        self.best_mm = math.inf
+
+    def charge(self, goal_distance_mm: float, last: bool, landed: int = 0) -> str | None:
+        s = self.settings
+        if self.total >= s.max_replans:
+            return f"the run's {s.max_replans} re-plans are used up"
+        if last and self.final >= s.final_replans:
+            return f"{s.final_replans} re-plans at the end of the program did not reach them"
+        progressed = landed > 0 or goal_distance_mm <= self.best_mm - s.progress_mm
+        if not last and not progressed and self.stalled >= s.stalled_replans:
+            return (f"ran out of corrections on the way: {self.stalled} corrections missed at "
+                    f"their first move and brought the robots no closer to their goals (best "
+                    f"{self.best_mm:.2f} mm in all, now {goal_distance_mm:.2f} mm)")
+        self.total += 1
+        self.final += last
+        self.stalled += not last and not progressed
+        self.best_mm = min(self.best_mm, goal_distance_mm)
+        return None
 
 
 @dataclass
@@ -218,7 +255,8 @@ class Supervisor:
                                      on_floor=self.model.workspace.contains)
         self.gain = 1.0
         self.replans = 0
-        self.final_replans = 0
+        self.budget = ReplanBudget(settings)
+        self._landed = 0  # moves judged on their plan since the last re-plan
         self.decisions: list[Decision] = []
         self.tracking_errors_mm: list[float] = []
         self.fault: RigError | None = None
@@ -353,15 +391,16 @@ class Supervisor:
                  else error.max() <= self.settings.threshold_mm)
         if go_on:  # release first, write the record after: the command leaves sooner
             decision.kind = "done" if last else "continue"
+            self._landed += 1
             seq.release(number)
         self._event("check", sample=sample, error_mm=error.round(4).tolist(),
                     goal_error_mm=goal_error.round(4).tolist(), last=last, gain=round(self.gain, 4))
         if go_on:
             return
-        if self.replans >= self.settings.max_replans or (
-                last and self.final_replans >= self.settings.final_replans):
+        refused = self.budget.charge(float(np.linalg.norm(goal_error)), last, self._landed)
+        if refused is not None:
             raise PlanError(
-                f"goals not reached after {self.replans} re-plans: agents "
+                f"goals not reached after {self.replans} re-plans ({refused}): agents "
                 f"{np.flatnonzero(goal_error > self.goal_threshold_mm).tolist()} are "
                 f"{goal_error.max():.2f} mm from their goals at worst (threshold "
                 f"{self.goal_threshold_mm:g} mm)")
@@ -393,8 +432,7 @@ class Supervisor:
                             f"closer to their goals in {REPLAN_ATTEMPTS} attempts (best "
                             f"{result.distance:.2f} mm)")
         self.replans += 1
-        if last:
-            self.final_replans += 1
+        self._landed = 0
         commanded = result.moves  # the model already maps each robot's response
         program = realize_global_moves(commanded, self._fractional_rig,
                                        start_field_T=self._fields[max(sample - 1, 0)])
