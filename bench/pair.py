@@ -15,8 +15,15 @@ Figures:
   process; camera sensor noise always on, plus --noise MM of agent jitter per sqrt(s)):
   rms_tracking_error_bl (goal <= 0.1), hold_max_error_bl (goal <= 0.2), min_separation_bl against
   the plan's r_min (no violation), reached.
+- mobility: the formation change on a bench whose agents move --slip times as fast under a force
+  as the plan's Stokes drag says (a liquid 1/slip as viscous; default 0.6), closed loop with the
+  pull gain identified from tracking (`PullIdentification`) and without (the pursuit believes the
+  plan's drag): each run's tracking RMS, hold error, duration and reached, and the identified gain
+  (+- its standard deviation) against the true pull gain (the slip times the coils' own gradient
+  error, which --coil-error 0 removes: the bench is started with it, so the truth is the slip).
 
 Usage: python bench/pair.py [--quick] [--seeds N] [--budget S] [--replans N] [--noise MM]
+                            [--slip F] [--mobility-seeds N]
 (--quick: the default planner only, 3 seeds, and only the formation change is run; about 1 minute.)
 """
 
@@ -170,6 +177,48 @@ def bench_runs(names, noise):
     return out
 
 
+def bench_mobility(slip: float, seeds: int) -> dict:
+    """The formation change with agents `slip` times as mobile as planned, with and without the
+    pull gain identified (module docstring)."""
+    from dataclasses import replace
+
+    from rigctl.config import load_rig
+    from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.plans.schema import load_plan
+    from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings, loopback_rig
+
+    plan = load_plan(EXAMPLES / PROBLEMS["formation_change"][0])
+    runs: dict[str, list] = {"identified": [], "not_identified": []}
+    for seed in range(seeds):
+        for name, identify in (("identified", True), ("not_identified", False)):
+            with tempfile.TemporaryDirectory() as tmp, EmulatedBenchProcess(
+                    "six-coil", Path(tmp) / "bench.toml",
+                    extra_args=["--world", "pair", "--slip", str(slip), "--coil-error", "0",
+                                "--seed", str(seed)]) as rig_path:
+                settings = replace(PairRunSettings(), identify_pull=identify)
+                run = PairRun(plan, loopback_rig(load_rig(rig_path)), settings=settings,
+                              runs_dir=Path(tmp) / "runs", progress_out=None)
+                s = run.execute()
+            m = s.metrics
+            row = {"seed": seed, "reached": s.reached, "duration_s": round(s.duration_s, 2),
+                   "rms_tracking_error_bl": m.get("rms_tracking_error_bl"),
+                   "hold_max_error_bl": m.get("hold_max_error_bl"),
+                   "faults": [f["reason"] for f in s.faults]}
+            if identify:
+                row["pull_identified"] = m.get("pull_identified")
+            runs[name].append(row)
+
+    def median(name: str, key: str):
+        values = [r[key] for r in runs[name] if r[key] is not None]
+        return round(statistics.median(values), 4) if values else None
+
+    return {"slip": slip, "true_pull_gain": slip, "seeds": seeds,
+            **{f"{name}_{key}_median": median(name, key) for name in runs
+               for key in ("rms_tracking_error_bl", "duration_s")},
+            **{f"{name}_reached": sum(r["reached"] for r in runs[name]) for name in runs},
+            "runs": runs}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
@@ -179,6 +228,10 @@ def main() -> None:
                         help="time limit per solve (default 10 s: the goal is 95 %% within it)")
     parser.add_argument("--replans", type=int, default=30)
     parser.add_argument("--noise", type=float, default=0.0, metavar="MM")
+    parser.add_argument("--slip", type=float, default=0.6, metavar="F",
+                        help="the mobility figure's agents move F times as fast as planned")
+    parser.add_argument("--mobility-seeds", type=int, default=None, metavar="N",
+                        help="runs each way of the mobility figure (default 3, --quick 1)")
     args = parser.parse_args()
     names = ["formation_change"] if args.quick else list(PROBLEMS)
     seeds = args.seeds or (3 if args.quick else 10)
@@ -189,6 +242,7 @@ def main() -> None:
         "replan": bench_replan(args.replans),
         "decide": bench_decide(),
         "runs": bench_runs(names, args.noise),
+        "mobility": bench_mobility(args.slip, args.mobility_seeds or (1 if args.quick else 3)),
     }
     result["bench_seconds"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(result))

@@ -335,7 +335,8 @@ class Emulation(_Strict):
     backdoor: DeviceUrl = Field(description="tcp://host:port of the bench's test backdoor")
     pid: int | None = None
     # How the emulated world departs from the planner's model (`rigctl emulate --slip ...`).
-    slip: Annotated[float, Field(gt=0, description="distance per turn x slip")] = 1.0
+    slip: Annotated[float, Field(gt=0, description="distance per turn x slip (pair world: speed "
+                                                   "under a force x slip)")] = 1.0
     speed_spread: Annotated[
         float, Field(ge=0, description="per-robot distance per turn x (1 + s_i), s_i ~ N(0, this)")
     ] = 0.0

@@ -15,7 +15,7 @@ linearly, y = H x + e (e ~ N(0, sigma^2 I)), updated move by move with the Kalma
   (`rigctl.rigs.coil_board.run.RelativeDrift` refits a `LinearEstimate` from every free move).
 
 A move a measurement shows to be off the estimate by more than `gate_sigma` standard deviations
-(an agent that met a wall, a mis-tracked frame) is left out rather than allowed to bend the
+(an agent that met a wall unseen, a mis-tracked frame) is left out rather than allowed to bend the
 estimate; the caller decides which moves were free at all.
 """
 
@@ -107,14 +107,19 @@ class RollingIdentifier:
     n: agents; prior_gain, gain_std: what is believed before any move (g = 1 in the planner's
     model); heading_std_rad, drift_std_mm_s: the priors of the others; noise_mm: the camera's
     error on one displacement (two positions); noise_per_mm: the error that grows with the distance
-    rolled (slip that varies from turn to turn); walk_gain_std: per move, how far g may wander.
+    rolled (slip that varies from turn to turn); walk_gain_std: per move, how far g may wander;
+    names: what the record's series calls each agent (default its index; the pair's "centroid").
+    Lengths are in mm.
     """
 
     def __init__(self, n: int, *, prior_gain: float = 1.0, gain_std: float = 0.3,
                  heading_std_rad: float = 0.1, drift_std_mm_s: float = 0.02,
                  noise_mm: float = 0.08, noise_per_mm: float = 0.004,
-                 walk_gain_std: float = 0.002) -> None:
+                 walk_gain_std: float = 0.002, names: Sequence[str] | None = None) -> None:
         self.n = int(n)
+        self.names = [str(i) for i in range(self.n)] if names is None else [str(v) for v in names]
+        if len(self.names) != self.n:
+            raise ValueError(f"names: one per agent ({self.n}), got {self.names}")
         self.noise_mm, self.noise_per_mm = float(noise_mm), float(noise_per_mm)
         ab_std = prior_gain * heading_std_rad
         self.estimates = [
@@ -210,7 +215,7 @@ class RollingIdentifier:
         """Columns of the record's `identification` series: `t_s`, then per agent i and
         parameter P the column `P_i`, and `P_i_std` for its standard deviation where known."""
         columns = ["t_s"]
-        for i in range(self.n):
+        for i in self.names:
             for name in self.SERIES_UNITS:
                 columns.append(f"{name[:-4]}_{i}_std" if name.endswith("_std") else f"{name}_{i}")
         return columns
@@ -218,7 +223,7 @@ class RollingIdentifier:
     def series_units(self) -> dict[str, str]:
         units = dict.fromkeys(self.series_columns(), "")
         units["t_s"] = "s"
-        for i in range(self.n):
+        for i in self.names:
             for name, unit in self.SERIES_UNITS.items():
                 key = f"{name[:-4]}_{i}_std" if name.endswith("_std") else f"{name}_{i}"
                 units[key] = unit
@@ -244,3 +249,34 @@ class RollingIdentifier:
             "drift_mm_s": np.round(self.drift_mm_s, 5).tolist(),
             "moves_used": self.updates.tolist(),
         }
+
+
+class CommandedVelocity:
+    """A commanded velocity (2,) that holds from each time it was sent until the next, for
+    integrating over the interval between two camera frames: how far an agent was told to go
+    while the camera watched (a rig that commands velocities, not moves: the pair's pull).
+
+    keep_s: how much history is kept (older entries are dropped once a newer one covers them).
+    """
+
+    def __init__(self, keep_s: float = 10.0) -> None:
+        self.keep_s = float(keep_s)
+        self._t: list[float] = []
+        self._v: list[np.ndarray] = []
+
+    def send(self, t: float, velocity: ArrayLike) -> None:
+        """From time t (s, the caller's clock) on, `velocity` (2,) is commanded."""
+        self._t.append(float(t))
+        self._v.append(np.asarray(velocity, dtype=float).reshape(2).copy())
+        while len(self._t) > 1 and self._t[1] < t - self.keep_s:
+            del self._t[0], self._v[0]
+
+    def integral(self, t0: float, t1: float) -> np.ndarray:
+        """(2,) the commanded velocity integrated over [t0, t1] (nothing before the first send)."""
+        total = np.zeros(2)
+        for i, start in enumerate(self._t):
+            end = self._t[i + 1] if i + 1 < len(self._t) else math.inf
+            lo, hi = max(start, t0), min(end, t1)
+            if hi > lo:
+                total += self._v[i] * (hi - lo)
+        return total

@@ -570,7 +570,7 @@ def _period_panel(data: RunData, clock: str) -> list[TimePanel]:
     return [TimePanel("period", axis_clock, draw)]
 
 
-IDENTIFIED_LABELS = {"1": "gain (rolled / commanded)", "deg": "heading bias (deg)",
+IDENTIFIED_LABELS = {"1": "gain (moved / commanded)", "deg": "heading bias (deg)",
                      "mm/s": "drift (mm/s)", "1/mm": "rate (1/mm)"}
 
 
@@ -596,7 +596,10 @@ def _identification_panels(data: RunData, clock: str) -> list[TimePanel]:
                 name, _, agent = column.rpartition("_")
                 # the unit is the axis's: "drift_x_mm_s" is "drift x" in the legend
                 bare = name.removesuffix("_mm_s").removesuffix("_deg").replace("_", " ")
-                label = f"{bare}, agent {agent}" if agent.isdigit() else column.replace("_", " ")
+                # an agent's column has its own move count: P_i, or P_name (the pair's centroid)
+                named = f"moves_used_{agent}" in series
+                label = (f"{bare}, agent {agent}" if agent.isdigit() else f"{bare}, {agent}"
+                         if named else column.replace("_", " "))
                 used = series.get(f"moves_used_{agent}", series.get("moves_used"))
                 known = np.ones(len(t_axis), bool) if used is None else used > 0
                 value = series[column]

@@ -11,9 +11,11 @@ geometry (not the allocator's matrix), plus the other agent's dipole field. Each
 - contact: the liquid surface holds them in the plane; walls and the other agent are hard (an
   agent is pushed back out along the wall's normal, two agents apart along their line of centres).
 
-Model mismatch (`Mismatch`): `noise_mm` is a random walk of that many mm per square-root second
-(Brownian-like jitter, surface currents), `drift_mm_per_s` a steady drift in a direction drawn from
-`seed`. The camera adds its own noise when it renders the agents.
+Model mismatch (`Mismatch`): `slip` is the agents' mobility against the plan's Stokes drag (they
+move `slip` times as fast under a force: a liquid 1/slip times as viscous as the plan says, as a few
+degrees of temperature make water; 1 = the plan's), `noise_mm` a random walk of that many mm per
+square-root second (Brownian-like jitter, surface currents), `drift_mm_per_s` a steady drift in a
+direction drawn from `seed`. The camera adds its own noise when it renders the agents.
 """
 
 from __future__ import annotations
@@ -126,7 +128,7 @@ class PairWorld:
             forces[1][1] += fy
             forces[0][0] -= fx
             forces[0][1] -= fy
-        to_mm = dt_s * 1e3 / self.physics.drag_N_s_per_m
+        to_mm = dt_s * 1e3 * self.mismatch.slip / self.physics.drag_N_s_per_m
         step = np.array(forces) * to_mm + self._drift * dt_s
         if self.mismatch.noise_mm > 0:
             step += self._rng.normal(0.0, self.mismatch.noise_mm * math.sqrt(dt_s), (2, 2))

@@ -60,7 +60,8 @@ def _bench_args(args: argparse.Namespace) -> list[str]:
 
 def _add_mismatch_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("model mismatch of the emulated world (recorded in the rig file)")
-    g.add_argument("--slip", type=float, help="distance per turn x F (e.g. 0.85)")
+    g.add_argument("--slip", type=float, help="distance per turn x F (e.g. 0.85); --world pair: the "
+                   "agents' speed under a force x F (the liquid 1/F times as viscous)")
     g.add_argument("--speed-spread", type=float,
                    help="each robot's distance per turn x (1 + s_i), s_i ~ N(0, F)")
     g.add_argument("--drift", type=float, metavar="MM_PER_S",

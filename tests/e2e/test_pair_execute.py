@@ -44,8 +44,14 @@ def test_closed_loop_reaches_and_holds_the_goal_formation(short_plan, tmp_path):
     assert m["min_separation_bl"] >= plan["r_min_bl"] - 0.15
     assert m["truth_min_separation_bl"] >= plan["r_min_bl"] - 0.15
     run = Path(s["run"])
-    for name in ("plan.json", "rig.toml", "events.jsonl", "stream.csv", "summary.json"):
+    for name in ("plan.json", "rig.toml", "events.jsonl", "stream.csv", "summary.json",
+                 "series/identification.csv"):
         assert (run / name).is_file(), name
+    # the pull gain identified from tracking, in the summary and over time in the record
+    pull = m["pull_identified"]
+    assert pull["windows_used"] >= 1 and 0.3 <= pull["gain"] <= 3.0 and pull["gain_std"] < 0.3
+    rows = (run / "series" / "identification.csv").read_text().splitlines()
+    assert rows[0].split(",")[:2] == ["t_s", "gain_centroid"] and len(rows) == 2 + pull["windows_used"]
     events = [json.loads(line)["event"] for line in (run / "events.jsonl").read_text().splitlines()]
     assert {"placed", "energised", "track", "holding", "safe"} <= set(events)
 

@@ -9,6 +9,7 @@ the coils' centre both must agree; the reference values are the closed form r^5 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,6 +29,7 @@ from rigctl.rigs.six_coil.allocate import currents_for_u, field_and_pull_u
 from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.testing import wait_for
 
+ROOT_EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 PHYSICS = PairPhysics()
 RIG = default_rig()
 A8 = u_actuation_matrix(RIG)
@@ -39,9 +41,9 @@ def currents(psi_g, pull_bl_s=(0.0, 0.0), b0_T=2e-3):
     return currents_for_u(A8, field_and_pull_u(psi_g, force, PHYSICS.moment_Am2, b0_T), RIG)
 
 
-def run_world(q0, amps, seconds, workspace=OPEN):
+def run_world(q0, amps, seconds, workspace=OPEN, mismatch=None):
     world = PairWorld(workspace, agent_positions(np.asarray(q0)) * PHYSICS.body_diameter_mm,
-                      PHYSICS, RIG, (10.0, 7.0))
+                      PHYSICS, RIG, (10.0, 7.0), mismatch)
     for _ in range(int(round(seconds / 1e-3))):
         world.step(1e-3, amps)
     return world, state_from_positions(world.positions_mm / PHYSICS.body_diameter_mm)
@@ -61,12 +63,17 @@ def test_head_to_tail_agents_attract_until_they_touch():
     assert world.min_separation_mm >= 1.0 - 1e-3
 
 
-def test_the_gradient_pulls_the_centroid_at_the_planned_speed():
+@pytest.mark.parametrize("slip", [1.0, 0.6])
+def test_the_gradient_pulls_the_centroid_at_the_planned_speed(slip):
+    """slip: the agents' mobility against the plan's Stokes drag (a liquid 1/slip as viscous)."""
+    from rigctl.emulators.world.rolling import Mismatch
+
     psi = math.radians(30)
     pull = (0.4, 0.2)  # BL/s, inside the box at 30 deg: 0.4 <= p cos 30, 0.2 <= p sin 30
-    world, q = run_world([10.0, 7.0, 3.0, math.pi / 2], currents(psi, pull), 0.5)
-    # far apart (r = 3) the pair barely moves relative to itself; the centroid moves f t
-    assert q[:2] == pytest.approx([10.0 + 0.2, 7.0 + 0.1], abs=0.01)
+    world, q = run_world([10.0, 7.0, 3.0, math.pi / 2], currents(psi, pull), 0.5,
+                         mismatch=Mismatch(slip=slip))
+    # far apart (r = 3) the pair barely moves relative to itself; the centroid moves slip f t
+    assert q[:2] == pytest.approx([10.0 + 0.2 * slip, 7.0 + 0.1 * slip], abs=0.01)
 
 
 def test_walls_stop_the_agents():
@@ -119,11 +126,12 @@ def test_bench_moves_the_agents_with_the_currents_the_supplies_make(bench):
     assert abs(moments[0, 0]) < 0.02 * PHYSICS.moment_Am2  # along the field: +y
 
 
-def run_closed_loop(plan_name, *, offset_bl=(0.0, 0.0), noise_bl=0.01, max_s=60.0, seed=1):
+def run_closed_loop(plan_name, *, offset_bl=(0.0, 0.0), noise_bl=0.01, max_s=60.0, seed=1,
+                    mismatch=None, identify=None):
     """The tracking controller on the world in this process (no camera): frames every 16 ms,
-    measured with Gaussian noise and 30 ms late, currents through the allocation."""
-    from pathlib import Path
-
+    measured with Gaussian noise and 30 ms late, currents through the allocation; `identify`, a
+    `PullIdentification`, is given every frame and every pull sent, and the pursuit pursues with
+    its estimate."""
     from rigctl.plans.pair import (
         physics_of,
         plan_arrays,
@@ -149,7 +157,8 @@ def run_closed_loop(plan_name, *, offset_bl=(0.0, 0.0), noise_bl=0.01, max_s=60.
         max_pull=0.95 * rig_max_pull(RIG, physics, plan.field_mT)))
     bounds = np.array(problem.workspace.bounds)
     begin = agent_positions(start) + np.array([[offset_bl[0], offset_bl[1]], [0.0, 0.0]])
-    world = PairWorld(problem.workspace, begin * d, physics, RIG, 0.5 * (bounds[:2] + bounds[2:]))
+    world = PairWorld(problem.workspace, begin * d, physics, RIG, 0.5 * (bounds[:2] + bounds[2:]),
+                      mismatch)
     rng = np.random.default_rng(seed)
     amps, frames, errors, modes, held = np.zeros(6), [], [], [], 0.0
     for step in range(int(max_s / 1e-3)):
@@ -159,8 +168,12 @@ def run_closed_loop(plan_name, *, offset_bl=(0.0, 0.0), noise_bl=0.01, max_s=60.
             seen = [f for f in frames if f[0] <= t - 0.03]
             if seen:
                 t_seen, p = seen[-1]
+                if identify is not None and identify.frame(t_seen, p * d):
+                    pursuit.set_pull_response(*identify.response())
                 q = pursuit.carry_forward(state_from_positions(p), t - t_seen)
                 u = pursuit.decide(q)
+                if identify is not None:
+                    identify.send(t, u[1:])
                 modes.append(pursuit.mode)
                 force = u[1:] * physics.drag_N_s_per_m * physics.diameter_m
                 amps = currents_for_u(A8, field_and_pull_u(
@@ -188,6 +201,42 @@ def test_pursuit_tracks_the_formation_change_and_holds_the_goal(seed):
     assert float(np.sqrt(np.mean(errors**2))) <= 0.1  # ground truth's distance to the path, BL
     assert goal_error(final, nodes[-1]) <= plan.tolerance_bl
     assert world.min_separation_mm / plan.agents.body_diameter_mm > plan.r_min_bl - 0.1
+
+
+def test_the_pull_gain_is_identified_from_tracking_and_pursued_with():
+    """Agents 0.6 times as mobile as the plan's drag says (a liquid 1/0.6 as viscous): the
+    centroid's motion against the pull commanded gives 0.6, and the run still reaches the goal."""
+    from rigctl.emulators.world.rolling import Mismatch
+    from rigctl.plans.pair import goal_error, problem_of
+    from rigctl.plans.schema import load_plan
+    from rigctl.rigs.six_coil.pair import PullIdentification
+
+    plan = load_plan(ROOT_EXAMPLES / "pair-formation-change.json")
+    identify = PullIdentification(plan.agents.body_diameter_mm, problem_of(plan).workspace, 0.5)
+    plan, nodes, errors, modes, world, final = run_closed_loop(
+        "pair-formation-change.json", mismatch=Mismatch(slip=0.6), identify=identify)
+    estimate = identify.identifier.summary()
+    assert estimate["moves_used"][0] >= 8
+    assert estimate["gain"][0] == pytest.approx(0.6, abs=max(0.05, 3 * estimate["gain_std"][0]))
+    assert abs(estimate["heading_deg"][0]) < 5.0
+    assert modes[-1] == "hold" and goal_error(final, nodes[-1]) <= plan.tolerance_bl
+
+
+def test_the_pursuit_commands_the_inverse_of_the_identified_response():
+    from rigctl.plans.pair import problem_of
+    from rigctl.plans.schema import load_plan
+    from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings
+
+    plan = load_plan(ROOT_EXAMPLES / "pair-formation-change.json")
+    pursuit = PairPursuit(problem_of(plan), np.zeros((2, 4)), PursuitSettings(max_pull=1.0))
+    psi = math.radians(40)
+    pursuit.set_pull_response(0.5, 0.0)  # the agents do half what they are told: ask twice
+    assert pursuit.commanded(np.array([psi, 0.2, 0.1])) == pytest.approx([psi, 0.4, 0.2])
+    pursuit.set_pull_response(1.0, math.pi / 2)  # they move 90 deg to the left of the pull
+    assert pursuit.commanded(np.array([psi, 0.2, 0.1])) == pytest.approx([psi, 0.1, -0.2])
+    pursuit.set_pull_response(0.25, 0.0)  # beyond the coils' box at psi: clipped to it
+    assert pursuit.commanded(np.array([psi, 0.4, 0.4])) == pytest.approx(
+        [psi, math.cos(psi), math.sin(psi)])
 
 
 def test_proximity_controller_brings_strayed_agents_back_to_the_path():

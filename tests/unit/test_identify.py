@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.identify import LinearEstimate, RollingIdentifier
+from rigctl.identify import CommandedVelocity, LinearEstimate, RollingIdentifier
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.workspace import ShapeWorkspace
 
@@ -169,3 +169,32 @@ def test_a_contact_correction_uses_the_identified_gains():
     assert np.linalg.norm(identified.rollout(start, correction.moves)[-1] - goals) < 0.05
     naive = correct_by_contact(GlobalInputModel(BOX, [8.0, 8.0]), start, goals)
     assert np.linalg.norm(identified.rollout(start, naive.moves)[-1] - goals) > 1.5
+
+
+def test_commanded_velocity_integrates_piecewise_between_two_frames():
+    log = CommandedVelocity()
+    log.send(1.0, (2.0, 0.0))
+    log.send(1.5, (0.0, -4.0))
+    log.send(2.0, (1.0, 1.0))
+    # [0.5, 1.0): nothing sent yet; [1.0, 1.5): 2 x 0.5 in x; [1.5, 2.0): -4 x 0.5 in y;
+    # [2.0, 2.25]: 1 x 0.25 in both
+    assert log.integral(0.5, 2.25) == pytest.approx([1.0 + 0.25, -2.0 + 0.25])
+    assert log.integral(1.2, 1.4) == pytest.approx([0.4, 0.0])
+    assert log.integral(3.0, 3.0) == pytest.approx([0.0, 0.0])
+
+
+def test_commanded_velocity_keeps_only_recent_history():
+    log = CommandedVelocity(keep_s=1.0)
+    for k in range(100):
+        log.send(0.1 * k, (1.0, 0.0))
+    assert len(log._t) <= 12  # 1 s of 0.1 s entries, and the one that covers its start
+    assert log.integral(9.0, 9.5) == pytest.approx([0.5, 0.0])
+
+
+def test_named_agents_name_the_series_columns():
+    columns = RollingIdentifier(1, names=["centroid"]).series_columns()
+    assert "gain_centroid" in columns and "gain_centroid_std" in columns
+    assert "moves_used_centroid" in columns
+    with pytest.raises(ValueError):
+        RollingIdentifier(2, names=["one"])
+

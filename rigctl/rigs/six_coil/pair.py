@@ -12,9 +12,11 @@ camera, and the supplies switched on.
 Closed loop (default whenever the rig has a camera): on every fresh frame the measured formation is
 carried forward over the camera's latency and `PairPursuit` picks the control; its currents go out
 on the next stream cycle, rate-limited so no supply needs more than 90 % of its compliance
-voltage. While tracking is lost the run is suspended and the agents are held unseen (no pull, the
-field flipped about the zero-radial angle of their last heading); lost for `lost_after_s` is a
-fault of the camera. When the agents stay off the path (proximity mode) longer than
+voltage. The pull gain is identified from the frames as the run goes (`PullIdentification`) and
+the pursuit pursues with it (`settings.identify_pull`; `metrics.pull_identified`, the record's
+`identification` series). While tracking is lost the run is suspended and the agents are held
+unseen (no pull, the field flipped about the zero-radial angle of their last heading); lost for
+`lost_after_s` is a fault of the camera. When the agents stay off the path (proximity mode) longer than
 `replan_after_s`, the path is re-planned from the measured state onto the rest of the path in a
 worker thread and spliced in. At the last node the goal formation is held for the plan's `hold_s`.
 `--open-loop` plays the plan's controls back (the paper's open-loop mode); the camera, if any,
@@ -24,7 +26,8 @@ The summary is the runs' one shape (`RunSummary`), errors in body lengths (`unit
 `metrics` add `rms_tracking_error_bl` (each measured agent's distance to its planned path, RMS
 over frames and agents), `max_tracking_error_bl`, `min_separation_bl` (smallest measured centre
 distance; `truth_min_separation_bl` the emulator's), `hold_max_error_bl` (largest agent distance
-from its goal while holding), `held_s`, `replan_ms` and `mode`.
+from its goal while holding), `held_s`, `replan_ms`, `mode` and, closed loop, `pull_identified`
+(gain, gain_std, heading_deg, windows_used).
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from rigctl.coils import u_actuation_matrix
 from rigctl.config import RigConfig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.errors import ConfigError, LimitError, PlanError
+from rigctl.identify import CommandedVelocity, RollingIdentifier
 from rigctl.plans.pair import (
     ZERO_RADIAL_ANGLE_RAD,
     PairPlannerOptions,
@@ -75,6 +79,7 @@ HOLD_START_SHARE = 0.75  # the hold's clock starts when both agents are this sha
 LOOPBACK_REPLY_TIMEOUT_S = 1.0  # supplies' watchdog when execute started the emulated bench
 HOLD_DITHER_S = 0.1  # a hold's field switches between 54.74 and 125.26 deg this often
 RAMP, HOLD = -1, -2  # stages of the open-loop program that are not segments
+PULL_GAIN_LIMITS = (0.3, 3.0)  # an identified pull gain outside these is not believed
 
 
 @dataclass(frozen=True)
@@ -87,6 +92,8 @@ class PairRunSettings:
     replan_after_s: float = 2.0
     lost_after_s: float = 2.0  # tracking lost this long: a fault
     stale_s: float = 0.25  # no fresh frame this long: hold the agents unseen (a frozen camera)
+    identify_pull: bool = True  # identify the pull gain from tracking and pursue with it
+    identify_window_s: float = 0.5  # the camera's frames this far apart make one measurement
 
 
 @dataclass
@@ -299,6 +306,64 @@ def expected_headings(nodes: np.ndarray, stage_of: np.ndarray) -> np.ndarray:
     return phi
 
 
+class PullIdentification:
+    """The pair's pull gain from tracking (`rigctl.identify`): how far the agents' centroid moves
+    for the pull commanded. The dipole forces between the agents are equal and opposite, so only
+    the coils' pull and a drift move the centroid, c(t1) - c(t0) = g R(theta) int f dt + v (t1 - t0):
+    the rolling robots' linear model with the centroid as the one agent and the integral of the
+    commanded pull (`CommandedVelocity`) as its move, in mm. A measurement spans `window_s` between
+    two frames in which both agents kept `WALL_MARGIN_BL` from every wall (a wall pushes back);
+    a hold, a pause, a lost camera or a ramp starts the window again. g lumps the liquid's
+    viscosity, the agents' moments and the coils' gradient as built."""
+
+    WALL_MARGIN_BL = 0.3
+    MIN_PULL_BL = 0.2  # a window commanded less than this far says nothing of the gain
+
+    def __init__(self, d_mm: float, workspace, window_s: float) -> None:
+        self.d_mm, self.workspace, self.window_s = float(d_mm), workspace, float(window_s)
+        self.identifier = RollingIdentifier(1, gain_std=0.3, heading_std_rad=0.1,
+                                            drift_std_mm_s=0.01 * d_mm, noise_mm=0.03 * d_mm,
+                                            noise_per_mm=0.03, names=["centroid"])
+        self.commands = CommandedVelocity()
+        self._start: tuple[float, np.ndarray] | None = None  # (capture time, centroid mm)
+        self._pulling = False
+
+    def send(self, t: float, pull_bl_s: np.ndarray) -> None:
+        """The pull (f_x, f_y) BL/s commanded from monotonic time t on."""
+        self.commands.send(t, np.asarray(pull_bl_s, dtype=float) * self.d_mm)
+        self._pulling = True
+
+    def interrupt(self, t: float) -> None:
+        """Something other than the pursuit commands the coils from t on (no pull assumed)."""
+        if self._pulling or self._start is not None:
+            self.commands.send(t, np.zeros(2))
+            self._pulling, self._start = False, None
+
+    def frame(self, t: float, positions_mm: np.ndarray) -> bool:
+        """A fresh frame captured at t (both agents seen); True when it closed a measurement the
+        estimate took."""
+        clear = self.workspace.clearance(positions_mm) >= (0.5 + self.WALL_MARGIN_BL) * self.d_mm
+        if not bool(np.all(clear)):
+            self._start = None
+            return False
+        centroid = positions_mm.mean(axis=0)
+        if self._start is None or t - self._start[0] < self.window_s:
+            if self._start is None:
+                self._start = (t, centroid)
+            return False
+        t0, c0 = self._start
+        self._start = (t, centroid)
+        pulled = self.commands.integral(t0, t)
+        if float(np.hypot(*pulled)) < self.MIN_PULL_BL * self.d_mm:
+            return False
+        return bool(self.identifier.observe(pulled, (centroid - c0)[None], [True], t - t0)[0])
+
+    def response(self) -> tuple[float, float]:
+        """(gain, heading rad) to pursue with."""
+        gains, headings = self.identifier.response()
+        return float(np.clip(gains[0], *PULL_GAIN_LIMITS)), float(headings[0])
+
+
 class PairProgram(RequestedControl):
     """One pair-formation plan on one six-coil rig, as the run engine's `RigProgram`:
     construction refuses a bad plan without I/O (`prepare_pair`); `start` places the agents on
@@ -374,6 +439,10 @@ class PairProgram(RequestedControl):
         self._awaiting_frame = False  # resumed: the pursuit decides on the next frame
         self._pause_hold: PairPursuit | None = None  # the pause's own hold of the formation
         self._pause_target: np.ndarray | None = None
+        self._pull = (PullIdentification(self.d_mm, prep.problem.workspace,
+                                         settings.identify_window_s)
+                      if settings.identify_pull else None)
+        self._series = None  # the record's `identification` series, closed loop
 
     # -- control: `pause` holds the agents where they are, at the end of the segment being
     # driven (closed loop: when the pursuit reaches its next node, or after the segment's planned
@@ -422,6 +491,11 @@ class PairProgram(RequestedControl):
             first = self._tracking.start()
             ctx.record.event("tracking", positions_mm=first.positions_mm.tolist())
         self._closed = self.settings.closed_loop and self._tracking is not None
+        if self._closed and self._pull is not None:
+            identifier = self._pull.identifier
+            self._series = ctx.record.open_series("identification", identifier.series_columns(),
+                                                  identifier.series_units())
+            self._series.row(identifier.series_row(0.0))
 
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
         now = time.monotonic()
@@ -444,6 +518,8 @@ class PairProgram(RequestedControl):
                 return self._end()
             target, move = planned
         if self._ramp_down is not None:
+            if self._pull is not None:
+                self._pull.interrupt(now)
             self._ramp_down += 1
             if self._ramp_down > self._ramp:
                 return self._end()
@@ -533,10 +609,14 @@ class PairProgram(RequestedControl):
             q = state_from_positions(latest.positions_mm / self.d_mm)
             self._phi = float(q[3])
             self.metrics.measure(q, self._pursuit)
+            if self._pull is not None and self._pull.frame(latest.t_source, latest.positions_mm):
+                self._identified(latest.t_source)
             if self._pause.paused:  # the formation held where the first frame saw it
                 if self._pause_hold is None:
                     self._pause_hold = PairPursuit(prep.problem, np.vstack([q, q]),
                                                    self._pursuit_settings)
+                    self._pause_hold.set_pull_response(self._pursuit.pull_gain,
+                                                       self._pursuit.pull_heading_rad)
                 hold = self._pause_hold
                 u = hold.decide(hold.carry_forward(q, now - latest.t_source))
                 self._pause_target = prep.u_to_currents @ u_of(self.plan, u)
@@ -548,6 +628,9 @@ class PairProgram(RequestedControl):
             why = (self._tracking.why_lost(now, "agent") if not self._tracking.ok(now)
                    else f"camera: no fresh frame for {s.stale_s:g} s")
             self._suspension.lost(now, f"tracking lost ({why})")
+        if self._pull is not None and (self._suspension.since is not None or self._pause.paused
+                                       or self._awaiting_frame or k < self._ramp):
+            self._pull.interrupt(now)  # no pursuit's pull to measure the agents against
         if self._suspension.since is not None:
             # unseen, the agents are held where they were last seen (a held field would keep
             # moving them, and they could collide unseen)
@@ -590,6 +673,8 @@ class PairProgram(RequestedControl):
         q_now = pursuit.carry_forward(q, now - latest.t_source)
         u = pursuit.decide(q_now)
         self._target = prep.u_to_currents @ u_of(self.plan, u)
+        if self._pull is not None:
+            self._pull.send(now, u[1:])
         self._awaiting_frame = False
         record.event("track", frame=latest.frame, q=np.round(q, 5).tolist(),
                      mode=pursuit.mode, node=pursuit.k, u=np.round(u, 5).tolist())
@@ -602,6 +687,18 @@ class PairProgram(RequestedControl):
             self.metrics.held(q, now - self._hold_from)
             if now - self._hold_from >= self.plan.hold_s and self._ramp_down is None:
                 self._ramp_down = 0
+
+    def _identified(self, t_source: float) -> None:
+        """A new pull measurement was taken: pursue with the estimate, record it."""
+        gain, heading = self._pull.response()
+        self._pursuit.set_pull_response(gain, heading)
+        identifier = self._pull.identifier
+        estimate = identifier.summary()
+        self._record.event("identify", gain=estimate["gain"][0],
+                           gain_std=estimate["gain_std"][0],
+                           heading_deg=estimate["heading_deg"][0])
+        if self._series is not None:
+            self._series.row(identifier.series_row(t_source - self._record.t0))
 
     def _watch_path(self, q: np.ndarray, now: float) -> None:
         """Re-plan when the proximity controller has not brought the agents back in time."""
@@ -675,6 +772,11 @@ class PairProgram(RequestedControl):
             "max_tracking_error_bl": _round(m.max_error()), "min_separation_bl": _round(m.min_sep),
             "truth_min_separation_bl": _round(truth_sep), "hold_max_error_bl": _round(m.hold_max),
             "held_s": round(m.held_s, 3), "replan_ms": [round(v, 2) for v in m.replan_ms]}
+        if self._closed and self._pull is not None:
+            e = self._pull.identifier.summary()
+            metrics["pull_identified"] = {"gain": e["gain"][0], "gain_std": e["gain_std"][0],
+                                          "heading_deg": e["heading_deg"][0],
+                                          "windows_used": e["moves_used"][0]}
         tracking = None
         if self._tracking is not None:
             tracking = {"frames": m.frames, "lost_frames": self._tracking.lost_frames}
@@ -702,6 +804,10 @@ def _details(metrics: dict) -> list[str]:
         truth = metrics["truth_min_separation_bl"]
         extra = "" if truth is None else f" (ground truth {truth:.3f} BL)"
         lines.append(f"closest approach: {metrics['min_separation_bl']:.3f} BL{extra}")
+    pull = metrics.get("pull_identified")
+    if pull is not None and pull["windows_used"]:
+        lines.append(f"pull identified: gain {pull['gain']:.3f} +- {pull['gain_std']:.3f}, heading "
+                     f"{pull['heading_deg']:+.1f} deg ({pull['windows_used']} windows)")
     if metrics["hold_max_error_bl"] is not None:
         lines.append(f"hold: {metrics['held_s']:.1f} s, worst agent error "
                      f"{metrics['hold_max_error_bl']:.3f} BL")

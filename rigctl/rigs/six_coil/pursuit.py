@@ -16,6 +16,9 @@ Every decision is a brute force over field angles (a grid plus the four zero-rad
 measured heading) held for `horizon_s`, predicted with the planner's model (`rank_controls`); the
 pull of each is the best one inside the coils' box. The measurement is first carried forward from
 the frame's capture time to now with the last control, so camera latency does not show as lag.
+With an identified pull response (`set_pull_response`: the centroid moves gain R(heading) f for a
+pull f, `rigctl.rigs.six_coil.pair.PullIdentification`) the brute force predicts with what the
+agents will do and the pull sent is its inverse image (`commanded`).
 """
 
 from __future__ import annotations
@@ -93,8 +96,23 @@ class PairPursuit:
         self.mode = "pursuit"
         grid = np.linspace(-math.pi, math.pi, settings.n_psi, endpoint=False)
         self._grid = grid
-        self.last_u = np.zeros(3)
+        self.last_u = np.zeros(3)  # the control as the agents feel it (the model's)
         self._max_pull = settings.max_pull if settings.max_pull is not None else problem.max_pull
+        self.pull_gain, self.pull_heading_rad = 1.0, 0.0
+
+    def set_pull_response(self, gain: float, heading_rad: float) -> None:
+        """How the agents answer a commanded pull f (identified from tracking): their centroid
+        moves by gain R(heading) f. The controller then predicts with what they will do and
+        commands what makes them do it (`commanded`)."""
+        self.pull_gain, self.pull_heading_rad = float(gain), float(heading_rad)
+
+    def commanded(self, u: np.ndarray) -> np.ndarray:
+        """The control to send for u = (psi_g, f_x, f_y) as the agents should feel it: the pull
+        through the inverse of the identified response, kept inside the coils' box at psi_g."""
+        c, s = math.cos(self.pull_heading_rad), math.sin(self.pull_heading_rad)
+        f = np.array([c * u[1] + s * u[2], -s * u[1] + c * u[2]]) / self.pull_gain
+        box = self._max_pull * np.abs(np.array([math.cos(u[0]), math.sin(u[0])]))
+        return np.array([u[0], *np.clip(f, -box, box)])
 
     def splice(self, new_nodes: np.ndarray, joined: int) -> None:
         """Re-planned: go through `new_nodes` (m, 4) and continue with the old nodes after `joined`."""
@@ -109,7 +127,8 @@ class PairPursuit:
         return step_state(q, self.last_u, min(seconds, MAX_CARRY_S), self.problem.rate)
 
     def decide(self, q: np.ndarray) -> np.ndarray:
-        """The control u = (psi_g rad, f_x, f_y BL/s) to apply now for measured state q (4,)."""
+        """The control u = (psi_g rad, f_x, f_y BL/s) to send now for measured state q (4,)
+        (`last_u` keeps it as the agents feel it)."""
         s = self.settings
         p = agent_positions(q)
         last = len(self.nodes) - 1
@@ -157,18 +176,19 @@ class PairPursuit:
             psi = psi[safe]
         dt = np.full(len(psi), s.horizon_s)
         margin = 0.05
+        reach = self._max_pull * self.pull_gain  # what the agents can be made to do
         ranked = rank_controls(q, target, psi, dt, self.problem, PREDICTION_STEPS,
                                (self.problem.r_min + margin, self.problem.r_max - margin),
-                               max_pull=self._max_pull)
+                               max_pull=reach)
         if ranked is None:  # every angle leaves the separation range: the least bad one
             ranked = rank_controls(q, target, psi, dt, self.problem, PREDICTION_STEPS,
-                                   (0.5, math.inf), max_pull=self._max_pull)
+                                   (0.5, math.inf), max_pull=reach)
         if ranked is None:  # too close for any prediction: push apart (side by side repel)
             self.last_u = np.array([q[3] + math.pi / 2, 0.0, 0.0])
         else:
             order, u, _, _ = ranked
             self.last_u = u[order[0]].copy()
-        return self.last_u
+        return self.commanded(self.last_u)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
