@@ -16,7 +16,10 @@ linearly, y = H x + e (e ~ N(0, sigma^2 I)), updated move by move with the Kalma
 
 A move a measurement shows to be off the estimate by more than `gate_sigma` standard deviations
 (an agent that met a wall unseen, a mis-tracked frame) is left out rather than allowed to bend the
-estimate; the caller decides which moves were free at all.
+estimate; the caller decides which moves were free at all. A move along a wall is not linear in
+the parameters, but the model's image of it is smooth: `RollingIdentifier.observe_linearised`
+takes the model's prediction and its derivatives at the present estimate instead (an extended
+Kalman filter step).
 """
 
 from __future__ import annotations
@@ -151,6 +154,27 @@ class RollingIdentifier:
         for i in np.flatnonzero(free):
             used[i] = self.estimates[i].update(h, y[i], noise)
         return used
+
+    def observe_linearised(self, i: int, commanded_mm: ArrayLike, predicted_mm: ArrayLike,
+                           jacobian: ArrayLike, displacement_mm: ArrayLike, dt_s: float,
+                           extra_noise_mm: float = 0.0) -> bool:
+        """One move of agent i that met a wall: the model's displacement at the present estimate
+        (predicted (2,) mm, drift left out) and its derivatives (jacobian (2, 2)) in (a, b) stand
+        for the free move's H (the extended Kalman filter's linearisation). Only the gain is
+        learnt from it, the heading kept: the derivatives are taken along (a, b) itself. Along a
+        wall the part of the input into the wall is lost, and what is left depends on the heading
+        only through that lost part (and, on a real rig, the wall's friction): one move that hit
+        the ceiling moved the heading 2.5 degrees on an emulator that has none.
+        extra_noise_mm: the jitter of the contact, added to the camera's. True where used."""
+        e = self.estimates[i]
+        along = e.mean[:2] / max(float(np.hypot(*e.mean[:2])), 1e-9)
+        jac = np.asarray(jacobian, dtype=float).reshape(2, 2) @ np.outer(along, along)
+        h = np.hstack([jac, dt_s * np.eye(2)])
+        y = (np.asarray(displacement_mm, dtype=float).reshape(2)
+             - np.asarray(predicted_mm, dtype=float).reshape(2) + jac @ e.mean[:2])
+        length = float(np.hypot(*np.asarray(commanded_mm, dtype=float).reshape(2)))
+        noise = math.hypot(self.noise_mm, self.noise_per_mm * length, extra_noise_mm)
+        return e.update(h, y, noise)
 
     def response(self) -> tuple[np.ndarray, np.ndarray]:
         """(gains (n,), headings_rad (n,)) to plan with: an agent not yet seen moving freely

@@ -97,7 +97,10 @@ def test_closed_loop_reaches_the_goals_that_open_loop_misses(mismatched_bench, t
 
 
 def test_a_frozen_camera_suspends_the_run_with_the_field_held_and_it_resumes(tmp_path):
-    plan = load_plan(EXAMPLES / "fig4-two-magnets.json")
+    # fig4-quick: two long rolls whose end the closed loop corrects every time (bench/closed_loop.py
+    # at its defaults); fig4-two-magnets ends 1-3 mm off at times in a state its re-plans cannot
+    # correct in time, which is the planner's problem, not the suspension's
+    plan = load_plan(EXAMPLES / "fig4-quick.json")
     with EmulatedBenchProcess("six-coil", tmp_path / "bench.toml") as rig_path:
         rig = fast(load_rig(rig_path))
         rig = rig.model_copy(update={"camera": rig.camera.model_copy(update={"timeout_s": 1.0})})

@@ -198,3 +198,63 @@ def test_named_agents_name_the_series_columns():
     with pytest.raises(ValueError):
         RollingIdentifier(2, names=["one"])
 
+
+def test_a_move_along_a_wall_is_linearised_by_hand():
+    """A robot resting on the floor y = 0 (radius 8, centre y = 8) pushed by u = (20, -10) with
+    a = 0.8, b = 0.05: freely it would go by (a u_x - b u_y, b u_x + a u_y) = (16.5, -7); the wall
+    keeps its y, so it slides by (16.5, 0), and only the first row depends on (a, b):
+    d/da = u_x = 20, d/db = -u_y = 10."""
+    from rigctl.rigs.six_coil.supervisor import one_agent_move
+
+    single = GlobalInputModel(BOX, [8.0])
+    predicted, jacobian = one_agent_move(single, np.array([200.0, 8.0]), np.array([20.0, -10.0]),
+                                         np.array([0.8, 0.05]))
+    np.testing.assert_allclose(predicted, [16.5, 0.0], atol=1e-6)
+    np.testing.assert_allclose(jacobian, [[20.0, 10.0], [0.0, 0.0]], atol=1e-4)
+
+
+def test_a_robot_that_only_slides_along_walls_is_identified():
+    """Every move pushes the robot along the floor or up the left wall (never free): the gain
+    comes out of those moves alone, from the prior g = 1; the heading is left as it was."""
+    from rigctl.rigs.six_coil.supervisor import one_agent_move
+
+    g, theta = 0.75, 0.0
+    a, b = g * math.cos(theta), g * math.sin(theta)
+    single = GlobalInputModel(BOX, [8.0])
+    identifier = RollingIdentifier(1)
+    rng = np.random.default_rng(3)
+    floor, wall = np.array([200.0, 8.0]), np.array([8.0, 200.0])
+    for k in range(16):
+        along_floor = k % 2 == 0
+        start = floor if along_floor else wall
+        commanded = np.array([30.0 * (-1) ** (k // 2), -15.0]) if along_floor else \
+            np.array([-15.0, 30.0 * (-1) ** (k // 2)])
+        truth = single.apply(start[None], [a * commanded[0] - b * commanded[1],
+                                           b * commanded[0] + a * commanded[1]])[0]
+        measured = truth - start + rng.normal(0.0, 0.05, 2)
+        predicted, jacobian = one_agent_move(single, start, commanded,
+                                             identifier.estimates[0].mean[:2])
+        assert identifier.observe_linearised(0, commanded, predicted, jacobian, measured, 1.0,
+                                             0.1)
+    assert identifier.gains[0] == pytest.approx(g, abs=0.01)
+    assert identifier.headings_rad[0] == pytest.approx(0.0, abs=1e-9)
+    assert identifier.gain_std[0] < 0.01
+
+
+def test_a_move_that_ends_on_the_ceiling_tells_the_gain_not_the_heading():
+    """From (60, 300), radius 8, under a ceiling at y = 350, the input (30.6, 73.9) with g = 0.78
+    rolls freely until y = 342 and then along the ceiling: x still grows by g u_x, so the robot
+    ends at (60 + 0.78 * 30.6, 342) = (83.87, 342). That says g (one equation in a, b); the
+    heading stays where it was instead of taking up the rest (the first run of seed 119 read
+    2.5 degrees from this one move, on an emulator with none)."""
+    from rigctl.rigs.six_coil.supervisor import one_agent_move
+
+    single = GlobalInputModel(ShapeWorkspace(("rect", (0.0, 0.0, 400.0, 350.0))), [8.0])
+    identifier = RollingIdentifier(1)
+    start, commanded = np.array([60.0, 300.0]), np.array([30.6, 73.9])
+    predicted, jacobian = one_agent_move(single, start, commanded, np.array([1.0, 0.0]))
+    np.testing.assert_allclose(predicted, [30.6, 42.0], atol=1e-6)  # g = 1: (30.6, 42) by hand
+    assert identifier.observe_linearised(0, commanded, predicted, jacobian,
+                                         np.array([0.78 * 30.6, 42.0]), 1.0, 0.1)
+    assert identifier.gains[0] == pytest.approx(0.78, abs=0.01)
+    assert identifier.headings_rad[0] == pytest.approx(0.0, abs=1e-9)

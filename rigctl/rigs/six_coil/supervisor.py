@@ -22,14 +22,17 @@ Three threads cooperate:
 
 Each robot's own response is identified from what the camera saw (`rigctl.identify`): after every
 move, the robots whose measured path touched no wall and no other robot update their rolling gain,
-heading bias and drift (a Kalman filter per robot, with its uncertainty). Re-plans run the RRT on
+heading bias and drift (a Kalman filter per robot, with its uncertainty); a robot that met a wall
+but no other robot updates them from the one-agent model's image of the move (linearised at the
+estimate: along a wall it tells the gain along the wall). Re-plans run the RRT on
 the global-input model with those per-robot responses, so the moves it chooses are the commanded
 ones and the states it expects are where each robot will really go. Relative errors, which no
 shared translation can fix, are fixed with a wall: a contact correction (`rigctl.plans.correction`:
 push along an axis until a robot rests on a wall, then the translation that fits best) is tried
 first, the RRT (which finds longer wall manoeuvres) when that does not reach the tolerance. The estimates go to
 the record's `identification` series after every move. Every decision is a run-record event:
-`check`, `identify`, `replan`, `suspend`, `resume`, `give_up`.
+`check`, `identify`, `replan` (and `replan_wide` at the end of the program), `suspend`, `resume`,
+`give_up`.
 """
 
 from __future__ import annotations
@@ -161,7 +164,13 @@ class SupervisorSettings:
     settle_s: wait after a move end before judging; rrt_tolerance_mm: what the re-plan aims for
     (distance in R^2n); seed: the RRT's randomness;
     estimate_gain: identify each robot's response from the moves seen and re-plan with it (False:
-    re-plan with the planner's model as it is)."""
+    re-plan with the planner's model as it is); contact_noise_mm: how far a robot sliding along a
+    wall strays from the model per square-root turn (its moves are weighed by it);
+    wide_step_turns, final_replan_budget_s, wide_replans: a re-plan at the end of the program that
+    did not reach the tolerance tries again with a tree of this many turns a step, for this long,
+    and takes it when it reaches the tolerance or gets less than half as far; at most
+    `wide_replans` times in a run (each costs its budget, and a state one could not correct is
+    seldom corrected by the next)."""
 
     threshold_mm: float = 1.0
     goal_threshold_mm: float | None = None
@@ -174,6 +183,10 @@ class SupervisorSettings:
     rrt_tolerance_mm: float = 0.3
     seed: int = 0
     estimate_gain: bool = True
+    contact_noise_mm: float = 0.25
+    wide_step_turns: float = 5.0
+    wide_replans: int = 2
+    final_replan_budget_s: float = 4.0
 
 
 class ReplanBudget:
@@ -257,6 +270,7 @@ class Supervisor:
         self.replans = 0
         self.budget = ReplanBudget(settings)
         self._landed = 0  # moves judged on their plan since the last re-plan
+        self._wide_tried = 0  # re-plans at the end that tried the wide tree
         self.decisions: list[Decision] = []
         self.tracking_errors_mm: list[float] = []
         self.fault: RigError | None = None
@@ -271,6 +285,7 @@ class Supervisor:
         self._commanded_at = {e: moves[i] for i, e in enumerate(ends)}  # each move's input, mm
         self._time_at: dict[int, float] = {}  # capture time of the frame each judgement used
         self.identifier = RollingIdentifier(len(starts))
+        self._singles: list[GlobalInputModel] | None = None  # one-agent models (walls only)
         self._series = None
 
     # -- life cycle -----------------------------------------------------------------------------
@@ -427,6 +442,24 @@ class Supervisor:
                 break
             self._event("replan_empty", sample=sample, attempt=attempt + 1,
                         planned_distance_mm=round(result.distance, 4), nodes=result.nodes)
+        if last and not result.solved and self._wide_tried < s.wide_replans:
+            self._wide_tried += 1
+            # at the end, robots a millimetre or two off need a wall manoeuvre the one-turn tree
+            # rarely finds in its budget (seed 112: 20 000 nodes, 1.5 mm short, every time);
+            # trees of `wide_step_turns` turns a step, given longer, find it
+            wide = self._planner.replan(
+                self._plan_text, str(self.plan.base_dir or "."), start, self.goals,
+                2.0 * math.pi * self.rig.magnets.radius_mm * s.wide_step_turns,
+                s.rrt_tolerance_mm, s.seed + self.replans + 500, s.final_replan_budget_s, gains,
+                headings)
+            # taken when it reaches the tolerance, or gets less than half as far: a long wide
+            # manoeuvre that ends nearly as far off only adds the error of its own many moves
+            chosen = bool(len(wide.moves)) and (wide.solved or wide.distance < 0.5 * result.distance)
+            self._event("replan_wide", sample=sample, planned_distance_mm=round(wide.distance, 4),
+                        solved=wide.solved, nodes=wide.nodes, seconds=round(wide.seconds, 3),
+                        chosen=chosen)
+            if chosen:
+                result = wide
         if len(result.moves) == 0:
             raise PlanError(f"re-plan from the measured state found no move that brings the robots "
                             f"closer to their goals in {REPLAN_ATTEMPTS} attempts (best "
@@ -490,6 +523,7 @@ class Supervisor:
         free = self._moved_freely(before, displacement)
         dt = max(t_source - self._time_at.get(begin, t_source), 0.0)
         used = self.identifier.observe(commanded, displacement, free, dt)
+        used |= self._identify_along_walls(before, commanded, displacement, free, dt)
         gains, _ = self.identifier.response()
         self.gain = float(np.clip(gains.mean(), *_GAIN_LIMITS))
         if self._series is not None:
@@ -499,6 +533,46 @@ class Supervisor:
             self._event("identify", sample=sample, used=np.flatnonzero(used).tolist(),
                         gain=estimate["gain"], gain_std=estimate["gain_std"],
                         heading_deg=estimate["heading_deg"])
+
+    def _identify_along_walls(self, before: np.ndarray, commanded: np.ndarray,
+                              displacement: np.ndarray, free: np.ndarray, dt: float) -> np.ndarray:
+        """(n,) True where a robot that moved but not freely, and kept clear of the other robots
+        (their straight paths never came within reach), updated its gain from the move
+        (`observe_linearised`): alone, a robot
+        of response a, b moves as the one-agent model moves it by [[a, -b], [b, a]] u, so that
+        model gives the prediction and, by differences in a and b, its derivatives. A robot that
+        slid along walls on every move is learnt too, instead of taking the others' mean."""
+        used = np.zeros(len(before), dtype=bool)
+        radii, after = self.model.radii, before + displacement
+        turns = float(np.hypot(*commanded)) / (2.0 * math.pi * self.rig.magnets.radius_mm)
+        jitter = self.settings.contact_noise_mm * math.sqrt(turns)
+        for i in np.flatnonzero((np.hypot(*displacement.T) > 1.0) & ~free):
+            others = np.arange(len(before)) != i
+            reach = radii[i] + radii[others] + self.model.min_separation_mm + _FREE_MARGIN_MM
+            gap = before[others] - before[i]  # (m, 2), and how it changed over the move
+            change = (after[others] - after[i]) - gap
+            t = np.clip(-np.sum(gap * change, axis=1) / np.maximum(
+                np.sum(change * change, axis=1), 1e-12), 0.0, 1.0)
+            if np.any(np.hypot(*(gap + t[:, None] * change).T) < reach):
+                continue  # it may have met another robot: the one-agent model does not know
+            single = self._single_model(i)
+            start = before[i].copy()
+            clearance, normal, _ = self.model.workspace.surface(start[None])
+            if clearance[0] < radii[i]:  # tracked a hair inside a wall: put it back out
+                start += (radii[i] - clearance[0] + 1e-5) * normal[0]
+            predicted, jacobian = one_agent_move(single, start, commanded,
+                                                 self.identifier.estimates[i].mean[:2])
+            used[i] = self.identifier.observe_linearised(
+                i, commanded, predicted, jacobian, after[i] - start, dt, jitter)
+        return used
+
+    def _single_model(self, i: int) -> GlobalInputModel:
+        """Robot i alone in the workspace (the shared-input model of one agent)."""
+        if self._singles is None:
+            m = self.model
+            self._singles = [GlobalInputModel(m.workspace, [r], m.contact,
+                                              substep_mm=m.substep_mm) for r in m.radii]
+        return self._singles[i]
 
     def _moved_freely(self, before: np.ndarray, displacement: np.ndarray) -> np.ndarray:
         """(n,) True where a robot's straight path from `before` (n, 2) by `displacement` (n, 2)
@@ -535,6 +609,20 @@ class Supervisor:
             log.warning("could not read ground truth: %s", err)
             return
         self.tracking_errors_mm.extend(np.hypot(*(measured - truth).T).tolist())
+
+
+def one_agent_move(single: GlobalInputModel, start: np.ndarray, commanded: np.ndarray,
+                   ab: np.ndarray, step: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """A robot of response (a, b) (gain g, heading theta: a = g cos theta, b = g sin theta) alone
+    at `start` (2,) mm, moved by the shared input `commanded` (2,) mm: it moves as the one-agent
+    model `single` moves it by [[a, -b], [b, a]] u. Returns its displacement (2,) and the
+    derivatives (2, 2) of it in (a, b) (forward differences of `step`)."""
+    a, b = float(ab[0]), float(ab[1])
+    points = np.array([[a, b], [a + step, b], [a, b + step]])
+    moves = np.stack([points[:, 0] * commanded[0] - points[:, 1] * commanded[1],
+                      points[:, 1] * commanded[0] + points[:, 0] * commanded[1]], axis=1)
+    ends = single.apply(np.broadcast_to(start, (3, 1, 2)), moves)[:, 0]
+    return ends[0] - start, np.stack([ends[1] - ends[0], ends[2] - ends[0]], axis=1) / step
 
 
 def _log_failure(future) -> None:
