@@ -140,6 +140,13 @@ class GlobalInputModel:
         return GlobalInputModel(self.workspace, self.radii, self.contact, self.min_separation_mm,
                                 self.substep_mm, gains=gains, headings_rad=headings_rad)
 
+    def alone(self, i: int) -> GlobalInputModel:
+        """Agent i alone in the workspace: the shared-input model of that one agent (made once)."""
+        if self._single is None:
+            self._single = [GlobalInputModel(self.workspace, [r], self.contact,
+                                             substep_mm=self.substep_mm) for r in self.radii]
+        return self._single[i]
+
     def free_displacement(self, moves: ArrayLike) -> np.ndarray:
         """Each agent's displacement (..., n, 2) mm under moves (..., 2) mm where nothing is in
         its way: the move itself, or its own response's image of it."""
@@ -244,9 +251,6 @@ class GlobalInputModel:
         size = np.hypot(own[..., 0], own[..., 1])  # (B, n)
         longest = size.max(axis=1)
         left = np.where(longest > 0, 1.0, 0.0)  # fraction of the input still to apply
-        if self._single is None:
-            self._single = [GlobalInputModel(self.workspace, [r], self.contact,
-                                             substep_mm=self.substep_mm) for r in self.radii]
         first, second = self._pair_first, self._pair_second
         with np.errstate(divide="ignore", invalid="ignore"):
             relative = np.hypot(*(own[:, second] - own[:, first]).transpose(2, 0, 1))  # (B, pairs)
@@ -276,7 +280,8 @@ class GlobalInputModel:
             moved = before + piece
             hard = np.flatnonzero(~translate)
             if hard.size:
-                for i, single in enumerate(self._single):
+                for i in range(self.n):
+                    single = self.alone(i)
                     moved[hard, i] = single._apply_flat(before[hard, i:i + 1].copy(),
                                                         piece[hard, i])[:, 0]
                 if self.n > 1:

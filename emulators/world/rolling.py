@@ -41,9 +41,9 @@ class Mismatch:
     """How the emulated rig departs from the planner's model (all neutral by default).
 
     slip: distance per turn as a fraction of 2 pi R (the pair world: speed under a force as a
-    fraction of the plan's Stokes drag, `rigctl.emulators.world.pair`); speed_spread: standard deviation of the
-    per-robot factor s_i (distance per turn x (1 + s_i)); drift_mm_per_s: speed of a steady drift in
-    a direction drawn from the seed; noise_mm: standard deviation of the jitter per turn rolled
+    fraction of the plan's Stokes drag, `rigctl.emulators.world.pair`); speed_spread: standard
+    deviation of the per-robot factor s_i (distance per turn x (1 + s_i)); drift_mm_per_s: speed
+    of a steady drift in a direction drawn from the seed; noise_mm: standard deviation of the jitter per turn rolled
     while in contact; seed: draws s_i, the drift direction and the jitter; field_at_robots: each
     robot feels the field at its own position instead of the workspace centre's.
     """

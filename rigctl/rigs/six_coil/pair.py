@@ -16,8 +16,8 @@ voltage. The pull gain is identified from the frames as the run goes (`PullIdent
 the pursuit pursues with it (`settings.identify_pull`; `metrics.pull_identified`, the record's
 `identification` series). While tracking is lost the run is suspended and the agents are held
 unseen (no pull, the field flipped about the zero-radial angle of their last heading); lost for
-`lost_after_s` is a fault of the camera. When the agents stay off the path (proximity mode) longer than
-`replan_after_s`, the path is re-planned from the measured state onto the rest of the path in a
+`lost_after_s` is a fault of the camera. When the agents stay off the path (proximity mode)
+longer than `replan_after_s`, the path is re-planned from the measured state onto the rest of the path in a
 worker thread and spliced in. At the last node the goal formation is held for the plan's `hold_s`.
 `--open-loop` plays the plan's controls back (the paper's open-loop mode); the camera, if any,
 still measures.

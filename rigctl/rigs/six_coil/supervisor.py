@@ -24,9 +24,9 @@ Each robot's own response is identified from what the camera saw (`rigctl.identi
 move, the robots whose measured path touched no wall and no other robot update their rolling gain,
 heading bias and drift (a Kalman filter per robot, with its uncertainty); a robot that met a wall
 but no other robot updates them from the one-agent model's image of the move (linearised at the
-estimate: along a wall it tells the gain along the wall). Re-plans run the RRT on
-the global-input model with those per-robot responses, so the moves it chooses are the commanded
-ones and the states it expects are where each robot will really go. Relative errors, which no
+estimate: along a wall it tells the gain, not the heading). Re-plans run the RRT on the
+global-input model with those per-robot responses, so the moves it chooses are the commanded ones
+and the states it expects are where each robot will really go. Relative errors, which no
 shared translation can fix, are fixed with a wall: a contact correction (`rigctl.plans.correction`:
 push along an axis until a robot rests on a wall, then the translation that fits best) is tried
 first, the RRT (which finds longer wall manoeuvres) when that does not reach the tolerance. The estimates go to
@@ -285,7 +285,6 @@ class Supervisor:
         self._commanded_at = {e: moves[i] for i, e in enumerate(ends)}  # each move's input, mm
         self._time_at: dict[int, float] = {}  # capture time of the frame each judgement used
         self.identifier = RollingIdentifier(len(starts))
-        self._singles: list[GlobalInputModel] | None = None  # one-agent models (walls only)
         self._series = None
 
     # -- life cycle -----------------------------------------------------------------------------
@@ -538,10 +537,10 @@ class Supervisor:
                               displacement: np.ndarray, free: np.ndarray, dt: float) -> np.ndarray:
         """(n,) True where a robot that moved but not freely, and kept clear of the other robots
         (their straight paths never came within reach), updated its gain from the move
-        (`observe_linearised`): alone, a robot
-        of response a, b moves as the one-agent model moves it by [[a, -b], [b, a]] u, so that
-        model gives the prediction and, by differences in a and b, its derivatives. A robot that
-        slid along walls on every move is learnt too, instead of taking the others' mean."""
+        (`observe_linearised`): alone, a robot of response a, b moves as the one-agent model
+        (`GlobalInputModel.alone`) moves it by [[a, -b], [b, a]] u, so that model gives the
+        prediction and, by differences in a and b, its derivatives. A robot that slid along walls
+        on every move is learnt too, instead of taking the others' mean."""
         used = np.zeros(len(before), dtype=bool)
         radii, after = self.model.radii, before + displacement
         turns = float(np.hypot(*commanded)) / (2.0 * math.pi * self.rig.magnets.radius_mm)
@@ -555,7 +554,7 @@ class Supervisor:
                 np.sum(change * change, axis=1), 1e-12), 0.0, 1.0)
             if np.any(np.hypot(*(gap + t[:, None] * change).T) < reach):
                 continue  # it may have met another robot: the one-agent model does not know
-            single = self._single_model(i)
+            single = self.model.alone(i)
             start = before[i].copy()
             clearance, normal, _ = self.model.workspace.surface(start[None])
             if clearance[0] < radii[i]:  # tracked a hair inside a wall: put it back out
@@ -565,14 +564,6 @@ class Supervisor:
             used[i] = self.identifier.observe_linearised(
                 i, commanded, predicted, jacobian, after[i] - start, dt, jitter)
         return used
-
-    def _single_model(self, i: int) -> GlobalInputModel:
-        """Robot i alone in the workspace (the shared-input model of one agent)."""
-        if self._singles is None:
-            m = self.model
-            self._singles = [GlobalInputModel(m.workspace, [r], m.contact,
-                                              substep_mm=m.substep_mm) for r in m.radii]
-        return self._singles[i]
 
     def _moved_freely(self, before: np.ndarray, displacement: np.ndarray) -> np.ndarray:
         """(n,) True where a robot's straight path from `before` (n, 2) by `displacement` (n, 2)
