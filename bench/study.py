@@ -89,9 +89,9 @@ def _pool_wall_s(spec, out: Path, workers: int) -> tuple[float, dict]:
     return wall, {r["case_id"]: r["figures"].get("fraction") for r in rows}
 
 
-def planner_sweep(tmp: Path, workers: int, repeats: int, quick: bool) -> dict:
-    spec = _spec("reachable-quick", **({"parameters": {"d12": [0.2, 0.4, 0.6, 0.8, 1.0],
-                                                      "moves": [2, 4]}} if quick else {}))
+def planner_sweep(tmp: Path, workers: int, repeats: int, study: str, quick: bool) -> dict:
+    spec = _spec(study, **({"parameters": {"d12": [0.2, 0.4, 0.6, 0.8, 1.0],
+                                           "moves": [2, 4]}} if quick else {}))
     pairs = []
     for k in range(repeats):
         serial = run_study(spec, tmp / f"serial-{k}", serial=True, progress_out=None)
@@ -118,7 +118,7 @@ def planner_sweep(tmp: Path, workers: int, repeats: int, quick: bool) -> dict:
     ratios = [p["speedup"] for p in pairs]
     overheads = [p["overhead_ms_per_case"] for p in pairs if p["overhead_ms_per_case"] is not None]
     return {
-        "study": "studies/reachable-quick.toml", "cases": len(spec.cases), "workers": workers,
+        "study": f"studies/{study}.toml", "cases": len(spec.cases), "workers": workers,
         "speedup_median": statistics.median(ratios), "speedup_goal": 1.8,
         # the floor: the same cases on a plain process pool, this machine's own parallel speed-up
         "speedup_process_pool_median": statistics.median(p["speedup_process_pool"] for p in pairs),
@@ -166,6 +166,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="10 planner cases, 2 emulated runs")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--study", default="reachable",
+                        help="the planner sweep, a study of studies/ (default: reachable, seed 004's "
+                             "Fig. 8-9, 112 cases; --quick: 10 cases of reachable-quick)")
     parser.add_argument("--repeats", type=int, help="serial/Dask pairs of the sweep (default 5)")
     parser.add_argument("--campaign-runs", type=int, help="emulated closed-loop runs (default 20)")
     args = parser.parse_args()
@@ -176,7 +179,8 @@ def main() -> None:
         load_before = os.getloadavg()[0]
         report = {
             "benchmark": "study", "python": platform.python_version(), "cores": os.cpu_count(),
-            "planner_sweep": planner_sweep(Path(tmp), args.workers, repeats, args.quick),
+            "planner_sweep": planner_sweep(Path(tmp), args.workers, repeats,
+                                           "reachable-quick" if args.quick else args.study, args.quick),
             "campaign": campaign(Path(tmp), runs, args.workers) if runs else None,
             "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         }

@@ -48,6 +48,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rigctl.errors import PlanError
+from rigctl.jit import njit
 
 log = logging.getLogger(__name__)
 
@@ -932,6 +933,25 @@ def delta_space_contains(region: CentreRegion, points: np.ndarray) -> np.ndarray
     return np.all(points @ normals.T <= offsets + 1e-9 * region.size, axis=1)
 
 
+@njit(error_model="numpy")
+def _disk_chords(w, n, wall, R, inside):  # pragma: no cover - compiled
+    """inside[i] |= some contact k fits point w[i] (M, 2): |w + R n_k| <= R, i.e. |w|^2 + 2 R n_k.w
+    <= 0, pushing into the wall, n_k.w >= n_k.d = wall[k] (the chord regions of a disk). A loop
+    that stops at the first contact that fits: the (M, K) arrays of the same test cost more in
+    page faults than in arithmetic (`rigctl plan reachable` 4.5x slower on a 121 x 121 grid)."""
+    fit_tol, wall_tol = 1e-12 * R * R, 1e-12 * R
+    for i in range(w.shape[0]):
+        if inside[i]:
+            continue
+        x, y = w[i, 0], w[i, 1]
+        norm2 = x * x + y * y
+        for k in range(n.shape[0]):
+            along = x * n[k, 0] + y * n[k, 1]
+            if norm2 + 2 * R * along <= fit_tol and along >= wall[k] - wall_tol:
+                inside[i] = True
+                break
+
+
 def two_move_reachable(
     region: CentreRegion, delta: np.ndarray, points: np.ndarray, contacts: int = 96
 ) -> np.ndarray:
@@ -952,13 +972,7 @@ def two_move_reachable(
             half = math.acos(d12 / (2.0 * R))
             psi = math.atan2(-d[1], -d[0]) + np.linspace(-half, half, contacts)
             n = np.stack([np.cos(psi), np.sin(psi)], axis=1)  # (K, 2)
-            for block in range(0, len(w), 4096):
-                ww = w[block:block + 4096]
-                along = ww @ n.T  # (M, K)
-                # |w + R n| <= R  <=>  |w|^2 + 2 R n.w <= 0 ; pushing into the wall: n.w >= n.d
-                fits = (np.sum(ww * ww, axis=1)[:, None] + 2 * R * along <= 1e-12 * R * R)
-                fits &= along >= (n @ d)[None, :] - 1e-12 * R
-                inside[block:block + 4096] |= fits.any(axis=1)
+            _disk_chords(w, n, n @ d, R, inside)
             continue
         for e in range(len(region.vertices)):
             normal, h = region.normals[e], region.offsets[e]
@@ -977,6 +991,12 @@ def two_move_reachable(
             normals, limits = _halfplanes(offsets)
             inside |= np.all(w @ normals.T <= limits + 1e-9 * region.size, axis=1)
     return inside
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) this module's kernel, so that no planner call pays
+    for it: a study's workers run this before their first case."""
+    two_move_reachable(DiskRegion(np.zeros(2), 1.0), np.array([0.5, 0.0]), np.zeros((1, 2)), 2)
 
 
 def reachable_fraction(

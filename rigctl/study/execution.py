@@ -101,13 +101,14 @@ def _warm_up(command: str) -> None:
     case, so that no case's wall time includes them."""
     if command.startswith("plan "):
         import rigctl.plans.model
-        import rigctl.plans.rrt
-        import rigctl.plans.wall_contact  # noqa: F401
+        import rigctl.plans.rrt  # noqa: F401
+        from rigctl.plans import wall_contact
         from rigctl.plans.workspace import warm_up
         from rigctl.study.cases import planner_parser
 
         planner_parser()
         warm_up()
+        wall_contact.warm_up()
 
 
 class Progress:
