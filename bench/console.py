@@ -16,8 +16,10 @@ emulated six-coil bench. Prints one JSON object.
 - ten pages watching vs none: the same plan run `--repeats` times each way, alternately; the
   stream's late share (its `stream` telemetry) and `status` p99 (this process asks 50 times a
   second), with the spread between runs of the same kind as the run-to-run noise; once with ten
-  Chromium tabs on this machine (their decoding and drawing compete with the stream for the
-  same cores), once with ten plain WebSocket clients in one process (the console's own cost).
+  Chromium tabs, at SCHED_IDLE by default (`--pages-at idle`: pages on other computers, as a lab
+  watches; they load the daemon with their sockets but take no core from the rig; `--pages-at
+  normal` puts their decoding and drawing on the rig's own cores), once with ten plain WebSocket
+  clients in one process (the console's own cost).
 The daemon streams at SCHED_FIFO 40 (`--realtime`, as systemd/rigctl.service runs it); the bench's
 emulator and the pages at normal priority (`--emulator-realtime PRIO` puts the emulator above the
 daemon, as supplies with their own processors are, but its one thread renders the camera too).
@@ -80,7 +82,11 @@ class ConsoleDaemon:
         self.log.close()
 
 
-def chromium(width: int = 1280, height: int = 800):
+def chromium(width: int = 1280, height: int = 800, idle: bool = False):
+    """Headless Chromium; `idle`: the driver, the browser and every process it starts at
+    SCHED_IDLE (they inherit it), so that they run only on CPU nothing else on this machine wants:
+    pages on other computers, as a lab's operators watch, which load the daemon with their
+    requests and sockets but not the rig's cores with their decoding and drawing."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -89,7 +95,12 @@ def chromium(width: int = 1280, height: int = 800):
     for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
                 f"--window-size={width},{height}"):
         options.add_argument(arg)
-    return webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    popen = {"preexec_fn": _sched_idle} if idle else {}
+    return webdriver.Chrome(service=Service(CHROMEDRIVER, popen_kw=popen), options=options)
+
+
+def _sched_idle() -> None:
+    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
 
 def wait_js(driver, expression: str, timeout_s: float, what: str):
@@ -290,6 +301,9 @@ def main() -> None:
                              "(default 0: normal scheduling: its one thread also renders the "
                              "camera's frames, which at SCHED_FIFO starve the page: frame p99 "
                              "365-439 ms against 88-134 ms, measured)")
+    parser.add_argument("--pages-at", choices=("idle", "normal"), default="idle",
+                        help="the ten watching tabs' scheduling: idle (default: SCHED_IDLE, pages on "
+                             "other computers, as in a lab) or normal (on the rig's own cores)")
     parser.add_argument("--watchers-of", metavar="URL", help=argparse.SUPPRESS)  # (internal)
     args = parser.parse_args()
     if args.watchers_of:
@@ -299,6 +313,7 @@ def main() -> None:
         args.seconds, args.repeats, args.pages = 2.0, 1, 2
     plan = json.loads((EXAMPLES / "fig4-two-magnets.json").read_text())
     out: dict = {"bench": "console", "rig": "six-coil", "seconds": args.seconds,
+                 "pages_at": args.pages_at,
                  "cpus": os.cpu_count(), "load_average_1min_before": round(os.getloadavg()[0], 2)}
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-console-") as tmp_name:
         tmp = Path(tmp_name)
@@ -333,7 +348,7 @@ def main() -> None:
                     for _ in range(args.repeats):
                         for pages in (0, args.pages):
                             if pages and watchers is None:
-                                watchers = chromium()
+                                watchers = chromium(idle=args.pages_at == "idle")
                                 drivers.append(watchers)
                                 open_page(watchers, daemon.endpoints, token=False)
                                 for _ in range(pages - 1):
