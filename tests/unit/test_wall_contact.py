@@ -24,6 +24,7 @@ from rigctl.plans.wall_contact import (
     plan_wall_contact,
     plan_with_model,
     reachable_fraction,
+    two_move_reachable,
 )
 from rigctl.plans.workspace import ShapeWorkspace
 
@@ -442,3 +443,26 @@ def test_planner_margin_polygon_lies_the_margin_inside_every_edge():
         assert gaps[i, i] == pytest.approx(margin, abs=1e-12)
         assert gaps[i, i - 1] == pytest.approx(margin, abs=1e-12)
         assert gaps[i, (i + 1) % 3] > margin
+
+
+def test_the_disk_two_move_test_is_the_union_of_its_contacts_chord_regions():
+    """The compiled loop against the definition written as arrays: a point w (other minus pinned
+    after the two moves) is reached when some contact n_k on eq. 2's arc has |w + R n_k| <= R (the
+    pinned particle stays in the disk) and n_k . w >= n_k . d (it pushes into the wall)."""
+    R, contacts = 1.0, 48
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-2 * R, 2 * R, (3000, 2))
+    for delta in ([0.3, 0.1], [1.9, 0.0], [0.0, -0.5], [-1.2, 0.7]):
+        d = np.array(delta)
+        expected = np.zeros(len(points), dtype=bool)
+        for sign in (1.0, -1.0):
+            dd, w = sign * d, sign * points
+            half = np.arccos(np.hypot(*dd) / (2 * R))
+            psi = np.arctan2(-dd[1], -dd[0]) + np.linspace(-half, half, contacts)
+            n = np.stack([np.cos(psi), np.sin(psi)], axis=1)
+            inside_disk = np.linalg.norm(w[:, None, :] + R * n[None], axis=2) <= R + 1e-9
+            into_wall = w @ n.T >= (n @ dd)[None, :] - 1e-9
+            expected |= (inside_disk & into_wall).any(axis=1)
+        got = two_move_reachable(DiskRegion(np.zeros(2), R), d, points, contacts)
+        assert 0 < got.sum() < len(points)
+        np.testing.assert_array_equal(got, expected)
