@@ -17,7 +17,7 @@ from rigctl.plans.schema import parse_plan
 
 
 def _run_objects() -> int:
-    """Runs and programs the interpreter still tracks, collected or not: no collection here."""
+    """Runs and programs the interpreter still tracks, garbage or not (no collection here)."""
     return sum(type(o).__name__ in ("EngineRun", "GlobalMovesProgram") for o in gc.get_objects())
 
 
@@ -44,6 +44,7 @@ def test_the_stream_process_keeps_nothing_of_an_ended_run(tmp_path):
 
     with SixCoilBench() as bench:
         rig = bench.rig.model_copy(update={"camera": None})
+        gc.collect()  # earlier tests' garbage: the host's own collection would take it too
         before = _run_objects()
         driver = threading.Thread(target=operator, args=(rig,))
         driver.start()
