@@ -14,11 +14,13 @@ import threading
 from rigctl.daemon import runhost
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.plans.schema import parse_plan
+from rigctl.rigs.six_coil.global_moves import GlobalMovesProgram
+from rigctl.run.engine import Run
 
 
 def _run_objects() -> int:
     """Runs and programs the interpreter still tracks, garbage or not (no collection here)."""
-    return sum(type(o).__name__ in ("EngineRun", "GlobalMovesProgram") for o in gc.get_objects())
+    return sum(isinstance(o, (Run, GlobalMovesProgram)) for o in gc.get_objects())
 
 
 def test_the_stream_process_keeps_nothing_of_an_ended_run(tmp_path):
@@ -30,15 +32,18 @@ def test_the_stream_process_keeps_nothing_of_an_ended_run(tmp_path):
     down_r, down_w = multiprocessing.Pipe(duplex=False)
     up_r, up_w = multiprocessing.Pipe(duplex=False)
     acks_r, acks_w = multiprocessing.Pipe(duplex=False)
-    outcomes = []
+    outcomes: list[str] = []
 
     def operator(rig) -> None:
         try:
             for _ in range(3):
                 down_w.send(("run", plan, rig, str(tmp_path), None))
-                while (message := up_r.recv())[0] not in ("done", "failed"):
+                message = ("no answer within 60 s",)
+                while up_r.poll(60) and (message := up_r.recv())[0] not in ("done", "failed"):
                     pass
                 outcomes.append(message[0])
+                if message[0] != "done":
+                    break
         finally:
             down_w.send(("exit",))
 
@@ -46,7 +51,7 @@ def test_the_stream_process_keeps_nothing_of_an_ended_run(tmp_path):
         rig = bench.rig.model_copy(update={"camera": None})
         gc.collect()  # earlier tests' garbage: the host's own collection would take it too
         before = _run_objects()
-        driver = threading.Thread(target=operator, args=(rig,))
+        driver = threading.Thread(target=operator, args=(rig,), daemon=True)
         driver.start()
         saved = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT),
                  logging.getLogger().handlers[:], logging.getLogger().level, sys.getswitchinterval())
@@ -58,6 +63,6 @@ def test_the_stream_process_keeps_nothing_of_an_ended_run(tmp_path):
             logging.getLogger().handlers[:] = saved[2]
             logging.getLogger().setLevel(saved[3])
             sys.setswitchinterval(saved[4])
-            driver.join()
+            driver.join(60)
     assert outcomes == ["done", "done", "done"]
     assert _run_objects() == before, "an ended run's objects are still in the interpreter"
