@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -96,6 +97,10 @@ def one_seed(plan_path: Path | None, seed: int, mismatch: list[str], args) -> di
             closed_run = Run(plan, rig, runs_dir=Path(tmp) / "runs", progress_out=None,
                              closed_loop=True, supervisor_settings=SupervisorSettings(seed=seed))
             closed = closed_run.execute()
+            if args.keep_records:
+                keep = Path(args.keep_records) / f"seed-{seed}"
+                shutil.copytree(Path(tmp) / "runs", keep, dirs_exist_ok=True)
+                shutil.copy(plan_path, keep / plan_path.name)
             supervisor = closed_run.program.supervisor
             assert supervisor is not None
             times = supervisor.sequencer.command_times
@@ -189,6 +194,9 @@ def main() -> None:
                         "the allocator then uses the fitted coils")
     parser.add_argument("--reply-timeout", type=float, default=1.0,
                         help="the supplies' watchdog, s (default 1; raise it on a loaded machine)")
+    parser.add_argument("--keep-records", metavar="DIR",
+                        help="keep each seed's run records and plan in DIR/seed-N (read a failure "
+                        "event by event with `rigctl report`)")
     args = parser.parse_args()
     mismatch = ["--slip", args.slip, "--speed-spread", args.speed_spread, "--noise", args.noise,
                 "--drift", args.drift] + (["--field-at-robots"] if args.field_at_robots else [])

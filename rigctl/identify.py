@@ -124,6 +124,7 @@ class RollingIdentifier:
         if len(self.names) != self.n:
             raise ValueError(f"names: one per agent ({self.n}), got {self.names}")
         self.noise_mm, self.noise_per_mm = float(noise_mm), float(noise_per_mm)
+        self.known_gain_std = gain_std / 3.0  # `response`: a gain is known below this spread
         ab_std = prior_gain * heading_std_rad
         self.estimates = [
             LinearEstimate(["a", "b", "vx", "vy"], [prior_gain, 0.0, 0.0, 0.0],
@@ -177,10 +178,12 @@ class RollingIdentifier:
         return e.update(h, y, noise)
 
     def response(self) -> tuple[np.ndarray, np.ndarray]:
-        """(gains (n,), headings_rad (n,)) to plan with: an agent not yet seen moving freely
-        takes the mean of those that were (what they share, the rig's slip, is most of it)."""
+        """(gains (n,), headings_rad (n,)) to plan with: an agent whose gain is not known yet
+        (its spread still above a third of the prior's) takes the mean of those that are (what
+        they share, the rig's slip, is most of it). A move counted against an agent may have told
+        little about it (one pressed into a corner), so the count of moves is no measure."""
         gains, headings = self.gains, self.headings_rad
-        seen = self.updates > 0
+        seen = self.gain_std <= self.known_gain_std
         if seen.any() and not seen.all():
             gains[~seen] = gains[seen].mean()
             headings[~seen] = headings[seen].mean()

@@ -199,6 +199,27 @@ def test_named_agents_name_the_series_columns():
         RollingIdentifier(2, names=["one"])
 
 
+def test_an_agent_pressed_into_a_corner_is_not_known_by_it():
+    """Seed 101's first move: robot 0 sits in the corner of a box and is pushed into it (it does
+    not move, and the model says so for any gain: the derivatives are 0), robot 1 rolls freely,
+    25.5 mm of 30 (gain 0.85). The move counts against robot 0 but tells nothing about it, so it
+    plans with robot 1's 0.85, not with its untouched prior 1.0."""
+    from rigctl.rigs.six_coil.supervisor import one_agent_move
+
+    single = GlobalInputModel(BOX, [8.0])
+    corner, u = np.array([8.0, 392.0]), np.array([-20.0, 20.0])
+    predicted, jacobian = one_agent_move(single, corner, u, np.array([1.0, 0.0]))
+    np.testing.assert_allclose(predicted, [0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(jacobian, 0.0, atol=1e-9)
+    ident = RollingIdentifier(2)
+    ident.observe(u, np.array([[0.0, 0.0], [-17.0, 17.0]]), [False, True], 5.0)
+    assert ident.observe_linearised(0, u, predicted, jacobian, np.zeros(2), 5.0, 0.1)
+    assert ident.updates.tolist() == [1, 1]
+    assert ident.gains[0] == pytest.approx(1.0, abs=1e-6)  # its own estimate: the prior
+    gains, _ = ident.response()
+    assert gains[1] == pytest.approx(0.85, abs=0.01)
+    assert gains[0] == gains[1]
+
 def test_a_move_along_a_wall_is_linearised_by_hand():
     """A robot resting on the floor y = 0 (radius 8, centre y = 8) pushed by u = (20, -10) with
     a = 0.8, b = 0.05: freely it would go by (a u_x - b u_y, b u_x + a u_y) = (16.5, -7); the wall
