@@ -23,10 +23,13 @@ workers). `seconds_per_run_median` is the run's own duration, without the bench'
 delivers when the emulator's ground truth has both particles within `--epsilon` of
 their goals. The world runs `--speed` (3) times faster than real time, so that 20 runs fit in a few
 minutes (about 10 s a run; a run that needs all 60 moves, ~45 s); the goal of issue 6 is at
-least 19/20. `--runs` sets the number of runs (fewer for a quick look).
+least 19/20. `--runs` sets the number of runs (fewer for a quick look). `--mobility-spread F`
+makes each emulated particle's mobility its own (up to F off Stokes', seeded per run), which the
+run identifies beside the field's non-uniformity (`mobility_diff_error`: identified against the
+world's (m_1 - m_0) / mean(m)).
 
 Usage: python bench/coilboard.py [--pairs N] [--seed S] [--runs N] [--speed F] [--epsilon E]
-                                 [--no-link] [--no-delivery]
+                                 [--mobility-spread F] [--no-link] [--no-delivery]
 Figures taken on a busy machine are noisy; say so when quoting them.
 """
 
@@ -119,14 +122,18 @@ def bench_link() -> dict | None:
 
 
 def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Generator,
-                   pole_distance_mm: float | None = None, workers: int | None = None) -> dict:
+                   pole_distance_mm: float | None = None, workers: int | None = None,
+                   mobility_spread: float = 0.0) -> dict:
     """Closed-loop runs on the emulated coil board: the study `studies/coilboard-delivery.toml`
     over `runs` plans of random pairs, each case `rigctl execute` on a bench of its own (serially
-    here unless `workers` is given: then on that many Dask workers)."""
+    here unless `workers` is given: then on that many Dask workers). With `mobility_spread`, case
+    k's particles are each that much off Stokes' mobility (the world's `mobility_seed` k), and
+    the run's identified difference is set beside the world's."""
     import tomllib
 
     import pyarrow.parquet as pq
 
+    from rigctl.emulators.world.coilboard import CoilBoardPhysics
     from rigctl.plans.schema import dump_plan, parse_plan
     from rigctl.study.execution import run_study
     from rigctl.study.spec import spec_from_dict
@@ -139,10 +146,8 @@ def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Gener
     data = tomllib.loads((studies / "coilboard-delivery.toml").read_text())
     args = data["run"]["args"]
     args["speed"] = speed
-    if pole_distance_mm is not None:  # the physics stays for every later `place`
-        args["backdoor"] = [{"cmd": "place", "workspace": {"boundary": boundary},
-                             "agents": [{"position": [0.0, 0.0], "radius": RADIUS_MM}],
-                             "physics": {"pole_distance_mm": pole_distance_mm}}]
+    physics = {} if pole_distance_mm is None else {"pole_distance_mm": pole_distance_mm}
+    true_diff = {}
     planned = {}
     with tempfile.TemporaryDirectory(prefix="coilboard-delivery-") as tmp:
         data["cases"] = []
@@ -158,7 +163,17 @@ def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Gener
                 "tolerance_mm": epsilon})
             path = Path(tmp) / f"delivery-{k}.json"
             path.write_text(dump_plan(plan))
-            data["cases"].append({"plan": str(path)})
+            case = {"plan": str(path)}
+            if mobility_spread:
+                factors = CoilBoardPhysics(mobility_spread=mobility_spread,
+                                           mobility_seed=k).mobility_factors(2)
+                true_diff[str(path)] = float((factors[1] - factors[0]) / factors.mean())
+            if physics or mobility_spread:  # the physics stays for every later `place`
+                case["backdoor"] = [{"cmd": "place", "workspace": {"boundary": boundary},
+                                     "agents": [{"position": [0.0, 0.0], "radius": RADIUS_MM}],
+                                     "physics": {**physics, "mobility_spread": mobility_spread,
+                                                 "mobility_seed": k}}]
+            data["cases"].append(case)
             planned[str(path)] = len(result.moves)
         spec = spec_from_dict(data, studies)
         run_study(spec, Path(tmp) / "study", serial=workers is None, workers=workers,
@@ -173,10 +188,15 @@ def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Gener
             "truth_error_mm": truth, "moves": r.get("fig_metric_moves"),
             "planned_moves": planned[r["plan"]], "replans": r.get("fig_replans"),
             "seconds": r.get("fig_duration_s"), "status": r["status"],
+            "mobility_diff": {"identified": r.get("fig_metric_mobility_diff"),
+                              "true": round(true_diff[r["plan"]], 4)}
+            if r["plan"] in true_diff else None,
             "faults": [r["message"]] if r.get("fig_faults") or r["status"] != "ok" else []})
     delivered = sum(r["delivered"] for r in results)
     errors = [r["truth_error_mm"] for r in results if r["truth_error_mm"] is not None]
     moves = [r["moves"] for r in results if r["moves"] is not None]
+    diffs = [r["mobility_diff"] for r in results
+             if r["mobility_diff"] and r["mobility_diff"]["identified"] is not None]
     return {
         "runs": runs, "delivered": delivered, "epsilon_mm": epsilon, "world_speed": speed,
         "pole_distance_mm": pole_distance_mm or "default (200)",
@@ -184,6 +204,12 @@ def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Gener
         "replans_median": statistics.median(r["replans"] or 0 for r in results),
         "seconds_per_run_median": statistics.median(r["seconds"] or 0 for r in results),
         "worst_truth_error_mm": max(errors) if errors else None,
+        "mobility_spread": mobility_spread,
+        "mobility_diff_error": {
+            "median": round(statistics.median(abs(d["identified"] - d["true"]) for d in diffs), 4),
+            "max": round(max(abs(d["identified"] - d["true"]) for d in diffs), 4),
+            "true_abs_median": round(statistics.median(abs(d["true"]) for d in diffs), 4),
+            "runs": len(diffs)} if diffs else None,
         "failures": [r for r in results if not r["delivered"]],
     }
 
@@ -206,6 +232,9 @@ def main() -> None:
     parser.add_argument("--pole-distance", type=float, metavar="MM",
                         help="the emulated coils' distance (default: the world's 200 mm)")
     parser.add_argument("--workers", type=int, help="run the delivery cases on N Dask workers")
+    parser.add_argument("--mobility-spread", type=float, default=0.0, metavar="F",
+                        help="each emulated particle's mobility off Stokes' by up to F (uniform, "
+                        "seeded per run; default 0): the identified difference is reported")
     parser.add_argument("--no-link", action="store_true", help="skip bench/coilboard_link.py")
     parser.add_argument("--no-delivery", action="store_true", help="skip the emulated-rig runs")
     args = parser.parse_args()
@@ -220,7 +249,7 @@ def main() -> None:
         "link": None if args.no_link else bench_link(),
         "delivery": None if args.no_delivery else bench_delivery(
             args.runs, args.speed, args.epsilon, np.random.default_rng(args.seed + 1),
-            args.pole_distance, args.workers),
+            args.pole_distance, args.workers, args.mobility_spread),
     }))
 
 

@@ -11,7 +11,8 @@ linearly, y = H x + e (e ~ N(0, sigma^2 I)), updated move by move with the Kalma
   rolling gain (slip times its own speed spread), theta its heading bias, v a steady drift
   (`RollingIdentifier`, one estimate per agent);
 - the coil board (seed 004): the particles' relative position grows under a translation by the
-  field's non-uniformity, linear in (k_along, k_across) after a log-mean linearisation
+  field's non-uniformity and by the difference of their own mobilities, linear in (k_along,
+  k_across, mobility_diff) after a log-mean linearisation
   (`rigctl.rigs.coil_board.run.RelativeDrift` refits a `LinearEstimate` from every free move).
 
 A move a measurement shows to be off the estimate by more than `gate_sigma` standard deviations

@@ -572,6 +572,8 @@ def _period_panel(data: RunData, clock: str) -> list[TimePanel]:
 
 IDENTIFIED_LABELS = {"1": "gain (moved / commanded)", "deg": "heading bias (deg)",
                      "mm/s": "drift (mm/s)", "1/mm": "rate (1/mm)"}
+# estimates whose unit alone does not say what they are (the coil board's is a ratio too)
+IDENTIFIED_COLUMN_LABELS = {"mobility_diff": "mobility difference\n(m1 - m0) / mean m"}
 
 
 def _identification_panels(data: RunData, clock: str) -> list[TimePanel]:
@@ -615,7 +617,8 @@ def _identification_panels(data: RunData, clock: str) -> list[TimePanel]:
                 if std is not None:
                     ax.fill_between(t_axis, value - std, value + std, where=known, step="post",
                                     color=colour, alpha=0.25, linewidth=0)
-            ax.set_ylabel(IDENTIFIED_LABELS.get(unit, unit), fontsize=8)
+            ax.set_ylabel(IDENTIFIED_COLUMN_LABELS.get(columns[0], IDENTIFIED_LABELS.get(unit, unit))
+                          if len(columns) == 1 else IDENTIFIED_LABELS.get(unit, unit), fontsize=8)
             ax.set_title("identified from tracking: estimate (dotted: prior, no move used yet), "
                          "+-1 std shaded", fontsize=9)
             ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.02),

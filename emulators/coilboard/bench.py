@@ -22,8 +22,10 @@ bytes`) and "camera", plus:
 - `{"cmd": "place", "workspace": {...plan workspace...}, "agents": [{"position": [x, y], "radius":
   r}], "ring": false, "physics": {...CoilBoardPhysics fields...}}`: put the particles down; with
   `ring` a disk boundary is replaced by the intestine phantom (sixty 2 mm protrusions) of the same
-  diameter; `physics` overrides the world's parameters from then on;
-- `{"cmd": "truth"}`: particle positions (mm), the SyRen outputs, each coil's winding temperature
+  diameter; `physics` overrides the world's parameters from then on (`mobility_spread` and
+  `mobility_seed` make each particle's mobility its own); replies with the positions, the physics
+  and each particle's mobility factor;
+- `{"cmd": "truth"}`: particle positions (mm) and mobility factors, the SyRen outputs, each coil's winding temperature
   (C, now and its peak; the windings heat by `rigctl.thermal`, `coils.py`) and whether its thermal
   cut-out is open, the firmware's counters (Python firmware), simulated time;
 - `{"cmd": "windings", "size": 0.05, "seed": 0, "thermal": {...CoilThermal fields...}}`: rebuild
@@ -169,6 +171,7 @@ class CoilBoardBench(EmulatedBench):
         world = self.world
         reply = {
             "agents": [] if world is None else world.positions_mm.tolist(),
+            "mobility_factors": [] if world is None else world.mobility_factors.tolist(),
             "sim_time_s": None if world is None else world.time_s,
             "outputs": list(self.bus.outputs()),
             **self.coils.truth(),
@@ -213,4 +216,5 @@ class CoilBoardBench(EmulatedBench):
                 k: float(v) for k, v in dict(request["physics"]).items()})
         self.advance()
         self.world = CoilBoardWorld(workspace, positions, radii, self.physics, centre_mm=(0.0, 0.0))
-        return {"agents": positions.tolist(), "physics": dataclasses.asdict(self.physics)}
+        return {"agents": positions.tolist(), "physics": dataclasses.asdict(self.physics),
+                "mobility_factors": self.world.mobility_factors.tolist()}

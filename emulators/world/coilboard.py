@@ -59,7 +59,10 @@ class CoilBoardPhysics:
     pole_distance_mm: D, from the workspace centre to each coil's pole face; exponent: n of the pull
     law (4: a dipole's field gradient); force_at_centre_N: F0, one coil's pull at full drive at the
     workspace centre; viscosity_Pa_s: eta of the fluid; friction: Coulomb coefficient of the walls
-    (inf: seed 004 eq. 1, a particle pushed into a wall never slides).
+    (inf: seed 004 eq. 1, a particle pushed into a wall never slides); mobility_spread,
+    mobility_seed: each particle's mobility is off Stokes' by a factor drawn uniformly from
+    1 +- mobility_spread (seeded; 0: every particle as Stokes says), a particle a little smaller
+    or rougher than the plan's, or a clump, which a planner that knows only the radii cannot see.
 
     The defaults give a 1 mm sphere 6 mm/s at the centre (F0 / (6 pi eta r)), 9.8 mm/s 23 mm
     from the centre towards the pulling coil (the 46 mm disk's edge) and 3.9 mm/s 23 mm away from
@@ -71,12 +74,22 @@ class CoilBoardPhysics:
     force_at_centre_N: float = 6.0e-3 * 6.0 * math.pi * 12.0 * 0.5e-3
     viscosity_Pa_s: float = 12.0
     friction: float = math.inf
+    mobility_spread: float = 0.0
+    mobility_seed: float = 0.0
 
     def __post_init__(self) -> None:
         if not (self.pole_distance_mm > 0 and self.exponent >= 0 and self.force_at_centre_N >= 0
-                and self.viscosity_Pa_s > 0 and self.friction >= 0):
-            raise PlanError(f"coil-board physics: D > 0, n >= 0, F0 >= 0, eta > 0, friction >= 0 "
-                            f"needed, got {self}")
+                and self.viscosity_Pa_s > 0 and self.friction >= 0
+                and 0 <= self.mobility_spread < 1):
+            raise PlanError(f"coil-board physics: D > 0, n >= 0, F0 >= 0, eta > 0, friction >= 0, "
+                            f"0 <= mobility_spread < 1 needed, got {self}")
+
+    def mobility_factors(self, n: int) -> np.ndarray:
+        """(n,) each particle's mobility over Stokes' (`mobility_spread`, `mobility_seed`)."""
+        if self.mobility_spread == 0:
+            return np.ones(n)
+        rng = np.random.default_rng(int(self.mobility_seed))
+        return 1.0 + self.mobility_spread * rng.uniform(-1.0, 1.0, n)
 
     def mobility_mm_per_s_per_N(self, radius_mm: ArrayLike) -> np.ndarray:
         """Stokes mobility 1 / (6 pi eta r) of spheres of radius (n,) mm, in (mm/s)/N."""
@@ -144,7 +157,8 @@ class CoilBoardWorld:
             xmin, ymin, xmax, ymax = workspace.bounds
             centre_mm = ((xmin + xmax) / 2.0, (ymin + ymax) / 2.0)
         self.centre_mm = np.asarray(centre_mm, dtype=float).reshape(2)
-        self._mobility = physics.mobility_mm_per_s_per_N(self.radii_mm)
+        self.mobility_factors = physics.mobility_factors(len(self.radii_mm))
+        self._mobility = physics.mobility_mm_per_s_per_N(self.radii_mm) * self.mobility_factors
         self.time_s = 0.0
         if np.any(workspace.clearance(self.positions_mm) < self.radii_mm - 1e-6):
             raise PlanError("coil-board world: a particle does not fit where it was placed")

@@ -19,7 +19,7 @@ QUICK = {
     "closed_loop.py": ["--runs", "1"],  # with --random-goals: 2 min of re-plans
     "daemon.py": ["--seconds", "0.3"],
     "coilboard_link.py": ["--round-trips", "50", "--seconds", "0.5", "--trials", "1"],
-    "coilboard.py": ["--pairs", "2", "--runs", "1"],
+    "coilboard.py": ["--pairs", "2", "--runs", "1", "--mobility-spread", "0.1"],
     "depm.py": ["--time-scale", "8", "--no-random"],
     "pair.py": ["--quick"],
     "preflight.py": ["--rig", "six-coil", "--repeat", "1"],

@@ -168,24 +168,43 @@ class RelativeDrift:
     with both rates scaled by D / (D - s), s the travel's mean offset towards the active coil
     (D = 1 / k_across: a coil's pull converges on its centre). Two coils driven together (a
     diagonal move) thus spread both gaps by k_along - k_across, not as one coil along the
-    diagonal. k_along and k_across are identified (`rigctl.identify.LinearEstimate`: the
-    Gaussian posterior of the log-mean gaps' linear model, with the uniform model k = 0 as its
-    prior, of weight `prior_weight`; re-linearised from every sample, since the scales depend on
-    k_across) from every move in which both particles moved freely, with their uncertainty
-    (`std`), and used to aim Alg. 1's relative position so that the last translation lands on
-    the goals.
+    diagonal.
+
+    The particles' own mobilities differ too (one a little smaller, rougher, a clump): particle i
+    travels m_i times what the pull gives a particle of the plan's radius, so with the mean
+    mobility as the unit (the run ends moves on the camera, so only the ratio tells) particle 1
+    goes 1 + mobility_diff / 2 and particle 0 1 - mobility_diff / 2 of the pair's mean travel T,
+    and the gap also grows by mobility_diff x T (signed: a translation back shrinks it again,
+    unlike the non-uniformity). mobility_diff = (m_1 - m_0) / mean(m).
+
+    k_along, k_across and mobility_diff are identified (`rigctl.identify.LinearEstimate`: the
+    Gaussian posterior of the log-mean gaps' linear model, with the uniform field of equal
+    particles as its prior, the k's of weight `prior_weight`, mobility_diff of spread
+    `mobility_prior_std`; re-linearised from every sample, since the scales depend on k_across)
+    from every move in which both particles moved freely, with their uncertainty (`std`), and
+    used to aim Alg. 1's relative position so that the last translation lands on the goals.
     """
 
     SERIES_UNITS: ClassVar[dict[str, str]] = {
         "k_along": "1/mm", "k_along_std": "1/mm", "k_across": "1/mm", "k_across_std": "1/mm",
-        "moves_used": "count"}
+        "mobility_diff": "1", "mobility_diff_std": "1", "moves_used": "count"}
 
-    def __init__(self, prior_weight: float = 0.05, k_max: float = 0.05) -> None:
+    def __init__(self, prior_weight: float = 0.05, k_max: float = 0.05,
+                 mobility_prior_std: float = 0.2, mobility_max: float = 0.5) -> None:
         self.k_max = k_max
         self.prior_weight = prior_weight
+        self.mobility_prior_std = mobility_prior_std
+        self.mobility_max = mobility_max
         self.samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.k = np.zeros(2)  # (k_along, k_across) in 1/mm
-        self.std = np.full(2, np.nan)  # their standard deviations (1/mm); unknown before a move
+        self.mobility_diff = 0.0  # (m_1 - m_0) / mean(m)
+        # standard deviations of k_along, k_across (1/mm) and mobility_diff; unknown before a move
+        self.std = np.full(3, np.nan)
+
+    @property
+    def mobilities(self) -> np.ndarray:
+        """(2,) each particle's mobility over the pair's mean."""
+        return np.array([1.0 - self.mobility_diff / 2.0, 1.0 + self.mobility_diff / 2.0])
 
     def _scales(self, middle: np.ndarray, travel: np.ndarray) -> np.ndarray:
         """(2,) factors D / (D - s) of the x and y coils that make `travel` from `middle`."""
@@ -212,23 +231,27 @@ class RelativeDrift:
                         mean = (a - b) / math.log(a / b)  # log-mean: exact for exponential growth
                     else:
                         mean = 0.5 * (a + b)
-                    rows.append(mean * rates[axis])
+                    rows.append([*(mean * rates[axis]), moved[axis]])
                     values.append(a - b)
             a_mat, b_vec = np.array(rows), np.array(values)
-            scale = self.prior_weight * max(1.0, float(np.abs(a_mat).max()))
+            scale = self.prior_weight * max(1.0, float(np.abs(a_mat[:, :2]).max()))
             # the prior k ~ N(0, 1 / scale^2) for gaps measured to 1 mm: ridge least squares
-            estimate = LinearEstimate(["k_along", "k_across"], [0.0, 0.0], 1.0 / scale)
+            estimate = LinearEstimate(["k_along", "k_across", "mobility_diff"], [0.0, 0.0, 0.0],
+                                      [1.0 / scale, 1.0 / scale, self.mobility_prior_std])
             estimate.refit(a_mat, b_vec, 1.0)
             residual = b_vec - a_mat @ estimate.mean
-            spread = math.sqrt(float(residual @ residual) / max(len(b_vec) - 2, 1))
-            # Both are positive for coils that pull (1/d^n, towards their centres); a noisy fit
+            spread = math.sqrt(float(residual @ residual) / max(len(b_vec) - 3, 1))
+            # Both k are positive for coils that pull (1/d^n, towards their centres); a noisy fit
             # outside [0, k_max] would aim Alg. 1 far off.
-            self.k = np.clip(estimate.mean, 0.0, self.k_max)
+            self.k = np.clip(estimate.mean[:2], 0.0, self.k_max)
+            self.mobility_diff = float(np.clip(estimate.mean[2], -self.mobility_max,
+                                               self.mobility_max))
             self.std = estimate.std * max(spread, 1e-3)  # scaled to the gaps' own scatter
 
     def series_row(self, t_s: float) -> list[float]:
         """A row of the record's `identification` series (`SERIES_UNITS`) at run time t_s."""
-        return [t_s, self.k[0], self.std[0], self.k[1], self.std[1], len(self.samples)]
+        return [t_s, self.k[0], self.std[0], self.k[1], self.std[1], self.mobility_diff,
+                self.std[2], len(self.samples)]
 
     def growth(self, start_mean: np.ndarray, travel: np.ndarray, steps: int = 8) -> np.ndarray:
         """(2,) factors by which translating `travel` from `start_mean` multiplies the gaps."""
@@ -238,11 +261,19 @@ class RelativeDrift:
             log_growth += self._rates(middle, travel / steps) @ self.k
         return np.exp(log_growth)
 
+    def predict(self, delta: np.ndarray, start_mean: np.ndarray,
+                goal_mean: np.ndarray) -> np.ndarray:
+        """The delta (2,) after translating the pair's mean from start_mean to goal_mean (mm,
+        from the coils' centre) with `delta` before."""
+        travel = goal_mean - start_mean
+        return delta * self.growth(start_mean, travel) + self.mobility_diff * travel
+
     def aim(self, goal_delta: np.ndarray, start_mean: np.ndarray,
             goal_mean: np.ndarray) -> np.ndarray:
         """The delta (2,) to have before translating the mean from start_mean to goal_mean (mm,
-        from the coils' centre) so that it ends at goal_delta."""
-        return goal_delta / self.growth(start_mean, goal_mean - start_mean)
+        from the coils' centre) so that it ends at goal_delta (`predict` inverted)."""
+        travel = goal_mean - start_mean
+        return (goal_delta - self.mobility_diff * travel) / self.growth(start_mean, travel)
 
 
 
@@ -383,12 +414,17 @@ class CoilBoardProgram(RequestedControl):
             tracking = {"frames": self.tracking.frames, "lost_frames": self.tracking.lost_frames,
                         "holds": self.suspension.count}
         ctx.record.event("closed_loop", reached=reached, moves=self.moves_done,
-                         replans=self.replans, drift_k=self.drift.k.tolist())
+                         replans=self.replans, drift_k=self.drift.k.tolist(),
+                         mobility_diff=self.drift.mobility_diff)
         return Outcome(
             agents=agents, reached=reached, positions_from=source, tolerance_mm=self.tolerance,
             metrics={"moves": self.moves_done, "drift_k": [round(float(v), 6) for v in self.drift.k],
                      "drift_k_std": [round(float(v), 6) if np.isfinite(v) else None
-                                     for v in self.drift.std]},
+                                     for v in self.drift.std[:2]],
+                     "mobility": [round(float(v), 4) for v in self.drift.mobilities],
+                     "mobility_diff": round(self.drift.mobility_diff, 4),
+                     "mobility_diff_std": round(float(self.drift.std[2]), 4)
+                     if np.isfinite(self.drift.std[2]) else None},
             replans=self.replans, tracking=tracking,
             details=[f"moves: {self.moves_done} driven, {self.replans} re-plans from the camera"])
 
@@ -477,7 +513,7 @@ class CoilBoardProgram(RequestedControl):
             if plain.error < result.error:
                 push, reach, result = 0.0, float(self.radii.sum()), plain
         for _ in range(2):
-            if not len(result.moves) or not self.drift.k.any():
+            if not len(result.moves) or not (self.drift.k.any() or self.drift.mobility_diff):
                 break
             before = result.states[-2] if len(result.states) > 1 else inside
             delta = self.drift.aim(goal_delta, before.mean(axis=0) - self.coils_centre,
@@ -489,7 +525,8 @@ class CoilBoardProgram(RequestedControl):
             result = plan_two_particles(self.region, inside, goals, aim, reach=reach, push=push)
         # Alg. 1 ends with the translation to the aimed goals; the real goals' midpoint is the same.
         self.record.event("replan", measured=position.tolist(), moves=result.moves.tolist(),
-                          aimed_goals=goals.tolist(), drift_k=self.drift.k.tolist(), push_mm=push,
+                          aimed_goals=goals.tolist(), drift_k=self.drift.k.tolist(),
+                          mobility_diff=self.drift.mobility_diff, push_mm=push,
                           seconds=result.seconds)
         return result.moves, result.states
 
