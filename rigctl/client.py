@@ -1,8 +1,8 @@
 """The Python client for operator scripts: `from rigctl.client import Rig`.
 
 Requests follow the lazy-pirate pattern: send on a REQ socket, wait for the reply with a timeout
-(the socket's receive timeout: a poll before each receive cost ~10 us of a ~200 us round trip),
-and on silence close the socket (LINGER 0), open a new one and send again, a bounded number of
+(the socket's send and receive timeouts: a poll before each receive cost ~10 us of a ~170 us round
+trip), and on silence close the socket (LINGER 0), open a new one and send again, a bounded number of
 times, then raise `DaemonUnreachable`. A retried request keeps its id, and the daemon answers a
 repeated id from its cache of recent replies, so a retried `execute` cannot start a second run.
 
@@ -87,7 +87,6 @@ class Rig:
         self._own_context = context is None
         self.context = context or zmq.Context()
         self._sock: zmq.Socket | None = None
-        self._receive_timeout_ms: int | None = None
         self._ids = itertools.count()
         self._prefix = f"{os.getpid():x}-{os.urandom(3).hex()}"
 
@@ -95,21 +94,33 @@ class Rig:
     def _open(self) -> zmq.Socket:
         sock = self.context.socket(zmq.REQ)
         sock.setsockopt(zmq.LINGER, 0)
+        # a request waits for a connection that completed (the CURVE handshake included) instead
+        # of being queued for a peer that may never take it; the send timeout bounds the wait
+        sock.setsockopt(zmq.IMMEDIATE, 1)
         self._curve.apply(sock)
         sock.connect(self.endpoint)
-        self._receive_timeout_ms = None
         return sock
 
-    def _receive(self, timeout_ms: int) -> bytes | None:
-        """The next reply on the socket, or None after `timeout_ms` of silence."""
+    def _exchange(self, payload: bytes, timeout_ms: int, expect_id: str | None) -> dict | None:
+        """Send `payload` and return the reply whose id is `expect_id` (None: any reply), or None
+        when no connection took the request, or no reply came, within `timeout_ms` in all."""
         assert self._sock is not None
-        if timeout_ms != self._receive_timeout_ms:
-            self._sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
-            self._receive_timeout_ms = timeout_ms
+        deadline = time.monotonic() + timeout_ms / 1000
+        self._sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
         try:
-            return self._sock.recv()
+            self._sock.send(payload)
         except zmq.Again:
             return None
+        while True:
+            left_ms = max(1, int(1000 * (deadline - time.monotonic())))
+            self._sock.setsockopt(zmq.RCVTIMEO, left_ms)
+            try:
+                reply = json.loads(self._sock.recv())
+            except zmq.Again:
+                return None
+            if expect_id is None or reply.get("id") == expect_id:
+                return reply
+            # a late reply to an earlier attempt cannot arrive on a new socket
 
     def _drop(self) -> None:
         if self._sock is not None:
@@ -133,12 +144,9 @@ class Rig:
         for attempt in range(self.retries + 1):
             if self._sock is None:
                 self._sock = self._open()
-            self._sock.send(payload)
-            while (received := self._receive(timeout_ms)) is not None:
-                reply = json.loads(received)
-                if expect_id is None or reply.get("id") == expect_id:
-                    return reply
-                # a late reply to an earlier attempt cannot arrive on a new socket
+            reply = self._exchange(payload, timeout_ms, expect_id)
+            if reply is not None:
+                return reply
             log.warning("no reply from %s within %d ms (attempt %d of %d)", self.endpoint,
                         timeout_ms, attempt + 1, self.retries + 1)
             self._drop()
