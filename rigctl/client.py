@@ -2,8 +2,8 @@
 
 Requests follow the lazy-pirate pattern: send on a REQ socket, wait for the reply with a timeout
 (the socket's send and receive timeouts: a poll before each receive cost ~10 us of a ~170 us round
-trip), and on silence close the socket (LINGER 0), open a new one and send again, a bounded number of
-times, then raise `DaemonUnreachable`. A retried request keeps its id, and the daemon answers a
+trip), and on silence close the socket (LINGER 0), open a new one and send again, a bounded number
+of times, then raise `DaemonUnreachable`. A retried request keeps its id, and the daemon answers a
 repeated id from its cache of recent replies, so a retried `execute` cannot start a second run.
 
     with Rig("tcp://127.0.0.1:7810") as rig:
@@ -102,25 +102,23 @@ class Rig:
         return sock
 
     def _exchange(self, payload: bytes, timeout_ms: int, expect_id: str | None) -> dict | None:
-        """Send `payload` and return the reply whose id is `expect_id` (None: any reply), or None
-        when no connection took the request, or no reply came, within `timeout_ms` in all."""
+        """Send `payload` and return its reply, or None when no connection took the request, or
+        no reply came, within `timeout_ms` in all. A reply to another id (none can come: a REQ
+        socket takes one reply per request, and each attempt has a socket of its own) counts as
+        none, rather than leaving the socket waiting for a reply it will never get."""
         assert self._sock is not None
         deadline = time.monotonic() + timeout_ms / 1000
         self._sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
         try:
             self._sock.send(payload)
+            self._sock.setsockopt(zmq.RCVTIMEO, max(1, int(1000 * (deadline - time.monotonic()))))
+            reply = json.loads(self._sock.recv())
         except zmq.Again:
             return None
-        while True:
-            left_ms = max(1, int(1000 * (deadline - time.monotonic())))
-            self._sock.setsockopt(zmq.RCVTIMEO, left_ms)
-            try:
-                reply = json.loads(self._sock.recv())
-            except zmq.Again:
-                return None
-            if expect_id is None or reply.get("id") == expect_id:
-                return reply
-            # a late reply to an earlier attempt cannot arrive on a new socket
+        if expect_id is not None and reply.get("id") != expect_id:
+            log.warning("a reply for %r came to the request %r", reply.get("id"), expect_id)
+            return None
+        return reply
 
     def _drop(self) -> None:
         if self._sock is not None:

@@ -25,9 +25,9 @@ bytes`) and "camera", plus:
   diameter; `physics` overrides the world's parameters from then on (`mobility_spread` and
   `mobility_seed` make each particle's mobility its own); replies with the positions, the physics
   and each particle's mobility factor;
-- `{"cmd": "truth"}`: particle positions (mm) and mobility factors, the SyRen outputs, each coil's winding temperature
-  (C, now and its peak; the windings heat by `rigctl.thermal`, `coils.py`) and whether its thermal
-  cut-out is open, the firmware's counters (Python firmware), simulated time;
+- `{"cmd": "truth"}`: particle positions (mm) and mobility factors, the SyRen outputs, each coil's
+  winding temperature (C, now and its peak; the windings heat by `rigctl.thermal`, `coils.py`) and
+  whether its thermal cut-out is open, the firmware's counters (Python firmware), simulated time;
 - `{"cmd": "windings", "size": 0.05, "seed": 0, "thermal": {...CoilThermal fields...}}`: rebuild
   the windings with R_th and C_th off the rig file's by up to `size` (`ThermalErrors`; their
   temperatures are kept); with `thermal`, from that winding data instead, at the room's

@@ -295,6 +295,31 @@ def test_unreachable_daemon_raises_after_bounded_retries():
     assert time.monotonic() - started < 2.0
 
 
+def test_a_reply_to_another_request_is_no_reply_and_the_client_retries():
+    """A server (a real REP socket on loopback) that answers every request with someone else's
+    id: the client takes none of those replies, retries on a new socket each time, and ends in
+    DaemonUnreachable after its attempts, not in a socket error."""
+    context = zmq.Context.instance()
+    server = context.socket(zmq.REP)
+    port = server.bind_to_random_port("tcp://127.0.0.1")
+    received = []
+
+    def serve():
+        while server.poll(2000):
+            received.append(json.loads(server.recv()))
+            server.send(json.dumps({"id": "not-yours", "ok": True, "result": {}}).encode())
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        with Rig(f"tcp://127.0.0.1:{port}", timeout_s=0.5, retries=2) as rig:
+            with pytest.raises(DaemonUnreachable):
+                rig.ping()
+        assert len(received) == 3 and len({r["id"] for r in received}) == 1  # one id, retried
+    finally:
+        thread.join(5)
+        server.close(linger=0)
+
 def load_and_execute(rig, samples=2000, **extra):
     plan_id = rig.load({"samples": samples, **extra})
     return plan_id, rig.execute(plan_id)
