@@ -84,7 +84,10 @@ class CoilBoardRunSettings:
     the move is over (everything is held); settle_s: after the coils stop, the first frame taken
     this much later is the measurement; follow_fraction: measured within this fraction of the
     tolerance of the expected state, the current plan goes on (else re-plan); aim_fraction: Alg. 1
-    aims at this fraction of the tolerance; rate_hz: command rate during a move;
+    aims at this fraction of the tolerance; done_fraction: the moves end once both particles are
+    measured within this fraction of the tolerance, a margin for the camera's last look (another
+    frame, which judges the run); a run that gets no closer than that is reached within the
+    tolerance itself; rate_hz: command rate during a move;
     skip_mm: moves shorter than this are not driven; chord_mm: a particle on a wall that a move
     carries at least this far to a wall is waited for (else it only grazes its wall);
     max_steer_deg: how far the pull may turn from the move's direction (steering to the target,
@@ -115,6 +118,7 @@ class CoilBoardRunSettings:
     settle_s: float = 0.08
     follow_fraction: float = 0.5
     aim_fraction: float = 0.4
+    done_fraction: float = 0.9
     rate_hz: float = 50.0
     skip_mm: float = 0.02
     chord_mm: float = 1.0
@@ -459,12 +463,12 @@ class CoilBoardProgram(RequestedControl):
                 yield from self._hold()
                 position = yield from self._measure(time.monotonic(), "a frame after the pause")
             error = float(np.max(np.hypot(*(position - self.goals).T)))
-            if error <= self.tolerance:
-                self._say(f"both particles within {self.tolerance:g} mm (worst {error:.3f} mm)")
-                self.reached = True
+            if error <= s.done_fraction * self.tolerance:
+                self._reached(error)
                 return
             if self.moves_done >= s.max_moves:
                 self._say(f"stopping after {self.moves_done} moves: worst error {error:.3f} mm")
+                self._reached(error)
                 return
             follow = (expected is not None and index < len(moves) and (reference is None or float(
                 np.max(np.hypot(*(position - reference).T))) <= s.follow_fraction * self.tolerance))
@@ -475,6 +479,7 @@ class CoilBoardProgram(RequestedControl):
                 if not len(moves) or np.hypot(*moves.T).max() < s.skip_mm:
                     self._say(f"Alg. 1 finds no move the rig can make that improves on "
                               f"{error:.3f} mm")
+                    self._reached(error)
                     return
             move, end = moves[index], expected[index]
             index += 1
@@ -485,6 +490,12 @@ class CoilBoardProgram(RequestedControl):
                       + ("" if follow else " (re-planned)"))
             position = yield from self._drive(move, position, end)
             reference = end
+
+    def _reached(self, error: float) -> None:
+        """The moves are over with both particles `error` mm (worst) from their goals."""
+        self.reached = error <= self.tolerance
+        if self.reached:
+            self._say(f"both particles within {self.tolerance:g} mm (worst {error:.3f} mm)")
 
     def _hold(self) -> Commands:
         """A pause: zeros until resumed (or aborted: `next` ends the run)."""
