@@ -36,6 +36,7 @@ from rigctl.daemon.messages import (
     EVENT_TOPICS,
     Topic,
     parse_telemetry,
+    read_json,
 )
 from rigctl.errors import Disconnected, RigError
 
@@ -112,7 +113,7 @@ class Rig:
         try:
             self._sock.send(payload)
             self._sock.setsockopt(zmq.RCVTIMEO, max(1, int(1000 * (deadline - time.monotonic()))))
-            reply = json.loads(self._sock.recv())
+            reply = read_json(self._sock.recv())
         except zmq.Again:
             return None
         if expect_id is not None and reply.get("id") != expect_id:

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from rigctl.cli.main import main
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
@@ -18,6 +20,7 @@ from rigctl.daemon.messages import (
     MAX_JSON_DEPTH,
     BadJson,
     decode_request,
+    read_json,
 )
 from rigctl.errors import PlanError
 from rigctl.plans.schema import (
@@ -63,6 +66,29 @@ def test_what_a_request_may_hold_is_read_as_json_reads_it():
         float(f"1.{long}"), float(f"{long}.5"), 0.0, long]
     with pytest.raises(BadJson, match="an integer of 31 digits"):
         decode_request(b'{"a": "x", "b": [-' + b"1" * 31 + b"]}")
+
+
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(),
+    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(), inner, max_size=5),
+    max_leaves=30)
+
+
+@given(JSON_VALUES)
+def test_read_json_reads_what_the_standard_library_reads(value):
+    # integers of any size (orjson alone makes a float of one beyond 64 bits), floats, text with
+    # any code point, nested: the same value and the same types, from str and from bytes
+    text = json.dumps(value, ensure_ascii=False)
+    expected = json.loads(text)
+    for given_text in (text, text.encode()):
+        got = read_json(given_text)
+        assert got == expected and repr(got) == repr(expected)
+
+
+@pytest.mark.parametrize("text", ["NaN", "[Infinity, -Infinity]", '"\\ud800"', "1e400",
+                                  "[9223372036854775808, -9223372036854775809]"])
+def test_read_json_reads_the_python_dialect_and_the_edges_as_the_standard_library(text):
+    assert repr(read_json(text)) == repr(json.loads(text))
 
 
 @pytest.mark.parametrize("change, field", [
