@@ -289,6 +289,45 @@ def test_a_particle_hidden_before_the_run_is_a_fault_of_the_camera_before_anythi
     assert summary.safe
 
 
+def driven_perfectly(program) -> list:
+    """Stub a coil-board program's I/O: no record, and each move ends exactly where Alg. 1 expects
+    it to (a perfect rig). Returns the list the driven moves are appended to."""
+    from rigctl.rigs.coil_board import run as board_run
+
+    program.record = type("Record", (), {"event": lambda self, *a, **k: None})()
+    driven = []
+
+    def perfect(move, start, end):
+        driven.append(move)
+        yield board_run.ZERO
+        return end
+
+    program._drive = perfect
+    return driven
+
+
+@pytest.mark.parametrize("off_mm, moves_on", [(0.47, True), (0.44, False)])
+def test_the_moves_end_only_with_a_margin_inside_the_tolerance(rig, off_mm, moves_on):
+    """Measured 0.47 mm from the goals (tolerance 0.5, margin 0.9 x 0.5 = 0.45), the run moves on
+    towards them, since the camera's next frame, which judges the run, could read a particle over
+    0.5; at 0.44 it stops where it is, reached."""
+    from rigctl.rigs.coil_board.run import CoilBoardProgram
+
+    program = CoilBoardProgram(load_plan(PLAN), rig, settings=CoilBoardRunSettings(done_fraction=0.9))
+    assert program.tolerance == 0.5
+    offset = np.array([off_mm, 0.0])
+    program._position = program.goals + offset
+    driven = driven_perfectly(program)
+    commands = program._run_moves()
+    for _ in range(200):
+        try:
+            next(commands)
+        except StopIteration:
+            break
+    assert program.reached
+    assert bool(driven) == moves_on
+
+
 def test_a_measured_position_alg_1_pulls_into_its_region_does_not_re_plan_every_cycle(rig):
     """A particle measured just outside the planning region (on the rim, within the tracker's
     noise) is moved into it for Alg. 1, so the planned states start off the measured ones; the
@@ -305,15 +344,7 @@ def test_a_measured_position_alg_1_pulls_into_its_region_does_not_re_plan_every_
     measured = np.array([[-23.217, 2.556], [5.108, -21.929]])
     assert not program.region.contains(measured[0])[0]
     program._position = measured
-    program.record = type("Record", (), {"event": lambda self, *a, **k: None})()
-    driven = []
-
-    def perfect(move, start, end):
-        driven.append(move)
-        yield board_run.ZERO
-        return end
-
-    program._drive = perfect
+    driven = driven_perfectly(program)
     replan = program._replan
 
     def bounded(position):  # the storm re-planned inside one `next`: make it fail, not hang

@@ -320,6 +320,7 @@ def test_a_reply_to_another_request_is_no_reply_and_the_client_retries():
         thread.join(5)
         server.close(linger=0)
 
+
 def load_and_execute(rig, samples=2000, **extra):
     plan_id = rig.load({"samples": samples, **extra})
     return plan_id, rig.execute(plan_id)
