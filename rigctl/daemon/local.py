@@ -60,7 +60,7 @@ class LocalControl:
         self.publisher = TelemetryPublisher(
             self._context, "tcp://127.0.0.1:0", "tcp://127.0.0.1:0",
             channels=rig_kind(run.rig.rig.kind).channels(run.rig), clock_origin=self.started)
-        self._cycles: deque[tuple] = deque()  # appended by the stream thread, drained by this one
+        self._cycles: deque[list] = deque()  # appended by the stream thread, drained by this one
         self._streaming = False
         self._hook(run)
         self._stop = threading.Event()
@@ -73,9 +73,8 @@ class LocalControl:
         def cycle(sample: int, move: int, commanded: np.ndarray, measured: np.ndarray) -> None:
             if on_cycle is not None:
                 on_cycle(sample, move, commanded, measured)
-            self._cycles.append((time.monotonic(), sample, move, np.array(commanded, dtype=float),
-                                 np.array(measured, dtype=float),
-                                 run.stream_loop.last_error_s))
+            self._cycles.append(CycleBatch.row(time.monotonic() - self.started, sample, move,
+                                               commanded, measured, run.stream_loop.last_error_s))
 
         def state(run_state: Any, info: dict) -> None:
             if on_state is not None:
@@ -103,10 +102,7 @@ class LocalControl:
             if not self._streaming:  # period-error statistics from the stream's first cycle on
                 self._streaming = True
                 self.publisher.reset_stream(self.run.stream_loop.rate_hz)
-            t, sample, move, commanded, measured, error = zip(*cycles)
-            self.publisher.offer_cycles(CycleBatch(
-                np.array(t) - self.started, np.array(sample), np.array(move), np.array(commanded),
-                np.array(measured), np.array(error, dtype=float)))
+            self.publisher.offer_cycles(CycleBatch.from_rows(cycles))
 
     def start(self) -> LocalControl:
         self.publisher.start()

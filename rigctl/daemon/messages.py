@@ -338,7 +338,8 @@ class ActuatorsMsg(_Telemetry):
     samples: list[int] = Field(description="(k,) program sample index per cycle")
     moves: list[int] = Field(description="(k,) plan move per cycle, -1 during ramps and holds")
     commanded: list[list[float]] = Field(description="(k, n_channels) setpoints")
-    measured: list[list[float]] = Field(description="(k, n_channels) what the devices reported")
+    measured: list[list[float | None]] = Field(
+        description="(k, n_channels) what the devices reported; null where one gave no reading")
 
 
 class FieldMsg(_Telemetry):

@@ -21,7 +21,8 @@ Messages are pickled tuples over one-way pipes (`multiprocessing.connection.Conn
                      ("resume",)  ("abort",)  ("estop", asked_at)  ("event", name, fields)
                      ("retarget", target, setpoints, ramp_s)  ("release", ramp_s)  (a hold's)
                      ("exit",)
-    host -> daemon   ("ready", pid)   ("cycles", *CycleBatch fields; t on `time.monotonic()`)
+    host -> daemon   ("ready", pid)   ("cycles", rows): (n, 4 + 2 k) rows of `CycleBatch.row`,
+                      t on `time.monotonic()`
                      ("frame", jpeg_b64, width, height, t_source, t_source_unix, positions_mm,
                       tracked_px, lost, frame) (`_FrameTap`)
                      ("winding", t, temperatures_C, state) (the run's live winding model, 10 Hz)
@@ -69,7 +70,7 @@ log = logging.getLogger("rigctl.daemon.runhost")  # also when run as `python -m 
 FRAME_HZ = 15.0  # camera frames passed on to the daemon (its console) at most this often
 FRAME_MAX_WIDTH = 640  # px; a wider frame is scaled down before it is encoded
 FRAME_JPEG_QUALITY = 70
-UPLINK_BATCH_S = 0.01  # the host sends cycles to the daemon at most this late
+UPLINK_BATCH_S = 0.02  # the host sends cycles to the daemon at most this late
 UPLINK_MAX_QUEUED = 60_000  # cycles held for a daemon that stopped reading (a minute at 1 kHz)
 ESTOP_ACK_S = 0.25  # an e-stop the host has not acknowledged by then: kill it, zero directly
 WATCHDOG_POLL_S = 0.1  # how often the daemon checks that a streaming run still reports
@@ -238,7 +239,7 @@ class RunHost:
         return self._process.pid if self._process is not None else None
 
     def _watch(self) -> None:
-        """The link's watchdog: a run that streams sends cycles every 10 ms; one silent for
+        """The link's watchdog: a run that streams sends cycles every 20 ms; one silent for
         `RemoteRun.silence_limit_s` has a hung stream process (a stuck call, a SIGSTOP). It is
         killed; its pipe then closes and the run ends as if it had crashed: every supply zeroed
         over new connections, a fault recorded."""
@@ -447,7 +448,7 @@ class RemoteRun:
             self._last_cycles = time.monotonic()
             self.streaming = True
             self.started.set()
-            self.on_cycles(CycleBatch(*message[1:]))
+            self.on_cycles(CycleBatch.from_rows(message[1]))
         elif kind == "state":
             _, state, info, path, t0 = message
             if self.record is None and path is not None:
@@ -519,8 +520,8 @@ class _Uplink:
     def cycle(self, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray,
               error: float | None) -> None:
         """From the stream thread: a deque append, nothing else."""
-        self._queue.append((time.monotonic(), sample, move, np.asarray(commanded).tolist(),
-                            np.asarray(measured).tolist(), np.nan if error is None else error))
+        self._queue.append(CycleBatch.row(time.monotonic(), sample, move, commanded, measured,
+                                          error))
 
     def message(self, *message: Any) -> None:
         """In order with the cycles before it; sent at once."""
@@ -559,9 +560,7 @@ class _Uplink:
 
     def _send_cycles(self, batch: list) -> None:
         if batch:
-            t, sample, move, commanded, measured, error = zip(*batch)
-            self._send(("cycles", np.array(t), np.array(sample), np.array(move),
-                        np.array(commanded), np.array(measured), np.array(error)))
+            self._send(("cycles", np.array(batch)))
 
     def _send(self, message: tuple) -> None:
         with self._lock:

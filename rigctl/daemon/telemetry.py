@@ -1,7 +1,7 @@
 """Telemetry: the daemon's two PUB sockets and the thread that feeds them.
 
 The stream must never wait on a subscriber, nor on the publisher. Its cycles arrive in batches
-(`CycleBatch`, about every 10 ms from the stream process), and `offer_cycles` appends each to a
+(`CycleBatch`, about every 20 ms from the stream process), and `offer_cycles` appends each to a
 bounded in-memory queue (a deque append: no lock, no wake-up; when the queue is full the oldest
 batch goes and its cycles are counted as dropped) and returns. The publisher thread wakes every
 `TELEMETRY_BATCH_S`, takes every queued cycle, and sends them as one `actuators` message (every
@@ -71,6 +71,23 @@ class CycleBatch:
 
     def __len__(self) -> int:
         return len(self.t)
+
+    @staticmethod
+    def row(t: float, sample: int, move: int, commanded: np.ndarray, measured: np.ndarray,
+            period_error_s: float | None) -> list[float]:
+        """One cycle as a row of floats (`from_rows`): what a run queues per cycle."""
+        return [t, sample, move, *np.asarray(commanded, dtype=float).tolist(),
+                *np.asarray(measured, dtype=float).tolist(),
+                np.nan if period_error_s is None else period_error_s]
+
+    @staticmethod
+    def from_rows(rows: np.ndarray | list[list[float]]) -> "CycleBatch":
+        """Cycles from their rows (`row`), one (n, 4 + 2 n_channels) array: how the stream
+        process sends them, one array for the daemon's reader to unpickle instead of six."""
+        a = np.asarray(rows, dtype=float)
+        k = (a.shape[1] - 4) // 2
+        return CycleBatch(a[:, 0], a[:, 1].astype(np.int64), a[:, 2].astype(np.int64),
+                          a[:, 3:3 + k], a[:, 3 + k:3 + 2 * k], a[:, 3 + 2 * k])
 
     @staticmethod
     def joined(batches: list["CycleBatch"]) -> "CycleBatch":
