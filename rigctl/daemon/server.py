@@ -31,6 +31,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import threading
 import time
 from collections import OrderedDict, deque
@@ -111,11 +112,22 @@ RUN_EVENTS = {"running": "running", "paused": "paused", "suspended": "suspended"
 
 HOLD_START_TIMEOUT_S = 30.0  # hold waits this long for the rig to stream the hold
 
-QUICK_COMMANDS = {"status": "_cmd_status", "estop": "_cmd_estop"}
-"""Commands without arguments answered without the pydantic models when the request is exactly
-what `Request` accepts for them (`Daemon._send_json`): `status`, which scripts poll hundreds of
-times a second, and `estop`, which must reach the supplies as soon as it can. Neither is replayed
-(`_replay_key`), and neither raises a `Refusal`."""
+QUICK_COMMANDS = {b"status": "_cmd_status", b"estop": "_cmd_estop"}
+"""Commands answered without decoding the request or the pydantic models when its bytes are
+exactly a bare request for one (`QUICK_REQUEST`, the form `rigctl.client.Rig` and `json.dumps`
+write; any other form takes the general path to the same reply): `status`, which scripts poll
+hundreds of times a second, and `estop`, which must reach the supplies as soon as it can. Neither
+is replayed (`_replay_key`), and neither raises a `Refusal`. With the caches cold, as a `status`
+after an idle 5 ms finds them, decoding took 37 us at p50."""
+
+_WS = rb"[ \t\n\r]*"
+QUICK_REQUEST = re.compile(
+    _WS + rb'\{' + _WS + rb'"id"' + _WS + rb':' + _WS
+    + rb'(?:"([\x20\x21\x23-\x5b\x5d-\x7e]{0,128})"|(-?[1-9][0-9]{0,17}|0))'  # a plain id
+    + _WS + rb',' + _WS + rb'"cmd"' + _WS + rb':' + _WS + rb'"(status|estop)"' + _WS
+    + rb'(?:,' + _WS + rb'"args"' + _WS + rb':' + _WS + rb'\{' + _WS + rb'\}' + _WS + rb')?\}' + _WS)
+"""`{"id": ID, "cmd": "status" or "estop"[, "args": {}]}`, ID a string of printable ASCII with
+no escape, or an integer of at most 18 digits: what `Request` accepts with no decoding to check."""
 
 LOAD_DEADLINE_S = 20.0
 """A `load` not answered within this is answered `deadline` (the plan is not loaded); it runs on a
@@ -516,6 +528,9 @@ class Daemon:
                         except zmq.Again:
                             break
                         self._admit(frames)
+                        # no more waiting: asked, not found by a receive that raises (40 us cold)
+                        if not self._router.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                            break
                 for frames in self.admission.ready(time.monotonic()):
                     self._on_message(frames)
                 if self._wakeup.read_fd in events:
@@ -616,6 +631,9 @@ class Daemon:
             self._send(envelope, error_reply(None, ErrorCode.TOO_LARGE,
                                              f"{len(payload)} bytes; the limit is {MAX_REQUEST_BYTES}"))
             return
+        quick = QUICK_REQUEST.fullmatch(payload)
+        if quick is not None and self._answer_quickly(envelope, *quick.groups()):
+            return
         try:
             data = decode_request(payload)
         except BadJson as err:
@@ -624,19 +642,6 @@ class Daemon:
         request_id = data.get("id") if isinstance(data, dict) else None
         if not isinstance(request_id, (str, int)) or isinstance(request_id, bool):
             request_id = None
-        cmd = data.get("cmd") if isinstance(data, dict) else None
-        quick = QUICK_COMMANDS.get(cmd) if isinstance(cmd, str) else None
-        if (quick is not None and data.get("args", {}) == {}
-                and data.keys() <= {"id", "cmd", "args"} and data.get("id") == request_id):
-            try:
-                result = getattr(self, quick)(None)
-            except Exception:  # noqa: BLE001 - the general path below answers with the error
-                log.exception("%s failed on the quick path; answering through the general one",
-                              cmd)
-            else:
-                self._send_json(envelope, {"id": request_id, "ok": True, "result": result,
-                                           "error": None})
-                return
         try:
             request = Request.model_validate(data)
         except ValidationError as err:
@@ -659,6 +664,19 @@ class Daemon:
         if replay_key is not None and self._replayed(replay_key, envelope):
             return
         self._dispatch(cmd, args, request.id, envelope, replay_key)
+
+    def _answer_quickly(self, envelope: list[bytes], text_id: bytes | None, number_id: bytes | None,
+                        cmd: bytes) -> bool:
+        """A `QUICK_REQUEST` answered; False (the general path answers) if its handler failed."""
+        try:
+            result = getattr(self, QUICK_COMMANDS[cmd])(None)
+        except Exception:  # noqa: BLE001 - the general path answers with the error
+            log.exception("%s failed on the quick path; answering through the general one",
+                          cmd.decode())
+            return False
+        request_id = text_id.decode() if text_id is not None else int(number_id)
+        self._send_json(envelope, {"id": request_id, "ok": True, "result": result, "error": None})
+        return True
 
     def _replay_key(self, request: Request, cmd: Command, payload: bytes) -> bytes | None:
         if cmd in (Command.PING, Command.STATUS, Command.ESTOP, Command.RUNS, Command.RUN):
@@ -1091,7 +1109,7 @@ class Daemon:
                           "answers: check its link")
 
     def _on_cycles(self, batch: CycleBatch) -> None:
-        """Cycles a run in the stream process ran (`t` on `time.monotonic()`), about every 10 ms:
+        """Cycles a run in the stream process ran (`t` on `time.monotonic()`), about every 20 ms:
         one append for the publisher, so this thread holds the GIL for microseconds."""
         active = self._active
         if active is not None:

@@ -111,7 +111,7 @@ def test_a_reply_that_cannot_be_encoded_is_replaced_by_an_error_reply(daemon, pr
     reply, _ = probe.send([b'{"cmd":"ping"}'], REPLY_S)
     assert reply["error"]["code"] == "internal" and "could not be encoded" in reply["error"]["message"]
     monkeypatch.setattr(daemon, "_cmd_status", lambda _: {"text": "\udc80"})  # the quick path's
-    assert answered(probe, [b'{"cmd":"status"}']) == "internal"
+    assert answered(probe, [b'{"id":"q","cmd":"status"}']) == "internal"
     monkeypatch.undo()
     still_serving(probe, daemon)
 

@@ -85,6 +85,54 @@ def test_read_json_reads_what_the_standard_library_reads(value):
         assert got == expected and repr(got) == repr(expected)
 
 
+PRINTABLE = st.characters(min_codepoint=0x20, max_codepoint=0x7E)
+REQUEST_IDS = (st.none() | st.booleans() | st.floats(allow_nan=False) | st.text()
+               | st.text(PRINTABLE, max_size=12) | st.text(PRINTABLE, min_size=120, max_size=136)
+               | st.integers() | st.integers(-10**19, 10**19))
+
+
+@given(REQUEST_IDS, st.sampled_from(["status", "estop", "ping", "abort"]),
+       st.sampled_from([None, {}, {"immediate": True}]), st.booleans(),
+       st.sampled_from([(", ", ": "), (",", ":"), (" ,\n", " :\t")]))
+def test_the_quick_path_takes_only_bare_requests_and_reads_their_id_as_json_does(
+        request_id, cmd, args, id_first, separators):
+    from rigctl.daemon.server import QUICK_REQUEST
+
+    fields = {"id": request_id, "cmd": cmd} if id_first else {"cmd": cmd, "id": request_id}
+    if args is not None:
+        fields["args"] = args
+    payload = json.dumps(fields, separators=separators).encode()
+    bare = (id_first and cmd in ("status", "estop") and args in (None, {})
+            and type(request_id) in (int, str))
+    match = QUICK_REQUEST.fullmatch(payload)
+    if match is None:  # not taken: the general path answers, whatever it holds
+        assert not bare or not _plain_id(request_id)
+        return
+    assert bare and _plain_id(request_id)
+    text_id, number_id, quick_cmd = match.groups()
+    assert quick_cmd.decode() == cmd
+    assert (text_id.decode() if text_id is not None else int(number_id)) == request_id
+    assert type(json.loads(payload)["id"]) is type(request_id)
+
+
+@pytest.mark.parametrize("request_id, taken", [
+    ("a" * 128, True), ("a" * 129, False), ("", True), ('a"b', False), ("a\\b", False),
+    ("\u00e9", False), (10**17, True), (-(10**18 - 1), True), (10**18, False), (0, True)])
+def test_the_quick_path_bounds_its_ids(request_id, taken):
+    from rigctl.daemon.server import QUICK_REQUEST
+
+    payload = json.dumps({"id": request_id, "cmd": "status", "args": {}}).encode()
+    assert (QUICK_REQUEST.fullmatch(payload) is not None) == taken == _plain_id(request_id)
+
+
+def _plain_id(request_id: object) -> bool:
+    """What the quick path promises to take: a string of printable ASCII with nothing escaped, of
+    at most 128 characters, or an integer of at most 18 digits."""
+    if isinstance(request_id, str):
+        return len(request_id) <= 128 and all(" " <= c <= "~" and c not in '"\\' for c in request_id)
+    return len(str(abs(request_id))) <= 18
+
+
 @pytest.mark.parametrize("text", ["NaN", "[Infinity, -Infinity]", '"\\ud800"', "1e400",
                                   "[9223372036854775808, -9223372036854775809]"])
 def test_read_json_reads_the_python_dialect_and_the_edges_as_the_standard_library(text):
