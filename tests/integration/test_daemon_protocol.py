@@ -321,6 +321,34 @@ def test_a_reply_to_another_request_is_no_reply_and_the_client_retries():
         server.close(linger=0)
 
 
+def test_a_client_whose_daemon_falls_silent_after_answering_still_times_out():
+    """The client sets its socket's timeouts only when they change: a request on a socket that
+    already answered once must still give up within its timeout (a real REP socket on loopback
+    answers the first request and then nothing)."""
+    context = zmq.Context.instance()
+    server = context.socket(zmq.REP)
+    port = server.bind_to_random_port("tcp://127.0.0.1")
+
+    def serve_once():
+        if server.poll(5000):
+            request = json.loads(server.recv())
+            server.send(json.dumps({"id": request["id"], "ok": True, "result": {"n": 1}}).encode())
+
+    thread = threading.Thread(target=serve_once, daemon=True)
+    thread.start()
+    try:
+        with Rig(f"tcp://127.0.0.1:{port}", timeout_s=0.3, retries=1) as rig:
+            assert rig.ping() == {"n": 1}
+            started = time.monotonic()
+            with pytest.raises(DaemonUnreachable):
+                rig.ping()
+            waited = time.monotonic() - started
+        assert 0.5 <= waited < 3.0  # two attempts of 0.3 s each, not forever
+    finally:
+        thread.join(5)
+        server.close(linger=0)
+
+
 def load_and_execute(rig, samples=2000, **extra):
     plan_id = rig.load({"samples": samples, **extra})
     return plan_id, rig.execute(plan_id)
