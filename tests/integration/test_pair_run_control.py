@@ -231,7 +231,9 @@ def test_abort_ramps_down_and_ends_aborted(plan_file, bench, tmp_path):
 def test_estop_zeroes_every_supply_from_the_calling_thread(plan_file, bench, tmp_path):
     run = Driven(plan_file, bench, tmp_path / "runs").start()
     run.after_cycles(150)
-    assert any(abs(s.model.current_A) > 0.5 for s in bench.supplies)
+    # the coils' currents follow their L/R in the emulator's own time: wait for one to carry some
+    wait_for(lambda: any(abs(s.model.current_A) > 0.5 for s in bench.supplies), 2.0,
+             "a supply carrying current")
     asked_unix = time.time()
     assert run.run.estop() == []  # every supply reached
     returned_unix = time.time()
