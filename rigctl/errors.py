@@ -58,21 +58,58 @@ class Terminated(KeyboardInterrupt):
     an abort that ramps down, records and summarises."""
 
 
+class _Interrupts:
+    """The last Ctrl-C or SIGTERM taken by `on_interrupt_signal` and not yet handled, and how
+    many `shielded_from_interrupts` blocks the main thread is in."""
+
+    pending: KeyboardInterrupt | None = None
+    shields = 0
+
+
+def on_interrupt_signal(signum: int, frame: object) -> None:
+    """The handler of SIGINT and SIGTERM on the main thread (`abort_on_sigterm`): remembers the
+    interrupt, then raises it unless a ramp to safe is under way (`shielded_from_interrupts`).
+    Remembering is what makes it reliable: Python drops an exception raised where nobody can
+    catch it (a weakref callback of the import machinery, a `__del__`), printing "Exception
+    ignored", and a run that polls `take_interrupt` every cycle still ends."""
+    import signal
+
+    interrupt = Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+    _Interrupts.pending = interrupt
+    if not _Interrupts.shields:
+        raise interrupt
+
+
+def take_interrupt() -> KeyboardInterrupt | None:
+    """The interrupt signalled and not yet handled (None if none), now handled."""
+    interrupt, _Interrupts.pending = _Interrupts.pending, None
+    return interrupt
+
+
+class shielded_from_interrupts:
+    """A block that a Ctrl-C or SIGTERM must not cut short (a ramp to safe): one arriving meanwhile
+    is remembered (`take_interrupt`), not raised. Main thread only, as signal handlers are."""
+
+    def __enter__(self) -> None:
+        _Interrupts.shields += 1
+
+    def __exit__(self, *exc: object) -> None:
+        _Interrupts.shields -= 1
+
+
 def abort_on_sigterm() -> None:
     """From now on SIGTERM interrupts the main thread as Ctrl-C does (as `Terminated`), and SIGINT
-    is Ctrl-C even where the process was started with it ignored (a shell's background job);
-    called off the main thread (a test driving the CLI), it leaves the signals alone."""
+    is Ctrl-C even where the process was started with it ignored (a shell's background job), both
+    through `on_interrupt_signal`; called off the main thread (a test driving the CLI), it leaves
+    the signals alone."""
     import signal
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         return
-
-    def interrupt(*_: object) -> None:
-        raise Terminated()
-
-    signal.signal(signal.SIGTERM, interrupt)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    take_interrupt()  # one from before (handled or not) is not this run's
+    signal.signal(signal.SIGTERM, on_interrupt_signal)
+    signal.signal(signal.SIGINT, on_interrupt_signal)
 
 
 def interrupt_name(interrupt: KeyboardInterrupt) -> str:

@@ -45,7 +45,7 @@ from rigctl.client import CommandRefused, Rig
 from rigctl.config import RigConfig, dump_rig, load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.errors import DeviceError, DeviceTimeout, Disconnected, RigError, Terminated
+from rigctl.errors import DeviceError, DeviceTimeout, Disconnected, RigError, on_interrupt_signal
 from rigctl.record import describe_run, read_events, read_stream
 
 PHASES = ("before", "moving", "paused", "suspended", "ramping")
@@ -743,7 +743,7 @@ def run_campaign(rigs: list[str], *, quick: bool, folder: Path | None = None,
     cells, "PATH/DEVICE:KIND/PHASE", on every rig given); `on_cell` is handed each cell done."""
     cells: list[Cell] = []
     # SIGTERM ends the campaign as Ctrl-C does: every bench and daemon it started is stopped
-    previous = signal.signal(signal.SIGTERM, _interrupt) \
+    previous = signal.signal(signal.SIGTERM, on_interrupt_signal) \
         if threading.current_thread() is threading.main_thread() else None
     try:
         return _run_rigs(rigs, cells, quick=quick, folder=folder, progress=progress,
@@ -751,10 +751,6 @@ def run_campaign(rigs: list[str], *, quick: bool, folder: Path | None = None,
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-
-
-def _interrupt(signum: int, frame: Any) -> None:
-    raise Terminated()
 
 
 def _run_rigs(rigs: list[str], cells: list[Cell], *, quick: bool, folder: Path | None,

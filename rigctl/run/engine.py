@@ -31,7 +31,7 @@ import numpy as np
 
 from rigctl.certificate import Certificate, Check, certify
 from rigctl.config import RigConfig, dump_rig
-from rigctl.errors import LimitError, RigError, interrupt_name
+from rigctl.errors import LimitError, RigError, interrupt_name, shielded_from_interrupts, take_interrupt
 from rigctl.record import RunRecord
 from rigctl.run.actuators import Actuators
 from rigctl.run.control import EStopped, RunControl, RunState
@@ -215,11 +215,13 @@ class Run(RunControl):
                 program.connected(actuators)
                 if self._estop.is_set():  # e-stopped while connecting: never switch on
                     raise EStopped()
+                _raise_lost_interrupt()
                 actuators.energise()
                 record.event("energised", devices=actuators.names)
                 self._set_state(RunState.RUNNING)
                 stats = self._stream(actuators)
             except KeyboardInterrupt as interrupt:
+                take_interrupt()  # handled here
                 self.abort(f"operator interrupt ({interrupt_name(interrupt)})")
                 record.event("abort", reason=self._abort_reason)
         except LimitError as err:
@@ -242,7 +244,11 @@ class Run(RunControl):
                 now = time.monotonic()
                 record.event("stopping", ramp_s=ramp_s, after_decision_s=round(
                     now - (self._decided_at if self._decided_at is not None else now), 6))
-                unconfirmed = actuators.stop(ramp_s)
+                with shielded_from_interrupts():  # a second Ctrl-C must not leave it half-way
+                    unconfirmed = actuators.stop(ramp_s)
+                if take_interrupt() is not None:
+                    self._say("interrupted again while ramping down: the ramp went on to safe "
+                              "(rigctl estop cuts it short)")
                 self._supplies = None  # off and closed: nothing left for an e-stop to write to
                 if unconfirmed:
                     unconfirmed = self._reach_again(type(actuators), unconfirmed, record)
@@ -297,6 +303,7 @@ class Run(RunControl):
 
         def cycle(k: int) -> bool:
             nonlocal measured
+            _raise_lost_interrupt()
             if self._estop.is_set():
                 self._decided_at = time.monotonic()
                 self._finish_estop(actuators, record)
@@ -356,12 +363,20 @@ class Run(RunControl):
                                  after_s=round(time.monotonic() - t0, 3))
                     self._say(f"made safe once reached again: {', '.join(reached)}")
         except KeyboardInterrupt:
+            take_interrupt()
             self._say("stopped trying")
         return left
 
     def _say(self, text: str) -> None:
         if self.progress_out is not None:
             print(f"  {text}", file=self.progress_out, flush=True)
+
+
+def _raise_lost_interrupt() -> None:
+    """Raise a Ctrl-C or SIGTERM that was signalled but lost (see `on_interrupt_signal`)."""
+    interrupt = take_interrupt()
+    if interrupt is not None:
+        raise interrupt
 
 
 class _HeatWatch:
