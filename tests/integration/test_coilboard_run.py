@@ -297,7 +297,7 @@ def driven_perfectly(program) -> list:
     program.record = type("Record", (), {"event": lambda self, *a, **k: None})()
     driven = []
 
-    def perfect(move, start, end):
+    def perfect(move, start, end, before):
         driven.append(move)
         yield board_run.ZERO
         return end

@@ -286,6 +286,45 @@ class RelativeDrift:
 
 
 
+@dataclass(frozen=True)
+class MoveRoles:
+    """What one move asks of each particle (each a (2,) bool): `watched`, the particles whose
+    mean ends the move; `pinned`, those it leaves on their wall (the pull must push into the wall
+    by `pin_margin_deg`); `grazing`, those on a wall it carries along (the pull must leave that
+    wall by as much, or the wall holds them where the plan moves them, and the next re-plan asks
+    for the same graze again)."""
+
+    watched: np.ndarray
+    pinned: np.ndarray
+    grazing: np.ndarray
+
+
+def move_roles(region: CentreRegion, s: CoilBoardRunSettings, u: np.ndarray, start: np.ndarray,
+               end: np.ndarray, before: np.ndarray) -> MoveRoles:
+    """The roles of the particles in a move along unit `u` (2,) that Alg. 1 planned from state
+    `before` to `end` (2, 2), the particles measured at `start` (2, 2). What the move does to a
+    particle is the difference of the two planned states, not of a planned and a measured one: the
+    camera's few hundredths of a mm made a particle the plan leaves on its wall look like one it
+    carries along (`skip_mm`), and the pull then took it off its wall (47 % of pinned particles
+    slipped in bench/coilboard.py's 20 runs, 20 % since)."""
+    step = end - before  # (2, 2) what Alg. 1 has each particle do in this move
+    planned = step @ u  # (2,) planned advance along u
+    on_wall = ~region.contains(start, slack=0.05)
+    free_end = region.contains(end, slack=0.01)  # ends the move off every wall
+    # A move that brings a particle to a wall (Alg. 1's move 1) is over when that particle is
+    # there, also when it leaves one wall for another across a chord (stopping on the free
+    # particle instead would leave it short, and the next steps would close in on the wall
+    # only geometrically); otherwise when the particles meant to end in free space are where
+    # they should be. A particle that only grazes its wall is not waited for (it is held).
+    leaves = ~on_wall | (planned > s.chord_mm)
+    contact = ~free_end & leaves & (planned > s.skip_mm)
+    watched = contact if contact.any() else free_end & (planned > s.skip_mm)
+    if not watched.any():
+        watched = planned > s.skip_mm
+    pinned = (np.hypot(*step.T) < s.skip_mm) & on_wall
+    return MoveRoles(watched, pinned, ~pinned & on_wall & (planned > s.skip_mm))
+
+
 class CoilBoardProgram(RequestedControl):
     """Alg. 1 closed through the camera, as the engine's program (see the module docstring).
 
@@ -458,6 +497,8 @@ class CoilBoardProgram(RequestedControl):
         # a measured position Alg. 1 had to pull into its region is not "off the plan" again and
         # again (a re-plan every cycle that never drove and never yielded to the stream).
         reference: np.ndarray | None = None
+        # Alg. 1's state before the present move (what the move does to each: `move_roles`)
+        planned_from = self._into_region(position)
         while True:
             if self.requests.pause_wanted:
                 yield from self._hold()
@@ -476,19 +517,21 @@ class CoilBoardProgram(RequestedControl):
                 # inline, on the stream thread: the coils are at zero and the particles still
                 moves, expected = self._replan(position)
                 index, reference = 0, position
+                planned_from = self._into_region(position)  # where Alg. 1 started
                 if not len(moves) or np.hypot(*moves.T).max() < s.skip_mm:
                     self._say(f"Alg. 1 finds no move the rig can make that improves on "
                               f"{error:.3f} mm")
                     self._reached(error)
                     return
             move, end = moves[index], expected[index]
+            before = expected[index - 1] if index > 0 else planned_from
             index += 1
             if math.hypot(*move) < s.skip_mm:
                 continue
             self.moves_done += 1
             self._say(f"move {self.moves_done}: ({move[0]:+.2f}, {move[1]:+.2f}) mm"
                       + ("" if follow else " (re-planned)"))
-            position = yield from self._drive(move, position, end)
+            position = yield from self._drive(move, position, end, before)
             reference = end
 
     def _reached(self, error: float) -> None:
@@ -563,10 +606,12 @@ class CoilBoardProgram(RequestedControl):
         return inside
 
     # -- one move -------------------------------------------------------------------------------
-    def _drive(self, move: np.ndarray, start: np.ndarray,
-               end: np.ndarray) -> Generator[tuple[int, ...], None, np.ndarray]:
+    def _drive(self, move: np.ndarray, start: np.ndarray, end: np.ndarray,
+               before: np.ndarray) -> Generator[tuple[int, ...], None, np.ndarray]:
         """Pull along `move` until the particles that should end it in free space are, on average,
         where the move puts them; then stop the coils and measure. Returns positions (2, 2).
+        `start`: measured now; `end` and `before`: Alg. 1's states after and before the move
+        (which particles it moves, which it leaves on their wall).
 
         The pull is steered (within `max_steer_deg` of the move's direction) towards the watched
         particles' mean target, and turned against the measured difference between the direction
@@ -574,29 +619,12 @@ class CoilBoardProgram(RequestedControl):
         towards the active coils' centres). A pause now ends the move at once."""
         s = self.settings
         u = move / math.hypot(*move)
-        planned = (end - start) @ u  # (2,) planned advance along u
-        free_end = self.region.contains(end, slack=0.01)  # ends the move off every wall
-        # A move that brings a particle to a wall (Alg. 1's move 1) is over when that particle is
-        # there, also when it leaves one wall for another across a chord (stopping on the free
-        # particle instead would leave it short, and the next steps would close in on the wall
-        # only geometrically); otherwise when the particles meant to end in free space are where
-        # they should be. A particle that only grazes its wall is not waited for (it is held).
-        leaves = self.region.contains(start, slack=0.05) | (planned > s.chord_mm)
-        contact = ~free_end & leaves & (planned > s.skip_mm)
-        watched = contact if contact.any() else free_end & (planned > s.skip_mm)
-        if not watched.any():
-            watched = planned > s.skip_mm
+        roles = move_roles(self.region, s, u, start, end, before)
+        watched, pinned, grazing = roles.watched, roles.pinned, roles.grazing
         target = np.mean(end[watched], axis=0)
-        # Particles the move must leave where they are, on a wall: the pull has to push into
-        # that wall by at least `pin_margin_deg` (the field leans, and Alg. 1's moves may graze).
-        pinned = (np.hypot(*(end - start).T) < s.skip_mm) & ~self.region.contains(start, slack=0.05)
         outward = -self.workspace.normal(start)  # (2, 2)
         pin_angles = [math.atan2(outward[i, 1], outward[i, 0]) for i in np.flatnonzero(pinned)]
         pin_limit = math.pi / 2 - math.radians(s.pin_margin_deg)
-        # Particles on a wall that the move carries along (a graze, as Alg. 1 may plan): the pull
-        # has to leave that wall by `pin_margin_deg`, or the wall holds them where the plan
-        # moves them (and the next re-plan asks for the same graze again).
-        grazing = ~pinned & ~self.region.contains(start, slack=0.05) & (planned > s.skip_mm)
         graze_angles = [math.atan2(outward[i, 1], outward[i, 0]) for i in np.flatnonzero(grazing)]
         history: list[tuple[float, np.ndarray]] = []
         sent: list[float] = []  # angle of each command sent, radians
