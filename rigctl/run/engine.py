@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TextIO
@@ -180,6 +181,17 @@ class Run(RunControl):
 
     # -- the run --------------------------------------------------------------------------------
     def execute(self) -> RunSummary:
+        """The run, start to summary. From the moment it stops (the ramp to safe) until its
+        summary is written, a Ctrl-C or SIGTERM is noted, not raised: the ramp would be left
+        half-way (a supply holds its setpoint) and the record without its end."""
+        with ExitStack() as winding_down:
+            summary = self._execute(winding_down)
+        if take_interrupt() is not None:
+            self._say("interrupted again while the run stopped: it went on to safe and recorded "
+                      "its end (rigctl estop cuts a ramp short)")
+        return summary
+
+    def _execute(self, winding_down: ExitStack) -> RunSummary:
         from rigctl.emulators.backdoor import BackdoorClient
         from rigctl.plans.schema import dump_plan
         from rigctl.run.progress import Progress
@@ -236,6 +248,7 @@ class Run(RunControl):
         except EStopped:
             record.event("estop", reason="before the outputs were switched on")
         finally:
+            winding_down.enter_context(shielded_from_interrupts())
             if actuators is not None:
                 # an e-stop during this ramp cuts it short (the drivers latch at zero)
                 ramp_s = 0.0 if self._estop.is_set() else rig.stream.ramp_down_s
@@ -244,11 +257,7 @@ class Run(RunControl):
                 now = time.monotonic()
                 record.event("stopping", ramp_s=ramp_s, after_decision_s=round(
                     now - (self._decided_at if self._decided_at is not None else now), 6))
-                with shielded_from_interrupts():  # a second Ctrl-C must not leave it half-way
-                    unconfirmed = actuators.stop(ramp_s)
-                if take_interrupt() is not None:
-                    self._say("interrupted again while ramping down: the ramp went on to safe "
-                              "(rigctl estop cuts it short)")
+                unconfirmed = actuators.stop(ramp_s)
                 self._supplies = None  # off and closed: nothing left for an e-stop to write to
                 if unconfirmed:
                     unconfirmed = self._reach_again(type(actuators), unconfirmed, record)
@@ -344,7 +353,8 @@ class Run(RunControl):
     def _reach_again(self, group: type, unconfirmed: list[str], record: RunRecord) -> list[str]:
         """Devices `stop` could not confirm safe, of a group that holds its output unattended
         (`make_safe_directly`): reached anew every REACH_AGAIN_S for `stream.unsafe_retry_s`, each
-        one confirmed recorded as `safe`; those still unconfirmed (Ctrl-C stops the trying)."""
+        one confirmed recorded as `safe`; those still unconfirmed (Ctrl-C stops the trying: it
+        comes as a noted interrupt, the run is winding down)."""
         make_safe = getattr(group, "make_safe_directly", None)
         limit_s = self.rig.stream.unsafe_retry_s
         if make_safe is None or limit_s <= 0:
@@ -353,7 +363,7 @@ class Run(RunControl):
                   f"{'it' if len(unconfirmed) == 1 else 'them'} again for {limit_s:g} s")
         left, t0 = list(unconfirmed), time.monotonic()
         try:
-            while left and time.monotonic() - t0 < limit_s:
+            while left and time.monotonic() - t0 < limit_s and take_interrupt() is None:
                 time.sleep(REACH_AGAIN_S)
                 result = make_safe(self.rig)
                 reached = [name for name in left if result.get(name, "not reached") is None]
@@ -362,8 +372,9 @@ class Run(RunControl):
                     record.event("safe", devices=reached, reason="reached again after the run",
                                  after_s=round(time.monotonic() - t0, 3))
                     self._say(f"made safe once reached again: {', '.join(reached)}")
-        except KeyboardInterrupt:
-            take_interrupt()
+        except KeyboardInterrupt:  # raised where the CLI's handler is not installed
+            pass
+        if left and time.monotonic() - t0 < limit_s:
             self._say("stopped trying")
         return left
 

@@ -13,9 +13,11 @@ The references: the bench's own supply models, the run record, the plan's length
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -140,3 +142,31 @@ def test_a_second_ctrl_c_during_the_ramp_down_does_not_cut_it_short(plan, bench,
     assert names.index("stopping") < names.index("safe")
     assert_every_supply_off(bench)
     assert take_interrupt() is None  # the second was handled (said), not left for the next run
+
+
+class _InterruptedWhileFinishing(PairProgram):
+    """The pair program, and the operator pressing Ctrl-C again as the run, ramped down and safe,
+    takes its last look at the agents (before the summary is written)."""
+
+    def finish(self, ctx):
+        os.kill(os.getpid(), signal.SIGINT)
+        return super().finish(ctx)
+
+
+def test_a_ctrl_c_while_the_run_winds_down_still_leaves_a_finished_record(plan, bench, handlers,
+                                                                          tmp_path):
+    def on_cycle(sample, move, commanded, measured) -> None:
+        if sample == AT_CYCLE:
+            os.kill(os.getpid(), signal.SIGTERM)  # the first: the run aborts
+
+    rig = bench.rig.model_copy(update={"stream": StreamSettings(reply_timeout_s=1.0)})
+    run = Run(_InterruptedWhileFinishing(plan, rig, PairRunSettings()), rig, CoilSupplies.connect,
+              runs_dir=tmp_path / "runs", on_cycle=on_cycle)
+    summary = execute(run)
+    assert summary.state == "aborted" and summary.safe is True, summary
+    on_disk = json.loads((Path(summary.run) / "summary.json").read_text())
+    assert on_disk["state"] == "aborted" and on_disk["safe"] is True
+    aborts = [e for e in read_events(summary.run) if e["event"] == "abort"]
+    assert len(aborts) == 1 and "SIGTERM" in aborts[0]["reason"], aborts
+    assert_every_supply_off(bench)
+    assert take_interrupt() is None
