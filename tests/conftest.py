@@ -1,6 +1,28 @@
-"""Session set-up shared by every test."""
+"""Session set-up shared by every test, and the tiers.
+
+Every test is in exactly one tier, so none falls out of every run:
+
+- `quick`: unit tests, and integration tests that start no emulator process, browser or simavr
+  (`pytest -m quick`, a few minutes on two cores: the loop to run after every change);
+- `integration`: emulators on real transports (TCP, ptys, HTTP), in threads or processes;
+- `e2e`: the CLI and the daemon run as processes, as a user runs them;
+- `browser`: the operator console in headless Chromium.
+
+A test's folder gives its tier (`tests/unit` quick, `tests/integration` integration, `tests/e2e`
+e2e, `tests/browser` browser); a module may say otherwise with `pytestmark = pytest.mark.quick`
+(an integration module whose emulators all run in this process). A test anywhere else without a
+tier marker, or with two, fails the collection.
+"""
 
 from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+TIERS = ("quick", "integration", "e2e", "browser")
+FOLDER_TIER = {"unit": "quick", "integration": "integration", "e2e": "e2e", "browser": "browser"}
+TESTS = Path(__file__).resolve().parent
 
 
 def pytest_configure(config) -> None:
@@ -11,3 +33,59 @@ def pytest_configure(config) -> None:
     seconds = warm_up()
     if seconds > 1.0:
         print(f"geometry kernels compiled in {seconds:.1f} s (cached for later processes)")
+
+
+def tier_of(item: pytest.Item) -> list[str]:
+    """The tiers a test names by marker, or else the one its folder gives."""
+    marked = [name for name in TIERS if item.get_closest_marker(name) is not None]
+    if marked:
+        return marked
+    folder = Path(item.path).resolve().relative_to(TESTS).parts[0]
+    return [FOLDER_TIER[folder]] if folder in FOLDER_TIER else []
+
+
+def pytest_collection_modifyitems(config, items: list[pytest.Item]) -> None:
+    wrong = []
+    for item in items:
+        tiers = tier_of(item)
+        if len(tiers) != 1:
+            wrong.append(f"{item.nodeid}: " + (f"in {len(tiers)} tiers ({', '.join(tiers)})"
+                                              if tiers else "in no tier"))
+            continue
+        if item.get_closest_marker(tiers[0]) is None:
+            item.add_marker(getattr(pytest.mark, tiers[0]))
+    if wrong:
+        raise pytest.UsageError("every test is in exactly one tier (tests/conftest.py says how): "
+                                + "; ".join(wrong[:10]) + (" ..." if len(wrong) > 10 else ""))
+
+
+_tier_time: dict[str, list[float]] = {}  # tier -> [tests, seconds in setup + call + teardown]
+_tier_span: dict[str, list[float]] = {}  # tier -> [first start, last stop] (epoch seconds)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Sums each tier's test time, also from xdist's workers (their reports arrive here)."""
+    tier = next((k for k in TIERS if k in report.keywords), "?")
+    totals = _tier_time.setdefault(tier, [0, 0.0])
+    totals[1] += report.duration
+    if report.when == "call" or (report.when == "setup" and report.outcome != "passed"):
+        totals[0] += 1
+    start, stop = getattr(report, "start", None), getattr(report, "stop", None)
+    if start is not None and stop is not None:
+        span = _tier_span.setdefault(tier, [start, stop])
+        span[0], span[1] = min(span[0], start), max(span[1], stop)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    if not _tier_time:
+        return
+    write = terminalreporter.write_line
+    terminalreporter.section("tiers")
+    write(f"{'tier':<12} {'tests':>6} {'test time':>10} {'wall span':>10}")
+    for tier in (*TIERS, "?"):
+        if tier in _tier_time:
+            tests, seconds = _tier_time[tier]
+            first, last = _tier_span.get(tier, (0.0, 0.0))
+            write(f"{tier:<12} {tests:>6} {seconds:>9.1f}s {last - first:>9.1f}s")
+    write("test time: setup + call + teardown summed over the tier's tests (over every worker); "
+          "wall span: first start to last end of the tier's tests")
