@@ -281,9 +281,6 @@ class Supervisor:
         self.sequencer = SupervisedSequencer(currents, ends, ramp_samples)
         expected = np.array(plan.expected, dtype=float).reshape(-1, len(starts), 2)
         self._expected = {e: expected[i] for i, e in enumerate(ends)}
-        # fractional turns for corrections (the paper's whole turns stay for the plan itself)
-        self._fractional_rig = rig.model_copy(
-            update={"field": rig.field.model_copy(update={"whole_turns": False})})
         # The RRT runs in a worker process: in this one it would hold the GIL for its whole time
         # budget and starve the stream loop.
         self._planner: ReplanWorker | None = None
@@ -493,7 +490,7 @@ class Supervisor:
         commanded = result.moves  # the model already maps each robot's response
         streamed = self.sequencer.streamed()
         # a LimitError here (allocation, certificate) is a fault, never a clip
-        replan = certified_replan(commanded, self._fractional_rig, streamed,
+        replan = certified_replan(commanded, self.rig, streamed,
                                   name=f"{self.plan.name}: re-plan {self.replans}")
         ends = replan.move_ends
         begin = self.sequencer.splice(replan.currents, ends, number, at=len(streamed))
@@ -695,16 +692,19 @@ def lead_in(start_A: np.ndarray, first_A: np.ndarray, rig: RigConfig) -> np.ndar
 
 def certified_replan(moves_mm: np.ndarray, rig: RigConfig, streamed_A: np.ndarray, *,
                      name: str) -> CertifiedReplan:
-    """Realize, allocate and certify re-planned `moves_mm` (m, 2) on `rig` (fractional turns)
-    to follow `streamed_A` (k, n) A, the samples the stream has sent (`SupervisedSequencer.
-    streamed`): the program starts from the field the last of them makes, a lead-in joins them
-    if they differ, and the stream they make together is checked with the plan's own checks
-    (`current_program_checks`) at the stream's rate. LimitError (a `CertificateRefused`) naming
-    the failed check if anything breaks a limit; nothing is spliced then."""
+    """Realize, allocate and certify re-planned `moves_mm` (m, 2) on the run's `rig` to follow
+    `streamed_A` (k, n) A, the samples the stream has sent (`SupervisedSequencer.streamed`): the
+    moves in fractional turns (corrections; the paper's whole turns stay for the plan itself),
+    from the field the last sample makes; a lead-in joins them if they differ, and the stream
+    they make together is checked with the plan's own checks (`current_program_checks`) at the
+    stream's rate. LimitError (a `CertificateRefused`) naming the failed check if anything breaks
+    a limit; nothing is spliced then."""
     n = len(rig.coils)
     held = streamed_A[-1] if len(streamed_A) else np.zeros(n)
     A = actuation_matrix(rig)
-    program = realize_global_moves(moves_mm, rig, start_field_T=A @ held)
+    fractional = rig.model_copy(update={"field": rig.field.model_copy(
+        update={"whole_turns": False})})
+    program = realize_global_moves(moves_mm, fractional, start_field_T=A @ held)
     lead = lead_in(held, currents_for_field(A, program.field_T[0]), rig)
     currents = allocate(program, rig, start_A=lead[-1] if len(lead) else held)
     m, rate = len(lead), program.rate_hz
