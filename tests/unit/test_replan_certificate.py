@@ -55,22 +55,23 @@ def voltage(checks, supply):
     return next(c for c in checks if c.check.startswith("voltage") and c.subject == f"supply {supply}")
 
 
-def test_the_first_sample_s_voltage_is_taken_from_the_currents_being_streamed():
-    """10 A -> 10.2 A in one 1 ms sample: R I + L dI/dt = 1.529475 x 10.2 + 0.03 x 0.2 x 1000 =
-    15.60 + 6.00 = 21.60 V. Taken from 0 A, as every program was, the same first sample is a step
-    of 10 A in 1 ms: 15.29 + 300 = 315.29 V, refused; at 100 Hz that phantom step is 15.29 + 30 =
-    45.29 V and passed, which is why only a 1 kHz rig gave up."""
-    program = np.zeros((2, 6))
-    program[:, 0] = [10.0, 10.2]
-    start = np.zeros(6)
-    start[0] = 10.0
-    from_held = voltage(current_program_checks(rig(), program, 1000.0, move_ends=[], start_A=start),
-                        "x+")
-    assert from_held.passed and from_held.value == pytest.approx(R_HOT * 10.2 + 6.0, rel=1e-5)
-    from_zero = voltage(current_program_checks(rig(), program, 1000.0, move_ends=[]), "x+")
-    assert not from_zero.passed
-    assert from_zero.value == pytest.approx(R_HOT * 10.0 + 300.0, rel=1e-5)
-    at_100_hz = voltage(current_program_checks(rig(), program, 100.0, move_ends=[]), "x+")
+def test_a_re_plan_s_first_sample_is_checked_from_the_currents_being_streamed():
+    """The stream held 10 A (ramped up at 0.1 A a sample: 1.53 x 10 + 0.03 x 0.1 x 1000 = 18.3 V
+    at its top), then a re-plan's first sample asks 10.2 A: R I + L dI/dt = 1.529475 x 10.2 +
+    0.03 x 0.2 x 1000 = 15.60 + 6.00 = 21.60 V. The same re-plan checked on its own from 0 A, as
+    every program was, starts with a step of 10 A in 1 ms: 15.29 + 300 = 315.29 V, refused; at
+    100 Hz that phantom step is 15.29 + 30 = 45.29 V and passed, which is why only a 1 kHz rig
+    gave up."""
+    replan = np.zeros((2, 6))
+    replan[:, 0] = [10.0, 10.2]
+    streamed = held_along_x()
+    streamed[:, 1] = 0.0  # coil x+ alone, for the figures
+    stream = np.vstack([streamed, replan])
+    whole = voltage(current_program_checks(rig(), stream, 1000.0, move_ends=[]), "x+")
+    assert whole.passed and whole.value == pytest.approx(R_HOT * 10.2 + 6.0, rel=1e-5)
+    alone = voltage(current_program_checks(rig(), replan, 1000.0, move_ends=[]), "x+")
+    assert not alone.passed and alone.value == pytest.approx(R_HOT * 10.0 + 300.0, rel=1e-5)
+    at_100_hz = voltage(current_program_checks(rig(), replan, 100.0, move_ends=[]), "x+")
     assert at_100_hz.passed and at_100_hz.value == pytest.approx(R_HOT * 10.0 + 30.0, rel=1e-5)
 
 

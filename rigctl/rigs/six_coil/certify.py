@@ -47,18 +47,15 @@ def supply_link_seconds(rig: RigConfig) -> dict[str, float]:
 
 def current_program_checks(rig: RigConfig, currents_A: np.ndarray, rate_hz: float, *,
                            move_ends: Sequence[int], describe: Callable[[int], str] | None = None,
-                           rest_key: str = "field.rest_s",
-                           start_A: np.ndarray | None = None) -> list[Check]:
-    """Every check of a current program (T, n) A streamed at `rate_hz` from `start_A` (n,) A
-    (default 0 A: the supplies off; a re-plan: the currents being streamed when it is spliced
-    in), the first sample's dI/dt from there; `move_ends`: the samples before which `rest_key`
-    would insert its rest."""
+                           rest_key: str = "field.rest_s") -> list[Check]:
+    """Every check of a current program (T, n) A streamed at `rate_hz` from 0 A (a re-plan: the
+    whole stream, the samples already sent first, `rigctl.rigs.six_coil.supervisor.
+    certified_replan`); `move_ends`: the samples before which `rest_key` would insert its rest."""
     windings = Windings.of_coils(rig.coils)
     checks, peaks = heating_checks(currents_A, rate_hz, windings, move_ends=move_ends,
                                    margin=rig.preflight.heating_margin, describe=describe,
                                    rest_key=rest_key)
-    start = np.zeros(currents_A.shape[1]) if start_A is None else np.asarray(start_A, dtype=float)
-    slope = np.diff(currents_A, axis=0, prepend=start[None, :]) * rate_hz
+    slope = np.diff(currents_A, axis=0, prepend=np.zeros((1, currents_A.shape[1]))) * rate_hz
     hot = windings.resistance_at(np.maximum(peaks, windings.ambient_C))
     volts = np.abs(hot * currents_A + np.array([c.inductance_H for c in rig.coils]) * slope)
     for j, coil in enumerate(rig.coils):

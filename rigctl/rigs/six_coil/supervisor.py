@@ -29,7 +29,9 @@ there is no step there, and a check from 0 A saw one of the whole held current i
 at 1 kHz (dI/dt = I x rate: 9.8 A x 1000/s x 30 mH = 293 V) refused every re-plan of a run that
 100 Hz (29 V) let through. Where the currents being streamed are not the re-plan's first sample, a
 straight lead-in ramp joins them (`lead_in`), over the plan's own `field.ramp_s` or longer when a
-supply's compliance needs it. A refusal is a fault, never a clip.
+supply's compliance needs it. A refusal is a fault, never a clip. (The heating check counts the
+samples at the stream's rate; the time the stream held the field at move ends while the supervisor
+judged and re-planned is not in it, and the run's live winding model watches that.)
 
 Each robot's own response is identified from what the camera saw (`rigctl.identify`): after every
 move, the robots whose measured path touched no wall and no other robot update their rolling gain,
@@ -671,7 +673,7 @@ class CertifiedReplan:
 def lead_in(start_A: np.ndarray, first_A: np.ndarray, rig: RigConfig) -> np.ndarray:
     """The setpoints (m, n) A that take the supplies from `start_A` (n,), the currents being
     streamed, to `first_A` (n,), a re-plan's first sample, without a step; `first_A` itself is
-    not among them. None (m = 0) where they are equal, as when the re-plan starts from the field
+    not among them. Empty (m = 0) where they are equal, as when the re-plan starts from the field
     the coils hold. Otherwise the straight ramp of a hold (`rigctl.run.hold.ramp`) over the
     plan's own `field.ramp_s` (the start and end ramps of every program), made longer where a
     supply's L dI/dt would need more than LEAD_IN_VOLTAGE_SHARE of its compliance left above
