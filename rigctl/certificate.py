@@ -79,11 +79,12 @@ def rig_hash(rig: RigConfig) -> str:
 class CertificateRefused(LimitError):
     """A plan's pre-flight found a limit it would break: nothing was energised (exit 2)."""
 
-    def __init__(self, certificate: Certificate) -> None:
+    def __init__(self, certificate: Certificate,
+                 refused: str = "pre-flight: refused, nothing energised") -> None:
         self.certificate = certificate
         failed = certificate.failed
         more = f" (and {len(failed) - 1} more)" if len(failed) > 1 else ""
-        super().__init__(f"pre-flight: refused, nothing energised: {failed[0]}{more}")
+        super().__init__(f"{refused}: {failed[0]}{more}")
         self.violations = failed
 
 
@@ -126,10 +127,11 @@ class Certificate:
         ordered = sorted(self.checks, key=lambda c: c.passed)
         return [head] + [f"  {c}" for c in ordered]
 
-    def require(self) -> Certificate:
-        """Itself if it passed; else CertificateRefused naming the first failed check."""
+    def require(self, refused: str = "pre-flight: refused, nothing energised") -> Certificate:
+        """Itself if it passed; else CertificateRefused naming the first failed check after
+        `refused` (what was refused: a plan before anything was energised, a re-plan mid-run)."""
         if not self.passed:
-            raise CertificateRefused(self)
+            raise CertificateRefused(self, refused)
         return self
 
 

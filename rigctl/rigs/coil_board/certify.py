@@ -37,10 +37,11 @@ def drive_for_limit(w: Windings, supply_V: float, max_command: int) -> int:
 
 
 def board_checks(rig: RigConfig, settings, n_moves: int) -> list[Check]:
-    """Every check of a coil-board run with `settings` (`CoilBoardRunSettings`) of a plan of
-    `n_moves` moves."""
+    """Every check of a coil-board run with `settings` (`CoilBoardRunSettings`; its rate_hz None:
+    the rig file's `[board] rate_hz`) of a plan of `n_moves` moves."""
     board = rig.board
     assert board is not None
+    rate_hz = settings.rate_hz or board.rate_hz
     checks = [ceiling("drive", "every coil", settings.drive, board.max_command, "SyRen units",
                       "a move's stronger coil; the board refuses more")]
     w = Windings.of_board(board)
@@ -66,10 +67,10 @@ def board_checks(rig: RigConfig, settings, n_moves: int) -> list[Check]:
     baud = baud if scheme == "serial" and "baud=" in board.url else board.baud
     host_bytes = 2 * MIN_FRAME_BYTES + REQUEST_PAYLOAD_BYTES[SET] + REPLY_PAYLOAD_BYTES[ACK]
     checks += link_checks({f"host link ({baud} baud, SET + ACK)": serial_seconds(host_bytes, baud)},
-                          settings.rate_hz)
+                          rate_hz)
     # the firmware refreshes the SyRens on its own: the bus must keep up with the SETs, no more
     bus = serial_seconds(len(board.coil_names) * SYREN_PACKET_BYTES, SYREN_BAUD)
     checks += link_checks({f"SyRen bus ({SYREN_BAUD} baud, a packet per coil)": bus},
-                          settings.rate_hz, share=1.0)
+                          rate_hz, share=1.0)
     checks += size_checks(n_moves, settings.max_moves, longest, MAX_DURATION_S, unit="moves")
     return checks

@@ -41,7 +41,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Generator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import ClassVar, TextIO
 
@@ -87,7 +87,8 @@ class CoilBoardRunSettings:
     aims at this fraction of the tolerance; done_fraction: the moves end once both particles are
     measured within this fraction of the tolerance, a margin for the camera's last look (another
     frame, which judges the run); a run that gets no closer than that is reached within the
-    tolerance itself; rate_hz: command rate during a move;
+    tolerance itself; rate_hz: command rate during a move (None: the rig file's `[board]
+    rate_hz`, which the certificate holds to what the SyRen bus carries);
     skip_mm: moves shorter than this are not driven; chord_mm: a particle on a wall that a move
     carries at least this far to a wall is waited for (else it only grazes its wall);
     max_steer_deg: how far the pull may turn from the move's direction (steering to the target,
@@ -119,7 +120,7 @@ class CoilBoardRunSettings:
     follow_fraction: float = 0.5
     aim_fraction: float = 0.4
     done_fraction: float = 0.9
-    rate_hz: float = 50.0
+    rate_hz: float | None = None
     skip_mm: float = 0.02
     chord_mm: float = 1.0
     max_steer_deg: float = 25.0
@@ -350,6 +351,8 @@ class CoilBoardProgram(RequestedControl):
             raise ConfigError(f"drive {settings.drive} must be 1..{rig.board.max_command} (the "
                               "board's max_command)")
         check_plan(plan)
+        if settings.rate_hz is None:  # the rig file's rate, as every rig's run streams at
+            settings = replace(settings, rate_hz=rig.board.rate_hz)
         self.plan = plan
         self.rig = rig
         self.settings = settings

@@ -14,8 +14,10 @@ pseudo-inverse, which numpy computes by SVD).
 
 Limits are checked on the whole program before anything can be energised: the current of every
 coil against its `current_limit_A`, and the voltage its supply must deliver, R I + L dI/dt (dI/dt
-by a backward difference over the sample period, starting from 0 A), against its `compliance_V`.
-A program that breaks a limit raises LimitError naming the move and the coil; nothing is clipped.
+by a backward difference over the sample period, starting from the currents the supplies carry
+when the program starts: 0 A for a plan, the currents being streamed for a re-plan spliced into a
+running one), against its `compliance_V`. A program that breaks a limit raises LimitError naming
+the move and the coil; nothing is clipped.
 """
 
 from __future__ import annotations
@@ -135,8 +137,11 @@ def check_current_limits(currents: np.ndarray, rig: RigConfig, rate_hz: float | 
     return volts
 
 
-def allocate(program: FieldProgram, rig: RigConfig) -> CurrentProgram:
-    """Currents for every sample of `program` on `rig`, after checking every limit.
+def allocate(program: FieldProgram, rig: RigConfig, *,
+             start_A: np.ndarray | None = None) -> CurrentProgram:
+    """Currents for every sample of `program` on `rig`, after checking every limit; the voltage's
+    dI/dt of the first sample from `start_A` (n,) A, the currents the supplies carry when it
+    starts (default 0 A: a plan starts with them off).
 
     Raises
     ------
@@ -170,6 +175,7 @@ def allocate(program: FieldProgram, rig: RigConfig) -> CurrentProgram:
         current_advice="lower field.b0_mT or raise the coil's current_limit_A",
         voltage_advice="lower field.rolling_turns_per_s, field.steering_deg_per_s or field.b0_mT, "
         "lengthen field.ramp_s, or raise the coil's compliance_V",
+        start_A=start_A,
     )
 
     if currents.size:

@@ -48,8 +48,9 @@ def supply_link_seconds(rig: RigConfig) -> dict[str, float]:
 def current_program_checks(rig: RigConfig, currents_A: np.ndarray, rate_hz: float, *,
                            move_ends: Sequence[int], describe: Callable[[int], str] | None = None,
                            rest_key: str = "field.rest_s") -> list[Check]:
-    """Every check of a current program (T, n) A streamed at `rate_hz` from 0 A; `move_ends`:
-    the samples before which `rest_key` would insert its rest."""
+    """Every check of a current program (T, n) A streamed at `rate_hz` from 0 A (a re-plan: the
+    whole stream, the samples already sent first, `rigctl.rigs.six_coil.supervisor.
+    certified_replan`); `move_ends`: the samples before which `rest_key` would insert its rest."""
     windings = Windings.of_coils(rig.coils)
     checks, peaks = heating_checks(currents_A, rate_hz, windings, move_ends=move_ends,
                                    margin=rig.preflight.heating_margin, describe=describe,

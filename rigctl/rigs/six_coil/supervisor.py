@@ -15,10 +15,23 @@ Three threads cooperate:
 - the decision thread (`Supervisor`) judges each move end from a frame captured after the move
   settled: within `threshold_mm` of the expected state, go on; otherwise re-plan from the measured
   state to the goals with the RRT (`plan_rrt`, a time budget, fractional turns allowed), realize the
-  new moves from the field the coils hold now, allocate them (limits checked again: a refusal is a
-  fault, never a clip) and splice them in place of the rest of the program. At the end of the
-  program the goals themselves are checked, with a bounded number of further re-plans before it
-  gives up with a fault.
+  new moves from the field the coils hold now, allocate them, certify them like a plan and splice
+  them in place of the rest of the program (`certified_replan`). At the end of the program the
+  goals themselves are checked, with a bounded number of further re-plans before it gives up with a
+  fault.
+
+A re-plan is streamed only with a certificate of its own: every check of the plan's pre-flight
+(`rigctl.rigs.six_coil.certify`: currents, voltages R(T) I + L dI/dt, field, gradient, heating,
+links, size) run on the whole stream as it will then have been, the samples already sent followed
+by the re-plan, at the stream's own rate. Its first sample's dI/dt is taken from the currents being
+streamed when it is spliced in, not from 0 A: a re-plan starts from the field the coils hold, so
+there is no step there, and a check from 0 A saw one of the whole held current in one sample, which
+at 1 kHz (dI/dt = I x rate: 9.8 A x 1000/s x 30 mH = 293 V) refused every re-plan of a run that
+100 Hz (29 V) let through. Where the currents being streamed are not the re-plan's first sample, a
+straight lead-in ramp joins them (`lead_in`), over the plan's own `field.ramp_s` or longer when a
+supply's compliance needs it. A refusal is a fault, never a clip. (The heating check counts the
+samples at the stream's rate; the time the stream held the field at move ends while the supervisor
+judged and re-planned is not in it, and the run's live winding model watches that.)
 
 Each robot's own response is identified from what the camera saw (`rigctl.identify`): after every
 move, the robots whose measured path touched no wall and no other robot update their rolling gain,
@@ -52,6 +65,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rigctl.certificate import Certificate, certify
+from rigctl.coils import actuation_matrix
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, PlanError, RigError
 from rigctl.identify import RollingIdentifier
@@ -61,9 +76,11 @@ from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.rrt import RrtOptions, plan_rrt, replay
 from rigctl.plans.schema import GlobalMovesPlan, dump_plan, parse_plan
 from rigctl.record import RunRecord
-from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate
-from rigctl.rigs.six_coil.realize import FieldProgram, realize_global_moves
+from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate, currents_for_field
+from rigctl.rigs.six_coil.certify import current_program_checks
+from rigctl.rigs.six_coil.realize import NO_MOVE, FieldProgram, realize_global_moves
 from rigctl.rigs.six_coil.sequencer import Sequencer
+from rigctl.run.hold import ramp
 from rigctl.run.interruptions import Suspension
 from rigctl.vision.tracking import TrackingLoop
 
@@ -73,6 +90,7 @@ _SHORTEST_MOVE_MM = 0.05  # re-planned moves shorter than this are left out (eac
 REPLAN_ATTEMPTS = 3  # RRT runs (other seeds, longer budgets) before a re-plan that found no move fails
 _GAIN_LIMITS = (0.5, 1.5)  # plausible range of the rolled distance per commanded distance
 _FREE_MARGIN_MM = 0.3  # a measured path this close to a wall or another robot may have touched it
+LEAD_IN_VOLTAGE_SHARE = 0.9  # of a supply's compliance a lead-in may use: the winding's R rises hot
 
 
 # -- sequencing ----------------------------------------------------------------------------------
@@ -119,12 +137,22 @@ class SupervisedSequencer(Sequencer):
             self._mark = decision
         self.wake()
 
-    def splice(self, new: CurrentProgram, new_move_ends: list[int], decision: int | None = None
-               ) -> int:
+    def streamed(self) -> np.ndarray:
+        """The program's samples (k, n) A sent so far: a copy, its last row the setpoints held
+        while the sequencer waits at a move end."""
+        with self._lock:
+            return self.program[:self.index].copy()
+
+    def splice(self, new: CurrentProgram, new_move_ends: list[int], decision: int | None = None,
+               at: int | None = None) -> int:
         """Replace everything from the current sample on by `new` (its move ends relative to its
-        own start); returns the absolute sample where `new` starts."""
+        own start); returns the absolute sample where `new` starts. `at`: the sample `new` was
+        certified to start at (`streamed`); PlanError if the stream has gone past it."""
         with self._lock:
             k = self.index
+            if at is not None and k != at:
+                raise PlanError(f"the re-plan was made to start at sample {at}, but the stream is "
+                                f"at sample {k}: not spliced")
             first_move = int(self.segments.max(initial=-1)) + 1
             segment = np.where(new.segment >= 0, new.segment + first_move, -1)
             self.program = np.concatenate([self.program[:k], new.currents_A])
@@ -255,10 +283,6 @@ class Supervisor:
         self.sequencer = SupervisedSequencer(currents, ends, ramp_samples)
         expected = np.array(plan.expected, dtype=float).reshape(-1, len(starts), 2)
         self._expected = {e: expected[i] for i, e in enumerate(ends)}
-        self._fields = program.field_T.copy()
-        # fractional turns for corrections (the paper's whole turns stay for the plan itself)
-        self._fractional_rig = rig.model_copy(
-            update={"field": rig.field.model_copy(update={"whole_turns": False})})
         # The RRT runs in a worker process: in this one it would hold the GIL for its whole time
         # budget and starve the stream loop.
         self._planner: ReplanWorker | None = None
@@ -466,12 +490,12 @@ class Supervisor:
         self.replans += 1
         self._landed = 0
         commanded = result.moves  # the model already maps each robot's response
-        program = realize_global_moves(commanded, self._fractional_rig,
-                                       start_field_T=self._fields[max(sample - 1, 0)])
-        currents = allocate(program, self.rig)  # a LimitError here is a fault, never a clip
-        ends = [program.move_end_index(i) for i in range(program.n_moves)]
-        begin = self.sequencer.splice(currents, ends, number)
-        self._fields = np.concatenate([self._fields[:begin], program.field_T])
+        streamed = self.sequencer.streamed()
+        # a LimitError here (allocation, certificate) is a fault, never a clip
+        replan = certified_replan(commanded, self.rig, streamed,
+                                  name=f"{self.plan.name}: re-plan {self.replans}")
+        ends = replan.move_ends
+        begin = self.sequencer.splice(replan.currents, ends, number, at=len(streamed))
         for i, e in enumerate(ends):
             self._commanded_at[begin + e] = commanded[i]
             self._expected[begin + e] = result.states[i]
@@ -481,7 +505,8 @@ class Supervisor:
                     error_mm=error.round(4).tolist(), moves=len(result.moves),
                     commanded_mm=np.round(commanded, 3).tolist(), planned_distance_mm=round(
                         result.distance, 4), solved=result.solved, nodes=result.nodes,
-                    seconds=round(result.seconds, 3), gain=round(self.gain, 4))
+                    seconds=round(result.seconds, 3), gain=round(self.gain, 4),
+                    lead_in=replan.lead, certificate=replan.certificate_line())
 
     def _free_start(self, measured: np.ndarray) -> np.ndarray:
         """The measured state nudged into free space (a tracked robot may sit a hair inside a wall
@@ -619,6 +644,93 @@ def one_agent_move(single: GlobalInputModel, start: np.ndarray, commanded: np.nd
 def _log_failure(future) -> None:
     if future.exception() is not None:
         log.error("measuring the tracker against ground truth failed: %r", future.exception())
+
+
+# -- a re-plan's program, certified ------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CertifiedReplan:
+    """A re-plan ready to splice: its field program, its currents (the lead-in first, then the
+    program's), the lead-in's length in samples, the program's move ends in `currents`' samples,
+    and the certificate of the whole stream it makes."""
+
+    field: FieldProgram
+    currents: CurrentProgram
+    lead: int
+    move_ends: list[int]
+    certificate: Certificate
+
+    def certificate_line(self) -> str:
+        """For the record's `replan` event: how many checks passed, the tightest one and the
+        highest supply voltage."""
+        c = self.certificate.checks
+        tight = min(c, key=lambda x: x.margin / max(abs(x.limit), 1e-12))
+        volts = max((x for x in c if x.check.startswith("voltage")), key=lambda x: x.value)
+        return (f"passed {len(c)} checks; tightest: {tight}; highest voltage: {volts.value:.1f} V "
+                f"of {volts.subject} (limit {volts.limit:g} V)")
+
+
+def lead_in(start_A: np.ndarray, first_A: np.ndarray, rig: RigConfig) -> np.ndarray:
+    """The setpoints (m, n) A that take the supplies from `start_A` (n,), the currents being
+    streamed, to `first_A` (n,), a re-plan's first sample, without a step; `first_A` itself is
+    not among them. Empty (m = 0) where they are equal, as when the re-plan starts from the field
+    the coils hold. Otherwise the straight ramp of a hold (`rigctl.run.hold.ramp`) over the
+    plan's own `field.ramp_s` (the start and end ramps of every program), made longer where a
+    supply's L dI/dt would need more than LEAD_IN_VOLTAGE_SHARE of its compliance left above
+    R I at the ramp's larger end: L |dI| / (share V - R max|I|) seconds."""
+    start, first = np.asarray(start_A, dtype=float), np.asarray(first_A, dtype=float)
+    step = np.abs(first - start)
+    if step.max(initial=0.0) <= 1e-9:
+        return np.zeros((0, len(start)))
+    resistance = np.array([c.resistance_ohm for c in rig.coils])
+    inductance = np.array([c.inductance_H for c in rig.coils])
+    compliance = np.array([c.compliance_V for c in rig.coils])
+    room = LEAD_IN_VOLTAGE_SHARE * compliance - resistance * np.maximum(np.abs(start),
+                                                                        np.abs(first))
+    # no room at all: the certificate refuses the program's current itself; ramp at the plan's pace
+    need = np.where((room > 0) & (step > 0), inductance * step / np.maximum(room, 1e-12), 0.0)
+    return ramp(start, first, max(rig.field.ramp_s, float(need.max())), rig.stream.rate_hz)[:-1]
+
+
+def certified_replan(moves_mm: np.ndarray, rig: RigConfig, streamed_A: np.ndarray, *,
+                     name: str) -> CertifiedReplan:
+    """Realize, allocate and certify re-planned `moves_mm` (m, 2) on the run's `rig` to follow
+    `streamed_A` (k, n) A, the samples the stream has sent (`SupervisedSequencer.streamed`): the
+    moves in fractional turns (corrections; the paper's whole turns stay for the plan itself),
+    from the field the last sample makes; a lead-in joins them if they differ, and the stream
+    they make together is checked with the plan's own checks (`current_program_checks`) at the
+    stream's rate. LimitError (a `CertificateRefused`) naming the failed check if anything breaks
+    a limit; nothing is spliced then."""
+    n = len(rig.coils)
+    held = streamed_A[-1] if len(streamed_A) else np.zeros(n)
+    A = actuation_matrix(rig)
+    fractional = rig.model_copy(update={"field": rig.field.model_copy(
+        update={"whole_turns": False})})
+    program = realize_global_moves(moves_mm, fractional, start_field_T=A @ held)
+    lead = lead_in(held, currents_for_field(A, program.field_T[0]), rig)
+    currents = allocate(program, rig, start_A=lead[-1] if len(lead) else held)
+    m, rate = len(lead), program.rate_hz
+    joined = CurrentProgram(
+        t_s=np.arange(m + len(currents.t_s)) / rate,
+        currents_A=np.vstack([lead, currents.currents_A]),
+        segment=np.concatenate([np.full(m, NO_MOVE), currents.segment]),
+        coil_names=currents.coil_names)
+    ends = [m + program.move_end_index(i) for i in range(program.n_moves)]
+    k = len(streamed_A)
+
+    def describe(j: int) -> str:
+        if j < k:
+            return "the program streamed before it"
+        if j < k + m:
+            return "its lead-in from the currents being streamed"
+        return program.describe_sample(j - k - m)
+
+    stream = np.vstack([streamed_A.reshape(-1, n), joined.currents_A])
+    checks = current_program_checks(rig, stream, rate, describe=describe,
+                                    move_ends=[k + e for e in ends[:-1]])
+    certificate = certify(rig, "re-plan", name, checks).require(
+        f"{name}: refused by its certificate, not streamed")
+    return CertifiedReplan(program, joined, m, ends, certificate)
 
 
 # -- the re-planner (a worker process) ---------------------------------------------------------------
