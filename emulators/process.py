@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Iterator, TextIO
 
 from rigctl.config import RigConfig, load_rig
-from rigctl.errors import RigError
+from rigctl.errors import RigError, shielded_from_interrupts
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +87,12 @@ class EmulatedBenchProcess:
         self._terminate()
 
     def _terminate(self) -> None:
+        # a Ctrl-C meanwhile (`rigctl execute` after its run's end, impatient) is noted, not
+        # raised: the bench is stopped, and the summary printed, all the same
+        with shielded_from_interrupts():
+            self._stop()
+
+    def _stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             try:

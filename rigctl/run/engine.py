@@ -233,6 +233,7 @@ class Run(RunControl):
                 self._set_state(RunState.RUNNING)
                 stats = self._stream(actuators)
             except KeyboardInterrupt as interrupt:
+                winding_down.enter_context(shielded_from_interrupts())  # a second one: noted
                 take_interrupt()  # handled here
                 self.abort(f"operator interrupt ({interrupt_name(interrupt)})")
                 record.event("abort", reason=self._abort_reason)
