@@ -202,16 +202,16 @@ def _summary(runs: Path) -> dict:
 def assert_aborted_safely(s: Session, runs: Path, code: int, by: str = "Ctrl-C") -> dict:
     """What the user must see after a Ctrl-C ended a run: exit 3, one line saying aborted on
     stderr, no traceback, no fault and no "check it by hand", the record aborted and safe."""
-    assert code == 3, s.text()
-    said = [line for line in s.err if "aborted" in line]
-    assert len(said) == 1 and by in said[0], s.text()
-    everything = s.out + s.err
-    assert not any("Traceback" in line or "by hand" in line or line.startswith("FAULT")
-                   for line in everything), s.text()
     summary = _summary(runs)
     assert summary["state"] == "aborted" and summary["safe"] is True, summary
     assert [f["kind"] for f in summary["faults"]] == ["Abort"] and by in \
         summary["faults"][0]["reason"], summary["faults"]
+    assert code == 3, s.text()
+    everything = s.out + s.err
+    assert not any("Traceback" in line or "by hand" in line or line.startswith("FAULT")
+                   for line in everything), s.text()
+    said = [line for line in s.err if "aborted" in line]
+    assert len(said) == 1 and by in said[0], s.text()
     return summary
 
 
