@@ -78,7 +78,8 @@ class Session:
     """`rigctl ARGS` in a session of its own (its process group: a shell's foreground job), its
     stdout and stderr read line by line as they come."""
 
-    def __init__(self, *args: str, cwd: Path) -> None:
+    def __init__(self, *args: str, cwd: Path, again_on: str | None = None) -> None:
+        self.again_on = again_on  # Ctrl-C again the moment a stderr line says this
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "rigctl", *args], cwd=cwd, stdout=subprocess.PIPE,
             stderr=subprocess.PIPE, text=True, start_new_session=True,
@@ -97,6 +98,9 @@ class Session:
 
     def _read(self, stream, lines: list[str]) -> None:
         for line in stream:
+            if self.again_on is not None and self.again_on in line:
+                self.again_on = None
+                os.killpg(self.pgid, signal.SIGINT)  # the operator presses again, impatient
             with self._arrived:
                 lines.append(line.rstrip("\n"))
                 self._arrived.notify_all()
@@ -172,8 +176,8 @@ def session(tmp_path):
     """Start `rigctl ARGS` in a session of its own in tmp_path; killed after the test if left."""
     started: list[Session] = []
 
-    def start(*args: str) -> Session:
-        started.append(Session(*args, cwd=tmp_path))
+    def start(*args: str, again_on: str | None = None) -> Session:
+        started.append(Session(*args, cwd=tmp_path, again_on=again_on))
         return started[-1]
 
     yield start
@@ -193,16 +197,18 @@ def _energised(runs: Path) -> Callable[[], bool]:
     return lambda: any(e.get("event") == "energised" for d in runs.glob("*") for e in _events(d))
 
 
-def _summary(runs: Path) -> dict:
+def _summary(runs: Path, s: Session | None = None) -> dict:
     records = sorted(runs.glob("*/summary.json"))
-    assert len(records) == 1, records
+    assert len(records) == 1, (sorted(runs.glob("*/*")), [
+        [e for e in _events(d) if e.get("event") != "tracked"][-8:] for d in runs.glob("*")],
+        s and s.text())
     return json.loads(records[0].read_text())
 
 
 def assert_aborted_safely(s: Session, runs: Path, code: int, by: str = "Ctrl-C") -> dict:
     """What the user must see after a Ctrl-C ended a run: exit 3, one line saying aborted on
     stderr, no traceback, no fault and no "check it by hand", the record aborted and safe."""
-    summary = _summary(runs)
+    summary = _summary(runs, s)
     assert summary["state"] == "aborted" and summary["safe"] is True, summary
     assert [f["kind"] for f in summary["faults"]] == ["Abort"] and by in \
         summary["faults"][0]["reason"], summary["faults"]
@@ -215,119 +221,119 @@ def assert_aborted_safely(s: Session, runs: Path, code: int, by: str = "Ctrl-C")
     return summary
 
 
-@pytest.mark.parametrize("kind", list(PLANS))
+def ctrl_c_each_once_streaming(sessions: dict[str, tuple[Session, Callable[[], bool]]]) -> None:
+    """Ctrl-C to each session's group as soon as its run is streaming (its predicate): side by
+    side, one run may be streaming (and soon done) while another still starts."""
+    waiting = dict(sessions)
+
+    def signalled_every_one() -> bool:
+        for name, (s, streaming) in list(waiting.items()):
+            if streaming():
+                s.ctrl_c()
+                del waiting[name]
+        return not waiting
+
+    wait_for(signalled_every_one, START_S, f"the runs of {', '.join(waiting)} to energise")
+
+
 def test_ctrl_c_to_execute_aborts_with_every_device_safe_and_leaves_nothing_running(
-        kind, session, tmp_path):
-    runs = tmp_path / "runs"
-    s = session("execute", str(EXAMPLES / PLANS[kind]), "--runs", str(runs))
-    wait_for(_energised(runs), START_S, "the run to energise")
-    s.ctrl_c()
-    assert_aborted_safely(s, runs, s.finish())
-    assert any(f"emulate {kind}" in command for command in s.commands.values()), s.commands
-    s.assert_nothing_left()  # its emulated bench (a session of its own) among them
+        session, tmp_path):
+    """Each rig, and the coil board once more with Ctrl-C pressed twice (again as the run says it
+    aborted: during its wind-down), side by side (each its own command, session and bench)."""
+    runs = {kind: tmp_path / kind for kind in [*PLANS, "twice"]}
+    sessions = {kind: session("execute", str(EXAMPLES / plan), "--runs", str(runs[kind]))
+                for kind, plan in PLANS.items()}
+    sessions["twice"] = session("execute", str(EXAMPLES / PLANS["coil-board"]), "--runs",
+                                str(runs["twice"]), again_on="aborted by Ctrl-C")
+    ctrl_c_each_once_streaming({kind: (s, _energised(runs[kind])) for kind, s in sessions.items()})
+    for kind, s in sessions.items():
+        assert_aborted_safely(s, runs[kind], s.finish())
+        bench = "coil-board" if kind == "twice" else kind
+        assert any(f"emulate {bench}" in c for c in s.commands.values()), (kind, s.commands)
+        s.assert_nothing_left()  # its emulated bench (a session of its own) among them
+    twice = sessions["twice"]
+    assert twice.again_on is None, twice.text()  # pressed again ...
+    assert any("interrupted again" in line for line in twice.err), twice.text()  # ... noted
+    assert any(line.startswith("run record: ") for line in twice.out), twice.text()  # summary
 
 
-def test_a_second_ctrl_c_during_the_wind_down_still_ends_safe_with_the_summary(session, tmp_path):
-    runs = tmp_path / "runs"
-    s = session("execute", str(EXAMPLES / PLANS["coil-board"]), "--runs", str(runs))
-    wait_for(_energised(runs), START_S, "the run to energise")
-    s.ctrl_c()
-    # the line comes as the run starts to wind down (the ramp, the last look, the record's end)
-    s.wait_line(s.err, lambda line: "aborted by Ctrl-C" in line, "line saying aborted", END_S)
-    s.ctrl_c()  # the operator presses again, impatient
-    assert_aborted_safely(s, runs, s.finish())
-    assert any("interrupted again" in line for line in s.err), s.text()  # noted, not raised
-    assert any(line.startswith("run record: ") for line in s.out), s.text()  # the summary
-    s.assert_nothing_left()
+def test_ctrl_c_to_emulate_stops_the_bench_and_everything_it_started(session, tmp_path):
+    """Each rig's bench side by side; the coil board's runs its firmware in simavr (the harness,
+    a session of its own, which the bench stops)."""
+    from rigctl.emulators.coilboard.simavr import missing_tools
 
-
-EMULATED = {"six-coil": [], "coil-board": ["--firmware", "simavr"], "depm": []}
-
-
-@pytest.mark.parametrize("kind", list(EMULATED))
-def test_ctrl_c_to_emulate_stops_the_bench_and_everything_it_started(kind, session, tmp_path):
-    if EMULATED[kind]:
-        from rigctl.emulators.coilboard.simavr import missing_tools
-
-        if missing_tools():
-            pytest.skip(f"the firmware in simavr needs {', '.join(missing_tools())}")
-    s = session("emulate", kind, "--rig-out", str(tmp_path / "bench.toml"), *EMULATED[kind])
-    s.wait_line(s.out, lambda line: line.startswith("READY "), "READY line")
-    s.ctrl_c()
-    code = s.finish()
-    assert code == 0 and not any("Traceback" in line for line in s.err), s.text()
-    if EMULATED[kind]:  # the firmware's harness (a session of its own) was running, and is gone
-        assert any("harness" in command for command in s.commands.values()), s.commands
-    s.assert_nothing_left()
-
-
-@pytest.mark.parametrize("kind", list(PLANS))
-def test_ctrl_c_to_the_daemon_mid_run_ramps_down_and_exits_cleanly(kind, session, tmp_path):
-    runs = tmp_path / "runs"
-    s = session("daemon", "--bench", kind, "--runs", str(runs), "--command", "tcp://127.0.0.1:0",
-                "--telemetry", "tcp://127.0.0.1:0", "--events", "tcp://127.0.0.1:0")
-    ready = s.wait_line(s.out, lambda line: line.startswith("READY "), "READY line")
-    endpoints = dict(field.split("=", 1) for field in ready.split()[1:])
-    with Rig(endpoints["command"], timeout_s=10.0) as rig:
-        rig.execute(rig.load(json.loads((EXAMPLES / PLANS[kind]).read_text())))
-        wait_for(_energised(runs), START_S, "the run to energise")
-        assert rig.status()["state"] == "running"
+    emulated = {"six-coil": [], "coil-board": [] if missing_tools() else ["--firmware", "simavr"],
+                "depm": []}
+    sessions = {kind: session("emulate", kind, "--rig-out", str(tmp_path / f"{kind}.toml"), *extra)
+                for kind, extra in emulated.items()}
+    for s in sessions.values():
+        s.wait_line(s.out, lambda line: line.startswith("READY "), "READY line")
         s.ctrl_c()
+    for kind, s in sessions.items():
         code = s.finish()
-    assert code == 0 and not any("Traceback" in line or "by hand" in line for line in s.err), \
-        s.text()
-    summary = _summary(runs)
-    assert summary["state"] == "aborted" and summary["safe"] is True, summary
-    assert any("emulate" in command for command in s.commands.values()), s.commands
-    assert any("runhost" in command for command in s.commands.values()), s.commands
-    s.assert_nothing_left()  # the bench and the stream process, each in a session of its own
+        assert code == 0 and not any("Traceback" in line for line in s.err), s.text()
+        if emulated[kind]:
+            assert any("harness" in c for c in s.commands.values()), s.commands
+        s.assert_nothing_left()
 
 
-def test_ctrl_c_to_a_local_study_stops_its_workers_and_the_runs_they_started(session, tmp_path):
-    """One rig kind (the coil board, the shortest start): a run's stop is the same on every rig,
-    and a study's own part (its workers, the cases' runs and benches) does not depend on it."""
+def test_ctrl_c_to_the_daemon_mid_run_ramps_down_and_exits_cleanly(session, tmp_path):
+    """A daemon of each rig side by side, each running a plan it was given through the client."""
+    runs = {kind: tmp_path / kind for kind in PLANS}
+    sessions = {kind: session("daemon", "--bench", kind, "--runs", str(runs[kind]), "--command",
+                              "tcp://127.0.0.1:0", "--telemetry", "tcp://127.0.0.1:0", "--events",
+                              "tcp://127.0.0.1:0")
+                for kind in PLANS}
+    for kind, s in sessions.items():
+        ready = s.wait_line(s.out, lambda line: line.startswith("READY "), "READY line")
+        endpoints = dict(field.split("=", 1) for field in ready.split()[1:])
+        with Rig(endpoints["command"], timeout_s=10.0) as rig:
+            rig.execute(rig.load(json.loads((EXAMPLES / PLANS[kind]).read_text())))
+    ctrl_c_each_once_streaming({kind: (s, _energised(runs[kind])) for kind, s in sessions.items()})
+    for kind, s in sessions.items():
+        code = s.finish()
+        assert code == 0 and not any("Traceback" in line or "by hand" in line
+                                     for line in s.err), s.text()
+        summary = _summary(runs[kind], s)
+        assert summary["state"] == "aborted" and summary["safe"] is True, (kind, summary)
+        assert any("emulate" in c for c in s.commands.values()), (kind, s.commands)
+        assert any("runhost" in c for c in s.commands.values()), (kind, s.commands)
+        s.assert_nothing_left()  # the bench and the stream process, each a session of its own
+
+
+def test_ctrl_c_to_a_local_study_and_to_the_fault_campaign_stops_all_they_started(session,
+                                                                                   tmp_path):
+    """Side by side, each on one rig kind (the coil board, the shortest start): a run's stop is
+    the same on every rig, and their own parts (a study's workers and its cases' runs and
+    benches; the campaign's daemon and bench) do not depend on it."""
     spec = tmp_path / "spec.toml"
     spec.write_text(f'name = "ctrl-c"\n[run]\ncommand = "execute"\n'
                     f'args = {{ plan = "{EXAMPLES / PLANS["coil-board"]}" }}\n')
-    out = tmp_path / "study"
-    s = session("study", str(spec), "--workers", "2", "--out", str(out))
-    runs = out / "cases"
-    wait_for(lambda: any(_energised(case / "runs")() for case in runs.glob("*")), START_S,
-             "the case's run to energise")
-    s.ctrl_c()
-    code = s.finish()
-    assert code == 3, s.text()
-    said = [line for line in s.err if "interrupted" in line]
-    assert len(said) == 1 and not any("Traceback" in line for line in s.err), s.text()
+    cases = tmp_path / "study" / "cases"
+    study = session("study", str(spec), "--workers", "2", "--out", str(cases.parent))
+    keep = tmp_path / "campaign"
+    campaign = session("faults", "--rig", "coil-board", "--quick", "--keep", str(keep))
+    campaign_runs = keep / "coil-board" / "runs"
+    ctrl_c_each_once_streaming({
+        "study": (study, lambda: any(_energised(case / "runs")() for case in cases.glob("*"))),
+        "campaign": (campaign, _energised(campaign_runs))})
+
+    for s in (study, campaign):
+        code = s.finish()
+        said = [line for line in s.err if "interrupted" in line]
+        assert code == 3 and len(said) == 1, s.text()
+        assert not any("Traceback" in line for line in s.err), s.text()
+        assert any("emulate" in c for c in s.commands.values()), s.commands
+        s.assert_nothing_left()
     # the case's run (`rigctl execute --rig`, a session of its own) was stopped by the study as
     # SIGTERM stops it, before its bench: aborted, every device safe
-    (case,) = runs.glob("*")
+    (case,) = cases.glob("*")
     summary = _summary(case / "runs")
     assert summary["state"] == "aborted" and summary["safe"] is True, summary
     assert "SIGTERM" in summary["faults"][0]["reason"], summary["faults"]
-    assert sum("distributed" in c or "multiprocessing" in c for c in s.commands.values()) >= 2, \
-        s.commands  # both Dask workers were running
-    assert any("emulate" in command for command in s.commands.values()), s.commands
-    s.assert_nothing_left()
-
-
-def test_ctrl_c_to_the_fault_campaign_stops_its_daemon_and_bench(session, tmp_path):
-    """One rig kind (the coil board): the campaign's own part (its daemon and bench, each now in a
-    session of its own, stopped by the campaign) does not depend on the rig."""
-    keep = tmp_path / "campaign"
-    s = session("faults", "--rig", "coil-board", "--quick", "--keep", str(keep))
-    runs = keep / "coil-board" / "runs"
-    wait_for(_energised(runs), START_S, "the campaign's first run to energise")
-    s.ctrl_c()
-    code = s.finish()
-    assert code == 3, s.text()
-    said = [line for line in s.err if "interrupted" in line]
-    assert len(said) == 1 and "Ctrl-C" in said[0], s.text()
-    assert not any("Traceback" in line for line in s.err), s.text()
-    # the daemon was stopped as SIGTERM stops it (its run ramped down, its record finished)
-    # before the bench it runs on
-    summary = _summary(runs)
+    assert sum("spawn_main" in c for c in study.commands.values()) == 2, study.commands  # workers
+    # the campaign stopped its daemon as SIGTERM stops it (the run ramped down, its record
+    # finished), then the bench it runs on
+    summary = _summary(campaign_runs)
     assert summary["state"] in ("aborted", "faulted") and summary["safe"] is True, summary
-    assert any(" daemon " in command for command in s.commands.values()), s.commands
-    assert any("emulate" in command for command in s.commands.values()), s.commands
-    s.assert_nothing_left()
+    assert any(" daemon " in c for c in campaign.commands.values()), campaign.commands
