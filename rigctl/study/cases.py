@@ -207,6 +207,7 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
     from rigctl.config import dump_rig, load_rig
     from rigctl.emulators.backdoor import BackdoorClient
     from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.errors import shielded_from_interrupts
     from rigctl.plans.schema import load_plan
     from rigctl.run.agents import portable_workspace
 
@@ -255,8 +256,9 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
                 except subprocess.TimeoutExpired:
                     proc.terminate()  # SIGTERM: execute aborts the run as Ctrl-C does, recorded
                     stdout, _ = proc.communicate(timeout=30)
-            finally:  # interrupted (a serial study's Ctrl-C): the run ends before its bench
-                _end_run(proc)
+            finally:  # interrupted (a serial study's Ctrl-C): the run ends before its bench,
+                with shielded_from_interrupts():  # a second Ctrl-C meanwhile noted, not raised
+                    _end_run(proc)
                 _RunningCases.done(study, proc)
     lines = [line for line in stdout.splitlines() if line.startswith("{")]
     summary = json.loads(lines[-1]) if lines else {}
