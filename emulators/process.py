@@ -3,6 +3,12 @@
 `rigctl execute` without `--rig` uses this, so that path and `rigctl emulate` + `--rig` are the same
 code: a separate process that serves the devices on loopback and writes the rig file. Readiness is
 the line `READY <rig file>` on the child's stdout, never a sleep.
+
+The bench runs in a session of its own. A terminal's Ctrl-C goes to every process of its
+foreground group: a bench in that group stopped with the same keystroke as the run on it, which
+then could not make the bench's devices safe (the run faulted "not confirmed safe"). Out of the
+terminal's reach, the bench is stopped by whoever started it (`__exit__`, on every exit path),
+once the run on it has ended.
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ from pathlib import Path
 from typing import Iterator, TextIO
 
 from rigctl.config import RigConfig, load_rig
-from rigctl.errors import RigError
+from rigctl.errors import RigError, shielded_from_interrupts
 
 log = logging.getLogger(__name__)
 
@@ -48,28 +54,45 @@ class EmulatedBenchProcess:
         self.proc = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=self._log, bufsize=0,
             env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            start_new_session=True,  # not stopped by the terminal's Ctrl-C: by us (module doc)
         )
-        deadline = time.monotonic() + self.start_timeout_s
-        assert self.proc.stdout is not None
-        while True:
-            # wait for a line with a deadline: a child that hangs silently must not hang us
-            remaining = deadline - time.monotonic()
-            if remaining <= 0 or not select.select([self.proc.stdout], [], [], remaining)[0]:
-                break
-            line = self.proc.stdout.readline().decode(errors="replace")
-            if not line:
-                break  # the child exited
-            if line.startswith(READY_PREFIX):
-                return Path(line[len(READY_PREFIX):].strip())
+        try:
+            ready = self._ready_path()
+        except BaseException:  # a Ctrl-C while it starts: `__exit__` will not run, stop it here
+            self._terminate()
+            raise
+        if ready is not None:
+            return ready
         self._terminate()
         err = self.log_path.read_text()
         raise RigError(f"the emulated {self.kind} bench did not start: {err.strip()[-2000:]}",
                        device="emulated bench")
 
+    def _ready_path(self) -> Path | None:
+        """The rig file the READY line names; None if the child exited or stayed silent."""
+        deadline = time.monotonic() + self.start_timeout_s
+        assert self.proc is not None and self.proc.stdout is not None
+        while True:
+            # wait for a line with a deadline: a child that hangs silently must not hang us
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([self.proc.stdout], [], [], remaining)[0]:
+                return None
+            line = self.proc.stdout.readline().decode(errors="replace")
+            if not line:
+                return None  # the child exited
+            if line.startswith(READY_PREFIX):
+                return Path(line[len(READY_PREFIX):].strip())
+
     def __exit__(self, *exc: object) -> None:
         self._terminate()
 
     def _terminate(self) -> None:
+        # a Ctrl-C meanwhile (`rigctl execute` after its run's end, impatient) is noted, not
+        # raised: the bench is stopped, and the summary printed, all the same
+        with shielded_from_interrupts():
+            self._stop()
+
+    def _stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             try:

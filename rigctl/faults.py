@@ -295,6 +295,18 @@ def _wait(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
         time.sleep(POLL_S)
 
 
+def _end(proc: subprocess.Popen, timeout_s: float = 30.0) -> None:
+    """A `rigctl execute` or daemon child still running stopped as SIGTERM stops it (a run ramps
+    down and records its end), killed if it has not ended after `timeout_s`."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
 def stream_process_pid(daemon_pid: int) -> int | None:
     """The daemon's stream process (`rigctl.daemon.runhost`), found in /proc."""
     for task in Path(f"/proc/{daemon_pid}/task").iterdir():
@@ -420,7 +432,8 @@ class RigCampaign:
                 [sys.executable, "-m", "rigctl", "daemon", "--rig", str(self.rig_path), "--runs",
                  str(self.runs_dir), "--command", "tcp://127.0.0.1:0", "--telemetry",
                  "tcp://127.0.0.1:0", "--events", "tcp://127.0.0.1:0"],
-                stdout=subprocess.PIPE, stderr=log, text=True, env=self.env)
+                stdout=subprocess.PIPE, stderr=log, text=True, env=self.env,
+                start_new_session=True)  # stopped by `stop_daemon`, not the terminal's Ctrl-C
         assert self.daemon.stdout is not None
         ready = next((line for line in self.daemon.stdout if line.startswith("READY ")), None)
         if ready is None:
@@ -435,12 +448,7 @@ class RigCampaign:
             self.client.close()
             self.client = None
         if self.daemon is not None:
-            self.daemon.terminate()
-            try:
-                self.daemon.wait(30)
-            except subprocess.TimeoutExpired:
-                self.daemon.kill()
-                self.daemon.wait()
+            _end(self.daemon)
             if self.daemon.stdout is not None:
                 self.daemon.stdout.close()
             self.daemon = None
@@ -658,7 +666,15 @@ class RigCampaign:
             proc = subprocess.Popen(
                 [sys.executable, "-m", "rigctl", "execute", str(self.plan_path), "--rig",
                  str(self.rig_path), "--json", "-q", "--runs", str(runs)],
-                stdout=out, stderr=err, env=self.env)
+                stdout=out, stderr=err, env=self.env,
+                start_new_session=True)  # a Ctrl-C of the campaign stops it below, bench alive
+        try:
+            return self._execute_cell(cell, fault, proc, runs, before, out_path)
+        finally:  # the campaign interrupted: the run aborts (ramps down) before the bench stops
+            _end(proc)
+
+    def _execute_cell(self, cell: Cell, fault: Fault, proc: subprocess.Popen, runs: Path,
+                      before: set[Path], out_path: Path) -> Cell:
         t_fault = None
         try:
             _wait(lambda: self.profile.driving(self.truth()) or proc.poll() is not None, 60.0,

@@ -123,10 +123,17 @@ class SimavrBoard:
             return self
         elf, harness = build(self.build_dir, extra_cflags=self.extra_cflags, timeout_s=self.build_timeout_s)
         self._log = open(self.log_path, "w")
-        # stdin is a pipe the harness watches: if this process dies, the harness exits too
+        # stdin is a pipe the harness watches: if this process dies, the harness exits too. A
+        # session of its own: a terminal's Ctrl-C must not take the board away from the run that
+        # is making it safe; `stop` ends it
         self._proc = subprocess.Popen([str(harness), "--watch-stdin", str(elf)], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, stderr=self._log, text=True)
-        line = self._ready_line()
+                                      stdout=subprocess.PIPE, stderr=self._log, text=True,
+                                      start_new_session=True)
+        try:
+            line = self._ready_line()
+        except BaseException:  # a Ctrl-C while it starts
+            self._end_process()
+            raise
         if line is None:
             self._end_process()
             raise DeviceError(f"the simavr harness did not start within {self.start_timeout_s:g} s: "

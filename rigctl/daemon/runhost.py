@@ -136,7 +136,12 @@ class RunHost:
             [sys.executable, "-m", "rigctl.daemon.runhost", str(down_read), str(up_write),
              str(ack_write), str(self.realtime_priority or 0),
              *(["frames"] if self.on_frame is not None else [])],
-            pass_fds=(down_read, up_write, ack_write), stdin=subprocess.DEVNULL)
+            pass_fds=(down_read, up_write, ack_write), stdin=subprocess.DEVNULL,
+            # a session of its own: a terminal's Ctrl-C (to the whole foreground group) reaches
+            # the daemon, which ramps the run down through this process and then ends it
+            # (`close`); were it in the group, one arriving before it ignores SIGINT (its imports)
+            # would kill it mid-run. Its pipe from the daemon closing also ends it.
+            start_new_session=True)
         for fd in (down_read, up_write, ack_write):
             os.close(fd)
         self._process, self._down = process, Connection(down_write, readable=False)

@@ -233,9 +233,12 @@ class Run(RunControl):
                 self._set_state(RunState.RUNNING)
                 stats = self._stream(actuators)
             except KeyboardInterrupt as interrupt:
+                winding_down.enter_context(shielded_from_interrupts())  # a second one: noted
                 take_interrupt()  # handled here
                 self.abort(f"operator interrupt ({interrupt_name(interrupt)})")
                 record.event("abort", reason=self._abort_reason)
+                self._say(f"aborted by {interrupt_name(interrupt)}: every device to safe, then the "
+                          "summary")
         except LimitError as err:
             if self.state != RunState.PREPARED:  # a limit met while running is a fault
                 self._stopped_by(err, record, faults)

@@ -97,8 +97,13 @@ def summary_from_dict(data: dict) -> RunSummary:
 def format_summary(summary: RunSummary) -> str:
     """The summary as a person reads it: where the record is, timing, each agent, the rig's own
     figures, faults, whether every device is safe, the verdict."""
-    lines = [f"run record: {summary.run}", f"duration: {summary.duration_s:.1f} s"
-             + (f"; ended {summary.state}" if summary.state else "")]
+    # an abort (the operator's, Ctrl-C, a limit of time) is how the run ended, not a fault
+    aborts = [f for f in summary.faults if f.get("kind") == "Abort"]
+    faults = [f for f in summary.faults if f.get("kind") != "Abort"]
+    ended = f"; ended {summary.state}" if summary.state else ""
+    if aborts and summary.state == "aborted":
+        ended += f": {aborts[0]['reason']}"
+    lines = [f"run record: {summary.run}", f"duration: {summary.duration_s:.1f} s{ended}"]
     if summary.stream:
         s = summary.stream
         e = s["period_error_us"]
@@ -126,10 +131,11 @@ def format_summary(summary: RunSummary) -> str:
             verdict = "ok" if tol is not None and a.error_mm <= tol else "MISSED"
             err = f"{a.error_mm:.3f}"
         lines.append(f"{i:>5}  {final:<20}  {goal:<20}  {err:>8}  {verdict}")
-    if summary.faults:
-        for f in summary.faults:
-            lines.append(f"FAULT: {f['reason']}")
-    else:
+    for f in aborts if summary.state != "aborted" else []:  # an abort that did not end it
+        lines.append(f"aborted: {f['reason']}")
+    for f in faults:
+        lines.append(f"FAULT: {f['reason']}")
+    if not faults:
         lines.append("faults: none")
     if summary.safe:
         lines.append("safe: every device confirmed off")

@@ -6,6 +6,11 @@ that serves on ports the kernel picks, so cases side by side never share a devic
 `run_case` returns the case's row: its figures (the command's JSON), `success` and `error` as the
 spec names them, its wall time and the folder it wrote (the plan, or the run record). A case that
 fails (bad input, a fault) is a row too, with `status` and the message: a study goes on.
+
+A run's two children are in sessions of their own, out of reach of the terminal's Ctrl-C (which
+would have stopped the bench with the same keystroke as the run on it, the run then unable to
+make it safe). The study stops them when it is interrupted: `stop_cases` in each worker (and an
+exception in a serial study) ends each run as SIGTERM does, an abort recorded, then its bench.
 """
 
 from __future__ import annotations
@@ -17,7 +22,9 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -117,6 +124,82 @@ def _plan(command: str, case: Case, folder: Path, out: Path) -> tuple[str, dict,
 # ---------------------------------------------------------------- emulated runs, in children
 
 
+class CasesStopped(Exception):
+    """The study this case belongs to is stopping (`stop_cases`): its run was not started."""
+
+
+class _RunningCases:
+    """The emulated runs of this process's cases (`rigctl execute` children, by the study's
+    results folder), and how many cases still hold a bench; a study's cases stop together."""
+
+    changed = threading.Condition()
+    runs: dict[str, set[subprocess.Popen]] = {}
+    benches: dict[str, int] = {}
+    stopping: set[str] = set()
+
+    @classmethod
+    @contextlib.contextmanager
+    def case(cls, study: str) -> Iterator[None]:
+        with cls.changed:
+            cls.benches[study] = cls.benches.get(study, 0) + 1
+        try:
+            yield
+        finally:
+            with cls.changed:
+                cls.benches[study] -= 1
+                cls.changed.notify_all()
+
+    @classmethod
+    def start(cls, study: str, argv: list[str], **popen: Any) -> subprocess.Popen:
+        """`argv` started in a session of its own, unless the study is stopping (CasesStopped)."""
+        with cls.changed:
+            if study in cls.stopping:
+                raise CasesStopped("the study was interrupted before this case's run started")
+            proc = subprocess.Popen(argv, start_new_session=True, **popen)
+            cls.runs.setdefault(study, set()).add(proc)
+            return proc
+
+    @classmethod
+    def done(cls, study: str, proc: subprocess.Popen) -> None:
+        with cls.changed:
+            cls.runs.get(study, set()).discard(proc)
+
+
+def stop_cases(out_root: str, timeout_s: float = 60.0) -> int:
+    """Stop the emulated runs of the study writing to `out_root` that this process runs (SIGTERM:
+    each aborts, ramps down and records its end; its case then stops its bench), start no new
+    one, and wait (at most `timeout_s`) until every case of the study has let its bench go.
+    Run in each worker by an interrupted study (`run_study`, its cases cancelled first); the
+    number of runs stopped. The same study may run again in this process afterwards (a lab's
+    worker, the study resumed)."""
+    with _RunningCases.changed:
+        _RunningCases.stopping.add(out_root)
+        runs = list(_RunningCases.runs.get(out_root, ()))
+    try:
+        for proc in runs:
+            if proc.poll() is None:
+                proc.terminate()
+        with _RunningCases.changed:
+            _RunningCases.changed.wait_for(lambda: not _RunningCases.benches.get(out_root),
+                                           timeout_s)
+    finally:
+        with _RunningCases.changed:
+            _RunningCases.stopping.discard(out_root)
+    return len(runs)
+
+
+def _end_run(proc: subprocess.Popen, timeout_s: float = 30.0) -> None:
+    """A case's run still going after its case was interrupted: SIGTERM (an abort, recorded),
+    SIGKILL if it has not ended after `timeout_s`."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
 def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
     """A bench of the plan's rig kind in a child (`rigctl emulate`, its own ephemeral ports), the
     rig file's overrides applied, `rigctl execute --rig` in another child; the fault, if any,
@@ -124,6 +207,7 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
     from rigctl.config import dump_rig, load_rig
     from rigctl.emulators.backdoor import BackdoorClient
     from rigctl.emulators.process import EmulatedBenchProcess
+    from rigctl.errors import shielded_from_interrupts
     from rigctl.plans.schema import load_plan
     from rigctl.run.agents import portable_workspace
 
@@ -137,7 +221,9 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     env.setdefault("RIGCTL_LOCK_DIR", str(out.parent.parent / "locks"))
     Path(env["RIGCTL_LOCK_DIR"]).mkdir(parents=True, exist_ok=True)
-    with EmulatedBenchProcess(kind, out / "bench.toml", extra_args=bench_flags) as bench_rig:
+    study = str(out.parent.parent)
+    with _RunningCases.case(study), \
+            EmulatedBenchProcess(kind, out / "bench.toml", extra_args=bench_flags) as bench_rig:
         rig = load_rig(bench_rig)
         overrides = {k[len("rig."):]: v for k, v in options.items() if k.startswith("rig.")}
         rig_path = out / "rig.toml"
@@ -160,14 +246,20 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
         argv = [sys.executable, "-m", "rigctl", "execute", str(plan_path), "--rig", str(rig_path),
                 "--runs", str(runs), "--json", "-q"] + (["--open-loop"] if options.get("open-loop") else [])
         with open(out / "execute.log", "w") as log:
-            proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log, text=True, env=env)
-            fault = options.get("fault")
-            injected = _inject(fault, rig.emulation.backdoor, runs, proc) if fault else None
+            proc = _RunningCases.start(study, argv, stdout=subprocess.PIPE, stderr=log, text=True,
+                                       env=env)
             try:
-                stdout, _ = proc.communicate(timeout=EXECUTE_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                proc.terminate()  # SIGTERM: execute aborts the run as Ctrl-C does, recorded
-                stdout, _ = proc.communicate(timeout=30)
+                fault = options.get("fault")
+                injected = _inject(fault, rig.emulation.backdoor, runs, proc) if fault else None
+                try:
+                    stdout, _ = proc.communicate(timeout=EXECUTE_TIMEOUT_S)
+                except subprocess.TimeoutExpired:
+                    proc.terminate()  # SIGTERM: execute aborts the run as Ctrl-C does, recorded
+                    stdout, _ = proc.communicate(timeout=30)
+            finally:  # interrupted (a serial study's Ctrl-C): the run ends before its bench,
+                with shielded_from_interrupts():  # a second Ctrl-C meanwhile noted, not raised
+                    _end_run(proc)
+                _RunningCases.done(study, proc)
     lines = [line for line in stdout.splitlines() if line.startswith("{")]
     summary = json.loads(lines[-1]) if lines else {}
     if "error" in summary:

@@ -12,14 +12,22 @@ Results go into the study's table (`table.ResultsTable`: its journal at once, th
 most every second and at the end) as each case finishes, on the client's side: the one writer.
 Cases already in the table are not submitted, so a study stopped at any point (Ctrl-C, a killed
 process) resumes by running the same command again.
+
+A terminal's Ctrl-C goes to every process of its foreground group, the local workers included:
+they ignore it (`set_up_worker`), and the study, interrupted (Ctrl-C or SIGTERM), stops the
+cases' runs in every worker (`cases.stop_cases`: each aborted and recorded, then its bench)
+before it closes the cluster, so that nothing it started is left running.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,7 +36,8 @@ from typing import TextIO
 
 from threadpoolctl import threadpool_limits
 
-from rigctl.study.cases import run_case
+from rigctl.errors import on_interrupt_signal, shielded_from_interrupts
+from rigctl.study.cases import run_case, stop_cases
 from rigctl.study.spec import StudySpec
 from rigctl.study.table import ResultsTable
 
@@ -90,10 +99,29 @@ LOCAL_CLUSTER_CONFIG = {
 """Dask settings of the LocalCluster `run_study` starts (a lab's own cluster keeps its own)."""
 
 
-def set_up_worker(command: str) -> None:
-    """A process that runs cases: one BLAS thread (`ONE_CASE_PER_CORE`), the planners warm."""
+def set_up_worker(command: str, local: bool = False) -> None:
+    """A process that runs cases: one BLAS thread (`ONE_CASE_PER_CORE`), the planners warm; a
+    worker of the study's own `LocalCluster` (`local`) also ignores SIGINT: the terminal's Ctrl-C
+    reaches it too, and is the study's to handle (its cases stopped, then the cluster closed).
+    Called on the worker's event loop, its main thread."""
+    if local and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     threadpool_limits(ONE_CASE_PER_CORE)
     _warm_up(command)
+
+
+def _case_worker(command: str):
+    """A Dask worker plugin that sets up (`set_up_worker`) each worker of the study's own cluster,
+    those started later too (one the nanny starts again after it died)."""
+    from distributed import WorkerPlugin
+
+    class CaseWorker(WorkerPlugin):
+        name = "rigctl-study-worker"
+
+        def setup(self, worker) -> None:
+            set_up_worker(command, local=True)
+
+    return CaseWorker()
 
 
 def _warm_up(command: str) -> None:
@@ -146,8 +174,24 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
     """Run the spec's cases not yet in `out`'s table: serially here, on a LocalCluster of `workers`
     (default: one per core), or on the Dask scheduler at `scheduler`. Every finished case is in
     the table's journal before the next result is read, and in the table when this returns or
-    raises."""
-    out = Path(out)
+    raises. SIGTERM ends it as Ctrl-C does (KeyboardInterrupt), with every case's run and bench
+    stopped."""
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {sig: signal.signal(sig, on_interrupt_signal)
+                    for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _run_study(spec, Path(out), workers=workers, scheduler=scheduler, serial=serial,
+                          retry_failed=retry_failed, progress_out=progress_out,
+                          on_result=on_result)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _run_study(spec: StudySpec, out: Path, *, workers: int | None, scheduler: str | None,
+               serial: bool, retry_failed: bool, progress_out: TextIO | None,
+               on_result: Callable[[dict], None] | None) -> StudyOutcome:
     out.mkdir(parents=True, exist_ok=True)
     (out / STUDY_FILE).write_text(json.dumps({
         "name": spec.name, "command": spec.command, "parameters": spec.parameter_names,
@@ -198,6 +242,7 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
                                    processes=True, dashboard_address="127.0.0.1:0",
                                    silence_logs=logging.ERROR)
     client = Client(cluster if cluster is not None else scheduler)
+    futures: list = []
     try:
         dashboard = client.dashboard_link
         n_workers = len(client.scheduler_info()["workers"])
@@ -205,7 +250,10 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
             print(f"study {spec.name}: {len(todo)} cases on {n_workers} Dask workers "
                   f"(scheduler {client.scheduler.address}); dashboard {dashboard}",
                   file=progress_out, flush=True)
-        client.run(set_up_worker, spec.command)
+        if cluster is not None:  # every worker, one started again later too
+            client.register_plugin(_case_worker(spec.command))
+        else:  # a lab's workers: their own signals are left alone
+            client.run(set_up_worker, spec.command)
         started = time.perf_counter()
         progress.started = time.monotonic()  # the time left counts from the first case
         futures = [client.submit(run_case, *arguments, case, *tail, key=f"case-{case.id}",
@@ -213,6 +261,13 @@ def run_study(spec: StudySpec, out: str | Path, *, workers: int | None = None,
         for future in as_completed(futures):
             finished(future.result())
         wall = time.perf_counter() - started
+    except BaseException:
+        # interrupted (or the scheduler lost): no case starts, and those running end their
+        # runs and benches in their workers, a second Ctrl-C meanwhile noted, not raised
+        with shielded_from_interrupts(), contextlib.suppress(Exception):
+            client.cancel(futures)
+            client.run(stop_cases, tail[0])
+        raise
     finally:
         table.write()
         client.close()

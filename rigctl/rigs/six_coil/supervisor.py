@@ -788,8 +788,12 @@ class ReplanWorker:
     and stdout, one at a time. Started ahead so its imports are done by the first re-plan."""
 
     def __init__(self) -> None:
+        # a session of its own: a terminal's Ctrl-C is the run's to handle (an abort), not a
+        # KeyboardInterrupt here that would end the run as a re-plan fault; `close`, or its
+        # stdin closing with the run's process, ends it
         self._proc = subprocess.Popen([sys.executable, "-m", "rigctl.rigs.six_coil.supervisor"],
-                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                      start_new_session=True)
         self._lock = threading.Lock()
         self._ready = False  # the child's "ready" (imports done) has been read
 
