@@ -76,6 +76,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
     from rigctl.emulators.process import EmulatedBenchProcess
     from rigctl.rigs.doctor import preflight
     from rigctl.rigs.owner import RigLock
+    from rigctl.run.guardian import Guardian
 
     for endpoint in (args.command, args.telemetry, args.events):  # before anything is started
         if endpoint:
@@ -93,6 +94,9 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
     # gets it within 0.1 ms instead of Python's default 5 ms
     sys.setswitchinterval(1e-4)
     with ExitStack() as stack:
+        # entered first, left last: if this process dies without a word (SIGKILL) while it owns
+        # the rig, the guardian makes it safe (under systemd the unit's ExecStopPost does too)
+        guardian = stack.enter_context(Guardian("rigctl daemon"))
         if args.rig is not None:
             if args.bench is not None:
                 raise ConfigError("--bench starts an emulated bench; with --rig the rig file "
@@ -107,6 +111,8 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
         settings = _rig_daemon_settings(rig) or DaemonSettings()
         # one owner per rig: refused (exit 2) before anything connects if another process has it
         lock = stack.enter_context(RigLock(rig, "rigctl daemon"))
+        # a bench started here is this process's to stop: its rig file names its pid
+        guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
         preflight(rig)  # every device answers and is made safe first, or exit 2 naming it
         daemon = Daemon(
             rig,
@@ -138,6 +144,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
                              f"\n  console    {url}#token={console.token}  (the token "
                              "controls the rig: keep it to the operators)")
         lock.name_control(endpoints.command)  # where `rigctl estop --rig` finds this daemon
+        guardian.wait_armed()  # before a client can have anything energised
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: daemon.request_shutdown())
         ready_console, human_console = console_lines or ("", "")

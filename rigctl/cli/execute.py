@@ -85,6 +85,7 @@ def cmd_execute(args: argparse.Namespace) -> int:
     from rigctl.rigs import rig_kind
     from rigctl.rigs.doctor import preflight
     from rigctl.rigs.owner import RigLock
+    from rigctl.run.guardian import Guardian
     from rigctl.run.summary import exit_code, print_summary
 
     plan = load_plan(args.plan)
@@ -112,10 +113,17 @@ def cmd_execute(args: argparse.Namespace) -> int:
     world = f" ({bench[bench.index('--world') + 1]} world)" if "--world" in bench else ""
     out = None if args.quiet else sys.stderr
     abort_on_sigterm()  # SIGTERM ends a run as Ctrl-C does: an abort, recorded and summarised
-    with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig, \
+    # the guardian first (it imports while the bench starts) and left last: a SIGKILL at any
+    # point from the lock to the bench's stop leaves it to make the rig safe and stop the bench
+    with Guardian("rigctl execute") as guardian, \
+            rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out,
+                        world=world) as rig, \
             RigLock(rig, "rigctl execute") as lock:  # one owner per rig: a second is refused
+        # a bench started here is this process's to stop: its rig file names its pid
+        guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
         preflight(rig)  # every device answers and is made safe, or exit 2 naming it
         run = build(plan, rig, runs_dir=args.runs, progress_out=out, **options)
+        guardian.wait_armed()  # nothing is energised unguarded
         with LocalControl(run) as control:
             lock.name_control(control.endpoint)  # where `rigctl estop --rig` and the rest find it
             summary = run.execute()
