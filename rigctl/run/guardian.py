@@ -31,8 +31,6 @@ acts (25 ms more once the rest is loaded).
 
 from __future__ import annotations
 
-import json
-import logging
 import os
 import select
 import signal
@@ -43,8 +41,6 @@ from collections.abc import Iterable
 from typing import IO, Any
 
 from rigctl.errors import RigError
-
-log = logging.getLogger(__name__)
 
 ARMED = b"armed\n"
 ARM_TIMEOUT_S = 60.0  # the guardian's imports on a loaded machine (quiet: 0.5 s)
