@@ -114,6 +114,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
         # a bench started here is this process's to stop: its rig file names its pid
         guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
         preflight(rig)  # every device answers and is made safe first, or exit 2 naming it
+        guardian.wait_armed()  # before a client can have anything energised
         daemon = Daemon(
             rig,
             command=args.command or settings.command,
@@ -144,7 +145,6 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
                              f"\n  console    {url}#token={console.token}  (the token "
                              "controls the rig: keep it to the operators)")
         lock.name_control(endpoints.command)  # where `rigctl estop --rig` finds this daemon
-        guardian.wait_armed()  # before a client can have anything energised
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: daemon.request_shutdown())
         ready_console, human_console = console_lines or ("", "")
