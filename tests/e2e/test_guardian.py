@@ -162,7 +162,8 @@ class Owner:
         if how == "execute":
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "rigctl", "execute", str(plan), *on_rig, "--runs", str(runs),
-                 "-q", *KINDS[bench.kind].execute_args], stdout=subprocess.DEVNULL, stderr=self.err, env=bench.env)
+                 "-q", *KINDS[bench.kind].execute_args],
+                stdout=subprocess.DEVNULL, stderr=self.err, env=bench.env)
             return
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "rigctl", "daemon", *on_rig, "--runs", str(runs), "--command",
