@@ -75,8 +75,8 @@ class Depm(Kind):
 
 
 # the six-coil run open loop: the closed loop's re-planning process takes seconds to start
-KINDS = {"six-coil": SixCoil("fig4-quick.json", ("--open-loop",)), "coil-board": CoilBoard("coilboard-disk.json"),
-         "depm": Depm("depm-plan.json")}
+KINDS = {"six-coil": SixCoil("fig4-quick.json", ("--open-loop",)),
+         "coil-board": CoilBoard("coilboard-disk.json"), "depm": Depm("depm-plan.json")}
 
 
 def cmdline(pid: int) -> str:
