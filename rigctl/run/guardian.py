@@ -31,6 +31,7 @@ when it acts (20-140 ms more at that load, once the rest is loaded).
 
 from __future__ import annotations
 
+import logging
 import os
 import select
 import signal
@@ -47,6 +48,7 @@ ARM_TIMEOUT_S = 60.0  # the guardian's imports on a loaded machine (quiet: 0.5 s
 END_TIMEOUT_S = 5.0  # a guardian told `ended` exits at once; this long before it is killed
 BENCH_STOP_S = 5.0  # a bench asked to stop (SIGTERM) gets this long before SIGKILL
 LOG_NAME = "guardian.log"
+REACH_AGAIN_S = 0.1  # a device the make-safe did not reach is reached again this often
 
 
 # -- the owner's side ----------------------------------------------------------------------------
@@ -177,6 +179,18 @@ class Ward:
         gone_s = time.monotonic() - self.since
         t0 = time.monotonic()
         result = self.make_safe(self.rig)
+        left = [name for name, why in result.items() if why is not None]
+        later: dict[str, float] = {}  # device -> s after the first try that it was reached
+        # a device that serves one client at a time (a KUKA Sunrise server) refuses anyone until
+        # it has seen the dead owner's connection close, a few ms; a link that is down stays so:
+        # each is reached again for as long as the rig file says to try (`unsafe_retry_s`)
+        while left and time.monotonic() - t0 < self.rig.stream.unsafe_retry_s:
+            time.sleep(REACH_AGAIN_S)
+            again = self.make_safe(self.rig)
+            for name in [name for name in left if again.get(name, "not reached") is None]:
+                result[name] = None
+                left.remove(name)
+                later[name] = time.monotonic() - t0
         safe_s = time.monotonic() - t0
         rig = f"{self.rig.rig.name!r} ({self.rig.rig.kind})"
         reached = all(why is None for why in result.values())
@@ -184,10 +198,13 @@ class Ward:
                  f"holding rig {rig}: its guardian made "
                  + ("every device safe directly" if reached else "the devices it reached safe")
                  + f" in {safe_s:.2f} s"]
-        lines += [f"  {name:<12} {'safe' if why is None else 'NOT REACHED: ' + why}"
+        lines += [f"  {name:<12} " + ("NOT REACHED: " + why if why is not None else
+                                       f"safe (reached again after {later[name]:.2f} s)"
+                                       if name in later else "safe")
                   for name, why in result.items()]
         if not reached:
-            lines.append("  some devices could not be reached: check them by hand")
+            lines.append(f"  some devices could not be reached (tried for {safe_s:.1f} s): check "
+                         "them by hand")
         if self.bench_pid is not None:
             lines.append(f"  the emulated bench it had started (pid {self.bench_pid}) "
                          + self._stop_bench())
@@ -250,9 +267,9 @@ def main(argv: list[str]) -> int:
     # -PGID) must not end it either
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
-    from rigctl.logs import configure
-
-    configure(verbose=False, service=False)  # make_safe logs a device it cannot reach
+    # its report names every device and what became of it; the make-safe's own log lines for a
+    # device it cannot reach would repeat that at every try
+    logging.disable(logging.ERROR)
     import rigctl.config  # noqa: F401  the slow imports, done before the owner needs us
     import rigctl.rigs  # noqa: F401
 
