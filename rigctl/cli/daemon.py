@@ -70,13 +70,22 @@ def _refused_exit(err) -> int:
 
 # -- rigctl daemon -------------------------------------------------------------------------------
 def _cmd_daemon(args: argparse.Namespace) -> int:
+    from rigctl.run.guardian import Guardian
+
+    # the guardian first: its start overlaps the imports below; left last: if this process dies
+    # without a word (SIGKILL) while it owns the rig, the guardian makes it safe (under systemd
+    # the unit's ExecStopPost does too)
+    with Guardian("rigctl daemon") as guardian:
+        return _serve_guarded(args, guardian)
+
+
+def _serve_guarded(args: argparse.Namespace, guardian) -> int:
     from rigctl.config import load_rig
     from rigctl.daemon.messages import DaemonSettings, is_loopback_endpoint
     from rigctl.daemon.server import Daemon
     from rigctl.emulators.process import EmulatedBenchProcess
     from rigctl.rigs.doctor import preflight
     from rigctl.rigs.owner import RigLock
-    from rigctl.run.guardian import Guardian
 
     for endpoint in (args.command, args.telemetry, args.events):  # before anything is started
         if endpoint:
@@ -94,9 +103,6 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
     # gets it within 0.1 ms instead of Python's default 5 ms
     sys.setswitchinterval(1e-4)
     with ExitStack() as stack:
-        # entered first, left last: if this process dies without a word (SIGKILL) while it owns
-        # the rig, the guardian makes it safe (under systemd the unit's ExecStopPost does too)
-        guardian = stack.enter_context(Guardian("rigctl daemon"))
         if args.rig is not None:
             if args.bench is not None:
                 raise ConfigError("--bench starts an emulated bench; with --rig the rig file "

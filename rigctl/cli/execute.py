@@ -78,6 +78,15 @@ def cmd_execute(args: argparse.Namespace) -> int:
         from rigctl.cli.daemon import execute_remote
 
         return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
+    from rigctl.run.guardian import Guardian
+
+    # the guardian first: its start overlaps the imports below; it is left last, so a SIGKILL at
+    # any point from the lock to the bench's stop leaves it to make the rig safe, stop the bench
+    with Guardian("rigctl execute") as guardian:
+        return _execute_guarded(args, guardian)
+
+
+def _execute_guarded(args: argparse.Namespace, guardian) -> int:
     # here, not at the top: every other command (`estop` first) starts without these imports
     from rigctl.daemon.local import LocalControl
     from rigctl.emulators.process import rig_for_run
@@ -85,7 +94,6 @@ def cmd_execute(args: argparse.Namespace) -> int:
     from rigctl.rigs import rig_kind
     from rigctl.rigs.doctor import preflight
     from rigctl.rigs.owner import RigLock
-    from rigctl.run.guardian import Guardian
     from rigctl.run.summary import exit_code, print_summary
 
     plan = load_plan(args.plan)
@@ -113,11 +121,7 @@ def cmd_execute(args: argparse.Namespace) -> int:
     world = f" ({bench[bench.index('--world') + 1]} world)" if "--world" in bench else ""
     out = None if args.quiet else sys.stderr
     abort_on_sigterm()  # SIGTERM ends a run as Ctrl-C does: an abort, recorded and summarised
-    # the guardian first (it imports while the bench starts) and left last: a SIGKILL at any
-    # point from the lock to the bench's stop leaves it to make the rig safe and stop the bench
-    with Guardian("rigctl execute") as guardian, \
-            rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out,
-                        world=world) as rig, \
+    with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig, \
             RigLock(rig, "rigctl execute") as lock:  # one owner per rig: a second is refused
         # a bench started here is this process's to stop: its rig file names its pid
         guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)

@@ -54,14 +54,16 @@ REACH_AGAIN_S = 0.1  # a device the make-safe did not reach is reached again thi
 # -- the owner's side ----------------------------------------------------------------------------
 class Guardian:
     """`with Guardian("rigctl execute") as guardian:` around everything the owner does with a
-    rig (entered first, so that it is left last: after the run, the lock and the bench); once the
-    rig is held, `guardian.guard(rig, bench_pid=...)`, and `guardian.wait_armed()` before
-    anything is energised. Leaving the `with` block by any path (an exception too: the blocks
-    inside have made the rig safe by then) is a normal end."""
+    rig (entered first, before the owner's own imports, which the guardian's then overlap; left
+    last: after the run, the lock and the bench); once the rig is held,
+    `guardian.guard(rig, bench_pid=...)`, and `guardian.wait_armed()` before anything is
+    energised. Leaving the `with` block by any path (an exception too: the blocks inside have
+    made the rig safe by then) is a normal end; a guardian not armed yet is simply ended."""
 
     def __init__(self, owner: str) -> None:
         self.owner = owner
         self.proc: subprocess.Popen[bytes] | None = None
+        self.armed = False
 
     def __enter__(self) -> Guardian:
         # its own session: a terminal's Ctrl-C or hang-up goes to the owner's group, not here;
@@ -94,7 +96,8 @@ class Guardian:
         assert self.proc is not None and self.proc.stdout is not None
         ready = select.select([self.proc.stdout], [], [], timeout_s)[0]
         line = self.proc.stdout.readline() if ready else b""
-        if line != ARMED:
+        self.armed = line == ARMED
+        if not self.armed:
             raise RigError(f"the guardian of {self.owner} did not start"
                            + (f" (exit {self.proc.poll()})" if self.proc.poll() is not None
                               else f" within {timeout_s:g} s"), device="guardian")
@@ -104,6 +107,8 @@ class Guardian:
         if proc is None:
             return
         assert proc.stdin is not None and proc.stdout is not None
+        if not self.armed:  # it guards nothing yet (nothing was energised): no need to wait for
+            proc.kill()  # its imports to end before it reads the word (bad input ends at once)
         try:
             proc.stdin.write(b"ended\n")
             proc.stdin.close()
