@@ -19,6 +19,7 @@ import tempfile
 import time
 from contextlib import ExitStack
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rigctl.daemon.admission import REQUEST_RATE_HZ
 from rigctl.errors import (
@@ -29,6 +30,9 @@ from rigctl.errors import (
     ConfigError,
     PlanError,
 )
+
+if TYPE_CHECKING:
+    from rigctl.run.guardian import Guardian
 
 READY_PREFIX = "READY "
 
@@ -79,7 +83,7 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
         return _serve_guarded(args, guardian)
 
 
-def _serve_guarded(args: argparse.Namespace, guardian) -> int:
+def _serve_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
     from rigctl.config import load_rig
     from rigctl.daemon.messages import DaemonSettings, is_loopback_endpoint
     from rigctl.daemon.server import Daemon

@@ -7,8 +7,12 @@ from __future__ import annotations
 import argparse
 import inspect
 import sys
+from typing import TYPE_CHECKING
 
 from rigctl.errors import ConfigError, abort_on_sigterm
+
+if TYPE_CHECKING:
+    from rigctl.run.guardian import Guardian
 
 # run options: CLI flag -> the builder's keyword (a builder takes only those it names)
 _RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-scale": "time_scale"}
@@ -86,7 +90,7 @@ def cmd_execute(args: argparse.Namespace) -> int:
         return _execute_guarded(args, guardian)
 
 
-def _execute_guarded(args: argparse.Namespace, guardian) -> int:
+def _execute_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
     # here, not at the top: every other command (`estop` first) starts without these imports
     from rigctl.daemon.local import LocalControl
     from rigctl.emulators.process import rig_for_run
