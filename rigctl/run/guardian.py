@@ -269,8 +269,8 @@ def _record(lines: list[str]) -> str:
 
 def main(argv: list[str]) -> int:
     owner, owner_pid = argv[0], int(argv[1])
-    # its own session has no terminal; a signal to the owner's process group by hand (kill -INT
-    # -PGID) must not end it either
+    # no terminal sends it Ctrl-C or a hang-up (a session of its own); sent by hand they are
+    # ignored too: only its owner's end (or SIGTERM, SIGKILL) ends it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
     # its report names every device and what became of it; the make-safe's own log lines for a
