@@ -170,13 +170,16 @@ class Owner:
              "tcp://127.0.0.1:0", "--telemetry", "tcp://127.0.0.1:0", "--events",
              "tcp://127.0.0.1:0"], stdout=subprocess.PIPE, stderr=self.err, text=True,
             env=bench.env)
-        ready = next((line for line in self.proc.stdout if line.startswith("READY ")), None)
-        assert ready, self.stderr()
-        command = dict(f.split("=", 1) for f in ready[6:].split())["command"]
-        if not run:
-            return
-        with Rig(command) as client:
-            client.execute(client.load(json.loads(plan.read_text())))
+        try:
+            ready = next((line for line in self.proc.stdout if line.startswith("READY ")), None)
+            assert ready, self.stderr()
+            command = dict(f.split("=", 1) for f in ready[6:].split())["command"]
+            if run:
+                with Rig(command) as client:
+                    client.execute(client.load(json.loads(plan.read_text())))
+        except BaseException:  # no daemon left behind by a test that failed here
+            self.close()
+            raise
 
     def stderr(self) -> str:
         self.err.flush()
