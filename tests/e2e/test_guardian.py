@@ -266,6 +266,7 @@ def test_a_normal_end_leaves_no_guardian_and_says_nothing_of_it(bench, how, lock
 def test_a_killed_execute_without_rig_leaves_no_bench_running(bench):
     """The bench `rigctl execute` started itself is stopped by the guardian, after the devices."""
     owner = Owner("execute", bench, rig=False)
+    below: list[int] = []  # what the owner started: the bench, the guardian, any helper
     try:
         def started_bench() -> tuple[int, RigConfig] | None:
             """The bench below the owner and the rig file it wrote, once it has."""
@@ -284,11 +285,12 @@ def test_a_killed_execute_without_rig_leaves_no_bench_running(bench):
         with BackdoorClient(rig.emulation.backdoor) as own:
             wait_for(lambda: KINDS["six-coil"].active(own.request("truth")), 60,
                      "the actuators to act")
-        guardian = guardian_of(owner.proc.pid)
-        below = [p for p in descendants(owner.proc.pid) if p != guardian]
+        below = descendants(owner.proc.pid)
+        guardians = guardians_of(owner.proc.pid)
         kill_owner(owner)
-        wait_for(lambda: not alive(guardian), 20, "the guardian to end")
-        assert not alive(bench_pid), cmdline(bench_pid)
+        wait_for(lambda: not alive(bench_pid), 20, "the bench to stop")
+        assert len(guardians) == 1, f"guardians of the owner: {guardians}"
+        wait_for(lambda: not alive(guardians[0]), 20, "the guardian to end")
         said = owner.stderr()
         assert SAID in said, said
         assert f"the emulated bench it had started (pid {bench_pid}) stopped" in said, said
@@ -296,3 +298,6 @@ def test_a_killed_execute_without_rig_leaves_no_bench_running(bench):
                  "every process the owner had started to end")
     finally:
         owner.close()
+        for pid in below:  # a failed test leaves nothing running either
+            if alive(pid) and "rigctl" in cmdline(pid):
+                os.kill(pid, signal.SIGKILL)
