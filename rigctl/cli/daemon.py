@@ -19,6 +19,7 @@ import tempfile
 import time
 from contextlib import ExitStack
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rigctl.daemon.admission import REQUEST_RATE_HZ
 from rigctl.errors import (
@@ -29,6 +30,9 @@ from rigctl.errors import (
     ConfigError,
     PlanError,
 )
+
+if TYPE_CHECKING:
+    from rigctl.run.guardian import Guardian
 
 READY_PREFIX = "READY "
 
@@ -70,6 +74,16 @@ def _refused_exit(err) -> int:
 
 # -- rigctl daemon -------------------------------------------------------------------------------
 def _cmd_daemon(args: argparse.Namespace) -> int:
+    from rigctl.run.guardian import Guardian
+
+    # the guardian first: its start overlaps the imports below; left last: if this process dies
+    # without a word (SIGKILL) while it owns the rig, the guardian makes it safe (under systemd
+    # the unit's ExecStopPost does too)
+    with Guardian("rigctl daemon") as guardian:
+        return _serve_guarded(args, guardian)
+
+
+def _serve_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
     from rigctl.config import load_rig
     from rigctl.daemon.messages import DaemonSettings, is_loopback_endpoint
     from rigctl.daemon.server import Daemon
@@ -107,7 +121,10 @@ def _cmd_daemon(args: argparse.Namespace) -> int:
         settings = _rig_daemon_settings(rig) or DaemonSettings()
         # one owner per rig: refused (exit 2) before anything connects if another process has it
         lock = stack.enter_context(RigLock(rig, "rigctl daemon"))
+        # a bench started here is this process's to stop: its rig file names its pid
+        guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
         preflight(rig)  # every device answers and is made safe first, or exit 2 naming it
+        guardian.wait_armed()  # before a client can have anything energised
         daemon = Daemon(
             rig,
             command=args.command or settings.command,

@@ -7,8 +7,12 @@ from __future__ import annotations
 import argparse
 import inspect
 import sys
+from typing import TYPE_CHECKING
 
 from rigctl.errors import ConfigError, abort_on_sigterm
+
+if TYPE_CHECKING:
+    from rigctl.run.guardian import Guardian
 
 # run options: CLI flag -> the builder's keyword (a builder takes only those it names)
 _RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-scale": "time_scale"}
@@ -78,6 +82,15 @@ def cmd_execute(args: argparse.Namespace) -> int:
         from rigctl.cli.daemon import execute_remote
 
         return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
+    from rigctl.run.guardian import Guardian
+
+    # the guardian first: its start overlaps the imports below; it is left last, so a SIGKILL at
+    # any point from the lock to the bench's stop leaves it to make the rig safe, stop the bench
+    with Guardian("rigctl execute") as guardian:
+        return _execute_guarded(args, guardian)
+
+
+def _execute_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
     # here, not at the top: every other command (`estop` first) starts without these imports
     from rigctl.daemon.local import LocalControl
     from rigctl.emulators.process import rig_for_run
@@ -114,8 +127,11 @@ def cmd_execute(args: argparse.Namespace) -> int:
     abort_on_sigterm()  # SIGTERM ends a run as Ctrl-C does: an abort, recorded and summarised
     with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig, \
             RigLock(rig, "rigctl execute") as lock:  # one owner per rig: a second is refused
+        # a bench started here is this process's to stop: its rig file names its pid
+        guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
         preflight(rig)  # every device answers and is made safe, or exit 2 naming it
         run = build(plan, rig, runs_dir=args.runs, progress_out=out, **options)
+        guardian.wait_armed()  # nothing is energised unguarded
         with LocalControl(run) as control:
             lock.name_control(control.endpoint)  # where `rigctl estop --rig` and the rest find it
             summary = run.execute()
