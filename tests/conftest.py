@@ -89,3 +89,53 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
             write(f"{tier:<12} {tests:>6} {seconds:>9.1f}s {last - first:>9.1f}s")
     write("test time: setup + call + teardown summed over the tier's tests (over every worker); "
           "wall span: first start to last end of the tier's tests")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """With RIGCTL_TEST_CPU=FILE, each test's CPU time (this process's and its reaped children's,
+    user + system, seconds) and wall time appended to FILE as tab-separated lines: where the suite
+    spends the two cores, which wall time alone does not tell (a real-time run mostly waits)."""
+    import os
+
+    out = os.environ.get("RIGCTL_TEST_CPU")
+    if not out:
+        yield
+        return
+    import resource
+    import time
+
+    def cpu(who: int) -> float:
+        usage = resource.getrusage(who)
+        return usage.ru_utime + usage.ru_stime
+
+    before = (cpu(resource.RUSAGE_SELF), cpu(resource.RUSAGE_CHILDREN), time.monotonic())
+    yield
+    own, children = cpu(resource.RUSAGE_SELF) - before[0], cpu(resource.RUSAGE_CHILDREN) - before[1]
+    with open(out, "a") as f:
+        f.write(f"{item.nodeid}\t{own:.2f}\t{children:.2f}\t{time.monotonic() - before[2]:.2f}\n")
+
+
+# what a quick test may not start: an emulated bench, the firmware under simavr, a browser
+_NOT_QUICK = ("emulate", "simavr", "chromium", "chromedriver")
+
+
+@pytest.fixture(autouse=True)
+def _quick_starts_no_emulator(request, monkeypatch):
+    """A quick test that starts an emulator process, simavr or a browser fails, naming it: the
+    quick tier stays quick, and the marker tells the truth."""
+    if request.node.get_closest_marker("quick") is None:
+        return
+    import subprocess
+
+    popen_init = subprocess.Popen.__init__
+
+    def guarded(self, args, *rest, **kwargs):
+        words = [str(a) for a in ([args] if isinstance(args, (str, bytes)) else args)]
+        hit = next((w for w in words for bad in _NOT_QUICK if bad in Path(w).name), None)
+        if hit is not None:
+            raise AssertionError(f"a quick test started {' '.join(words)[:200]}: mark its module "
+                                 "integration or e2e (tests/conftest.py)")
+        popen_init(self, args, *rest, **kwargs)
+
+    monkeypatch.setattr(subprocess.Popen, "__init__", guarded)

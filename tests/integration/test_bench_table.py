@@ -17,6 +17,10 @@ from rigctl.emulators.depm import DepmBench
 from rigctl.errors import DeviceError
 from rigctl.transport import open_transport
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 BASE = {"ping", "help", "speed", "fault"}
 # bench -> (the commands it adds, its fault devices, one device with a link and its own kinds)
 KINDS = {

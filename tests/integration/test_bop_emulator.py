@@ -19,6 +19,10 @@ from rigctl.emulators.server import EmulatorServer
 from rigctl.errors import DeviceError, DeviceTimeout, Disconnected, ProtocolError
 from rigctl.transport import open_transport
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 R, L = 1.5, 0.075  # tau = L/R = 50 ms
 TAU = L / R
 

@@ -7,9 +7,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from rigctl.cli.main import main
 from rigctl.config import dump_rig, load_rig
+
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
 
 PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "fig4-quick.json"
 TOLERANCE_MM = 0.25  # a quarter of the camera's ~0.65 mm pixel on that floor

@@ -19,6 +19,10 @@ from rigctl.plans.workspace import ShapeWorkspace
 from rigctl.vision.calibration import boundary_corners_mm, calibrate_camera
 from rigctl.vision.tracker import Tracker
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 RADIUS = 5.0
 WORKSPACE = ShapeWorkspace(("rect", (0, 0, 400, 400)), [("rect", (150, 150, 60, 60))])
 STARTS = np.array([[40.0, 50.0], [300.0, 60.0], [80.0, 300.0]])

@@ -8,10 +8,15 @@ import json
 import threading
 import time
 
+import pytest
 import zmq
 
 from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
 from rigctl.daemon.server import Daemon
+
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
 
 RATE_HZ = 200.0
 CLIENTS = 20

@@ -20,6 +20,10 @@ from rigctl.errors import PlanError
 from rigctl.run.control import RunState
 from rigctl.stream import StreamLoop
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 RATE_HZ = 500.0
 
 

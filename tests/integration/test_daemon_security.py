@@ -14,6 +14,10 @@ from rigctl.daemon.sdnotify import SystemdNotifier
 from rigctl.daemon.server import Daemon
 from rigctl.errors import ConfigError
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 RIG = RigConfig(rig=RigInfo(kind="six-coil", name="secure rig"), coils=default_six_coil_coils())
 LOOPBACK = dict(command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0", events="tcp://127.0.0.1:0")
 

@@ -5,12 +5,17 @@ one included, while its currents are dropped."""
 import time
 
 import numpy as np
+import pytest
 import zmq
 
 from rigctl.channels import Channel
 from rigctl.client import Telemetry
 from rigctl.daemon.messages import DaemonState, Topic
 from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
+
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
 
 
 def test_a_stalled_subscriber_loses_currents_but_no_state_and_never_slows_the_stream():

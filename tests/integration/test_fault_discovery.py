@@ -12,6 +12,10 @@ from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
 from rigctl.faults import bench_faults
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 LINK = {"drop_link", "stall", "corrupt"}  # emulators/base.py: a device with a link
 CAMERA = {"drop_frames", "freeze", "black_out", "occlude", "drop_link"}
 

@@ -14,6 +14,10 @@ from rigctl.magnetics import dipole_field, dipole_gradient, field_vector_from_se
 from rigctl.rigs.depm.sensors import HallWatch
 from rigctl.testing import wait_for
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 CENTRE = np.array([0.25, 0.05, -0.1])
 MOMENT = np.array([0.0, 970.0, 0.0])
 OFFSETS_MM = [[0, 0, 0], [2, 0, 0], [0, 2, 0]]

@@ -18,6 +18,10 @@ from rigctl.kinematics import LBR_IIWA_14_R820
 from rigctl.rigs.depm.actuators import ArmPair
 from rigctl.testing import wait_for
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 SPEED = 4.0  # simulated seconds per real second: moves finish quickly, nothing else changes
 
 

@@ -7,12 +7,18 @@ from the emulator's truth."""
 
 from __future__ import annotations
 
+import pytest
+
 from rigctl.drivers.kepco_bop import KepcoBop
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.rigs.six_coil.supplies import zero_supplies_directly
 from rigctl.testing import wait_for
 from rigctl.transport import open_transport
+
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
 
 
 def test_a_stalled_supply_is_reported_not_confirmed_and_zeroed_once_it_answers():

@@ -16,6 +16,10 @@ from rigctl.channels import Channel
 from rigctl.record import RunRecord, read_events
 from rigctl.report import build_figure, render_report
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 GLOBAL_PLAN = {
     "schema": "rigctl.plan/1", "name": "synthetic two magnets", "kind": "global-moves",
     "rig": "six-coil",

@@ -16,6 +16,10 @@ from rigctl.record import RunRecord, read_events
 from rigctl.testing import wait_for
 from rigctl.vision.tracking import TrackingLoop
 
+# no process started (emulators, where there are any, serve real sockets from this process): the
+# quick tier
+pytestmark = pytest.mark.quick
+
 RADIUS = 5.0
 WORKSPACE = ShapeWorkspace(("rect", (0, 0, 400, 400)), [("rect", (150, 150, 60, 60))])
 STARTS = np.array([[40.0, 50.0], [300.0, 60.0]])
