@@ -178,6 +178,11 @@ def load(probe, plan: dict) -> dict:
     ({"moves": []}, "moves: empty"),  # passed validate; execute printed a traceback
     ({"moves": [[31.4159, 0.0]] * 6000}, "moves: List should have at most"),
     ({"agents": [{"start": [100, 100], "goal": [100, 100], "radius": 1e300}]}, "agents.0.radius"),
+    # a subnormal radius was answered `internal` (an OverflowError in the model's wall step)
+    ({"agents": [{"start": [100, 100], "goal": [100, 100], "radius": 1e-320}]},
+     "plan: agents.0.radius: Input should be greater than or equal to 0.001"),
+    ({"moves": [[1e-320, 0.0]]}, "plan: moves.0.0: 1e-320 is subnormal"),
+    ({"tolerance_mm": float("nan")}, "plan: tolerance_mm: Input should be a finite number"),
 ])
 def test_the_plans_that_hurt_the_daemon_are_refused_naming_the_field(daemon, probe, change, field):
     plan = {**json.loads((fuzz.EXAMPLES / "fig4-quick.json").read_text()), **change}
