@@ -192,6 +192,21 @@ def test_the_plans_that_hurt_the_daemon_are_refused_naming_the_field(daemon, pro
     still_serving(probe, daemon)
 
 
+def test_a_move_that_is_not_whole_turns_is_refused_by_load_and_by_validate_alike(daemon, probe,
+                                                                                 tmp_path):
+    # validate passed it (it checked the plan alone); load refused it for the rig
+    plan = {**json.loads((fuzz.EXAMPLES / "fig4-quick.json").read_text()),
+            "moves": [[0.0, -80.0], [31.0, 0.0]]}
+    plan.pop("expected")
+    reply = load(probe, plan)
+    assert reply["error"]["code"] == "plan_invalid", reply
+    message = reply["error"]["message"]
+    assert "move 1: 31.00 mm is 3.10 turns" in message
+    status, err = fuzz.validate_in_process(json.dumps(plan).encode(), tmp_path)
+    assert status == 2 and err == f"error: {message}\n"
+    still_serving(probe, daemon)
+
+
 def test_a_huge_workspace_image_is_refused_and_an_ordinary_plan_still_loads(daemon, probe, huge_image):
     plan = json.loads((fuzz.EXAMPLES / "fig4-quick.json").read_text())
     reply = load(probe, {**plan, "workspace": {"image": str(huge_image), "mm_per_px": 0.1}})

@@ -240,5 +240,6 @@ def test_example_plans_check_and_break_the_symmetry(name):
 
 
 def test_broken_example_names_its_mistake():
-    with pytest.raises(PlanError, match=r"broken-plan.json: agents.1.radius: Input should be greater than or equal to 0.001"):
+    with pytest.raises(PlanError, match=r"broken-plan.json: agents.1.radius: Input should be "
+                                        r"greater than or equal to 0.001"):
         load_plan(EXAMPLES / "broken-plan.json")
