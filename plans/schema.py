@@ -626,6 +626,9 @@ def plan_json_schema() -> dict:
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["$id"] = SCHEMA_ID
     schema["title"] = "rigctl plan"
+    schema["description"] = (  # what JSON Schema cannot say of the numbers (docs/plans.md)
+        f"Every number is finite and normal: 0, or at least {MIN_NORMAL:.4g} in size (a "
+        "subnormal is refused), and within its field's minimum and maximum.")
     return schema
 
 
