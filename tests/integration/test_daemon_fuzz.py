@@ -249,5 +249,14 @@ def test_generated_plans_are_loaded_or_refused_naming_the_field_and_validate_agr
     assert status in (0, 2), err
     if status == 2:
         assert err.startswith("error: ") and "Traceback" not in err
+    # validate runs what load runs: on a six-coil plan, on the rig of the daemon's bench
+    try:
+        six_coil = json.loads(text).get("rig") == "six-coil"
+    except (ValueError, AttributeError):
+        six_coil = False
+    if six_coil and code in ("plan_invalid", "limit"):
+        assert status == 2, (reply, err)
+    if code == "ok":
+        assert status == 0, (reply, err)
     still_serving(probe, daemon)
 
