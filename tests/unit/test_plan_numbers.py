@@ -49,7 +49,7 @@ def _members(annotation) -> list:
     return [] if annotation is type(None) else [annotation]
 
 
-def numeric_fields(model: type[BaseModel], owner: str = "") -> set[str]:
+def numeric_fields(model: type[BaseModel]) -> set[str]:
     """Every numeric leaf of a model: `Model.field` and, inside the field, `*` for a list's items
     and the position in a tuple (`RectShape.rect.2`, `GlobalMovesPlan.moves.*.0`)."""
     found: set[str] = set()
