@@ -13,18 +13,22 @@ pixels are obstacles, origin = workspace position of the image's lower-left corn
 Two levels of checking: `parse_plan` / `load_plan` validate the document (types, ranges, shapes)
 and `check_plan` checks what only geometry can tell (agents in free space, apart, and `expected`
 reproduced by the global-input model). Every error is a `PlanError` naming the file and the field
-by its JSON path, e.g. ``plan.json: agents.1.radius: Input should be greater than 0``.
+by its JSON path, e.g. ``plan.json: agents.1.radius: Input should be greater than or equal to
+0.001``.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
+import sys
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Discriminator,
@@ -36,6 +40,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic_core import PydanticCustomError
 
 from rigctl.errors import PlanError
 
@@ -76,10 +81,71 @@ MAX_PROGRAM_SAMPLES = 1_000_000
 """Samples of the program a plan is realized into (17 min at 1 kHz, 2.8 h at 100 Hz; about 100 MB),
 checked before the program is allocated; the program itself lasts at most MAX_DURATION_S."""
 
-Coordinate = Annotated[float, Field(ge=-MAX_EXTENT_MM, le=MAX_EXTENT_MM)]
+
+# Numbers: what every number in a plan may be, here and nowhere else (docs/plans.md lists them).
+# Every number is finite (no NaN, no infinity: `allow_inf_nan=False`), normal (0, or at least
+# MIN_NORMAL in size) and at most MAX_MAGNITUDE in size, and each field is held to the physical
+# range of what it is: a length to a micrometre and ten metres, an angle to a hundred turns. A
+# subnormal such as 1e-320 is no quantity anyone measures, and dividing by one overflows: an
+# agent radius of 1e-320 passed `validate` and overflowed the model's wall step at the daemon's
+# `load` (`internal`). Each range is stated in the published schema (`rigctl schema plan`); that
+# a number is normal is checked here (`_normal`). The rig's own limits (currents, joints, field)
+# are the pre-flight certificate's, narrower still.
+MIN_NORMAL = sys.float_info.min
+"""The smallest normal double, 2.2e-308: a non-zero number smaller than this is refused."""
+MAX_MAGNITUDE = 1e9
+"""No number in a plan is larger than this in size, whatever its field."""
+MIN_LENGTH_MM = 1e-3
+"""A length that must be positive (a radius, a size, a tolerance, a body's diameter) is at least
+1 um: the pixel of the finest workspace image (`mm_per_px`)."""
+MAX_ANGLE_DEG = 36_000.0
+"""An angle in degrees (a heading, a field angle, a base's roll-pitch-yaw): a hundred turns
+either way, for a heading unwrapped along a plan."""
+MAX_JOINT_RAD = 2 * math.pi
+"""A joint angle: a turn either way (an LBR iiwa's joints turn at most 175 deg; the safety check
+holds each joint to its own range)."""
+MAX_U = 1e6
+"""Each component of a field/gradient 8-vector U: 1e6 mT (1 kT) or mT/m, far beyond any magnet; the
+certificate holds it to the rig's."""
+MIN_STEP_S = 1e-6
+"""A time that must be positive (a segment's dt_s): 1 us, a thousandth of a 1 kHz stream period."""
+
+
+def _normal(value: float) -> float:
+    if value != 0.0 and abs(value) < MIN_NORMAL:
+        raise PydanticCustomError(
+            "subnormal", "{value} is subnormal: a number here is 0 or at least {least} in size",
+            {"value": repr(value), "least": f"{MIN_NORMAL:.3g}"})
+    return value
+
+
+def _number(low: float, high: float, description: str | None = None) -> Any:
+    """The type of a number field in [low, high], finite and normal."""
+    assert -MAX_MAGNITUDE <= low < high <= MAX_MAGNITUDE
+    return Annotated[float, Field(ge=low, le=high, description=description),
+                     AfterValidator(_normal)]
+
+
+Coordinate = _number(-MAX_EXTENT_MM, MAX_EXTENT_MM)
+"""A position or a displacement (mm)."""
 Point = tuple[Coordinate, Coordinate]
-PositiveLength = Annotated[float, Field(gt=0, le=MAX_EXTENT_MM)]
-Duration = Annotated[float, Field(ge=0, le=MAX_DURATION_S)]
+Length = _number(MIN_LENGTH_MM, MAX_EXTENT_MM)
+"""A length that must be positive (mm): 1 um to 10 m."""
+Gap = _number(0.0, MAX_EXTENT_MM)
+"""A length that may be zero (mm)."""
+Duration = _number(0.0, MAX_DURATION_S)
+"""A time on a plan's clock or a hold (s): 0 to one hour."""
+Step = _number(MIN_STEP_S, MAX_DURATION_S)
+"""A time that must be positive (s): 1 us to one hour."""
+AngleDeg = _number(-MAX_ANGLE_DEG, MAX_ANGLE_DEG)
+JointRad = _number(-MAX_JOINT_RAD, MAX_JOINT_RAD)
+UComponent = _number(-MAX_U, MAX_U)
+BodyLengths = _number(1e-3, MAX_EXTENT_MM)
+"""A distance in body lengths (pair formation): a thousandth of a body to 10,000 bodies."""
+Fraction = _number(1e-3, 1.0)
+"""A share of a maximum: 0.1 % to all of it."""
+Pull = _number(-1e4, 1e4)
+"""A pull as the centroid speed it gives (BL/s): ten thousand body lengths a second either way."""
 
 # `replay` agreement demanded by check_plan (mm).
 REPLAY_TOLERANCE_MM = 1e-6
@@ -93,7 +159,7 @@ class _Document(BaseModel):
 
 
 class RectShape(_Document):
-    rect: tuple[Coordinate, Coordinate, PositiveLength, PositiveLength] = Field(
+    rect: tuple[Coordinate, Coordinate, Length, Length] = Field(
         description="[x, y, w, h]: lower-left corner, width and height (mm)"
     )
 
@@ -114,7 +180,7 @@ class PolygonShape(_Document):
 
 
 class DiskShape(_Document):
-    disk: tuple[Coordinate, Coordinate, PositiveLength] = Field(description="[cx, cy, r] (mm)")
+    disk: tuple[Coordinate, Coordinate, Length] = Field(description="[cx, cy, r] (mm)")
 
 
 _SHAPE_KEYS = ("rect", "polygon", "disk")
@@ -154,7 +220,7 @@ class ShapeWorkspaceSpec(_Document):
 class ImageWorkspaceSpec(_Document):
     image: str = Field(max_length=4096, description="PNG path, relative to the plan file; dark "
                        f"(< 128) = obstacle; at most {MAX_IMAGE_PIXELS} pixels")
-    mm_per_px: Annotated[float, Field(ge=1e-3, le=100.0, description="1 um to 100 mm")]
+    mm_per_px: _number(MIN_LENGTH_MM, 100.0, "1 um to 100 mm")
     origin: Point = Field(
         default=(0.0, 0.0), description="workspace position (mm) of the image's lower-left corner"
     )
@@ -189,7 +255,7 @@ WorkspaceSpec = Annotated[
 class Agent(_Document):
     start: Point
     goal: Point
-    radius: PositiveLength
+    radius: Length
 
 
 class _PlanDocument(_Document):
@@ -235,10 +301,10 @@ class GlobalMovesPlan(_PlanDocument):
         default=None, max_length=MAX_MOVES,
         description="expected[i][j]: agent j's position after move i (mm)"
     )
-    tolerance_mm: PositiveLength = Field(
+    tolerance_mm: Length = Field(
         default=1.0, description="how far a measured agent may be from expected before correcting"
     )
-    min_separation_mm: Annotated[float, Field(ge=0, le=MAX_EXTENT_MM)] = Field(
+    min_separation_mm: Gap = Field(
         default=0.0, description="agents keep centre distance >= r_i + r_j + this (planner option)"
     )
 
@@ -251,9 +317,9 @@ class GlobalMovesPlan(_PlanDocument):
 # (rigctl.plans.depm); `check_plan` calls that module's `check(plan)`.
 
 
-Vector8 = tuple[float, float, float, float, float, float, float, float]
-Joints7 = tuple[float, float, float, float, float, float, float]
-NonNegative = Annotated[float, Field(ge=0)]
+Vector8 = tuple[UComponent, UComponent, UComponent, UComponent, UComponent, UComponent, UComponent,
+                UComponent]
+Joints7 = tuple[JointRad, JointRad, JointRad, JointRad, JointRad, JointRad, JointRad]
 
 
 class SequenceComponent(_Document):
@@ -271,7 +337,7 @@ class ArmPlan(_Document):
     name: str
     position_mm: tuple[Coordinate, Coordinate, Coordinate] = Field(
         description="base position, world frame (mm)")
-    rpy_deg: tuple[float, float, float] = Field(
+    rpy_deg: tuple[AngleDeg, AngleDeg, AngleDeg] = Field(
         default=(0.0, 0.0, 0.0), description="base orientation, fixed-axis roll, pitch, yaw (deg)"
     )
     joints_rad: list[Joints7] = Field(fail_fast=True, max_length=MAX_SAMPLES,
@@ -294,7 +360,7 @@ class Segment(_Document):
 class ExpectedField(_Document):
     """U at the workspace centre the planned poses make (dipole model), sampled at `rate_hz`."""
 
-    rate_hz: Annotated[float, Field(gt=0, le=10_000)]
+    rate_hz: _number(1e-3, 10_000.0)
     t_s: list[Duration] = Field(fail_fast=True, max_length=MAX_SAMPLES)
     U: list[Vector8] = Field(fail_fast=True, max_length=MAX_SAMPLES,
                              description="one row per t_s (mT, mT/m)")
@@ -303,14 +369,13 @@ class ExpectedField(_Document):
 class DepmLimits(_Document):
     """The safety constraints every trajectory is checked against (rigctl.plans.depm_safety)."""
 
-    keep_out_radius_mm: Annotated[float, Field(gt=0)] = 150.0
-    epm_radius_mm: Annotated[float, Field(gt=0)] = 72.0
-    epm_min_distance_mm: Annotated[float, Field(gt=0)] = 300.0
-    speed_fraction: Annotated[float, Field(gt=0, le=1)] = 0.3
-    accel_fraction: Annotated[float, Field(gt=0, le=1)] = 0.5
-    check_step_s: Annotated[float, Field(
-        ge=1e-4, le=1.0, description=f"the safety check's time step (s); at most {MAX_CHECK_SAMPLES} "
-        "steps over the plan")] = 0.01
+    keep_out_radius_mm: Length = 150.0
+    epm_radius_mm: Length = 72.0
+    epm_min_distance_mm: Length = 300.0
+    speed_fraction: Fraction = 0.3
+    accel_fraction: Fraction = 0.5
+    check_step_s: _number(1e-4, 1.0, f"the safety check's time step (s); at most "
+                          f"{MAX_CHECK_SAMPLES} steps over the plan") = 0.01
 
 
 class FieldSequencePlan(_PlanDocument):
@@ -322,10 +387,11 @@ class FieldSequencePlan(_PlanDocument):
     rig: Literal["depm"]
     planner: Literal["hybrid", "agnostic"] = "hybrid"
     arm_model: Literal["lbr-iiwa-14-r820"] = "lbr-iiwa-14-r820"
-    epm_moment_Am2: Annotated[float, Field(gt=0)] = Field(
-        description="|m| of each EPM (A m^2); the moment points along the flange x axis"
+    epm_moment_Am2: _number(1e-3, 1e5) = Field(
+        description="|m| of each EPM (A m^2), 1e-3 (a 1 mm NdFeB cube) to 1e5; the moment points "
+        "along the flange x axis"
     )
-    tool_offset_mm: Annotated[float, Field(gt=0)] = Field(
+    tool_offset_mm: Length = Field(
         default=85.0, description="EPM centre along the flange z axis (mm)"
     )
     waypoints: Annotated[int, Field(ge=2, le=1000)] = 20
@@ -378,9 +444,11 @@ class FieldSequencePlan(_PlanDocument):
 class PairAgents(_Document):
     """The two agents (spheres, moments along the field) and the liquid they move in."""
 
-    body_diameter_mm: PositiveLength = Field(default=1.0, description="D, the body length BL")
-    moment_Am2: Annotated[float, Field(gt=0)] = Field(default=5.6e-7, description="|m| of each agent")
-    viscosity_Pa_s: Annotated[float, Field(gt=0)] = Field(default=2.0e-3, description="liquid eta")
+    body_diameter_mm: Length = Field(default=1.0, description="D, the body length BL")
+    moment_Am2: _number(1e-15, 1.0) = Field(
+        default=5.6e-7, description="|m| of each agent, 1e-15 (a micrometre magnet) to 1 A m^2")
+    viscosity_Pa_s: _number(1e-6, MAX_MAGNITUDE) = Field(
+        default=2.0e-3, description="liquid eta, 1e-6 (below any liquid's) to 1e9 Pa s")
 
 
 class PairState(_Document):
@@ -388,18 +456,18 @@ class PairState(_Document):
 
     x_mm: Coordinate
     y_mm: Coordinate
-    r_bl: Annotated[float, Field(gt=0, le=MAX_EXTENT_MM)]
-    phi_deg: float
+    r_bl: BodyLengths
+    phi_deg: AngleDeg
 
 
 class PairSegment(_Document):
     """One control held for dt_s: global field angle psi (deg from +x) and the pull as the
     centroid speed it gives, f = F / (sigma D) in body lengths per second."""
 
-    psi_deg: float
-    f_x: float = Field(description="pull along x, BL/s")
-    f_y: float = Field(description="pull along y, BL/s")
-    dt_s: Annotated[float, Field(gt=0, le=MAX_DURATION_S)]
+    psi_deg: AngleDeg
+    f_x: Pull = Field(description="pull along x, BL/s")
+    f_y: Pull = Field(description="pull along y, BL/s")
+    dt_s: Step
 
 
 class PairFormationPlan(_PlanDocument):
@@ -409,18 +477,19 @@ class PairFormationPlan(_PlanDocument):
     rig: Literal["six-coil"]
     workspace: WorkspaceSpec
     agents: PairAgents = PairAgents()
-    field_mT: Annotated[float, Field(gt=0)] = Field(default=2.0, description="uniform field magnitude")
-    max_pull_bl_s: Annotated[float, Field(gt=0)] = Field(
+    field_mT: _number(1e-3, 1e4) = Field(
+        default=2.0, description="uniform field magnitude, 1 uT to 10 T")
+    max_pull_bl_s: _number(1e-6, 1e4) = Field(
         description="the planner's pull bound p: |f_x| <= p |cos psi|, |f_y| <= p |sin psi|")
-    r_min_bl: Annotated[float, Field(gt=0)] = 1.5
-    r_max_bl: Annotated[float, Field(gt=0)] = 3.5
+    r_min_bl: BodyLengths = 1.5
+    r_max_bl: BodyLengths = 3.5
     start: PairState
     goal: PairState
     segments: list[PairSegment] = Field(fail_fast=True, max_length=MAX_MOVES,
                                         description=f"at most {MAX_MOVES}")
     expected: Annotated[list[PairState], Field(fail_fast=True)] | None = Field(
         default=None, max_length=MAX_MOVES, description="expected[k]: the formation after segment k")
-    tolerance_bl: PositiveLength = Field(
+    tolerance_bl: BodyLengths = Field(
         default=0.2, description="each agent within this of its goal position counts as reached")
     hold_s: Duration = Field(
         default=3.0, description="how long execution holds the goal formation (at most 1 h)")
@@ -557,6 +626,9 @@ def plan_json_schema() -> dict:
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["$id"] = SCHEMA_ID
     schema["title"] = "rigctl plan"
+    schema["description"] = (  # what JSON Schema cannot say of the numbers (docs/plans.md)
+        f"Every number is finite and normal: 0, or at least {MIN_NORMAL:.4g} in size (a "
+        "subnormal is refused), and within its field's minimum and maximum.")
     return schema
 
 

@@ -183,22 +183,35 @@ def _cmd_status(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(status))
         return EXIT_OK
-    print(f"state: {status['state']}" + (f" ({status['device']}: {status['reason']})"
-                                          if status.get("reason") else ""))
-    print(f"rig: {status['rig']['name']} ({status['rig']['kind']}"
-          f"{', emulated' if status['rig']['emulated'] else ''})")
+    print(_status_text(status))
+    return EXIT_OK
+
+
+def _status_text(status: dict) -> str:
+    """`rigctl status` for a terminal, from the daemon's `status` or a local run's (the same
+    shape, docs/daemon-protocol.md); a key an owner left out is shown as "?" rather than
+    failing: an older rigctl may be the one answering."""
+    device = status.get("device")
+    lines = [f"state: {status.get('state', '?')}" + (
+        f" ({device + ': ' if device else ''}{status['reason']})" if status.get("reason") else "")
+        + (f"; owner: {status['owner']}" if status.get("owner") else "")]
+    rig = status.get("rig") or {}
+    lines.append(f"rig: {rig.get('name', '?')} ({rig.get('kind', '?')}"
+                 f"{', emulated' if rig.get('emulated') else ''})")
     run = status.get("run")
     if run:
-        print(f"run: {run.get('id')} plan {run.get('plan_id')} sample {run['sample']}"
-              f"/{run.get('samples', '?')} {_step(run)}")
+        plan = f" plan {run['plan_id']}" if run.get("plan_id") else ""
+        lines.append(f"run: {run.get('id') or run.get('name') or '(starting)'}{plan} sample "
+                     f"{run.get('sample', '?')}/{run.get('samples') or '?'} {_step(run)}")
     if status.get("hold"):
-        print(f"manual hold: {status['hold']}")
-    for device in status["devices"]:
-        print(f"  {device['name']:<4} {device['health']:<8} {device['url']}  {device['detail']}")
-    if status.get("last_fault"):
-        fault = status["last_fault"]
-        print(f"last fault: {fault['device']}: {fault['reason']}")
-    return EXIT_OK
+        lines.append(f"manual hold: {status['hold']}")
+    for item in status.get("devices") or []:
+        lines.append(f"  {item.get('name', '?'):<4} {item.get('health', '?'):<8} "
+                     f"{item.get('url', '')}  {item.get('detail') or ''}")
+    fault = status.get("last_fault")
+    if fault:
+        lines.append(f"last fault: {fault.get('device') or '-'}: {fault.get('reason')}")
+    return "\n".join(lines)
 
 
 def _cmd_hold(args: argparse.Namespace) -> int:
@@ -245,7 +258,8 @@ def _cmd_estop(args: argparse.Namespace) -> int:
         return _estop_rig(args)
     with _client(args.connect, args.server_key, args.client_key, timeout_s=1.0) as rig:
         reply = rig.estop()
-    print(f"EMERGENCY STOP: state {reply['state']}; {reply['zeroing']}")
+    print(f"EMERGENCY STOP: state {reply.get('state')}; "
+          f"{reply.get('zeroing') or 'every device told to stop'}")
     return EXIT_OK
 
 
@@ -466,7 +480,8 @@ def _print_summary(summary: dict, json_out: bool):
 def _step(run: dict) -> str:
     """Where a run is: "move 3/8" for global moves, "segment 2/6" for a pair formation change."""
     unit = "move" if "moves" in run else "segment"
-    return f"{unit} {run['move'] + 1}/{run.get(unit + 's', '?')}"
+    move = run.get("move")
+    return f"{unit} {move + 1 if isinstance(move, int) else '?'}/{run.get(unit + 's', '?')}"
 
 
 def _follow(rig, out, started: dict) -> dict:

@@ -5,6 +5,12 @@ a local run exactly as they reach a daemon; and the daemon's telemetry (`state`,
 `actuators`, `stream`) on two PUB sockets that `ping` names, so `rigctl watch` and an operator's
 subscriber see a local run as they see the daemon's.
 
+Its replies have the daemon's shapes (docs/daemon-protocol.md): `status` answers with the daemon's
+keys and states (a run starting is `running`, one that ended `idle`), `ping` with the protocol,
+the pid and the telemetry endpoints, `pause`, `resume` and `abort` with `{"state", "pending"}`,
+`estop` with `{"state", "zeroing", "unreached"}`; `owner` says who answers. A client, `rigctl
+status` first, reads a local run as it reads the daemon.
+
 A REP socket on its own thread: a request is answered at once (an e-stop is taken on this thread,
 as the daemon takes it, and the stream thread finishes it); anything malformed gets an error
 reply and the run goes on. The stream thread only appends each cycle to a deque; this thread hands
@@ -13,10 +19,13 @@ them to the publisher in batches, as the daemon's reader of its stream process d
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import threading
 import time
 from collections import deque
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,6 +34,7 @@ from pydantic import ValidationError
 
 from rigctl.daemon.messages import (
     COMMAND_ARGS,
+    PROTOCOL,
     Command,
     ErrorCode,
     Request,
@@ -41,8 +51,12 @@ log = logging.getLogger(__name__)
 RUN_COMMANDS = (Command.PING, Command.STATUS, Command.PAUSE, Command.RESUME, Command.ABORT,
                 Command.ESTOP)
 POLL_MS = 10  # also how often the stream's cycles go to the publisher
-# a run's states as the daemon reports them (a run that has not started or has ended: idle)
-DAEMON_STATE = {"prepared": "idle", "done": "idle", "aborted": "idle"}
+# a run's states as the daemon reports them: one being started (agents placed, devices
+# connected) is running, as the daemon's is from `execute` on; one that ended is idle
+DAEMON_STATE = {"prepared": "running", "done": "idle", "aborted": "idle"}
+ENDED = ("faulted", "estopped", "aborted", "done")  # the run's own states that end it
+PENDING = {Command.PAUSE: "pause at the end of the current move", Command.RESUME: "resume",
+           Command.ABORT: "ramp down and stop"}
 
 
 class LocalControl:
@@ -62,6 +76,7 @@ class LocalControl:
             channels=rig_kind(run.rig.rig.kind).channels(run.rig), clock_origin=self.started)
         self._cycles: deque[list] = deque()  # appended by the stream thread, drained by this one
         self._streaming = False
+        self._at = (-1, -1)  # the last cycle's (sample, move), set by the stream thread
         self._hook(run)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name="run-control", daemon=True)
@@ -73,6 +88,7 @@ class LocalControl:
         def cycle(sample: int, move: int, commanded: np.ndarray, measured: np.ndarray) -> None:
             if on_cycle is not None:
                 on_cycle(sample, move, commanded, measured)
+            self._at = (sample, move)  # one tuple: `status` reads both from the same cycle
             self._cycles.append(CycleBatch.row(time.monotonic() - self.started, sample, move,
                                                commanded, measured, run.stream_loop.last_error_s))
 
@@ -162,15 +178,42 @@ class LocalControl:
                 run.abort()
             elif cmd == Command.ESTOP:
                 unreached = run.estop()
-                return ok_reply(request.id, {"state": "estopped", "unreached": unreached})
+                zeroing = (f"sent to every device but {', '.join(unreached)} (link down: check "
+                           "it by hand)" if unreached else "done: every device told to stop")
+                return ok_reply(request.id, {"state": "estopped", "zeroing": zeroing,
+                                             "unreached": unreached})
         except RigError as err:
             return error_reply(request.id, ErrorCode.WRONG_STATE, str(err))
-        return ok_reply(request.id, self.status())
+        if cmd == Command.PING:
+            return ok_reply(request.id, self.ping())
+        if cmd == Command.STATUS:
+            return ok_reply(request.id, self.status())
+        pending = "pause now" if cmd == Command.PAUSE and args.immediate else PENDING[cmd]
+        return ok_reply(request.id, {"state": self.status()["state"], "pending": pending})
+
+    def _endpoints(self) -> dict:
+        return {"command": self.endpoint, "data": self.publisher.data_endpoint,
+                "events": self.publisher.events_endpoint}
+
+    def ping(self) -> dict:
+        """The daemon's `ping`: the protocol, this process, where its telemetry is."""
+        return {"protocol": PROTOCOL, "pid": os.getpid(), "telemetry": self._endpoints(),
+                "owner": self.owner}
 
     def status(self) -> dict:
+        """The daemon's `status` (docs/daemon-protocol.md), of the one run this process makes:
+        `run` while it is on (`sample` and `move` of the last cycle streamed, -1 before the
+        first), `last_run` from its record's summary once it ended; no plans kept, no manual
+        hold. Also `owner` and `telemetry` (what `ping` says)."""
         run = self.run
         state, info = run.state.value, run.state_info
-        ended = state in ("faulted", "estopped", "aborted", "done")
+        record = getattr(run, "record", None)
+        last_run = _last_run(record) if state in ENDED else None
+        # done or aborted, its summary not written yet: still stopping, and as the daemon's run
+        # it is running until then (idle comes with `last_run`)
+        stopping = state in ("done", "aborted") and last_run is None
+        ended = state in ENDED and not stopping
+        shown = "running" if stopping else DAEMON_STATE.get(state, state)
         fault = {"device": info.get("device"), "reason": info.get("reason")} if state == "faulted" \
             else None
         faulty = info.get("device") if state == "faulted" else None
@@ -178,10 +221,27 @@ class LocalControl:
                     "health": "fault" if d.name == faulty else "ok",
                     "detail": info.get("reason") if d.name == faulty else f"in use by {self.owner}"}
                    for d in rig_kind(run.rig.rig.kind).devices(run.rig)]
-        return {"state": state, "reason": info.get("reason"), "device": info.get("device"),
-                "owner": self.owner, "rig": {"name": run.rig.rig.name, "kind": run.rig.rig.kind,
-                                             "emulated": run.rig.emulated},
-                "devices": devices, "run": None if ended else dict(run.info),
-                "last_fault": fault, "uptime_s": round(time.monotonic() - self.started, 3),
-                "telemetry": {"command": self.endpoint, "data": self.publisher.data_endpoint,
-                              "events": self.publisher.events_endpoint}}
+        run_id = Path(record.path).name if record is not None else None
+        sample, move = self._at
+        return {"state": shown, "device": info.get("device"),
+                "reason": info.get("reason"),
+                "rig": {"name": run.rig.rig.name, "kind": run.rig.rig.kind,
+                        "emulated": run.rig.emulated},
+                "run": None if ended else {"kind": "plan", "id": run_id, "plan_id": None,
+                                           "sample": sample, "move": move, **run.info},
+                "last_run": last_run,
+                "plans": [], "devices": devices, "last_fault": fault, "hold": None,
+                "manual_field_mT": None,
+                "uptime_s": round(time.monotonic() - self.started, 3),
+                "owner": self.owner, "telemetry": self._endpoints()}
+
+
+def _last_run(record: Any) -> dict | None:
+    """What the daemon's `last_run` says of a run, from its record's summary (None until the
+    run has written it: it is written last)."""
+    try:
+        summary = json.loads((Path(record.path) / "summary.json").read_text())
+    except (AttributeError, OSError, ValueError):
+        return None
+    return {"id": Path(record.path).name, "plan_id": None,
+            **{k: v for k, v in summary.items() if k in ("reached", "faults", "duration_s", "run")}}

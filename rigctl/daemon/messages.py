@@ -26,7 +26,8 @@ from urllib.parse import urlsplit
 
 import numpy as np
 import orjson
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, model_validator
+from pydantic_core import PydanticCustomError
 
 from rigctl.config import (  # noqa: F401  (the rig file's [daemon] table and its defaults)
     DEFAULT_COMMAND_ENDPOINT,
@@ -137,7 +138,21 @@ class _Args(_Message):
 
 # -- requests and replies ------------------------------------------------------------------------
 
-RequestId = str | int | None
+def _request_id(value: Any) -> str | int | None:
+    """A request's `id` as given, if it is a string, an integer or absent (null); anything else
+    is refused (`bad_request`) rather than converted: pydantic's lax union made `1.0` and `true`
+    the integer 1 and `false` 0, so a reply carried another id than the request's."""
+    if value is None or type(value) in (str, int):  # not bool, a subclass of int
+        return value
+    kind = {bool: "a boolean", float: "a number with a fraction or an exponent", list: "a list",
+            dict: "an object"}.get(type(value), type(value).__name__)
+    raise PydanticCustomError("request_id", "an id is a string or an integer, not {kind}",
+                              {"kind": kind})
+
+
+RequestId = Annotated[str | int | None,
+                      PlainValidator(_request_id, json_schema_input_type=str | int | None)]
+"""A request's id: a string, an integer, or null (left out). The reply echoes it as given."""
 
 
 class BadJson(ValueError):

@@ -72,14 +72,13 @@ from rigctl.daemon.messages import (
 from rigctl.daemon.runhost import (
     RemoteRun,
     RunHost,
-    build_run,
     make_realtime,
     realtime_permitted,
 )
 from rigctl.daemon.sdnotify import SystemdNotifier
 from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher, WindingEstimate
 from rigctl.errors import ConfigError, LimitError, PlanError, RigError
-from rigctl.rigs import rig_kind
+from rigctl.rigs import prepare_run, rig_kind
 from rigctl.run.hold import CANNOT_PAUSE, HoldPlan
 from rigctl.thermal import Windings
 
@@ -201,14 +200,12 @@ class PlanRuns:
         """The first time: the run built here refuses a bad plan before anything else happens and
         tells the plan's size. The stream process builds its own from the same prepared plan and
         rig (deterministic, so the same program) and streams that."""
-        if plan.rig != rig.rig.kind:
-            raise PlanError(f"plan: rig: the plan is for a {plan.rig} rig; this daemon drives a "
-                            f"{rig.rig.kind} rig")
-        rig_kind(rig.rig.kind).builder(plan.kind)  # refuses a plan kind this rig does not run
         with self._lock:
             known = self._checked.get(id(plan))
         if known is None or known[0] is not plan:
-            local = build_run(plan, rig, runs_dir=runs_dir)  # the pre-flight certificate refuses here
+            # what refuses a plan on a rig (another rig's, a kind it does not run, the rig kind's
+            # rules, the pre-flight certificate): the code `rigctl validate` runs
+            local = prepare_run(plan, rig, runs_dir=runs_dir)
             certificate = local.certificate
             known = (plan, local.plan, {**local.info, "certificate": {  # its name, size, duration
                 "passed": certificate.passed, "checks": len(certificate.checks),

@@ -158,8 +158,8 @@ class LocalRun:
         if self.proc.poll() is None:
             try:
                 return self.client.request("status")
-            except DaemonUnreachable:
-                if self.proc.poll() is None:
+            except DaemonUnreachable:  # its endpoint closes once the summary is written
+                if self.proc.poll() is None and not any(self.runs.glob("*/summary.json")):
                     raise
         summary = json.loads(next(self.runs.glob("*/summary.json")).read_text())
         faulted = summary["state"] in ("faulted", "estopped")

@@ -312,8 +312,8 @@ def test_a_plan_for_another_rig_is_refused_at_load_naming_both_rigs(rig):
         with pytest.raises(CommandRefused) as refused:
             rig.load(plan(name))
         assert refused.value.code == "plan_invalid"
-        assert f"the plan is for a {rig_kind} rig; this daemon drives a six-coil rig" \
-            in str(refused.value)
+        assert f"the plan is for a {rig_kind} rig; " in str(refused.value)
+        assert str(refused.value).endswith("is a six-coil rig")
     assert rig.status()["state"] == "idle"
 
 

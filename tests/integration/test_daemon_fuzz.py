@@ -178,12 +178,32 @@ def load(probe, plan: dict) -> dict:
     ({"moves": []}, "moves: empty"),  # passed validate; execute printed a traceback
     ({"moves": [[31.4159, 0.0]] * 6000}, "moves: List should have at most"),
     ({"agents": [{"start": [100, 100], "goal": [100, 100], "radius": 1e300}]}, "agents.0.radius"),
+    # a subnormal radius was answered `internal` (an OverflowError in the model's wall step)
+    ({"agents": [{"start": [100, 100], "goal": [100, 100], "radius": 1e-320}]},
+     "plan: agents.0.radius: Input should be greater than or equal to 0.001"),
+    ({"moves": [[1e-320, 0.0]]}, "plan: moves.0.0: 1e-320 is subnormal"),
+    ({"tolerance_mm": float("nan")}, "plan: tolerance_mm: Input should be a finite number"),
 ])
 def test_the_plans_that_hurt_the_daemon_are_refused_naming_the_field(daemon, probe, change, field):
     plan = {**json.loads((fuzz.EXAMPLES / "fig4-quick.json").read_text()), **change}
     plan.pop("expected")
     reply = load(probe, plan)
     assert reply["error"]["code"] == "plan_invalid" and field in reply["error"]["message"], reply
+    still_serving(probe, daemon)
+
+
+def test_a_move_that_is_not_whole_turns_is_refused_by_load_and_by_validate_alike(daemon, probe,
+                                                                                 tmp_path):
+    # validate passed it (it checked the plan alone); load refused it for the rig
+    plan = {**json.loads((fuzz.EXAMPLES / "fig4-quick.json").read_text()),
+            "moves": [[0.0, -80.0], [31.0, 0.0]]}
+    plan.pop("expected")
+    reply = load(probe, plan)
+    assert reply["error"]["code"] == "plan_invalid", reply
+    message = reply["error"]["message"]
+    assert "move 1: 31.00 mm is 3.10 turns" in message
+    status, err = fuzz.validate_in_process(json.dumps(plan).encode(), tmp_path)
+    assert status == 2 and err == f"error: {message}\n"
     still_serving(probe, daemon)
 
 
@@ -229,5 +249,14 @@ def test_generated_plans_are_loaded_or_refused_naming_the_field_and_validate_agr
     assert status in (0, 2), err
     if status == 2:
         assert err.startswith("error: ") and "Traceback" not in err
+    # validate runs what load runs: on a six-coil plan, on the rig of the daemon's bench
+    try:
+        six_coil = json.loads(text).get("rig") == "six-coil"
+    except (ValueError, AttributeError):
+        six_coil = False
+    if six_coil and code in ("plan_invalid", "limit"):
+        assert status == 2, (reply, err)
+    if code == "ok":
+        assert status == 0, (reply, err)
     still_serving(probe, daemon)
 

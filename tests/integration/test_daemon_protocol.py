@@ -256,6 +256,21 @@ def test_malformed_requests_get_an_error_reply_and_the_daemon_keeps_serving(daem
     assert raw_req(daemon.endpoints.command, b'{"cmd": "ping"}')["ok"] is True
 
 
+@pytest.mark.parametrize("request_id", [b"1.0", b"-0.0", b"2e3", b"true", b"false", b"[1]",
+                                        b'{"id": 1}'])
+def test_an_id_that_is_no_string_or_integer_is_refused_and_not_echoed_as_another(daemon,
+                                                                                 request_id):
+    # before: 1.0 and true were answered as id 1, false as 0 (another request's id)
+    for cmd in (b"status", b"ping", b"estop"):  # the quick path's commands and the general one
+        reply = raw_req(daemon.endpoints.command, b'{"id": ' + request_id + b', "cmd": "' + cmd
+                        + b'"}')
+        assert reply["ok"] is False and reply["id"] is None, reply
+        assert reply["error"]["code"] == "bad_request"
+        assert "id: an id is a string or an integer" in reply["error"]["message"]
+    assert daemon.state.value == "idle"  # the e-stops were refused, not carried out
+    assert raw_req(daemon.endpoints.command, b'{"id": 5, "cmd": "ping"}')["id"] == 5
+
+
 def test_a_10_MB_payload_is_refused_as_too_large(daemon):
     payload = b'{"id": 1, "cmd": "load", "args": {"plan": "' + b"x" * (10 * 1024 * 1024) + b'"}}'
     assert len(payload) > MAX_REQUEST_BYTES

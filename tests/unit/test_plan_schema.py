@@ -91,13 +91,13 @@ def test_kind_selects_the_document_type():
 def test_messages_name_the_field_by_its_json_path():
     data = plan_data()
     data["agents"][1]["radius"] = -2
-    assert problem(data) == "plan.json: agents.1.radius: Input should be greater than 0"
+    assert problem(data) == "plan.json: agents.1.radius: Input should be greater than or equal to 0.001"
     data = plan_data()
     data["workspace"]["boundary"] = {"circle": [0, 0, 10]}
     assert problem(data) == 'plan.json: workspace.boundary: expected one of rect, polygon, disk, got {"circle": ...}'
     data = plan_data()
     data["workspace"]["obstacles"][4] = {"rect": [175, 150, 0, 25]}
-    assert problem(data) == "plan.json: workspace.obstacles.4.rect.2: Input should be greater than 0"
+    assert problem(data) == "plan.json: workspace.obstacles.4.rect.2: Input should be greater than or equal to 0.001"
     data = plan_data()
     data["workspace"]["obstacles"].append({"polygon": [[0, 0], [10, 10], [10, 0], [0, 10]]})
     assert problem(data) == "plan.json: workspace.obstacles.6.polygon: polygon is not simple: edges 0 and 2 cross"
@@ -240,5 +240,6 @@ def test_example_plans_check_and_break_the_symmetry(name):
 
 
 def test_broken_example_names_its_mistake():
-    with pytest.raises(PlanError, match=r"broken-plan.json: agents.1.radius: Input should be greater than 0"):
+    with pytest.raises(PlanError, match=r"broken-plan.json: agents.1.radius: Input should be "
+                                        r"greater than or equal to 0.001"):
         load_plan(EXAMPLES / "broken-plan.json")

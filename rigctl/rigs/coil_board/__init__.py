@@ -14,6 +14,22 @@ def _global_moves(plan, rig: RigConfig, **run):
     return CoilBoardRun(plan, rig, **run)
 
 
+def _bench_rig() -> RigConfig:
+    """The rig `rigctl emulate coil-board` serves, as a plan's checks see it before the bench
+    starts (its links' addresses are the bench's to choose then): the board's settings and a
+    camera calibrated over the bench's field (`rigctl.emulators.coilboard.bench`)."""
+    from rigctl.config import CameraSettings, CoilBoardSettings, Emulation, RigInfo
+    from rigctl.emulators.camera import PAPER_RESOLUTION, CameraModel
+    from rigctl.emulators.coilboard.bench import BOARD_REPLY_TIMEOUT_S, CAMERA_FIELD_MM, CAMERA_FPS
+
+    camera = CameraSettings(url="http://127.0.0.1/stream.mjpg", stamped=True, fps=CAMERA_FPS,
+                            resolution=PAPER_RESOLUTION, calibration=CameraModel.overhead(
+                                CAMERA_FIELD_MM, tilt_deg=4.0).calibration())  # as it mounts it
+    return RigConfig(rig=RigInfo(kind="coil-board", name="emulated coil-board bench"),
+                     board=CoilBoardSettings(url="/dev/null", reply_timeout_s=BOARD_REPLY_TIMEOUT_S),
+                     camera=camera, emulation=Emulation(backdoor="tcp://127.0.0.1:1"))
+
+
 def _channels(rig: RigConfig) -> list[Channel]:
     from rigctl.rigs.coil_board.actuators import board_channels
 
@@ -75,4 +91,4 @@ KIND = RigKind(
     name="coil-board",
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",
     plans={"global-moves": _global_moves},
-    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold)
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig)

@@ -29,6 +29,18 @@ def _field_sequence(plan, rig: RigConfig, *, agnostic: bool = False, time_scale:
     return FieldSequenceRun(plan, rig, time_scale=time_scale, closed_loop=closed_loop, **run)
 
 
+def _bench_rig() -> RigConfig:
+    """The rig `rigctl emulate depm` serves, as a plan's checks see it before the bench starts
+    (its links' addresses are the bench's to choose then): the planner's default arms, magnets
+    and limits, and the loopback round trip its pre-flight counts (`rigctl.emulators.depm`)."""
+    from rigctl.config import Emulation, PreflightSettings, RigInfo
+    from rigctl.emulators.depm import LOOPBACK_ROUND_TRIP_MS, default_settings
+
+    return RigConfig(rig=RigInfo(kind="depm", name="emulated dEPM bench"), depm=default_settings(),
+                     emulation=Emulation(backdoor="tcp://127.0.0.1:1"),
+                     preflight=PreflightSettings(kst_round_trip_ms=LOOPBACK_ROUND_TRIP_MS))
+
+
 def _channels(rig: RigConfig) -> list[Channel]:
     from rigctl.rigs.depm.actuators import arm_channels
 
@@ -116,4 +128,4 @@ KIND = RigKind(
     name="depm",
     description="two KUKA LBR iiwa arms carrying permanent magnets, a three-sensor Hall board",
     plans={"field-sequence": _field_sequence},
-    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold)
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig)
