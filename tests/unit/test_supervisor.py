@@ -245,3 +245,23 @@ def test_the_end_of_program_and_the_whole_run_keep_their_own_caps():
     assert budget.charge(40.0, last=False) is None
     assert budget.charge(30.0, last=False) is None
     assert "5 re-plans are used up" in budget.charge(20.0, last=False)
+
+
+def test_a_replanner_whose_run_was_killed_exits_quietly():
+    """The run's process SIGKILLed (its guardian makes the rig safe and says so): the re-planning
+    child finds its stdout broken when it answers and exits 0 without a traceback on the
+    terminal they shared."""
+    import pickle
+    import subprocess
+    import sys
+
+    child = subprocess.Popen([sys.executable, "-m", "rigctl.rigs.six_coil.supervisor"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert pickle.load(child.stdout) == (True, "ready")
+    child.stdout.close()  # the parent's end of the answers is gone, as with a killed parent
+    pickle.dump((), child.stdin)  # a request whose answer (an error) meets the broken pipe
+    child.stdin.close()
+    assert child.wait(timeout=60) is not None
+    err = child.stderr.read()
+    child.stderr.close()
+    assert child.returncode == 0 and b"Traceback" not in err, err.decode(errors="replace")

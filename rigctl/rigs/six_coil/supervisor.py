@@ -53,6 +53,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import pickle
 import select
 import subprocess
@@ -846,8 +847,17 @@ class ReplanWorker:
 
 
 def _serve_replans() -> None:
-    """The child's loop: read a pickled argument tuple, answer (ok, Replanned or message)."""
-    stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
+    """The child's loop, until its parent is gone (its stdin ends, or its stdout breaks: the run's
+    process was killed, which its guardian reports; a traceback here would only add noise)."""
+    try:
+        _answer_replans(sys.stdin.buffer, sys.stdout.buffer)
+    except BrokenPipeError:
+        # Python flushes stdout again at exit: point it at nothing so that flush cannot fail too
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
+def _answer_replans(stdin, stdout) -> None:
+    """Read a pickled argument tuple, answer (ok, Replanned or message); return at end of input."""
     pickle.dump((True, "ready"), stdout)  # every import is done
     stdout.flush()
     while True:
