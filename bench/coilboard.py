@@ -29,7 +29,7 @@ run identifies beside the field's non-uniformity (`mobility_diff_error`: identif
 world's (m_1 - m_0) / mean(m)).
 
 Usage: python bench/coilboard.py [--pairs N] [--seed S] [--runs N] [--speed F] [--epsilon E]
-                                 [--mobility-spread F] [--no-link] [--no-delivery]
+                                 [--mobility-spread F] [--no-link] [--no-delivery] [--smoke]
 Figures taken on a busy machine are noisy; say so when quoting them.
 """
 
@@ -109,13 +109,18 @@ def bench_workspace(boundary: dict, pairs: int, rng: np.random.Generator) -> dic
     }
 
 
-def bench_link() -> dict | None:
-    """`bench/coilboard_link.py`'s JSON (None if that script is missing or fails)."""
+SMOKE_LINK = ("--round-trips", "10", "--seconds", "0.1", "--trials", "1")
+
+
+def bench_link(sizes: tuple[str, ...] = ("--round-trips", "500", "--seconds", "1", "--trials", "5")
+               ) -> dict | None:
+    """`bench/coilboard_link.py`'s JSON (None if that script is missing or fails), run with
+    `sizes`."""
     script = Path(__file__).with_name("coilboard_link.py")
     if not script.exists():
         return None
-    done = subprocess.run([sys.executable, str(script), "--round-trips", "500", "--seconds", "1",
-                           "--trials", "5"], capture_output=True, text=True, timeout=150, check=False)
+    done = subprocess.run([sys.executable, str(script), *sizes], capture_output=True, text=True,
+                          timeout=150, check=False)
     if done.returncode != 0:
         return {"failed": done.stderr.strip()[-500:]}
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -237,7 +242,12 @@ def main() -> None:
                         "seeded per run; default 0): the identified difference is reported")
     parser.add_argument("--no-link", action="store_true", help="skip bench/coilboard_link.py")
     parser.add_argument("--no-delivery", action="store_true", help="skip the emulated-rig runs")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the smallest run of every stage, for the test suite: its figures "
+                             "mean nothing")
     args = parser.parse_args()
+    if args.smoke:  # one pair per workspace, one delivery run, a few round trips on the link
+        args.pairs, args.runs = 1, 1
     rng = np.random.default_rng(args.seed)
     planner = {name: bench_workspace(b, args.pairs, rng) for name, b in WORKSPACES.items()}
     print(json.dumps({
@@ -246,7 +256,7 @@ def main() -> None:
         "radius_mm": RADIUS_MM,
         "epsilon_mm": EPSILON_MM,
         "planner": planner,
-        "link": None if args.no_link else bench_link(),
+        "link": None if args.no_link else bench_link(SMOKE_LINK) if args.smoke else bench_link(),
         "delivery": None if args.no_delivery else bench_delivery(
             args.runs, args.speed, args.epsilon, np.random.default_rng(args.seed + 1),
             args.pole_distance, args.workers, args.mobility_spread),

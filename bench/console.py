@@ -25,7 +25,8 @@ emulator and the pages at normal priority (`--emulator-realtime PRIO` puts the e
 daemon, as supplies with their own processors are, but its one thread renders the camera too).
 
     python bench/console.py                 # about 3 minutes
-    python bench/console.py --quick         # one short run of each (the smoke test)
+    python bench/console.py --quick         # one short run of each
+    python bench/console.py --smoke         # the smallest run of each (the test suite's)
 """
 
 from __future__ import annotations
@@ -293,6 +294,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2, help="runs with 0 and with 10 pages each")
     parser.add_argument("--pages", type=int, default=10)
     parser.add_argument("--quick", action="store_true", help="one short run of each")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the smallest run of every stage, for the test suite: its figures "
+                             "mean nothing (half-second runs, one watching page)")
     parser.add_argument("--realtime", type=int, default=40, metavar="PRIO",
                         help="the daemon's --realtime, as systemd/rigctl.service gives it "
                              "(default 40; 0: normal scheduling)")
@@ -311,6 +315,8 @@ def main() -> None:
         return
     if args.quick:
         args.seconds, args.repeats, args.pages = 2.0, 1, 2
+    if args.smoke:
+        args.seconds, args.repeats, args.pages = 0.5, 1, 1
     plan = json.loads((EXAMPLES / "fig4-two-magnets.json").read_text())
     out: dict = {"bench": "console", "rig": "six-coil", "seconds": args.seconds,
                  "pages_at": args.pages_at,

@@ -15,7 +15,7 @@
   <= 0.2 gradients; the paper's hardware: 2.8 / 10.1 and 74 / 382): model / model, measured /
   measured, and, when the rig refuses the baseline, measured planned / model baseline.
 
-Usage: .venv/bin/python bench/depm.py [--time-scale 6] [--hold 3] [--no-run]
+Usage: .venv/bin/python bench/depm.py [--time-scale 6] [--hold 3] [--no-run] [--smoke]
 Figures taken on a loaded machine are noisy; the run uses a time scale, so its wall time is short.
 """
 
@@ -62,10 +62,11 @@ def random_sequence(seed: int, count: int = 4) -> list[SequenceComponent]:
     return components
 
 
-def planner_timing(random_sequences: bool = True) -> dict:
+def planner_timing(random_sequences: bool = True, sequence: list | None = None) -> dict:
     """Per-transition planner time (wall and CPU, mean and max) and inverse-magnetics time, for
-    the eight-component sequence, each random sequence, and over all transitions."""
-    out = {"eight_components": plan_timing()}
+    the eight-component sequence (or `sequence`, the smoke run's), each random sequence, and over
+    all transitions."""
+    out = {"eight_components": plan_timing(sequence=sequence)}
     for seed in RANDOM_SEQUENCES if random_sequences else ():
         try:
             out[f"random_{seed}"] = plan_timing(sequence=random_sequence(seed))
@@ -144,11 +145,18 @@ def main() -> int:
     parser.add_argument("--no-random", dest="random", action="store_false",
                         help="time the planner on the eight-component sequence only (not also on "
                         f"the random sequences {', '.join(map(str, RANDOM_SEQUENCES))})")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the smallest run of every stage, for the test suite: its figures "
+                             "mean nothing (two of the eight components, Bx and the first "
+                             "gradient, each held 0.5 s; no random sequences)")
     args = parser.parse_args()
+    sequence = eight_components(hold_s=args.hold)
+    if args.smoke:
+        args.random, args.hold = False, 0.5
+        sequence = [eight_components(hold_s=args.hold)[i] for i in (0, 3)]
 
     report: dict = {"note": "measured under load unless stated otherwise",
-                    "planner": planner_timing(args.random)}
-    sequence = eight_components(hold_s=args.hold)
+                    "planner": planner_timing(args.random, sequence if args.smoke else None)}
     started = time.perf_counter()
     planned = plan_sequence(sequence, name="eight-hybrid")
     report["planner"]["eight_component_plan_s"] = round(time.perf_counter() - started, 3)

@@ -26,7 +26,7 @@ precise); the raster's construction time is reported for reference.
   `compile_s` is what compiling them costs (in a child process with an empty cache),
   `warm_up_s` what loading them cost this run. Both happen before any timing above starts.
 
-Usage: python bench/rrt.py [--quick] [--seeds N] [--sizes 40000,200000,400000] [--four N]
+Usage: python bench/rrt.py [--quick | --smoke] [--seeds N] [--sizes 40000,200000,400000] [--four N]
 """
 
 from __future__ import annotations
@@ -193,7 +193,12 @@ def main() -> None:
     parser.add_argument("--four", type=int, help="four-robot tree size (default 340000)")
     parser.add_argument("--nn-eps", type=float, default=0.1, help="approximate nearest node run")
     parser.add_argument("--budget", type=float, default=5.0, help="seconds per solve attempt")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the smallest run of every stage, for the test suite: its figures "
+                             "mean nothing")
     args = parser.parse_args()
+    if args.smoke:  # two tiny trees, one seed with a short budget, 1,000 map queries
+        args.sizes, args.seeds, args.four, args.budget = "2000,4000", 1, 2_000, 0.5
     logging.basicConfig(level=logging.WARNING)
     sizes = [int(v) for v in (args.sizes or ("40000,80000" if args.quick else
                                              "40000,200000,400000")).split(",")]
@@ -220,7 +225,7 @@ def main() -> None:
         "paper_cpp_ompl_nodes_per_s": {"40000": 26000, "200000": 11000},
         "solve": solve_rate(seeds, args.budget),
         "four_robots": four_robots(exact, four, args.nn_eps),
-        "image_maps": image_maps(1_000_000 if not args.quick else 200_000),
+        "image_maps": image_maps(1_000 if args.smoke else 200_000 if args.quick else 1_000_000),
     }
     report["total_seconds"] = round(time.perf_counter() - started, 1)
     print(json.dumps(report))

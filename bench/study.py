@@ -20,7 +20,7 @@
   counted apart).
 A machine shared with other jobs makes both ratios noisy: the load average is reported.
 
-Usage: python bench/study.py [--quick] [--workers N] [--repeats N] [--campaign-runs N]
+Usage: python bench/study.py [--quick | --smoke] [--workers N] [--repeats N] [--campaign-runs N]
 """
 
 from __future__ import annotations
@@ -89,8 +89,10 @@ def _pool_wall_s(spec, out: Path, workers: int) -> tuple[float, dict]:
     return wall, {r["case_id"]: r["figures"].get("fraction") for r in rows}
 
 
-def planner_sweep(tmp: Path, workers: int, repeats: int, study: str, quick: bool) -> dict:
-    spec = _spec(study, **({"parameters": {"d12": [0.2, 0.4, 0.6, 0.8, 1.0],
+def planner_sweep(tmp: Path, workers: int, repeats: int, study: str, quick: bool,
+                  smoke: bool = False) -> dict:
+    spec = _spec(study, **({"parameters": {"d12": [0.2, 0.4], "moves": [2]}} if smoke else
+                           {"parameters": {"d12": [0.2, 0.4, 0.6, 0.8, 1.0],
                                            "moves": [2, 4]}} if quick else {}))
     pairs = []
     for k in range(repeats):
@@ -172,16 +174,22 @@ def main() -> None:
                              "those); the bench compares the cases' reachable fractions")
     parser.add_argument("--repeats", type=int, help="serial/Dask pairs of the sweep (default 5)")
     parser.add_argument("--campaign-runs", type=int, help="emulated closed-loop runs (default 20)")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the smallest run of every stage, for the test suite: its figures "
+                             "mean nothing (2 planner cases, 1 emulated run)")
     args = parser.parse_args()
+    args.quick = args.quick or args.smoke
     repeats = args.repeats or (1 if args.quick else 5)
-    runs = args.campaign_runs if args.campaign_runs is not None else (2 if args.quick else 20)
+    runs = args.campaign_runs if args.campaign_runs is not None else (
+        1 if args.smoke else 2 if args.quick else 20)
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-study-") as tmp:
         os.environ.setdefault("RIGCTL_LOCK_DIR", str(Path(tmp) / "locks"))
         load_before = os.getloadavg()[0]
         report = {
             "benchmark": "study", "python": platform.python_version(), "cores": os.cpu_count(),
             "planner_sweep": planner_sweep(Path(tmp), args.workers, repeats,
-                                           "reachable-quick" if args.quick else args.study, args.quick),
+                                           "reachable-quick" if args.quick else args.study, args.quick,
+                                           args.smoke),
             "campaign": campaign(Path(tmp), runs, args.workers) if runs else None,
             "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         }

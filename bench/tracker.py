@@ -50,10 +50,12 @@ def starts(n: int) -> np.ndarray:
     return grid[:n]
 
 
-def decoded_frames(camera: CameraModel, n: int) -> tuple[list[np.ndarray], np.ndarray, list[bytes]]:
-    """FRAMES pictures of n robots moving, through JPEG and back, with the truth (FRAMES, n, 2)."""
+def decoded_frames(camera: CameraModel, n: int, count: int = FRAMES
+                   ) -> tuple[list[np.ndarray], np.ndarray, list[bytes]]:
+    """`count` (FRAMES) pictures of n robots moving, through JPEG and back, with the truth
+    (count, n, 2)."""
     renderer = Renderer(camera, seed=7)
-    path = starts(n)[None] + np.arange(FRAMES)[:, None, None] * STEP_MM
+    path = starts(n)[None] + np.arange(count)[:, None, None] * STEP_MM
     jpegs = []
     for positions in path:
         image = renderer.render(Scene(WORKSPACE, positions, np.full(n, RADIUS_MM)))
@@ -62,7 +64,7 @@ def decoded_frames(camera: CameraModel, n: int) -> tuple[list[np.ndarray], np.nd
     return frames, path, jpegs
 
 
-def time_tracker(seconds: float) -> tuple[dict, dict]:
+def time_tracker(seconds: float, frames_per_pass: int = FRAMES) -> tuple[dict, dict]:
     results: dict = {}
     decode: dict = {}
     for width, height in RESOLUTIONS:
@@ -71,13 +73,13 @@ def time_tracker(seconds: float) -> tuple[dict, dict]:
         calibration = camera.calibration()
         results[key] = {}
         for n in ROBOT_COUNTS:
-            frames, path, jpegs = decoded_frames(camera, n)
+            frames, path, jpegs = decoded_frames(camera, n, frames_per_pass)
             durations, errors = [], []
             deadline = time.perf_counter() + seconds
             while time.perf_counter() < deadline or not durations:
                 tracker = Tracker(calibration, RADIUS_MM, path[0], roi_mm=WORKSPACE.bounds)
                 tracker.update(frames[0])  # first frame sets the grey levels
-                for k in range(1, FRAMES):
+                for k in range(1, len(frames)):
                     started = time.perf_counter()
                     robots = tracker.update(frames[k], k / 60.0)
                     durations.append(time.perf_counter() - started)
@@ -162,16 +164,23 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=0.5, help="timing per configuration")
     parser.add_argument("--closed-loop-runs", type=int, default=2,
                         help="closed-loop runs for the frame-to-command latency (0: skip)")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the smallest run of every stage, for the test suite: its figures "
+                             "mean nothing")
     args = parser.parse_args()
+    # the smoke run: one pass of 10 frames per configuration, half a second of camera stream
+    frames_per_pass, stream_s = (10, 0.5) if args.smoke else (FRAMES, max(2.0, 4 * args.seconds))
+    if args.smoke:
+        args.seconds = 0.0
     cv2.setNumThreads(1)
     every_cpu = os.sched_getaffinity(0)
     one_cpu = {min(every_cpu)}
     os.sched_setaffinity(0, one_cpu)
     try:
-        tracker, decode = time_tracker(args.seconds)
+        tracker, decode = time_tracker(args.seconds, frames_per_pass)
     finally:
         os.sched_setaffinity(0, every_cpu)
-    stream = stream_latency(max(2.0, 4 * args.seconds))
+    stream = stream_latency(stream_s)
     command = command_latency(args.closed_loop_runs) if args.closed_loop_runs else None
     print(json.dumps({
         "machine": {"cpu": platform.processor() or platform.machine(), "cpus": len(every_cpu),
