@@ -270,6 +270,7 @@ class EmulatedBench:
             print(f"warning: serving the emulated devices and the backdoor on {args.host}: any "
                   "host that reaches it can drive them and inject faults (the default, "
                   "127.0.0.1, keeps them on this machine)", file=sys.stderr, flush=True)
+        _take_priority()
         bench = cls.from_args(args)
         stop = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -287,3 +288,22 @@ class EmulatedBench:
             print("\n".join(lines), file=sys.stderr, flush=True)
             stop.wait()
         return EXIT_OK
+
+
+EMULATOR_NICE_ENV = "RIGCTL_EMULATOR_NICE"
+
+
+def _take_priority() -> None:
+    """The bench's scheduling niceness from RIGCTL_EMULATOR_NICE (e.g. -5), before it starts a
+    thread (Linux keeps a niceness per thread; new threads inherit it). Real supplies, boards and
+    arms answer from processors of their own: on a computer whose cores a test suite (or anything
+    else) keeps busy, a bench at the run's own priority makes the run's 0.25 s reply watchdog
+    measure the bench's starvation instead of the link. Unset: the priority it was started with."""
+    value = os.environ.get(EMULATOR_NICE_ENV)
+    if not value:
+        return
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, int(value))
+    except (OSError, ValueError) as err:
+        print(f"warning: {EMULATOR_NICE_ENV}={value} not taken ({err}); the bench runs at the "
+              "priority it was started with", file=sys.stderr, flush=True)

@@ -41,6 +41,7 @@ from typing import Any, Self, TextIO
 
 import numpy as np
 
+from rigctl.children import end_child
 from rigctl.client import CommandRefused, Rig
 from rigctl.config import RigConfig, dump_rig, load_rig
 from rigctl.emulators.backdoor import BackdoorClient
@@ -295,18 +296,6 @@ def _wait(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
         time.sleep(POLL_S)
 
 
-def _end(proc: subprocess.Popen, timeout_s: float = 30.0) -> None:
-    """A `rigctl execute` or daemon child still running stopped as SIGTERM stops it (a run ramps
-    down and records its end), killed if it has not ended after `timeout_s`."""
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
 def stream_process_pid(daemon_pid: int) -> int | None:
     """The daemon's stream process (`rigctl.daemon.runhost`), found in /proc."""
     for task in Path(f"/proc/{daemon_pid}/task").iterdir():
@@ -448,7 +437,7 @@ class RigCampaign:
             self.client.close()
             self.client = None
         if self.daemon is not None:
-            _end(self.daemon)
+            end_child(self.daemon)
             if self.daemon.stdout is not None:
                 self.daemon.stdout.close()
             self.daemon = None
@@ -671,7 +660,7 @@ class RigCampaign:
         try:
             return self._execute_cell(cell, fault, proc, runs, before, out_path)
         finally:  # the campaign interrupted: the run aborts (ramps down) before the bench stops
-            _end(proc)
+            end_child(proc)
 
     def _execute_cell(self, cell: Cell, fault: Fault, proc: subprocess.Popen, runs: Path,
                       before: set[Path], out_path: Path) -> Cell:

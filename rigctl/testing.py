@@ -194,3 +194,21 @@ def plan_pair(folder: Path, *, goal: str, hold_s: float, start: str = "8,7,2,0",
                         "--json", cwd=folder)
     assert result.returncode == 0, result.stdout + result.stderr
     return plan
+
+
+def descendants(pid: int) -> list[int]:
+    """Every process below `pid` (from /proc: a daemon's stream process, a run's bench, anything
+    they started), at this moment."""
+    parents: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # gone meanwhile
+            continue
+        parents.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, todo = [], [pid]
+    while todo:
+        children = parents.get(todo.pop(), [])
+        found += children
+        todo += children
+    return found

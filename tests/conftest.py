@@ -23,9 +23,28 @@ import pytest
 TIERS = ("quick", "integration", "e2e", "browser")
 FOLDER_TIER = {"unit": "quick", "integration": "integration", "e2e": "e2e", "browser": "browser"}
 TESTS = Path(__file__).resolve().parent
+# modules whose tests share no bench (function-scoped fixtures) and take long: spread over the
+# workers test by test
+SPREAD = {"e2e/test_bench_smoke.py", "e2e/test_run_control.py"}
+# the modules that take longest (wall time summed over their tests, measured with
+# RIGCTL_TEST_CPU), started first so that no worker is left with a long one at the end; the rest
+# follow in the order collected
+LONGEST_FIRST = ("test_run_control", "test_bench_smoke", "test_console_six_coil", "test_execute_cli",
+                 "test_coilboard_run", "test_depm_execute", "test_daemon_bench", "test_faults_cli",
+                 "test_daemon_cli", "test_closed_loop_1khz", "test_closed_loop",
+                 "test_terminal_interrupts", "test_coilboard_heating", "test_readonly_install",
+                 "test_study", "test_identify_closed_loop", "test_pair_progress", "test_guardian")
 
 
 def pytest_configure(config) -> None:
+    import os
+
+    # The emulated benches the tests start stand for devices with processors of their own: they
+    # run ahead of the workers' own work, so two runs side by side on two cores do not trip a
+    # supply's 0.25 s reply watchdog by starving its emulator (emulators/base.py, docs/testing.md).
+    # Raising priority needs root (CI is root); elsewhere the bench says it kept its own.
+    if os.geteuid() == 0:
+        os.environ.setdefault("RIGCTL_EMULATOR_NICE", "-5")
     # Compile (or load from numba's on-disk cache) the workspace geometry kernels once, before any
     # test starts an emulator or a re-planning child that would otherwise compile them mid-run.
     from rigctl.plans.workspace import warm_up
@@ -54,6 +73,13 @@ def pytest_collection_modifyitems(config, items: list[pytest.Item]) -> None:
             continue
         if item.get_closest_marker(tiers[0]) is None:
             item.add_marker(getattr(pytest.mark, tiers[0]))
+        # xdist (-n, --dist loadgroup): a module's tests go to one worker, so a bench it starts
+        # once serves them all; tests of the modules in SPREAD go to whichever worker is free
+        if item.get_closest_marker("xdist_group") is None and \
+                Path(item.path).resolve().relative_to(TESTS).as_posix() not in SPREAD:
+            item.add_marker(pytest.mark.xdist_group(Path(item.path).stem))
+    rank = {stem: i for i, stem in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(Path(item.path).stem, len(rank)))  # stable: in order
     if wrong:
         raise pytest.UsageError("every test is in exactly one tier (tests/conftest.py says how): "
                                 + "; ".join(wrong[:10]) + (" ..." if len(wrong) > 10 else ""))

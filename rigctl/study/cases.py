@@ -28,6 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from rigctl.children import end_child
 from rigctl.study.spec import BENCH_OPTIONS, Case, options_argv
 
 EXECUTE_TIMEOUT_S = 600.0
@@ -188,18 +189,6 @@ def stop_cases(out_root: str, timeout_s: float = 60.0) -> int:
     return len(runs)
 
 
-def _end_run(proc: subprocess.Popen, timeout_s: float = 30.0) -> None:
-    """A case's run still going after its case was interrupted: SIGTERM (an abort, recorded),
-    SIGKILL if it has not ended after `timeout_s`."""
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
 def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
     """A bench of the plan's rig kind in a child (`rigctl emulate`, its own ephemeral ports), the
     rig file's overrides applied, `rigctl execute --rig` in another child; the fault, if any,
@@ -258,7 +247,7 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
                     stdout, _ = proc.communicate(timeout=30)
             finally:  # interrupted (a serial study's Ctrl-C): the run ends before its bench,
                 with shielded_from_interrupts():  # a second Ctrl-C meanwhile noted, not raised
-                    _end_run(proc)
+                    end_child(proc)
                 _RunningCases.done(study, proc)
     lines = [line for line in stdout.splitlines() if line.startswith("{")]
     summary = json.loads(lines[-1]) if lines else {}

@@ -23,7 +23,7 @@ from rigctl.client import Rig
 from rigctl.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.testing import wait_for
+from rigctl.testing import descendants, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 UNIT = ROOT / "systemd" / "rigctl.service"
@@ -38,23 +38,6 @@ def stop_post_command(rig_path: Path) -> list[str]:
     argv = shlex.split(line.strip().lstrip("-@:+!"))  # systemd's prefixes, if any
     assert UNIT_RIG in argv, argv
     return [str(rig_path) if a == UNIT_RIG else a for a in argv]
-
-
-def descendants(pid: int) -> list[int]:
-    """Every process below `pid` (from /proc: the stream process and anything it started)."""
-    parents = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # gone meanwhile
-            continue
-        parents.setdefault(int(fields[1]), []).append(int(stat.parent.name))
-    found, todo = [], [pid]
-    while todo:
-        children = parents.get(todo.pop(), [])
-        found += children
-        todo += children
-    return found
 
 
 def test_the_units_stop_post_makes_every_supply_safe_after_a_sigkill(tmp_path):

@@ -1,0 +1,34 @@
+"""`rigctl emulate` takes its niceness from RIGCTL_EMULATOR_NICE before it starts a thread, and
+says in one line when it cannot (a bad value, or a raise without the right to)."""
+
+import os
+import subprocess
+import sys
+
+SHOW = ("from rigctl.emulators.base import _take_priority; import os, threading; _take_priority(); "
+        "t = threading.Thread(target=lambda: print(os.getpriority(os.PRIO_PROCESS, 0))); "
+        "t.start(); t.join()")
+
+
+def nice_of_a_bench_thread(value: str | None) -> tuple[int, str]:
+    env = {k: v for k, v in os.environ.items() if k != "RIGCTL_EMULATOR_NICE"}
+    if value is not None:
+        env["RIGCTL_EMULATOR_NICE"] = value
+    done = subprocess.run([sys.executable, "-c", SHOW], env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    return int(done.stdout), done.stderr
+
+
+def test_the_bench_and_its_threads_take_the_niceness_asked_for():
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    assert nice_of_a_bench_thread(None) == (base, "")
+    lower = min(base + 3, 19)  # lowering a priority needs no right
+    assert nice_of_a_bench_thread(str(lower)) == (lower, "")
+
+
+def test_a_value_it_cannot_take_is_said_in_one_line_and_the_bench_goes_on():
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    nice, err = nice_of_a_bench_thread("fast")
+    assert nice == base
+    assert err.count("\n") == 1 and "RIGCTL_EMULATOR_NICE=fast not taken" in err
