@@ -32,7 +32,7 @@ from rigctl.errors import (
 )
 
 if TYPE_CHECKING:
-    from rigctl.run.guardian import Guardian
+    from rigctl.rigs.guardian import Guardian
 
 READY_PREFIX = "READY "
 
@@ -74,7 +74,7 @@ def _refused_exit(err) -> int:
 
 # -- rigctl daemon -------------------------------------------------------------------------------
 def _cmd_daemon(args: argparse.Namespace) -> int:
-    from rigctl.run.guardian import Guardian
+    from rigctl.rigs.guardian import Guardian
 
     # the guardian first: its start overlaps the imports below; left last: if this process dies
     # without a word (SIGKILL) while it owns the rig, the guardian makes it safe (under systemd

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from rigctl.errors import ConfigError, abort_on_sigterm
 
 if TYPE_CHECKING:
-    from rigctl.run.guardian import Guardian
+    from rigctl.rigs.guardian import Guardian
 
 # run options: CLI flag -> the builder's keyword (a builder takes only those it names)
 _RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-scale": "time_scale"}
@@ -82,7 +82,7 @@ def cmd_execute(args: argparse.Namespace) -> int:
         from rigctl.cli.daemon import execute_remote
 
         return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
-    from rigctl.run.guardian import Guardian
+    from rigctl.rigs.guardian import Guardian
 
     # the guardian first: its start overlaps the imports below; it is left last, so a SIGKILL at
     # any point from the lock to the bench's stop leaves it to make the rig safe, stop the bench

@@ -34,7 +34,7 @@ from rigctl.testing import descendants, wait_for
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"
 DEADLINE_S = 1.5  # the issue's: from the owner's death to every device safe
-GUARDIAN = "rigctl.run.guardian"
+GUARDIAN = "rigctl.rigs.guardian"
 SAID = "its guardian made every device safe directly"
 
 

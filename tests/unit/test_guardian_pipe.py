@@ -1,4 +1,4 @@
-"""The guardian's reading of its owner's pipe (rigctl.run.guardian), with no process: a pipe is the
+"""The guardian's reading of its owner's pipe (rigctl.rigs.guardian), with no process: a pipe is the
 bytes the owner wrote before it closed. Only a complete `ended` line as the last word is a normal
 end; the rig and the bench's pid are taken as they come."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import io
 
-from rigctl.run.guardian import ended_normally, owner_words
+from rigctl.rigs.guardian import ended_normally, owner_words
 
 
 class Ward:

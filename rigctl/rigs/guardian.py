@@ -71,7 +71,7 @@ class Guardian:
         # stderr is the owner's (where the operator looks), the pipes are closed on exec in any
         # other child (a bench, the stream process), so only this owner's death ends them
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "rigctl.run.guardian", self.owner, str(os.getpid())],
+            [sys.executable, "-m", "rigctl.rigs.guardian", self.owner, str(os.getpid())],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, start_new_session=True)
         return self
 
