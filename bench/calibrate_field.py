@@ -25,11 +25,11 @@ import sys
 
 import numpy as np
 
-from rigctl.coils import actuation_matrix
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coil_errors import CoilErrors
-from rigctl.field_calibration import DEFAULT_GRID_HALF_MM, probe_grid_mm
+from rigctl.physics.coils import actuation_matrix
+from rigctl.physics.field_calibration import DEFAULT_GRID_HALF_MM, probe_grid_mm
 from rigctl.rigs.six_coil.allocate import currents_for_field
 from rigctl.rigs.six_coil.field_fit import (
     drive_patterns,

@@ -30,8 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.certificate import certify
-from rigctl.config import (
+from rigctl.core.config import (
     CoilBoardSettings,
     CoilThermal,
     RigConfig,
@@ -41,9 +40,10 @@ from rigctl.config import (
 from rigctl.emulators.bench import emulated_winding
 from rigctl.emulators.depm import default_settings as depm_settings
 from rigctl.emulators.kepco_bop.model import BopCoilModel
+from rigctl.physics.thermal import Windings, step_current, winding_temperatures
 from rigctl.plans.schema import load_plan
 from rigctl.rigs import rig_kind
-from rigctl.thermal import Windings, step_current, winding_temperatures
+from rigctl.run.certificate import certify
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "plans" / "examples"
 

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.config import RigConfig, load_rig
+from rigctl.core.config import RigConfig, load_rig
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.six_coil.global_moves import Run

@@ -138,10 +138,10 @@ def bench_delivery(runs: int, speed: float, epsilon: float, rng: np.random.Gener
 
     import pyarrow.parquet as pq
 
+    from rigctl.apps.study.execution import run_study
+    from rigctl.apps.study.spec import spec_from_dict
     from rigctl.emulators.world.coilboard import CoilBoardPhysics
     from rigctl.plans.schema import dump_plan, parse_plan
-    from rigctl.study.execution import run_study
-    from rigctl.study.spec import spec_from_dict
 
     boundary = {"disk": [0.0, 0.0, 23.0]}
     ws = ShapeWorkspace(_shape(boundary))

@@ -29,12 +29,12 @@ import time
 
 import numpy as np
 
+from rigctl.core.errors import RigError
 from rigctl.drivers import coilboard_frame as proto
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.emulators.coilboard.firmware import serve_in_child_process
 from rigctl.emulators.coilboard.syren import BAUD as SYREN_BAUD
 from rigctl.emulators.coilboard.syren import SyrenBus, SyrenWireReader
-from rigctl.errors import RigError
 
 BAUD = 115200
 BITS_PER_BYTE = 10  # 8N1

@@ -44,11 +44,11 @@ from pathlib import Path
 import numpy as np
 from daemon import make_emulator_realtime  # bench/daemon.py
 
-from rigctl.client import Rig
-from rigctl.config import dump_rig, load_rig
+from rigctl.apps.client import Rig
+from rigctl.core.config import dump_rig, load_rig
+from rigctl.core.record import read_events
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.record import read_events
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "plans" / "examples"
 CHROMIUM = os.environ.get("RIGCTL_CHROMIUM", "/usr/bin/chromium")

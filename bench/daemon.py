@@ -54,12 +54,12 @@ from typing import Self
 
 import numpy as np
 
-from rigctl.client import Rig, Telemetry
-from rigctl.config import RigConfig, dump_rig, load_rig
-from rigctl.daemon.admission import REQUEST_RATE_HZ
+from rigctl.apps.client import Rig, Telemetry
+from rigctl.apps.daemon.admission import REQUEST_RATE_HZ
+from rigctl.core.config import RigConfig, dump_rig, load_rig
+from rigctl.core.record import read_events
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.record import read_events
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "plans" / "examples"
 

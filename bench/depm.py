@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.config import load_rig
+from rigctl.core.config import load_rig
+from rigctl.core.errors import PlanError
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.errors import PlanError
 from rigctl.plans.depm import (
     baseline_of,
     eight_components,

@@ -3,7 +3,7 @@
 Every fault each emulated bench's backdoor offers (one device per class: the six supplies are one)
 and SIGKILL / SIGSTOP of the daemon's stream process, at every phase of a short run (before
 energising, mid-move, paused, suspended, ramping down) through the daemon, and every bench fault
-mid-move through a local `rigctl execute`, on every rig (`rigctl.faults`). Per rig: the cells, how
+mid-move through a local `rigctl execute`, on every rig (`rigctl.apps.faults`). Per rig: the cells, how
 many failed, the count per outcome, the worst time from a fault to every device safe among the
 cells the fault stopped (read from the emulator: coil currents under 50 mA, SyRen outputs 0, arms
 at rest) and which cell it was, the worst time from the run's decision to stop to every device's
@@ -23,7 +23,7 @@ import os
 import sys
 import time
 
-from rigctl.faults import PROFILES, as_json, parse_cell, run_campaign
+from rigctl.apps.faults import PROFILES, as_json, parse_cell, run_campaign
 
 
 def main() -> None:

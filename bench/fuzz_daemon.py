@@ -37,7 +37,7 @@ import zmq
 from hypothesis import HealthCheck, Phase, given, seed, settings
 from hypothesis import strategies as st
 
-from rigctl.daemon.messages import COMMAND_ARGS, MAX_REQUEST_BYTES, Command, ErrorCode
+from rigctl.apps.daemon.messages import COMMAND_ARGS, MAX_REQUEST_BYTES, Command, ErrorCode
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "plans" / "examples"
 PLAN_BASES = ("fig4-quick.json", "pair-formation-change.json", "coilboard-disk.json",
@@ -207,7 +207,7 @@ def reply_code(reply: dict | None) -> str | None:
 
 def validate_in_process(text: bytes, folder: Path) -> tuple[int, str]:
     """`rigctl validate` of a plan document, in this process: (exit status, stderr)."""
-    from rigctl.cli.main import main
+    from rigctl.apps.cli.main import main
 
     path = folder / "plan.json"
     path.write_bytes(text)
@@ -220,7 +220,7 @@ def validate_in_process(text: bytes, folder: Path) -> tuple[int, str]:
 @contextlib.contextmanager
 def daemon_on_bench(runs_dir: Path):
     """A daemon (the real plan runs, its stream process) on the emulated six-coil bench."""
-    from rigctl.daemon.server import Daemon
+    from rigctl.apps.daemon.server import Daemon
     from rigctl.emulators.bench import SixCoilBench
 
     with SixCoilBench() as bench:

@@ -182,7 +182,7 @@ def bench_mobility(slip: float, seeds: int) -> dict:
     pull gain identified (module docstring)."""
     from dataclasses import replace
 
-    from rigctl.config import load_rig
+    from rigctl.core.config import load_rig
     from rigctl.emulators.process import EmulatedBenchProcess
     from rigctl.plans.schema import load_plan
     from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings, loopback_rig

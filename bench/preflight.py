@@ -29,9 +29,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from rigctl.config import RigConfig, load_rig
+from rigctl.core.config import RigConfig, load_rig
+from rigctl.core.errors import ConfigError
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.errors import ConfigError
 from rigctl.rigs.doctor import DeviceUnreachable, preflight, probe_rig
 from rigctl.rigs.owner import RigInUse, RigLock
 

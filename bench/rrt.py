@@ -96,8 +96,8 @@ def solve_rate(seeds: int, budget_s: float) -> dict:
 
     import pyarrow.parquet as pq
 
-    from rigctl.study.execution import run_study
-    from rigctl.study.spec import spec_from_dict
+    from rigctl.apps.study.execution import run_study
+    from rigctl.apps.study.spec import spec_from_dict
 
     studies = Path(__file__).resolve().parents[1] / "studies"
     data = tomllib.loads((studies / "rrt-solve.toml").read_text())

@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.client import CommandRefused, Rig
-from rigctl.config import dump_rig, load_rig
+from rigctl.apps.client import CommandRefused, Rig
+from rigctl.core.config import dump_rig, load_rig
 from rigctl.emulators.process import EmulatedBenchProcess
 
 FIGURES = ("rss_MB", "fds", "threads")
@@ -61,7 +61,7 @@ def process_figures(pid: int) -> dict | None:
 
 
 def stream_process(daemon_pid: int) -> int | None:
-    """The daemon's stream process (`rigctl.daemon.runhost`), from /proc."""
+    """The daemon's stream process (`rigctl.apps.daemon.runhost`), from /proc."""
     for task in Path(f"/proc/{daemon_pid}/task").iterdir():
         try:
             children = (task / "children").read_text().split()

@@ -20,13 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.coils import actuation_matrix
-from rigctl.config import load_rig
+from rigctl.core.config import load_rig
+from rigctl.core.stream import StreamLoop
+from rigctl.core.transport import open_transport
 from rigctl.drivers.kepco_bop import KepcoBop
 from rigctl.emulators.process import EmulatedBenchProcess
+from rigctl.physics.coils import actuation_matrix
 from rigctl.rigs.six_coil.allocate import currents_for_field
-from rigctl.stream import StreamLoop
-from rigctl.transport import open_transport
 
 
 def rolling_currents(rig, rate_hz: float, seconds: float) -> np.ndarray:

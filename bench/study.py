@@ -1,4 +1,4 @@
-"""Benchmark of studies on Dask (rigctl.study); prints ONE JSON object on stdout.
+"""Benchmark of studies on Dask (rigctl.apps.study); prints ONE JSON object on stdout.
 
 - planner_sweep: the 40 cases of `studies/reachable-quick.toml` (seed 004 Fig. 8 on a 61 x 61
   grid: 20 values of d12 x 2 and 4 moves), run serially in this process and on a LocalCluster of
@@ -41,8 +41,8 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 
-from rigctl.study.execution import run_study
-from rigctl.study.spec import spec_from_dict
+from rigctl.apps.study.execution import run_study
+from rigctl.apps.study.spec import spec_from_dict
 
 STUDIES = Path(__file__).resolve().parents[1] / "studies"
 
@@ -75,8 +75,8 @@ def _pool_wall_s(spec, out: Path, workers: int) -> tuple[float, dict]:
     the machine's own parallel floor for this work, without Dask. Wall s and fraction per case."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from rigctl.study.cases import run_case
-    from rigctl.study.execution import set_up_worker
+    from rigctl.apps.study.cases import run_case
+    from rigctl.apps.study.execution import set_up_worker
 
     out.mkdir(parents=True, exist_ok=True)
     with ProcessPoolExecutor(workers, initializer=set_up_worker, initargs=(spec.command,)) as pool:

@@ -33,8 +33,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rigctl.errors import ConfigError, DeviceTimeout, Disconnected
-from rigctl.transport import camera_source
+from rigctl.core.errors import ConfigError, DeviceTimeout, Disconnected
+from rigctl.core.transport import camera_source
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ Usage:
 
     CoilBoard.from_settings(rig.board)   # the [board] table of a rig file (CoilBoardSettings)
 
-The driver owns no loop: a caller streams with `rigctl.stream.StreamLoop` (a run through
+The driver owns no loop: a caller streams with `rigctl.core.stream.StreamLoop` (a run through
 `rigctl.rigs.coil_board.actuators.BoardActuators`).
 
 The link: every request carries a fresh SEQ; a reply counts only with a good CRC, the same SEQ and
@@ -40,6 +40,16 @@ import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
+from rigctl.core.errors import (
+    ConfigError,
+    DeviceError,
+    DeviceTimeout,
+    Disconnected,
+    LimitError,
+    ProtocolError,
+    RigError,
+)
+from rigctl.core.transport import DEFAULT_BAUD, Transport, open_transport, parse_url
 from rigctl.drivers import coilboard_frame as proto
 from rigctl.drivers.coilboard_frame import (
     Ack,
@@ -49,19 +59,9 @@ from rigctl.drivers.coilboard_frame import (
     HelloReply,
     Status,
 )
-from rigctl.errors import (
-    ConfigError,
-    DeviceError,
-    DeviceTimeout,
-    Disconnected,
-    LimitError,
-    ProtocolError,
-    RigError,
-)
-from rigctl.transport import DEFAULT_BAUD, Transport, open_transport, parse_url
 
 if TYPE_CHECKING:
-    from rigctl.config import CoilBoardSettings
+    from rigctl.core.config import CoilBoardSettings
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,7 @@ import struct
 from dataclasses import astuple, dataclass
 from typing import ClassVar
 
-from rigctl.config import BOARD_FULL_SCALE
+from rigctl.core.config import BOARD_FULL_SCALE
 
 SYNC = 0xA5
 MAX_PAYLOAD = 16

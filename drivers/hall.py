@@ -23,14 +23,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.errors import (
+from rigctl.core.errors import (
     ConfigError,
     DeviceTimeout,
     Disconnected,
     ProtocolError,
     RigError,
 )
-from rigctl.transport import Transport, open_transport
+from rigctl.core.transport import Transport, open_transport
 
 log = logging.getLogger(__name__)
 

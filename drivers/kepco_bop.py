@@ -29,7 +29,7 @@ import re
 import threading
 import time
 
-from rigctl.errors import (
+from rigctl.core.errors import (
     ConfigError,
     DeviceError,
     DeviceTimeout,
@@ -38,7 +38,7 @@ from rigctl.errors import (
     ProtocolError,
     RigError,
 )
-from rigctl.transport import Transport
+from rigctl.core.transport import Transport
 
 log = logging.getLogger(__name__)
 

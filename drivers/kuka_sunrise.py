@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-from rigctl.errors import (
+from rigctl.core.errors import (
     ConfigError,
     DeviceError,
     DeviceTimeout,
@@ -48,7 +48,7 @@ from rigctl.errors import (
     ProtocolError,
     RigError,
 )
-from rigctl.transport import Transport, open_transport
+from rigctl.core.transport import Transport, open_transport
 
 log = logging.getLogger(__name__)
 

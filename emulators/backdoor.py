@@ -13,8 +13,8 @@ from __future__ import annotations
 import json
 from typing import Any, Callable
 
-from rigctl.errors import DeviceError
-from rigctl.transport import open_transport
+from rigctl.core.errors import DeviceError
+from rigctl.core.transport import open_transport
 
 
 def json_lines(command: Callable[[dict], dict]) -> Callable[[str], str]:

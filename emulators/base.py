@@ -44,11 +44,11 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from rigctl.config import CameraSettings, RigConfig, dump_rig
+from rigctl.core.config import CameraSettings, RigConfig, dump_rig
+from rigctl.core.errors import EXIT_OK, ConfigError
 from rigctl.emulators.backdoor import json_lines
 from rigctl.emulators.process import READY_PREFIX
 from rigctl.emulators.server import EmulatorServer, Endpoint
-from rigctl.errors import EXIT_OK, ConfigError
 
 if TYPE_CHECKING:  # the camera (OpenCV) is imported by the benches that have one
     from rigctl.emulators.camera.mjpeg import MjpegCamera

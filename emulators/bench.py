@@ -17,7 +17,7 @@ devices "x+" ... "z-" (each supply: its link's faults and `overtemp`; `restore` 
   [{"position": [x, y], "radius": r}], "contact": "slide", "min_separation_mm": 0}`: put the robots
   down (what an operator does by hand); world "pair": `"pair": {physics}` and two agents;
 - `{"cmd": "truth"}`: agents' true positions (mm), axis, field (T), each coil's current (A) and
-  winding temperature (C, now and its peak; the windings heat by `rigctl.thermal`),
+  winding temperature (C, now and its peak; the windings heat by `rigctl.physics.thermal`),
   simulated time (world "pair": the moments and the agents' separation instead of the axis);
 - `{"cmd": "coil_errors", "size": 0.05, "seed": 0}`: rebuild the coils as built (`coil_errors.py`:
   gain, centre and axis off the rig file's by up to `size`; 0 is the ideal bench) at once;
@@ -51,13 +51,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.config import (
+from rigctl.core.config import (
     Emulation,
     FieldProbe,
     RigConfig,
     RigInfo,
     default_six_coil_coils,
 )
+from rigctl.core.errors import ConfigError
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.camera.render import Scene
 from rigctl.emulators.coil_errors import (
@@ -72,8 +73,7 @@ from rigctl.emulators.kepco_bop.protocol import BopScpi
 from rigctl.emulators.server import Endpoint
 from rigctl.emulators.world.pair import PairWorld
 from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
-from rigctl.errors import ConfigError
-from rigctl.field_calibration import probe_grid_mm
+from rigctl.physics.field_calibration import probe_grid_mm
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.pair import PairPhysics
 from rigctl.plans.schema import parse_workspace
@@ -92,10 +92,10 @@ LOOPBACK_ROUND_TRIP_MS = 0.3
 
 
 def emulated_winding(coil, mismatch: float) -> dict:
-    """The emulated coil's winding (`rigctl.thermal`): the rig file's R_th and C_th `mismatch`
+    """The emulated coil's winding (`rigctl.physics.thermal`): the rig file's R_th and C_th `mismatch`
     off, tripping its supply 10 K above the winding's limit (the cut-out behind rigctl's own
     limit)."""
-    from rigctl.thermal import Windings
+    from rigctl.physics.thermal import Windings
 
     winding = Windings.of([coil.name], [coil.resistance_ohm], [coil.thermal]).off_by(mismatch)
     return {"winding": winding, "trip_C": coil.thermal.max_winding_C + 10.0}

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.config import Coil
-from rigctl.field_calibration import CoilFit, FieldCalibration
-from rigctl.magnetics import loop_field
+from rigctl.core.config import Coil
+from rigctl.physics.field_calibration import CoilFit, FieldCalibration
+from rigctl.physics.magnetics import loop_field
 
 DEFAULT_SIZE = 0.05
 
@@ -82,7 +82,7 @@ def true_coils(coils: list[Coil], errors: CoilErrors) -> list[TrueCoil]:
 
 def as_calibration(coils: list[TrueCoil], drawn: list[Coil]) -> FieldCalibration:
     """The true coils as a (perfect) field calibration of the drawn ones: the pair world takes its
-    coils' fields and gradients through `rigctl.coils` with it, as an allocator would."""
+    coils' fields and gradients through `rigctl.physics.coils` with it, as an allocator would."""
     fits = {}
     for true, coil in zip(coils, drawn):
         drawn_axis = np.asarray(coil.axis, dtype=float)

@@ -2,7 +2,7 @@
 server on TCP, the Hall-sensor board streaming on TCP, and a JSON backdoor, on one emulator loop.
 
 The field the board measures comes from the arms' *actual* joints, not from any plan: forward
-kinematics of each arm (`rigctl.kinematics`, the bases and EPM tool of the rig file) gives each
+kinematics of each arm (`rigctl.physics.kinematics`, the bases and EPM tool of the rig file) gives each
 EPM's centre and moment direction, and the field at every sensor is that of the EPMs as they are:
 finite axially magnetised cylinders (`world/epm.py`, seed 003's 101.6 mm N52 magnets, magpylib's
 closed form), not the planner's point dipole (seed 003 eq. 2), which is 1-13 % off within 15 cm
@@ -28,15 +28,15 @@ import argparse
 
 import numpy as np
 
-from rigctl.config import DepmSettings, Emulation, PreflightSettings, RigConfig, RigInfo
+from rigctl.core.config import DepmSettings, Emulation, PreflightSettings, RigConfig, RigInfo
+from rigctl.core.errors import ConfigError
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.hall.board import HallBoardServer
 from rigctl.emulators.kuka.arm import KST_PORT, EmulatedArm
 from rigctl.emulators.kuka.model import ArmLimits
 from rigctl.emulators.world.epm import CylinderEpms
-from rigctl.errors import ConfigError
-from rigctl.kinematics import DEFAULT_BASES
-from rigctl.magnetics import dipole_field, field_vector
+from rigctl.physics.kinematics import DEFAULT_BASES
+from rigctl.physics.magnetics import dipole_field, field_vector
 from rigctl.plans.depm import default_rig, rig_from_settings
 
 TICK_S = 5e-3

@@ -24,8 +24,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, TextIO
 
-from rigctl.config import RigConfig, load_rig
-from rigctl.errors import RigError, shielded_from_interrupts
+from rigctl.core.config import RigConfig, load_rig
+from rigctl.core.errors import RigError, shielded_from_interrupts
 
 log = logging.getLogger(__name__)
 

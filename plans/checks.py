@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 from rigctl.plans.model import Contact, GlobalInputModel
 from rigctl.plans.schema import REPLAY_TOLERANCE_MM, GlobalMovesPlan, load_workspace
 from rigctl.plans.workspace import Workspace

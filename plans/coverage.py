@@ -24,7 +24,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 
 
 class ClearanceField(Protocol):

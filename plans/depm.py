@@ -40,15 +40,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.interpolate import PchipInterpolator
 
-from rigctl.errors import PlanError
-from rigctl.kinematics import (
+from rigctl.core.errors import PlanError
+from rigctl.physics.kinematics import (
     DEFAULT_BASES,
     LBR_IIWA_14_R820,
     ArmKinematics,
     ArmModel,
     base_transform,
 )
-from rigctl.magnetics import actuation_matrix, cylinder_moment, field_vector
+from rigctl.physics.magnetics import actuation_matrix, cylinder_moment, field_vector
 from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
 from rigctl.plans.schema import (
     SCHEMA_ID,
@@ -165,7 +165,7 @@ def limits_to_plan(limits: SafetyLimits) -> DepmLimits:
 
 
 def rig_from_settings(settings) -> DepmRig:
-    """The rig a rig file's `[depm]` table describes (`rigctl.config.DepmSettings`): its arms'
+    """The rig a rig file's `[depm]` table describes (`rigctl.core.config.DepmSettings`): its arms'
     bases and EPM tool, the magnets' moment and the safety limits."""
     from dataclasses import replace
 
@@ -1198,7 +1198,7 @@ def check(plan: FieldSequencePlan) -> None:
 def eight_components(field_mT: float = 10.0, gradient_mT_per_m: float = 100.0,
                      hold_s: float = 5.0) -> list[SequenceComponent]:
     """The sequence of seed 003 Sec. 4: each U component alone, in the order of eq. 23."""
-    from rigctl.magnetics import U_COMPONENTS
+    from rigctl.physics.magnetics import U_COMPONENTS
 
     components = []
     for index, label in enumerate(U_COMPONENTS):
@@ -1247,8 +1247,8 @@ def cli(args) -> int:
     planner: Planner = "agnostic" if args.agnostic else "hybrid"
     rig = None
     if getattr(args, "rig", None):
-        from rigctl.config import load_rig
-        from rigctl.errors import ConfigError
+        from rigctl.core.config import load_rig
+        from rigctl.core.errors import ConfigError
 
         config = load_rig(args.rig)
         if config.depm is None:

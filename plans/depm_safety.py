@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.errors import LimitError
-from rigctl.kinematics import ArmKinematics
+from rigctl.core.errors import LimitError
+from rigctl.physics.kinematics import ArmKinematics
 
 SPEED_TOLERANCE = 1e-6
 """Relative slack on the speed and acceleration limits so a trajectory timed exactly at a limit

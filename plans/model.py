@@ -53,7 +53,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 from rigctl.plans.workspace import Workspace
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,7 @@ class GlobalInputModel:
     while sliding (default: a quarter of the smallest radius).
 
     gains (n,), headings_rad (n,): each agent's own response to the shared input, identified from
-    tracking (`rigctl.identify`): a move u takes agent i by gains[i] R(headings_rad[i]) u. None
+    tracking (`rigctl.physics.identify`): a move u takes agent i by gains[i] R(headings_rad[i]) u. None
     (the default), or all ones and zeros, is the shared displacement, computed exactly as without
     them. With them, every agent moves by its own displacement against the walls, and the agents
     meet one another in pieces of `substep_mm` while they are close enough to (the emulated

@@ -37,8 +37,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.errors import PlanError
-from rigctl.jit import njit
+from rigctl.core.errors import PlanError
+from rigctl.core.jit import njit
 
 log = logging.getLogger(__name__)
 
@@ -951,13 +951,13 @@ def _formation_arg(text: str | None, flag: str) -> list[float]:
 
 def rig_max_pull(rig, physics: PairPhysics, field_mT: float) -> float:
     """The largest pull (BL/s) the rig's coils give these agents with this field, at any angle."""
-    from rigctl.coils import max_planar_gradient
+    from rigctl.physics.coils import max_planar_gradient
 
     return max_planar_gradient(rig, field_mT * 1e-3) * physics.pull_bl_s_per_T_m
 
 
 def default_rig():
-    from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
+    from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
 
     return RigConfig(rig=RigInfo(kind="six-coil", name="emulated six-coil bench"),
                      coils=default_six_coil_coils())
@@ -979,7 +979,7 @@ def run_cli(args) -> int:
         return EXIT_SOLVED if result["stlc"] else EXIT_NOT_SOLVED
     if not args.workspace or not args.output:
         raise PlanError("plan pair: give --workspace, --start, --goal and -o (or --check CONFIG)")
-    from rigctl.config import load_rig
+    from rigctl.core.config import load_rig
     from rigctl.plans.checks import WorkspaceSource
     from rigctl.plans.schema import dump_plan, parse_plan
 

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 
 log = logging.getLogger(__name__)
 

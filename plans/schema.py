@@ -42,7 +42,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 
 log = logging.getLogger(__name__)
 

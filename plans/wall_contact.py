@@ -47,8 +47,8 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.errors import PlanError
-from rigctl.jit import njit
+from rigctl.core.errors import PlanError
+from rigctl.core.jit import njit
 
 log = logging.getLogger(__name__)
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 from rigctl.plans.wall_contact import (
     CentreRegion,
     DiskRegion,

@@ -45,8 +45,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import ndimage
 
-from rigctl.errors import PlanError
-from rigctl.jit import njit
+from rigctl.core.errors import PlanError
+from rigctl.core.jit import njit
 
 if TYPE_CHECKING:
     from rigctl.plans.schema import ImageWorkspaceSpec, ShapeWorkspaceSpec

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.camera_model import Calibration
+from rigctl.core.camera_model import Calibration
 from rigctl.plans.workspace import Workspace
 
 log = logging.getLogger(__name__)

@@ -26,7 +26,7 @@ bytes`) and "camera", plus:
   `mobility_seed` make each particle's mobility its own); replies with the positions, the physics
   and each particle's mobility factor;
 - `{"cmd": "truth"}`: particle positions (mm) and mobility factors, the SyRen outputs, each coil's
-  winding temperature (C, now and its peak; the windings heat by `rigctl.thermal`, `coils.py`) and
+  winding temperature (C, now and its peak; the windings heat by `rigctl.physics.thermal`, `coils.py`) and
   whether its thermal cut-out is open, the firmware's counters (Python firmware), simulated time;
 - `{"cmd": "windings", "size": 0.05, "seed": 0, "thermal": {...CoilThermal fields...}}`: rebuild
   the windings with R_th and C_th off the rig file's by up to `size` (`ThermalErrors`; their
@@ -43,7 +43,8 @@ import os
 
 import numpy as np
 
-from rigctl.config import CoilBoardSettings, CoilThermal, Emulation, RigConfig, RigInfo
+from rigctl.core.config import CoilBoardSettings, CoilThermal, Emulation, RigConfig, RigInfo
+from rigctl.core.errors import ConfigError
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.camera.render import Scene
 from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
@@ -53,7 +54,6 @@ from rigctl.emulators.world.coilboard import (
     CoilBoardWorld,
     intestine_ring_spec,
 )
-from rigctl.errors import ConfigError
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
 

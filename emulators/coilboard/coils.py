@@ -1,6 +1,6 @@
 """The coil board's four coils as the emulated bench builds them: windings that heat.
 
-Each coil's winding follows `rigctl.thermal` under the voltage its SyRen puts across it (the
+Each coil's winding follows `rigctl.physics.thermal` under the voltage its SyRen puts across it (the
 output, -1..1, times the SyRens' supply: P = V^2 / R(T)), with thermal data of its own: the rig
 file's R_th and C_th, each off by a seeded error uniform in +-`size` (`ThermalErrors`, default
 5 %, as the six-coil bench's windings are 5 % off), so that the host's model meets windings that
@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.config import CoilBoardSettings
-from rigctl.thermal import Windings, step_voltage_one
+from rigctl.core.config import CoilBoardSettings
+from rigctl.physics.thermal import Windings, step_voltage_one
 
 CUTOUT_ABOVE_LIMIT_K = 10.0
 CUTOUT_HYSTERESIS_K = 10.0

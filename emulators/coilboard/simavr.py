@@ -30,7 +30,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from rigctl.errors import DeviceError
+from rigctl.core.errors import DeviceError
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ that is constant over a step, so the coil current follows the exact solution of 
   decays through the coil's own resistance with the same time constant (an "active" load type
   in the manual's terms, Sec. 3.3.7); the terminal voltage reads 0.
 
-The winding heats (`rigctl.thermal`, given a `winding`): its temperature follows the Joule power
+The winding heats (`rigctl.physics.thermal`, given a `winding`): its temperature follows the Joule power
 of the coil's current over every step, and when it reaches `trip_C` the supply trips on
 over-temperature exactly as `inject_overtemperature` makes it (output off, device error 20101
 queued, questionable bit 3): the coil's thermal cut-out wired to the BOP's interlock, which is how
@@ -39,7 +39,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Literal
 
-from rigctl.thermal import Windings, step_current_one
+from rigctl.physics.thermal import Windings, step_current_one
 
 Mode = Literal["CURR", "VOLT"]
 
@@ -106,7 +106,7 @@ class BopCoilModel:
         self._errors: deque[tuple[int, str]] = deque()
         self.event_status = 0  # IEEE 488.2 standard event status register, cleared by *ESR? / *CLS
         self.questionable_event = 0  # latched questionable bits, cleared by STAT:QUES? / *CLS
-        # the winding (one, `rigctl.thermal.Windings`): its temperature, peak, and trip point
+        # the winding (one, `rigctl.physics.thermal.Windings`): its temperature, peak, and trip point
         self.winding = winding
         self._winding = None if winding is None else winding.one()
         self.winding_C = None if winding is None else float(winding.ambient_C[0])

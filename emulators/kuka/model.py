@@ -14,7 +14,7 @@ Targets outside the joint limits are refused (`TargetRejected`) before anything 
 joint (`stall(i)`, a backdoor fault) stops following commands; the others carry on, so the motion
 ends away from the target and a PTP reports failure.
 
-Joint limits and speeds default to the LBR iiwa 14 R820 data sheet values (`rigctl.kinematics`);
+Joint limits and speeds default to the LBR iiwa 14 R820 data sheet values (`rigctl.physics.kinematics`);
 the accelerations are not published and are a guess (docs/kuka-sunrise.md). Angles in rad, time in s.
 """
 
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.kinematics import LBR_IIWA_14_R820, N_JOINTS, ArmModel
+from rigctl.physics.kinematics import LBR_IIWA_14_R820, N_JOINTS, ArmModel
 
 SERVO_TIMEOUT_S = 0.5
 PTP_REACHED_RAD = math.radians(0.1)  # KST's own "reached" clearance for conditional PTP moves

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 from rigctl.plans.workspace import Workspace
 
 # Coil i pulls towards centre + D * COIL_DIRECTIONS[i] (the board protocol's order +x, -x, +y, -y).

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from magpylib.core import magnet_cylinder_axial_Bfield
 
-from rigctl.magnetics import MU0, gradient_terms
+from rigctl.physics.magnetics import MU0, gradient_terms
 
 SEED_003_EPM_DIAMETER_M = 0.1016
 SEED_003_EPM_LENGTH_M = 0.1016

@@ -25,10 +25,10 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.coils import coil_field_and_gradient
-from rigctl.config import RigConfig
+from rigctl.core.config import RigConfig
 from rigctl.emulators.world.rolling import Mismatch
-from rigctl.magnetics import MU0
+from rigctl.physics.coils import coil_field_and_gradient
+from rigctl.physics.magnetics import MU0
 from rigctl.plans.pair import PairPhysics
 
 ACTUATED_FIELD_T = 1e-4

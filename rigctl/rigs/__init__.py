@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, PlanError
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, PlanError
 from rigctl.rigs import coil_board, depm, six_coil
 from rigctl.rigs.base import Device, RigKind
 

@@ -13,8 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from rigctl.channels import Channel
-from rigctl.config import RigConfig
+from rigctl.core.channels import Channel
+from rigctl.core.config import RigConfig
 
 if TYPE_CHECKING:
     from rigctl.run.hold import HoldRequest
@@ -60,7 +60,7 @@ class RigKind:
     plan against it before a bench is started."""
 
     def builder(self, plan_kind: str) -> RunBuilder:
-        from rigctl.errors import PlanError
+        from rigctl.core.errors import PlanError
 
         if plan_kind == "hold":
             return self._hold_run

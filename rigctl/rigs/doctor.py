@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, RigError
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, RigError
 from rigctl.rigs import rig_kind
 from rigctl.rigs.base import Device
 
@@ -39,8 +39,8 @@ ROUND_TRIPS = 20  # `MEAS:CURR?` queries timed per supply by `rigctl doctor`
 
 
 def _supply(rig: RigConfig, device: Device, timed: bool = False) -> str:
+    from rigctl.core.transport import open_transport
     from rigctl.drivers.kepco_bop import KepcoBop
-    from rigctl.transport import open_transport
 
     coil = next(c for c in rig.coils if c.name == device.name)
     timeout = rig.stream.reply_timeout_s

@@ -42,7 +42,7 @@ import time
 from collections.abc import Iterable
 from typing import IO, Any
 
-from rigctl.errors import RigError
+from rigctl.core.errors import RigError
 
 ARMED = b"armed\n"
 ARM_TIMEOUT_S = 60.0  # the guardian's imports on a loaded machine (quiet: 0.5 s)
@@ -161,7 +161,7 @@ class Ward:
         self.since = time.monotonic()
 
     def arm(self, rig_json: str) -> None:
-        from rigctl.config import RigConfig
+        from rigctl.core.config import RigConfig
         from rigctl.rigs import rig_kind
 
         self.rig = RigConfig.model_validate_json(rig_json)
@@ -276,7 +276,7 @@ def main(argv: list[str]) -> int:
     # its report names every device and what became of it; the make-safe's own log lines for a
     # device it cannot reach would repeat that at every try
     logging.disable(logging.ERROR)
-    import rigctl.config  # noqa: F401  the slow imports, done before the owner needs us
+    import rigctl.core.config  # noqa: F401  the slow imports, done before the owner needs us
     import rigctl.rigs  # noqa: F401
 
     ward = Ward(owner, owner_pid, sys.stdout.buffer)

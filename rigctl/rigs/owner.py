@@ -23,8 +23,8 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from rigctl.config import RigConfig
-from rigctl.errors import ConfigError
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError
 
 TRIES = 5
 
@@ -55,8 +55,8 @@ def lock_dir() -> Path:
 def device_keys(rig: RigConfig) -> list[str]:
     """The rig's devices as lock keys: their URLs in one spelling (TCPIP:: or tcp://), sorted (the
     order locks are taken in, so two processes never wait on each other crosswise)."""
+    from rigctl.core.transport import canonical_url
     from rigctl.rigs import rig_kind
-    from rigctl.transport import canonical_url
 
     return sorted({canonical_url(d.url) for d in rig_kind(rig.rig.kind).devices(rig) if d.url})
 

@@ -7,8 +7,8 @@ from typing import Protocol
 
 import numpy as np
 
-from rigctl.channels import Channel
-from rigctl.thermal import Windings
+from rigctl.core.channels import Channel
+from rigctl.physics.thermal import Windings
 
 
 class Actuators(Protocol):

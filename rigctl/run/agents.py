@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rigctl.core.errors import RigError
 from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.errors import RigError
 from rigctl.plans.schema import Plan
 from rigctl.run.summary import AgentResult
 

@@ -12,9 +12,9 @@ from collections.abc import Callable
 from enum import Enum
 from typing import TYPE_CHECKING
 
-from rigctl.errors import RigError
-from rigctl.record import RunRecord
-from rigctl.stream import StreamLoop
+from rigctl.core.errors import RigError
+from rigctl.core.record import RunRecord
+from rigctl.core.stream import StreamLoop
 
 if TYPE_CHECKING:
     from rigctl.run.actuators import Actuators

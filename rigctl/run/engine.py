@@ -30,16 +30,16 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
-from rigctl.certificate import Certificate, Check, certify
-from rigctl.config import RigConfig, dump_rig
-from rigctl.errors import LimitError, RigError, interrupt_name, shielded_from_interrupts, take_interrupt
-from rigctl.record import RunRecord
+from rigctl.core.config import RigConfig, dump_rig
+from rigctl.core.errors import LimitError, RigError, interrupt_name, shielded_from_interrupts, take_interrupt
+from rigctl.core.record import RunRecord
+from rigctl.core.stream import StreamLoop, StreamStats
+from rigctl.physics.thermal import WindingMonitor
 from rigctl.run.actuators import Actuators
+from rigctl.run.certificate import Certificate, Check, certify
 from rigctl.run.control import EStopped, RunControl, RunState
 from rigctl.run.interruptions import HoldLimit
 from rigctl.run.summary import RunSummary
-from rigctl.stream import StreamLoop, StreamStats
-from rigctl.thermal import WindingMonitor
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +129,7 @@ class RigProgram(Protocol):
     def close(self) -> None: ...
 
     def checks(self) -> list[Check]:
-        """The pre-flight of the whole plan on this rig (`rigctl.certificate`), no I/O."""
+        """The pre-flight of the whole plan on this rig (`rigctl.run.certificate`), no I/O."""
 
 
 class Run(RunControl):
@@ -148,7 +148,7 @@ class Run(RunControl):
         self.on_frame = on_frame  # handed to the program's tracking loop (`TrackingLoop.tap`)
         # the live winding model's estimate ten times a second (monotonic s, C per winding, its
         # state), and where it starts (None: the room; a daemon's windings still warm from the
-        # last run: `rigctl.daemon.telemetry.WindingEstimate`)
+        # last run: `rigctl.apps.daemon.telemetry.WindingEstimate`)
         self.on_winding = on_winding
         self.winding_start_C = winding_start_C
         self.plan = program.plan
@@ -394,7 +394,7 @@ def _raise_lost_interrupt() -> None:
 
 
 class _HeatWatch:
-    """The winding model (`rigctl.thermal`) run live on what the actuators report driving their
+    """The winding model (`rigctl.physics.thermal`) run live on what the actuators report driving their
     windings, whichever drives them (`Windings.volts_per_unit`): the supplies' measured currents,
     or the drive the coil board applied (its SyRens put a voltage on the coils, whose current
     nothing measures). Its estimate is the run record's `winding` series (written as it goes)

@@ -24,8 +24,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, RigError
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, RigError
 from rigctl.run.engine import Outcome, RunContext, Step
 
 CANNOT_PAUSE = "a manual hold cannot be paused: release it"

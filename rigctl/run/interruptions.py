@@ -9,7 +9,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-from rigctl.errors import DeviceTimeout
+from rigctl.core.errors import DeviceTimeout
 
 
 class Requests:

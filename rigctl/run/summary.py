@@ -154,7 +154,7 @@ def exit_code(summary: RunSummary) -> int:
     """The README's exit status of a finished run: 3 a fault, an abort, an e-stop or a device not
     confirmed safe; 2 refused before anything was energised; 1 the goal was not reached; 0 it
     was."""
-    from rigctl.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_NOT_REACHED, EXIT_OK
+    from rigctl.core.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_NOT_REACHED, EXIT_OK
 
     if not summary.safe:
         return EXIT_FAULT

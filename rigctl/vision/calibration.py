@@ -28,14 +28,14 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.camera_model import (
+from rigctl.core.camera_model import (
     UNDISTORT_CRITERIA,
     Calibration,
     CalibrationError,
     apply_homography,
     x_axis_angle_deg,
 )
-from rigctl.errors import ConfigError
+from rigctl.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

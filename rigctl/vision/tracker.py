@@ -40,10 +40,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import linear_sum_assignment
 
-from rigctl.errors import ConfigError
+from rigctl.core.errors import ConfigError
 
 if TYPE_CHECKING:
-    from rigctl.camera_model import Calibration
+    from rigctl.core.camera_model import Calibration
 
 log = logging.getLogger(__name__)
 

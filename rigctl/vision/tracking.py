@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.config import CameraSettings
+from rigctl.core.config import CameraSettings
+from rigctl.core.errors import ConfigError, DeviceTimeout, Disconnected, RigError
 from rigctl.drivers.camera import CameraDriver
-from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, RigError
 from rigctl.vision.tracker import Tracker
 
 log = logging.getLogger(__name__)

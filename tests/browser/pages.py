@@ -10,8 +10,8 @@ import sys
 import time
 from pathlib import Path
 
-from rigctl.client import Rig
-from rigctl.config import dump_rig, load_rig
+from rigctl.apps.client import Rig
+from rigctl.core.config import dump_rig, load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 

@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from rigctl.testing import wait_for
+from rigctl.apps.testing import wait_for
 from tests.browser.pages import (
     bench_daemon,
     click,

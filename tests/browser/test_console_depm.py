@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.config import load_rig
-from rigctl.kinematics import ArmKinematics, base_transform
-from rigctl.testing import wait_for
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import load_rig
+from rigctl.physics.kinematics import ArmKinematics, base_transform
 from tests.browser.pages import (
     bench_daemon,
     click,

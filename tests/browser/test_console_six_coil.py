@@ -11,8 +11,8 @@ import math
 
 import pytest
 
-from rigctl.config import load_rig
-from rigctl.testing import wait_for
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import load_rig
 from tests.browser.pages import (
     EXAMPLES,
     bench_daemon,

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.cli.execute import refuse_foreign_bench_flags
-from rigctl.cli.main import build_parser, main
-from rigctl.errors import ConfigError
+from rigctl.apps.cli.execute import refuse_foreign_bench_flags
+from rigctl.apps.cli.main import build_parser, main
+from rigctl.core.errors import ConfigError
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 PLAN = str(EXAMPLES / "fig4-quick.json")

@@ -20,7 +20,7 @@ PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "coilboard-d
 def test_execute_delivers_both_particles_within_the_tolerance(tmp_path):
     plan = load_plan(PLAN)
     with EmulatedBenchProcess("coil-board", tmp_path / "bench.toml") as rig_file:
-        from rigctl.config import load_rig
+        from rigctl.core.config import load_rig
 
         rig = load_rig(rig_file)
         with BackdoorClient(rig.emulation.backdoor) as backdoor:

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.client import Rig
-from rigctl.config import load_rig
+from rigctl.apps.client import Rig
+from rigctl.apps.testing import plan_pair, wait_for
+from rigctl.core.config import load_rig
+from rigctl.core.record import read_events, read_stream
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.record import read_events, read_stream
-from rigctl.testing import plan_pair, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"
@@ -84,7 +84,7 @@ def test_status_execute_remote_and_estop_verbs(daemon, tmp_path):
     assert status.returncode == 0, status.stderr
     assert "state: idle" in status.stdout and "x+" in status.stdout
 
-    from rigctl.cli.daemon import execute_remote
+    from rigctl.apps.cli.daemon import execute_remote
 
     code = execute_remote(EXAMPLES / "fig4-quick.json", command, json_out=True, quiet=True)
     assert code == 0
@@ -198,7 +198,7 @@ def test_a_pair_plan_submitted_to_a_daemon_on_the_pair_bench(tmp_path):
     report = run_cli("report", str(run_dir), "-o", str(tmp_path / "pair.png"), cwd=tmp_path)
     assert report.returncode == 0, report.stderr
     assert (tmp_path / "pair.png").stat().st_size > 10_000
-    from rigctl.report import _agent_paths
+    from rigctl.apps.report import _agent_paths
 
     source = json.loads(plan.read_text())
     start, body = source["start"], source["agents"]["body_diameter_mm"]
@@ -215,8 +215,8 @@ def test_a_pair_plan_submitted_to_a_daemon_on_the_pair_bench(tmp_path):
 def test_the_daemon_zeroes_a_supply_left_energised_before_it_serves(bench, tmp_path):
     """A process killed mid-run leaves a Kepco BOP at its last setpoint (it has no link watchdog):
     the daemon makes every device safe when it starts, before its READY line."""
+    from rigctl.core.transport import open_transport
     from rigctl.drivers.kepco_bop import KepcoBop
-    from rigctl.transport import open_transport
 
     coil = load_rig(bench).coils[0]
     bop = KepcoBop(open_transport(coil.url), name=coil.name)

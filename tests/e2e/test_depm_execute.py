@@ -17,19 +17,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.cli.main import build_parser, main
-from rigctl.config import load_rig
+from rigctl.apps.cli.main import build_parser, main
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import load_rig
+from rigctl.core.record import read_events, read_series, read_stream
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.kinematics import DEFAULT_BASES, default_arms
-from rigctl.magnetics import U_COMPONENTS, field_vector
+from rigctl.physics.kinematics import DEFAULT_BASES, default_arms
+from rigctl.physics.magnetics import U_COMPONENTS, field_vector
 from rigctl.plans.depm import EPM_MOMENT_AM2
 from rigctl.plans.schema import load_plan, parse_plan
-from rigctl.record import read_events, read_series, read_stream
 from rigctl.rigs.depm.run import FieldSequenceRun
 from rigctl.run.control import RunState
 from rigctl.run.summary import exit_code
-from rigctl.testing import wait_for
 
 MOMENT = EPM_MOMENT_AM2  # the planner's (and the bench's) default EPM
 TIME_SCALE = 4.0

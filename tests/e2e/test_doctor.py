@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from rigctl.config import load_rig
+from rigctl.core.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 
@@ -76,7 +76,7 @@ def test_doctor_names_a_device_stopped_unplugged_or_answering_garbage(kind, tmp_
 
 
 def test_doctor_times_each_supplys_round_trip_against_the_rig_files(tmp_path):
-    from rigctl.config import dump_rig
+    from rigctl.core.config import dump_rig
 
     with EmulatedBenchProcess("six-coil", tmp_path / "bench.toml") as rig_path:
         code, report = doctor(rig_path)

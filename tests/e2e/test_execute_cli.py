@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rigctl.apps.testing import run_rigctl
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.testing import run_rigctl
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"
@@ -120,7 +120,7 @@ def test_json_puts_exactly_one_document_on_stdout_errors_included(tmp_path):
 
 
 def test_every_command_has_its_own_action_and_help(tmp_path):
-    from rigctl.cli.main import build_parser
+    from rigctl.apps.cli.main import build_parser
 
     parser = build_parser()
     commands = parser._subparsers._group_actions[0].choices

@@ -10,8 +10,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from rigctl.faults import OUTCOMES, PROFILES
-from rigctl.testing import run_rigctl
+from rigctl.apps.faults import OUTCOMES, PROFILES
+from rigctl.apps.testing import run_rigctl
 
 
 def events(run_dir: Path) -> list[dict]:

@@ -23,13 +23,13 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.client import Rig
-from rigctl.config import RigConfig, load_rig
+from rigctl.apps.client import Rig
+from rigctl.apps.testing import descendants, wait_for
+from rigctl.core.config import RigConfig, load_rig
+from rigctl.core.errors import ConfigError
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.errors import ConfigError
 from rigctl.rigs.owner import holder_of
-from rigctl.testing import descendants, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"

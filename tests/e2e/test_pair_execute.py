@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.testing import plan_pair, run_rigctl
+from rigctl.apps.testing import plan_pair, run_rigctl
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"

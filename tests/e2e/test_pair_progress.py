@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
+from rigctl.apps.testing import plan_pair, run_rigctl
 from rigctl.rigs.six_coil.pair import PairStages
 from rigctl.run.progress import Progress
-from rigctl.testing import plan_pair, run_rigctl
 
 ROOT = Path(__file__).resolve().parents[2]
 WORKSPACE = ROOT / "plans" / "examples" / "pair-formation-change-workspace.json"

@@ -22,13 +22,13 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.client import DaemonUnreachable, Rig
-from rigctl.config import load_rig
+from rigctl.apps.client import DaemonUnreachable, Rig
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import load_rig
+from rigctl.core.record import read_events
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.record import read_events
 from rigctl.rigs.owner import holder_of
-from rigctl.testing import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"

@@ -19,11 +19,11 @@ import sys
 import time
 from pathlib import Path
 
-from rigctl.client import Rig
-from rigctl.config import load_rig
+from rigctl.apps.client import Rig
+from rigctl.apps.testing import descendants, wait_for
+from rigctl.core.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
-from rigctl.testing import descendants, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 UNIT = ROOT / "systemd" / "rigctl.service"

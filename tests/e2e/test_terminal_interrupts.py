@@ -26,9 +26,9 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.client import Rig
-from rigctl.record import read_events
-from rigctl.testing import wait_for
+from rigctl.apps.client import Rig
+from rigctl.apps.testing import wait_for
+from rigctl.core.record import read_events
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"

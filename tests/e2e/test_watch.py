@@ -13,12 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.client import Rig
-from rigctl.config import load_rig
+from rigctl.apps.client import Rig
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.rigs.owner import holder_of
-from rigctl.testing import wait_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 RIGCTL = [sys.executable, "-m", "rigctl"]

@@ -10,12 +10,12 @@ import time
 import numpy as np
 import pytest
 
+from rigctl.core.errors import DeviceError
+from rigctl.core.transport import open_transport
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
-from rigctl.errors import DeviceError
-from rigctl.transport import open_transport
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier

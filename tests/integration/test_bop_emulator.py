@@ -13,11 +13,11 @@ import time
 
 import pytest
 
+from rigctl.core.errors import DeviceError, DeviceTimeout, Disconnected, ProtocolError
+from rigctl.core.transport import open_transport
 from rigctl.drivers.kepco_bop import GARBLED_STREAK, KepcoBop
 from rigctl.emulators.kepco_bop import serve_bop
 from rigctl.emulators.server import EmulatorServer
-from rigctl.errors import DeviceError, DeviceTimeout, Disconnected, ProtocolError
-from rigctl.transport import open_transport
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier

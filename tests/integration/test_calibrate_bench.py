@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.cli.main import main
-from rigctl.config import dump_rig, load_rig
+from rigctl.apps.cli.main import main
+from rigctl.core.config import dump_rig, load_rig
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier

@@ -13,12 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.config import load_rig
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.six_coil.global_moves import Run
-from rigctl.testing import wait_for
 
 PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "fig4-two-magnets.json"
 

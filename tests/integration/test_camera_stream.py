@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
+from rigctl.core.errors import DeviceTimeout, Disconnected
 from rigctl.drivers.camera import CameraDriver, write_stamp
 from rigctl.emulators.camera import CameraModel, Renderer, Scene, serve_camera
 from rigctl.emulators.server import EmulatorServer
-from rigctl.errors import DeviceTimeout, Disconnected
 from rigctl.plans.workspace import ShapeWorkspace
 from rigctl.vision.calibration import boundary_corners_mm, calibrate_camera
 from rigctl.vision.tracker import Tracker

@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.config import load_rig
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.six_coil.global_moves import Run, execute_plan
 from rigctl.rigs.six_coil.supervisor import SupervisorSettings
-from rigctl.testing import wait_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 QUICK = EXAMPLES / "fig4-quick.json"
@@ -147,8 +147,8 @@ def test_a_frozen_camera_suspends_the_run_with_the_field_held_and_it_resumes(tmp
 
 
 def test_calibrate_camera_from_markers_agrees_with_the_emulated_camera(tmp_path):
-    from rigctl.cli.main import main
-    from rigctl.config import dump_rig
+    from rigctl.apps.cli.main import main
+    from rigctl.core.config import dump_rig
     from rigctl.emulators.bench import SixCoilBench
 
     markers = [[80.0, 90.0], [310.0, 70.0], [290.0, 320.0], [100.0, 300.0], [200.0, 180.0]]

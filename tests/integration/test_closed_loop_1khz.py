@@ -20,16 +20,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.certificate import CertificateRefused
-from rigctl.cli.main import main
-from rigctl.config import load_rig
+from rigctl.apps.cli.main import main
+from rigctl.core.config import load_rig
+from rigctl.core.record import read_events, read_stream
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
-from rigctl.record import read_events, read_stream
 from rigctl.rigs.coil_board.run import CoilBoardRun, execute_coilboard
 from rigctl.rigs.six_coil.global_moves import execute_plan
 from rigctl.rigs.six_coil.pair import PairRun
+from rigctl.run.certificate import CertificateRefused
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 KILOHERTZ = 1000.0

@@ -13,8 +13,8 @@ import time
 import numpy as np
 import pytest
 
-from rigctl.certificate import CertificateRefused, read_certificate
-from rigctl.config import (
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import (
     CoilThermal,
     FieldSettings,
     PreflightSettings,
@@ -23,15 +23,15 @@ from rigctl.config import (
     StreamSettings,
     default_six_coil_coils,
 )
+from rigctl.core.errors import DeviceError
+from rigctl.core.record import read_events, read_series
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
-from rigctl.errors import DeviceError
+from rigctl.physics.thermal import Windings, winding_temperatures
 from rigctl.plans.schema import parse_plan
-from rigctl.record import read_events, read_series
 from rigctl.rigs.six_coil.global_moves import Run
 from rigctl.rigs.six_coil.supplies import CoilSupplies
-from rigctl.testing import wait_for
-from rigctl.thermal import Windings, winding_temperatures
+from rigctl.run.certificate import CertificateRefused, read_certificate
 
 # A deliberately small winding (6 J/K, tau = 3 s) so that heating takes seconds, not hours
 SMALL = CoilThermal(thermal_resistance_K_per_W=0.5, thermal_capacity_J_per_K=6.0, ambient_C=25.0,

@@ -18,10 +18,10 @@ import time
 
 import pytest
 
+from rigctl.apps.testing import wait_for
+from rigctl.core.errors import DeviceTimeout
+from rigctl.core.transport import open_transport
 from rigctl.emulators.coilboard.simavr import FIRMWARE_DIR, SimavrBoard, SimavrUnavailable, require_tools
-from rigctl.errors import DeviceTimeout
-from rigctl.testing import wait_for
-from rigctl.transport import open_transport
 
 try:
     require_tools()

@@ -19,16 +19,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.config import CoilThermal, load_rig
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import CoilThermal, load_rig
+from rigctl.core.record import read_events, read_series
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
-from rigctl.record import read_events, read_series
 from rigctl.rigs import rig_kind
 from rigctl.rigs.coil_board.run import CoilBoardRun
 from rigctl.run.control import RunState
 from rigctl.run.hold import HoldPlan
-from rigctl.testing import wait_for
 
 PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "coilboard-disk.json"
 NAMES = ("+x", "-x", "+y", "-y")

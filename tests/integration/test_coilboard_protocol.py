@@ -28,13 +28,13 @@ from pathlib import Path
 
 import pytest
 
+from rigctl.apps.testing import wait_for
+from rigctl.core.errors import DeviceTimeout, Disconnected
+from rigctl.core.stream import StreamLoop
+from rigctl.core.transport import Transport, open_transport
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.emulators.coilboard.firmware import FirmwareEmulator
 from rigctl.emulators.coilboard.syren import SyrenBus, SyrenWireReader
-from rigctl.errors import DeviceTimeout, Disconnected
-from rigctl.stream import StreamLoop
-from rigctl.testing import wait_for
-from rigctl.transport import Transport, open_transport
 
 HANDSHAKEN, WATCHDOG, SYREN_READY = 0x01, 0x02, 0x04
 STATUS_FORMAT = "<BI4bHHH"

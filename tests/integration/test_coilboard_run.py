@@ -18,14 +18,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.config import load_rig
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.coil_board.run import CoilBoardRun, CoilBoardRunSettings
 from rigctl.run.control import RunState
 from rigctl.run.summary import exit_code
-from rigctl.testing import wait_for
 
 PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "coilboard-disk.json"
 ZERO = [0.0, 0.0, 0.0, 0.0]
@@ -334,7 +334,7 @@ def test_a_measured_position_alg_1_pulls_into_its_region_does_not_re_plan_every_
     loop must drive Alg. 1's moves, not re-plan again each cycle without ever yielding (it starved
     the stream process until the daemon killed it). The moves are driven by a perfect rig here:
     each ends exactly where Alg. 1 expects."""
-    from rigctl.faults import _coil_board_plan
+    from rigctl.apps.faults import _coil_board_plan
     from rigctl.plans.schema import parse_plan
     from rigctl.rigs.coil_board import run as board_run
 

@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
+from rigctl.apps.testing import wait_for
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.world.coilboard import CoilBoardPhysics
-from rigctl.testing import wait_for
 
 DISK = {"boundary": {"disk": [0.0, 0.0, 23.0]}, "obstacles": []}
 R = 0.5

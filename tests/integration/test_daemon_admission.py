@@ -1,6 +1,6 @@
 """Twenty clients asking `status` as fast as they are answered get the daemon's request budget
 between them, every one of them some of it, and an e-stop sent in the middle of the flood is
-carried out at once (`rigctl.daemon.admission`, issue 15: the stream comes first)."""
+carried out at once (`rigctl.apps.daemon.admission`, issue 15: the stream comes first)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import time
 import pytest
 import zmq
 
-from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
-from rigctl.daemon.server import Daemon
+from rigctl.apps.daemon.server import Daemon
+from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier

@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.client import CommandRefused, Rig
-from rigctl.config import StreamSettings
-from rigctl.daemon.server import Daemon
+from rigctl.apps.client import CommandRefused, Rig
+from rigctl.apps.daemon.server import Daemon
+from rigctl.apps.testing import plan_pair, wait_for
+from rigctl.core.config import StreamSettings
+from rigctl.core.record import read_events, read_stream
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
-from rigctl.record import read_events, read_stream
-from rigctl.testing import plan_pair, wait_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 

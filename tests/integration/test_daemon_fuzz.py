@@ -16,10 +16,10 @@ import pytest
 import zmq
 from hypothesis import HealthCheck, given, settings
 
-from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
-from rigctl.daemon.messages import HARD_MAX_MESSAGE_BYTES, Command
-from rigctl.daemon.server import Daemon
-from rigctl.errors import PlanError
+from rigctl.apps.daemon.messages import HARD_MAX_MESSAGE_BYTES, Command
+from rigctl.apps.daemon.server import Daemon
+from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.errors import PlanError
 from rigctl.plans.schema import MAX_IMAGE_PIXELS
 
 _spec = importlib.util.spec_from_file_location(
@@ -99,7 +99,7 @@ def test_an_exception_in_handling_a_request_is_an_internal_reply_logged_with_its
         raise RuntimeError("a bug")
 
     monkeypatch.setattr(daemon, "_replay_key", broken)  # on the command thread, outside handlers
-    with caplog.at_level(logging.ERROR, logger="rigctl.daemon.server"):
+    with caplog.at_level(logging.ERROR, logger="rigctl.apps.daemon.server"):
         assert answered(probe, [b'{"id":"abcdefgh","cmd":"abort"}']) == "internal"
     assert any(r.exc_info and "a bug" in str(r.exc_info[1]) for r in caplog.records)
     monkeypatch.undo()

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.client import CommandRefused
+from rigctl.apps.client import CommandRefused
+from rigctl.apps.testing import daemon_on, wait_for
+from rigctl.core.record import read_events
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
-from rigctl.record import read_events
-from rigctl.testing import daemon_on, wait_for
 
 
 @pytest.fixture

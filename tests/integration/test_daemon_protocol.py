@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import zmq
 
-from rigctl.client import CommandRefused, DaemonUnreachable, Rig
-from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
-from rigctl.daemon.messages import MAX_REQUEST_BYTES, DaemonState, StateMsg
-from rigctl.daemon.server import TRANSITIONS, Daemon
-from rigctl.daemon.telemetry import CycleBatch
-from rigctl.errors import PlanError
+from rigctl.apps.client import CommandRefused, DaemonUnreachable, Rig
+from rigctl.apps.daemon.messages import MAX_REQUEST_BYTES, DaemonState, StateMsg
+from rigctl.apps.daemon.server import TRANSITIONS, Daemon
+from rigctl.apps.daemon.telemetry import CycleBatch
+from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.errors import PlanError
+from rigctl.core.stream import StreamLoop
 from rigctl.run.control import RunState
-from rigctl.stream import StreamLoop
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier
@@ -198,7 +198,7 @@ def raw_req(endpoint, payload: bytes, timeout_ms=3000):
 def test_plain_req_socket_ping_and_status(daemon):
     reply = raw_req(daemon.endpoints.command, b'{"id": 7, "cmd": "ping"}')
     assert reply["id"] == 7 and reply["ok"] is True
-    assert reply["result"]["protocol"] == "rigctl.daemon/1"
+    assert reply["result"]["protocol"] == "rigctl.apps.daemon/1"
     status = raw_req(daemon.endpoints.command, b'{"id": "s", "cmd": "status", "args": {}}')
     result = status["result"]
     assert result["state"] == "idle"
@@ -208,7 +208,7 @@ def test_plain_req_socket_ping_and_status(daemon):
 
 
 def test_status_and_estop_answered_without_the_models_are_what_the_models_would_say(daemon):
-    from rigctl.daemon.messages import Reply, ok_reply
+    from rigctl.apps.daemon.messages import Reply, ok_reply
 
     for request_id, payload in [("s", b'{"id": "s", "cmd": "status", "args": {}}'),
                                 (8, b'{"cmd": "status", "id": 8}'), (None, b'{"cmd": "status"}')]:

@@ -6,13 +6,13 @@ import socket
 
 import pytest
 
-from rigctl.client import DaemonUnreachable, Rig, Telemetry
-from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
-from rigctl.daemon.keys import allow, new_keypair
-from rigctl.daemon.messages import is_loopback_endpoint
-from rigctl.daemon.sdnotify import SystemdNotifier
-from rigctl.daemon.server import Daemon
-from rigctl.errors import ConfigError
+from rigctl.apps.client import DaemonUnreachable, Rig, Telemetry
+from rigctl.apps.daemon.keys import allow, new_keypair
+from rigctl.apps.daemon.messages import is_loopback_endpoint
+from rigctl.apps.daemon.sdnotify import SystemdNotifier
+from rigctl.apps.daemon.server import Daemon
+from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.errors import ConfigError
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier
@@ -70,7 +70,7 @@ def test_only_allowed_operator_keys_get_any_reply(keys, tmp_path):
         # telemetry: alice hears the state heartbeat, mallory hears nothing
         events_port = endpoints.events.rsplit(":", 1)[1]
         data_port = endpoints.telemetry.rsplit(":", 1)[1]
-        from rigctl.client import _Curve
+        from rigctl.apps.client import _Curve
 
         heard = {}
         for who in ("alice", "mallory"):
@@ -105,9 +105,9 @@ def test_ready_and_watchdog_go_to_the_notify_socket(tmp_path):
 def test_the_allow_list_is_read_again_when_its_folder_changes(keys, tmp_path):
     """Revoking a key needs no restart: removed, its open connection is refused (`forbidden`)
     and a new one gets nothing; a key added gets in."""
-    from rigctl.client import CommandRefused
-    from rigctl.daemon.keys import ALLOW_LIST_POLL_S
-    from rigctl.testing import wait_for
+    from rigctl.apps.client import CommandRefused
+    from rigctl.apps.daemon.keys import ALLOW_LIST_POLL_S
+    from rigctl.apps.testing import wait_for
 
     daemon = Daemon(RIG, runs_dir=tmp_path, server_key=keys["server_secret"],
                     allowed_keys=keys["allowed"], **LOOPBACK)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import zmq
 
-from rigctl.channels import Channel
-from rigctl.client import Telemetry
-from rigctl.daemon.messages import DaemonState, Topic
-from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
+from rigctl.apps.client import Telemetry
+from rigctl.apps.daemon.messages import DaemonState, Topic
+from rigctl.apps.daemon.telemetry import CycleBatch, TelemetryPublisher
+from rigctl.core.channels import Channel
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier

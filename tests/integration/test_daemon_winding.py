@@ -20,12 +20,12 @@ import numpy as np
 import pytest
 import zmq
 
-from rigctl.config import CoilThermal
+from rigctl.apps.testing import daemon_on, wait_for
+from rigctl.core.config import CoilThermal
+from rigctl.core.record import read_series
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
-from rigctl.record import read_series
-from rigctl.testing import daemon_on, wait_for
 
 # 6 ohm on 12 V: full drive is 24 W, T_inf = 25 + 2.5 x 24 = 85 C, tau = 2.5 x 4 = 10 s
 THERMAL = CoilThermal(thermal_resistance_K_per_W=2.5, thermal_capacity_J_per_K=4.0, ambient_C=25.0,

@@ -1,4 +1,4 @@
-"""The fault campaign asks each emulated bench which faults it has (`rigctl.faults.bench_faults`)
+"""The fault campaign asks each emulated bench which faults it has (`rigctl.apps.faults.bench_faults`)
 over the bench's real backdoor; the answer must be what each bench module's docstring documents
 (the lists below are copied from those docstrings, not from the code that serves them)."""
 
@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import pytest
 
+from rigctl.apps.faults import bench_faults
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.coilboard.bench import CoilBoardBench
 from rigctl.emulators.depm import DepmBench
-from rigctl.faults import bench_faults
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier

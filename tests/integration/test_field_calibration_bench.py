@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.cli.main import main
-from rigctl.coils import actuation_matrix
-from rigctl.config import dump_rig, load_rig
+from rigctl.apps.cli.main import main
+from rigctl.core.config import dump_rig, load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
+from rigctl.physics.coils import actuation_matrix
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.six_coil.allocate import currents_for_field
 from rigctl.rigs.six_coil.global_moves import execute_plan

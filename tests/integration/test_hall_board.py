@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rigctl.apps.testing import wait_for
+from rigctl.core.errors import DeviceTimeout, Disconnected, ProtocolError
 from rigctl.drivers.hall import GARBLED_STREAK, HallBoard, HallStream
 from rigctl.emulators.hall.board import HallBoardServer, SensorSpec
 from rigctl.emulators.server import EmulatorServer
-from rigctl.errors import DeviceTimeout, Disconnected, ProtocolError
-from rigctl.magnetics import dipole_field, dipole_gradient, field_vector_from_sensors
+from rigctl.physics.magnetics import dipole_field, dipole_gradient, field_vector_from_sensors
 from rigctl.rigs.depm.sensors import HallWatch
-from rigctl.testing import wait_for
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier

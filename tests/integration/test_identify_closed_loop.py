@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
-from rigctl.config import load_rig
+from rigctl.apps.report import build_figure
+from rigctl.core.config import load_rig
+from rigctl.core.record import read_series
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.plans.schema import load_plan
-from rigctl.record import read_series
-from rigctl.report import build_figure
 from rigctl.rigs.six_coil.global_moves import Run
 from rigctl.rigs.six_coil.supervisor import SupervisorSettings
 

@@ -21,12 +21,12 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.cli.main import main
-from rigctl.config import StreamSettings
+from rigctl.apps.cli.main import main
+from rigctl.core.config import StreamSettings
+from rigctl.core.errors import abort_on_sigterm, take_interrupt
+from rigctl.core.record import read_events, read_stream
 from rigctl.emulators.bench import SixCoilBench
-from rigctl.errors import abort_on_sigterm, take_interrupt
 from rigctl.plans.schema import load_plan
-from rigctl.record import read_events, read_stream
 from rigctl.rigs.six_coil.pair import PairProgram, PairRunSettings
 from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.run.engine import Run

@@ -9,14 +9,14 @@ import threading
 import numpy as np
 import pytest
 
+from rigctl.apps.testing import wait_for
+from rigctl.core.errors import DeviceError, Disconnected
 from rigctl.drivers.kuka_sunrise import KukaArm
 from rigctl.emulators.depm import DepmBench
 from rigctl.emulators.kuka.arm import EmulatedArm, SimClock
 from rigctl.emulators.server import EmulatorServer
-from rigctl.errors import DeviceError, Disconnected
-from rigctl.kinematics import LBR_IIWA_14_R820
+from rigctl.physics.kinematics import LBR_IIWA_14_R820
 from rigctl.rigs.depm.actuators import ArmPair
-from rigctl.testing import wait_for
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier

@@ -1,4 +1,4 @@
-"""A local run's control endpoint (`rigctl execute`'s, `rigctl.daemon.local`) answers in the
+"""A local run's control endpoint (`rigctl execute`'s, `rigctl.apps.daemon.local`) answers in the
 daemon's shapes (docs/daemon-protocol.md): `rigctl status --rig RIG` printed `state: running` and
 then a traceback (`KeyError: 'sample'`), the local `status` having no `sample` in its `run`. Here a
 real local run on the emulated six-coil bench, owning its rig through the lock as `rigctl
@@ -11,15 +11,15 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.cli.main import main
-from rigctl.client import Rig
-from rigctl.config import StreamSettings, dump_rig
-from rigctl.daemon.local import LocalControl
+from rigctl.apps.cli.main import main
+from rigctl.apps.client import Rig
+from rigctl.apps.daemon.local import LocalControl
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import StreamSettings, dump_rig
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.owner import RigLock
 from rigctl.rigs.six_coil.global_moves import Run
-from rigctl.testing import wait_for
 
 PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "fig4-two-magnets.json"
 

@@ -12,13 +12,13 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.config import StreamSettings
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import StreamSettings
+from rigctl.core.record import read_events
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.plans.schema import load_plan
-from rigctl.record import read_events
 from rigctl.rigs.six_coil.global_moves import Run
-from rigctl.testing import wait_for
 
 PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "fig4-two-magnets.json"
 

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import pytest
 
+from rigctl.apps.testing import wait_for
+from rigctl.core.transport import open_transport
 from rigctl.drivers.kepco_bop import KepcoBop
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.rigs.six_coil.supplies import zero_supplies_directly
-from rigctl.testing import wait_for
-from rigctl.transport import open_transport
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier

@@ -22,16 +22,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.cli.main import main
-from rigctl.config import StreamSettings
+from rigctl.apps.cli.main import main
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import StreamSettings
+from rigctl.core.record import read_events, read_stream
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.plans.pair import interagent_forces
 from rigctl.plans.schema import load_plan
-from rigctl.record import read_events, read_stream
 from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings, hold_field_angle
 from rigctl.run.control import RunState
-from rigctl.testing import wait_for
 
 WORKSPACE = Path(__file__).resolve().parents[2] / "plans" / "examples" / \
     "pair-formation-change-workspace.json"

@@ -14,10 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.coils import u_actuation_matrix
+from rigctl.apps.testing import wait_for
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.world.pair import PairWorld
+from rigctl.physics.coils import u_actuation_matrix
 from rigctl.plans.pair import (
     PairPhysics,
     agent_positions,
@@ -27,7 +28,6 @@ from rigctl.plans.pair import (
 from rigctl.plans.workspace import ShapeWorkspace
 from rigctl.rigs.six_coil.allocate import currents_for_u, field_and_pull_u
 from rigctl.rigs.six_coil.supplies import CoilSupplies
-from rigctl.testing import wait_for
 
 ROOT_EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 PHYSICS = PairPhysics()
@@ -254,11 +254,11 @@ def test_a_frozen_camera_holds_the_agents_unseen_and_the_run_resumes(tmp_path):
     import threading
     from pathlib import Path
 
-    from rigctl.cli.main import main
-    from rigctl.config import StreamSettings
+    from rigctl.apps.cli.main import main
+    from rigctl.apps.testing import wait_for
+    from rigctl.core.config import StreamSettings
     from rigctl.plans.schema import load_plan
     from rigctl.rigs.six_coil.pair import PairRun
-    from rigctl.testing import wait_for
 
     workspace = Path(__file__).resolve().parents[2] / "plans" / "examples" / \
         "pair-formation-change-workspace.json"

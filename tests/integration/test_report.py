@@ -12,9 +12,9 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.channels import Channel
-from rigctl.record import RunRecord, read_events
-from rigctl.report import build_figure, render_report
+from rigctl.apps.report import build_figure, render_report
+from rigctl.core.channels import Channel
+from rigctl.core.record import RunRecord, read_events
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier
@@ -144,7 +144,7 @@ COMPONENTS = ("Bx", "By", "Bz", "dBx/dx", "dBx/dy", "dBx/dz", "dBy/dy", "dBy/dz"
 
 
 def test_a_dual_epm_record_draws_fields_gradients_and_both_arms(tmp_path):
-    from rigctl.magnetics import U_COMPONENTS
+    from rigctl.physics.magnetics import U_COMPONENTS
 
     assert tuple(U_COMPONENTS) == COMPONENTS  # the series' column names follow these
     record = RunRecord(tmp_path, DEPM_PLAN["name"])

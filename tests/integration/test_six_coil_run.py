@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.config import FieldSettings
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import FieldSettings
+from rigctl.core.errors import DeviceError, LimitError
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.bench import SixCoilBench
-from rigctl.errors import DeviceError, LimitError
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.six_coil.global_moves import execute_plan, prepare
-from rigctl.testing import wait_for
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 QUICK = EXAMPLES / "fig4-quick.json"

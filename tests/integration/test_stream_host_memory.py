@@ -1,4 +1,4 @@
-"""The stream process's loop (`rigctl.daemon.runhost.host_main`, here in this process) against the
+"""The stream process's loop (`rigctl.apps.daemon.runhost.host_main`, here in this process) against the
 six emulated supplies: an ended run leaves nothing of itself behind for the next. A run is a web of
 reference cycles (its callbacks hold it) that the stream's frozen heap moves into CPython's oldest
 generation, which is collected only when that has grown by a quarter: without a collection
@@ -11,7 +11,7 @@ import signal
 import sys
 import threading
 
-from rigctl.daemon import runhost
+from rigctl.apps.daemon import runhost
 from rigctl.emulators.bench import SixCoilBench
 from rigctl.plans.schema import parse_plan
 from rigctl.rigs.six_coil.global_moves import GlobalMovesProgram

@@ -1,4 +1,4 @@
-"""Studies on Dask (rigctl.study): two local workers give a serial run's planner results case for
+"""Studies on Dask (rigctl.apps.study): two local workers give a serial run's planner results case for
 case; a stopped study resumes without running a finished case again; emulated cases side by side
 each get a bench of their own; `rigctl study report` draws what the table holds."""
 
@@ -14,8 +14,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from rigctl.study.execution import run_study
-from rigctl.study.spec import spec_from_dict
+from rigctl.apps.study.execution import run_study
+from rigctl.apps.study.spec import spec_from_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 STUDIES = ROOT / "studies"

@@ -8,12 +8,12 @@ import time
 import numpy as np
 import pytest
 
-from rigctl.config import CameraSettings
+from rigctl.apps.testing import wait_for
+from rigctl.core.config import CameraSettings
+from rigctl.core.record import RunRecord, read_events
 from rigctl.emulators.camera import CameraModel, Renderer, Scene, serve_camera
 from rigctl.emulators.server import EmulatorServer
 from rigctl.plans.workspace import ShapeWorkspace
-from rigctl.record import RunRecord, read_events
-from rigctl.testing import wait_for
 from rigctl.vision.tracking import TrackingLoop
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
@@ -86,7 +86,7 @@ def test_tracked_events_follow_the_robots_from_the_loops_own_thread(camera, tmp_
 
 
 def test_record_to_refuses_a_rate_that_is_not_positive(camera, tmp_path):
-    from rigctl.errors import ConfigError
+    from rigctl.core.errors import ConfigError
 
     settings, _ = camera
     loop = TrackingLoop(settings, np.full(len(STARTS), RADIUS), STARTS)

@@ -1,11 +1,11 @@
 """The request budget: a token bucket refilled at the rate, a queue answered in arrival order,
-control commands never held, a bounded queue (`rigctl.daemon.admission`)."""
+control commands never held, a bounded queue (`rigctl.apps.daemon.admission`)."""
 
 from __future__ import annotations
 
 import json
 
-from rigctl.daemon.admission import Admission
+from rigctl.apps.daemon.admission import Admission
 
 STATUS = b'{"cmd":"status"}'
 

@@ -13,15 +13,15 @@ import re
 import numpy as np
 import pytest
 
-from rigctl.coils import actuation_matrix
-from rigctl.config import (
+from rigctl.core.config import (
     Coil,
     FieldSettings,
     RigConfig,
     RigInfo,
     default_six_coil_coils,
 )
-from rigctl.errors import ConfigError, LimitError
+from rigctl.core.errors import ConfigError, LimitError
+from rigctl.physics.coils import actuation_matrix
 from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate, currents_for_field
 from rigctl.rigs.six_coil.realize import FieldProgram, realize_global_moves
 

@@ -10,7 +10,7 @@ import pytest
 import tomli_w
 from pydantic import ValidationError
 
-from rigctl.camera_model import Calibration, CalibrationError
+from rigctl.core.camera_model import Calibration, CalibrationError
 from rigctl.emulators.camera.render import CameraModel, Renderer, Scene
 from rigctl.plans.workspace import ShapeWorkspace
 from rigctl.vision.calibration import (

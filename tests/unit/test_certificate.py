@@ -1,4 +1,4 @@
-"""The pre-flight certificate (`rigctl.certificate` and each rig's checks): values against hand
+"""The pre-flight certificate (`rigctl.run.certificate` and each rig's checks): values against hand
 calculations, refusals that say what would pass, the rig file's hash, and `rigctl validate --rig`."""
 
 import json
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from rigctl.certificate import exposure_checks, rig_hash
-from rigctl.config import (
+from rigctl.apps.testing import run_rigctl
+from rigctl.core.config import (
     CoilBoardSettings,
     CoilThermal,
     ExposurePoint,
@@ -20,12 +20,12 @@ from rigctl.config import (
     default_six_coil_coils,
     dump_rig,
 )
+from rigctl.physics.thermal import Windings
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.coil_board.certify import board_checks, drive_for_limit
 from rigctl.rigs.coil_board.run import CoilBoardRunSettings
 from rigctl.rigs.six_coil.certify import current_program_checks
-from rigctl.testing import run_rigctl
-from rigctl.thermal import Windings
+from rigctl.run.certificate import exposure_checks, rig_hash
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 MU0 = 4e-7 * math.pi
@@ -160,7 +160,7 @@ def test_validate_with_a_rig_prints_the_certificate_and_refuses_with_exit_2(tmp_
 
 
 def test_each_arm_s_link_is_checked_against_the_servo_period():
-    from rigctl.config import PreflightSettings
+    from rigctl.core.config import PreflightSettings
     from rigctl.emulators.depm import default_settings
     from rigctl.rigs.depm.run import FieldSequenceProgram
 

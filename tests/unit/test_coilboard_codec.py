@@ -13,12 +13,12 @@ import struct
 
 import pytest
 
+from rigctl.apps.testing import ScriptedTransport
+from rigctl.core.errors import DeviceError, DeviceTimeout, LimitError
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.drivers.coilboard_frame import FrameParser, crc16_ccitt_false, encode_frame
 from rigctl.emulators.coilboard.firmware import Firmware
 from rigctl.emulators.coilboard.syren import SyrenBus
-from rigctl.errors import DeviceError, DeviceTimeout, LimitError
-from rigctl.testing import ScriptedTransport
 
 
 def frame(seq: int, kind: int, payload: bytes = b"") -> bytes:

@@ -1,4 +1,4 @@
-"""The rig file loader (`rigctl.config`): every device URL checked at load, with the field path and
+"""The rig file loader (`rigctl.core.config`): every device URL checked at load, with the field path and
 what to write instead; the tables a rig file carries are those of its kind."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import tomllib
 
 import pytest
 
-from rigctl.config import (
+from rigctl.core.config import (
     CameraSettings,
     CoilBoardSettings,
     RigConfig,
@@ -19,7 +19,7 @@ from rigctl.config import (
     load_rig,
     parse_rig,
 )
-from rigctl.errors import ConfigError
+from rigctl.core.errors import ConfigError
 
 
 def six_coil(**tables) -> dict:

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigctl.camera_model import Calibration
-from rigctl.console.scene import CameraScene, plan_paths_mm, shape_polygon_mm
-from rigctl.console.server import check_options, parse_address
-from rigctl.errors import ConfigError
+from rigctl.apps.console.scene import CameraScene, plan_paths_mm, shape_polygon_mm
+from rigctl.apps.console.server import check_options, parse_address
+from rigctl.core.camera_model import Calibration
+from rigctl.core.errors import ConfigError
 
 
 def test_addresses():

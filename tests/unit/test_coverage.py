@@ -7,7 +7,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 from rigctl.plans.coverage import coverage, free_bounding_box
 
 

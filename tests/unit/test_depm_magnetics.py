@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigctl.magnetics import (
+from rigctl.physics.magnetics import (
     actuation_matrix,
     cylinder_moment,
     dipole_field,

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigctl.kinematics import default_arms
+from rigctl.physics.kinematics import default_arms
 from rigctl.plans.depm_safety import SafetyLimits
 from rigctl.rigs.depm.motion import Timeline, approach_path, caps, path_violations
 

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from scipy.interpolate import PchipInterpolator
 
-from rigctl.errors import LimitError, PlanError
-from rigctl.kinematics import default_arms
-from rigctl.magnetics import dipole_field
+from rigctl.core.errors import LimitError, PlanError
+from rigctl.physics.kinematics import default_arms
+from rigctl.physics.magnetics import dipole_field
 from rigctl.plans import depm
 from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
 from rigctl.plans.schema import SequenceComponent, dump_plan, load_plan, parse_plan
@@ -256,7 +256,7 @@ def test_example_plan_is_valid_and_safe():
 
 
 def test_cli_writes_a_checked_plan_and_rejects_bad_input(tmp_path, capsys):
-    from rigctl.cli.main import main
+    from rigctl.apps.cli.main import main
 
     sequence = tmp_path / "seq.json"
     sequence.write_text(json.dumps([{"name": "Bz", "U": [0, 0, 8, 0, 0, 0, 0, 0], "hold_s": 0.5}]))
@@ -293,7 +293,7 @@ def test_baseline_goes_to_the_same_end_poses_in_straight_joint_moves(hybrid, agn
 
 
 def test_cli_plans_for_the_arm_bases_of_a_rig_file(tmp_path, capsys):
-    from rigctl.cli.main import main
+    from rigctl.apps.cli.main import main
 
     rig = tmp_path / "rig.toml"
     rig.write_text(

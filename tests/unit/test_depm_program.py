@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.config import Emulation, RigConfig, RigInfo
+from rigctl.core.config import Emulation, RigConfig, RigInfo
+from rigctl.core.errors import ConfigError, LimitError
 from rigctl.emulators.depm import default_settings
-from rigctl.errors import ConfigError, LimitError
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.depm.run import (
     FieldSequenceProgram,

@@ -10,7 +10,7 @@ from magpylib.func import cylinder_field
 from scipy.spatial.transform import Rotation
 
 from rigctl.emulators.world.epm import CylinderEpms
-from rigctl.magnetics import MU0, dipole_field, field_vector
+from rigctl.physics.magnetics import MU0, dipole_field, field_vector
 
 PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "depm-plan.json"
 MOMENT = 970.0  # A m^2: an N52 cylinder of 101.6 mm x 101.6 mm (Br ~1.48 T)

@@ -1,4 +1,4 @@
-"""The fault campaign's judgement of a cell (`rigctl.faults`): the outcome read from a run record,
+"""The fault campaign's judgement of a cell (`rigctl.apps.faults`): the outcome read from a run record,
 whether a record is complete / readable / lost, the cells a campaign plans, and the matrix that
 marks failed cells. Records are written with the real `RunRecord`; runs are not started here (the
 campaign itself runs in tests/e2e/test_faults_cli.py)."""
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from rigctl.faults import (
+from rigctl.apps.faults import (
     PHASES,
     STREAM_PROCESS,
     Cell,
@@ -20,7 +20,7 @@ from rigctl.faults import (
     parse_cell,
     stop_latency,
 )
-from rigctl.record import RunRecord
+from rigctl.core.record import RunRecord
 
 
 def state(name: str, **info) -> dict:

@@ -4,16 +4,16 @@ emulated coil errors, and the fit against loops whose true parameters the test c
 import numpy as np
 import pytest
 
-from rigctl.coils import actuation_matrix
-from rigctl.config import RigConfig, RigInfo, default_six_coil_coils, dump_rig, load_rig
+from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils, dump_rig, load_rig
+from rigctl.core.errors import ConfigError
 from rigctl.emulators.coil_errors import CoilErrors, as_calibration, true_coils
-from rigctl.errors import ConfigError
-from rigctl.field_calibration import (
+from rigctl.physics.coils import actuation_matrix
+from rigctl.physics.field_calibration import (
     load_field_calibration,
     parse_field_calibration,
     probe_grid_mm,
 )
-from rigctl.magnetics import MU0, loop_field
+from rigctl.physics.magnetics import MU0, loop_field
 from rigctl.rigs.six_coil.field_fit import (
     Measurements,
     fit_calibration,

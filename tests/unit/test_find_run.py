@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from rigctl.errors import ConfigError
-from rigctl.report import find_run
+from rigctl.apps.report import find_run
+from rigctl.core.errors import ConfigError
 
 
 @pytest.fixture

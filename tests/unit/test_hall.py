@@ -7,17 +7,17 @@ import json
 import numpy as np
 import pytest
 
+from rigctl.apps.testing import ScriptedTransport
+from rigctl.core.errors import ConfigError, DeviceTimeout, ProtocolError
 from rigctl.drivers.hall import HallBoard
 from rigctl.emulators.hall.board import HallSensorModel, SensorSpec, sample_line
-from rigctl.errors import ConfigError, DeviceTimeout, ProtocolError
-from rigctl.magnetics import (
+from rigctl.physics.magnetics import (
     MU0,
     dipole_field,
     dipole_gradient,
     field_vector_from_sensors,
     gradient_design,
 )
-from rigctl.testing import ScriptedTransport
 
 PAPER_OFFSETS_M = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0.0]])
 

@@ -5,8 +5,8 @@ drive units, the arms' rest where they stand, and what it refuses."""
 import numpy as np
 import pytest
 
-from rigctl.config import CoilBoardSettings, RigConfig, RigInfo, StreamSettings
-from rigctl.errors import LimitError, RigError
+from rigctl.core.config import CoilBoardSettings, RigConfig, RigInfo, StreamSettings
+from rigctl.core.errors import LimitError, RigError
 from rigctl.run.engine import RunContext
 from rigctl.run.hold import HoldPlan, HoldProgram, HoldRequest, ramp_samples
 

@@ -1,4 +1,4 @@
-"""Identification from tracking (`rigctl.identify`) and the global-input model's per-agent
+"""Identification from tracking (`rigctl.physics.identify`) and the global-input model's per-agent
 response: estimates checked against the parameters that generated the data, the model against
 hand-worked displacements and against the shared-input model it reduces to."""
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.identify import CommandedVelocity, LinearEstimate, RollingIdentifier
+from rigctl.physics.identify import CommandedVelocity, LinearEstimate, RollingIdentifier
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.workspace import ShapeWorkspace
 
@@ -123,7 +123,7 @@ def test_agents_with_different_gains_do_not_pass_through_each_other():
 
 
 def test_bad_per_agent_parameters_are_refused():
-    from rigctl.errors import PlanError
+    from rigctl.core.errors import PlanError
 
     with pytest.raises(PlanError, match="gains"):
         GlobalInputModel(BOX, [5.0, 5.0], gains=[1.0])

@@ -8,12 +8,12 @@ import tomllib
 
 import pytest
 
-from rigctl.cli.init import template
-from rigctl.cli.main import main
-from rigctl.config import dump_rig, load_rig, parse_rig
-from rigctl.errors import EXIT_BAD_INPUT, EXIT_OK
+from rigctl.apps.cli.init import template
+from rigctl.apps.cli.main import main
+from rigctl.core.config import dump_rig, load_rig, parse_rig
+from rigctl.core.errors import EXIT_BAD_INPUT, EXIT_OK
+from rigctl.core.transport import camera_source, parse_url
 from rigctl.rigs import rig_kind
-from rigctl.transport import camera_source, parse_url
 
 KINDS = ["six-coil", "coil-board", "depm"]
 

@@ -13,16 +13,16 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from rigctl.cli.main import main
-from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
-from rigctl.daemon.messages import (
+from rigctl.apps.cli.main import main
+from rigctl.apps.daemon.messages import (
     MAX_INT_DIGITS,
     MAX_JSON_DEPTH,
     BadJson,
     decode_request,
     read_json,
 )
-from rigctl.errors import PlanError
+from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.errors import PlanError
 from rigctl.plans.schema import (
     MAX_DURATION_S,
     MAX_MOVES,
@@ -96,7 +96,7 @@ REQUEST_IDS = (st.none() | st.booleans() | st.floats(allow_nan=False) | st.text(
        st.sampled_from([(", ", ": "), (",", ":"), (" ,\n", " :\t")]))
 def test_the_quick_path_takes_only_bare_requests_and_reads_their_id_as_json_does(
         request_id, cmd, args, id_first, separators):
-    from rigctl.daemon.server import QUICK_REQUEST
+    from rigctl.apps.daemon.server import QUICK_REQUEST
 
     fields = {"id": request_id, "cmd": cmd} if id_first else {"cmd": cmd, "id": request_id}
     if args is not None:
@@ -119,7 +119,7 @@ def test_the_quick_path_takes_only_bare_requests_and_reads_their_id_as_json_does
     ("a" * 128, True), ("a" * 129, False), ("", True), ('a"b', False), ("a\\b", False),
     ("\u00e9", False), (10**17, True), (-(10**18 - 1), True), (10**18, False), (0, True)])
 def test_the_quick_path_bounds_its_ids(request_id, taken):
-    from rigctl.daemon.server import QUICK_REQUEST
+    from rigctl.apps.daemon.server import QUICK_REQUEST
 
     payload = json.dumps({"id": request_id, "cmd": "status", "args": {}}).encode()
     assert (QUICK_REQUEST.fullmatch(payload) is not None) == taken == _plain_id(request_id)
@@ -208,7 +208,7 @@ def test_a_six_coil_program_that_would_last_over_an_hour_is_refused():
 
 
 def test_a_pair_program_over_the_sample_bound_is_refused_before_it_is_built():
-    from rigctl.config import StreamSettings
+    from rigctl.core.config import StreamSettings
     from rigctl.rigs.six_coil.pair import PairRunSettings, prepare_pair
 
     document = json.loads((EXAMPLES / "pair-formation-change.json").read_text())

@@ -4,7 +4,7 @@ writable (the kernels compile in memory: tests/e2e/test_readonly_install.py)."""
 
 from __future__ import annotations
 
-from rigctl.jit import cache_dir
+from rigctl.core.jit import cache_dir
 
 
 def test_the_first_writable_directory_in_order(tmp_path):

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from rigctl.drivers.kepco_bop import KepcoBop
-from rigctl.errors import (
+from rigctl.apps.testing import ScriptedTransport
+from rigctl.core.errors import (
     ConfigError,
     DeviceError,
     DeviceTimeout,
@@ -13,7 +13,7 @@ from rigctl.errors import (
     LimitError,
     ProtocolError,
 )
-from rigctl.testing import ScriptedTransport
+from rigctl.drivers.kepco_bop import KepcoBop
 
 NO_ERROR = b'0,"No error"\n'
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigctl.kinematics import (
+from rigctl.physics.kinematics import (
     LBR_IIWA_14_R820,
     ArmKinematics,
     base_transform,
@@ -109,7 +109,7 @@ def test_inverse_kinematics_uses_the_moment_axis_freedom():
 
 
 def test_unreachable_target_is_refused_with_the_arm_named():
-    from rigctl.errors import LimitError
+    from rigctl.core.errors import LimitError
 
     arm = default_arms()[0]
     with pytest.raises(LimitError, match="left"):

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from rigctl.apps.testing import ScriptedTransport
+from rigctl.core.errors import DeviceError, DeviceTimeout, Disconnected, LimitError, ProtocolError
 from rigctl.drivers.kuka_sunrise import KukaArm, format_joint_command, parse_joints
 from rigctl.emulators.kuka.model import ArmLimits, LbrArmModel, TargetRejected
 from rigctl.emulators.kuka.protocol import parse_fields
-from rigctl.errors import DeviceError, DeviceTimeout, Disconnected, LimitError, ProtocolError
-from rigctl.testing import ScriptedTransport
 
 Q = np.array([0.1, -0.2, 0.3, -0.4, 0.5, -0.6, 0.7])
 Q_WIRE = b"0.1_-0.2_0.3_-0.4_0.5_-0.6_0.7_"

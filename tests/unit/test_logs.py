@@ -11,7 +11,7 @@ import tempfile
 
 import pytest
 
-from rigctl.logs import formatter
+from rigctl.core.logs import formatter
 
 # sd-daemon(3): the syslog priorities
 PRIORITIES = {logging.DEBUG: "<7>", logging.INFO: "<6>", logging.WARNING: "<4>",
@@ -19,21 +19,21 @@ PRIORITIES = {logging.DEBUG: "<7>", logging.INFO: "<6>", logging.WARNING: "<4>",
 
 
 def _record(level: int, message: str = "supply %s off", exc_info=None) -> logging.LogRecord:
-    return logging.LogRecord("rigctl.daemon", level, __file__, 1, message, ("A",), exc_info)
+    return logging.LogRecord("rigctl.apps.daemon", level, __file__, 1, message, ("A",), exc_info)
 
 
 @pytest.mark.parametrize("level", list(PRIORITIES))
 def test_journal_lines_start_with_their_priority_and_carry_no_time(level):
     line = formatter(journal=True).format(_record(level))
     name = logging.getLevelName(level)
-    assert line == f"{PRIORITIES[level]}{name} rigctl.daemon: supply A off"
+    assert line == f"{PRIORITIES[level]}{name} rigctl.apps.daemon: supply A off"
 
 
 @pytest.mark.parametrize("level", list(PRIORITIES))
 def test_terminal_lines_start_with_their_time_and_no_priority(level):
     line = formatter(journal=False).format(_record(level))
     assert re.fullmatch(rf"\d{{4}}-\d\d-\d\d \d\d:\d\d:\d\d,\d{{3}} {logging.getLevelName(level)} "
-                        r"rigctl\.daemon: supply A off", line), line
+                        r"rigctl\.apps\.daemon: supply A off", line), line
 
 
 def test_every_line_of_a_traceback_keeps_the_priority_in_the_journal():
@@ -47,7 +47,7 @@ def test_every_line_of_a_traceback_keeps_the_priority_in_the_journal():
     assert lines[-1] == "<3>ValueError: bad reply"
 
 
-LOG_ONE_WARNING = ("import logging; from rigctl.logs import configure; configure(False, True); "
+LOG_ONE_WARNING = ("import logging; from rigctl.core.logs import configure; configure(False, True); "
                    "logging.getLogger('rigctl.x').warning('hot')")
 
 

@@ -1,4 +1,4 @@
-"""Physics consistency of rigctl.magnetics: each model checked against an independent one.
+"""Physics consistency of rigctl.physics.magnetics: each model checked against an independent one.
 
 The loop's closed form is compared with the textbook on-axis formula, a far-away dipole, a
 brute-force Biot-Savart sum over straight segments, Ampere's law around the wire, and its own
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rigctl.magnetics import dipole_field, loop_field
+from rigctl.physics.magnetics import dipole_field, loop_field
 
 MU0 = 4e-7 * np.pi  # written out here so the tests do not borrow the module's constant
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.workspace import ShapeWorkspace, Workspace
 

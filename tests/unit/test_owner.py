@@ -11,12 +11,12 @@ import time
 
 import pytest
 
-from rigctl.config import RigConfig, RigInfo, default_six_coil_coils, dump_rig
+from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils, dump_rig
 from rigctl.rigs.owner import RigInUse, RigLock, holder_of
 
 HOLD = textwrap.dedent("""
     import sys, time
-    from rigctl.config import load_rig
+    from rigctl.core.config import load_rig
     from rigctl.rigs.owner import RigLock
     with RigLock(load_rig(sys.argv[1]), "rigctl daemon"):
         print("held", flush=True)

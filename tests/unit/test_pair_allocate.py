@@ -13,14 +13,14 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.coils import (
+from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.errors import LimitError
+from rigctl.physics.coils import (
     coil_field_and_gradient,
     max_planar_gradient,
     u_actuation_matrix,
 )
-from rigctl.config import RigConfig, RigInfo, default_six_coil_coils
-from rigctl.errors import LimitError
-from rigctl.magnetics import gradient_from_terms, loop_field
+from rigctl.physics.magnetics import gradient_from_terms, loop_field
 from rigctl.rigs.six_coil.allocate import currents_for_u, field_and_pull_u
 
 MU0 = 4e-7 * math.pi

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.cli.main import main
-from rigctl.errors import PlanError
+from rigctl.apps.cli.main import main
+from rigctl.core.errors import PlanError
 from rigctl.plans.pair import (
     PairPhysics,
     PairPlannerOptions,

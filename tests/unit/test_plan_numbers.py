@@ -20,9 +20,9 @@ from pathlib import Path
 import pytest
 from pydantic import BaseModel
 
-from rigctl.cli.main import main
-from rigctl.daemon.server import PlanRuns
-from rigctl.errors import PlanError
+from rigctl.apps.cli.main import main
+from rigctl.apps.daemon.server import PlanRuns
+from rigctl.core.errors import PlanError
 from rigctl.plans.schema import (
     FieldSequencePlan,
     GlobalMovesPlan,

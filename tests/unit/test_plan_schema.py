@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 from rigctl.plans.checks import check_plan, contact_for_rig, plan_workspace, simulate
 from rigctl.plans.schema import (
     GlobalMovesPlan,

@@ -11,14 +11,14 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.config import (
+from rigctl.core.config import (
     FieldSettings,
     MagnetSettings,
     RigConfig,
     RigInfo,
     default_six_coil_coils,
 )
-from rigctl.errors import ConfigError, PlanError
+from rigctl.core.errors import ConfigError, PlanError
 from rigctl.rigs.six_coil.realize import (
     HOLD,
     NO_MOVE,

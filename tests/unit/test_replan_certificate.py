@@ -7,7 +7,7 @@ below: coils of R = 1.5 ohm, L = 30 mH, 100 V compliance, and a measured actuati
 import numpy as np
 import pytest
 
-from rigctl.config import (
+from rigctl.core.config import (
     FieldSettings,
     PreflightSettings,
     RigConfig,
@@ -15,7 +15,7 @@ from rigctl.config import (
     StreamSettings,
     default_six_coil_coils,
 )
-from rigctl.errors import LimitError, PlanError
+from rigctl.core.errors import LimitError, PlanError
 from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate
 from rigctl.rigs.six_coil.certify import current_program_checks
 from rigctl.rigs.six_coil.realize import realize_global_moves

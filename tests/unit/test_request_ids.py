@@ -9,7 +9,7 @@ import json
 import pytest
 from pydantic import ValidationError
 
-from rigctl.daemon.messages import Reply, Request, decode_request
+from rigctl.apps.daemon.messages import Reply, Request, decode_request
 
 
 @pytest.mark.parametrize("request_id", ["a", "", "x" * 200, 0, -7, 10**29, None])

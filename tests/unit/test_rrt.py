@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rigctl.cli.main import main as plan_main
-from rigctl.errors import PlanError
+from rigctl.apps.cli.main import main as plan_main
+from rigctl.core.errors import PlanError
 from rigctl.plans.checks import check_plan
 from rigctl.plans.rrt import (
     NearestNodeIndex,

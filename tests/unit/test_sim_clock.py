@@ -7,8 +7,8 @@ import math
 
 import pytest
 
+from rigctl.core.errors import ConfigError
 from rigctl.emulators.base import SimClock, bench_class
-from rigctl.errors import ConfigError
 
 
 class FakeMonotonic:

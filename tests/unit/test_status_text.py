@@ -4,7 +4,7 @@ and then a traceback, `KeyError: 'sample'`)."""
 
 from __future__ import annotations
 
-from rigctl.cli.daemon import _status_text
+from rigctl.apps.cli.daemon import _status_text
 
 
 def test_rigctl_status_prints_a_reply_without_the_keys_it_knows():

@@ -2,7 +2,7 @@
 
 import time
 
-from rigctl.stream import StreamLoop
+from rigctl.core.stream import StreamLoop
 
 
 def test_cycles_follow_the_schedule_and_stop_when_asked():
@@ -44,7 +44,7 @@ def test_while_a_loop_runs_the_gil_changes_hands_often_and_the_heap_is_frozen():
     import gc
     import sys
 
-    from rigctl.stream import SWITCH_INTERVAL_S
+    from rigctl.core.stream import SWITCH_INTERVAL_S
 
     before = sys.getswitchinterval()
     assert before > SWITCH_INTERVAL_S  # CPython's default, 5 ms

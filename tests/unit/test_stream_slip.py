@@ -8,7 +8,7 @@ the end-to-end test's 0.5 mm.
 
 import time
 
-from rigctl.stream import StreamLoop
+from rigctl.core.stream import StreamLoop
 
 PERIOD_S = 0.02
 STALL_PERIODS = 5

@@ -1,4 +1,4 @@
-"""Study specs (rigctl.study.spec), the results table (table) and the report's statistics (report):
+"""Study specs (rigctl.apps.study.spec), the results table (table) and the report's statistics (report):
 what a spec expands to, the ids that make resuming possible, one clear line for a bad spec."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from rigctl.errors import ConfigError
-from rigctl.study.report import summarise, t_interval, wilson
-from rigctl.study.spec import load_spec, spec_from_dict
-from rigctl.study.table import ResultsTable
+from rigctl.apps.study.report import summarise, t_interval, wilson
+from rigctl.apps.study.spec import load_spec, spec_from_dict
+from rigctl.apps.study.table import ResultsTable
+from rigctl.core.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -109,7 +109,7 @@ def test_the_table_keeps_rows_through_a_reopen_and_replaces_a_case_by_id(tmp_pat
 
 def test_a_study_killed_between_two_writes_of_the_table_keeps_every_finished_case(tmp_path,
                                                                                  monkeypatch) -> None:
-    from rigctl.study import table as results
+    from rigctl.apps.study import table as results
 
     monkeypatch.setattr(results, "WRITE_EVERY_S", 1e9)  # after the first, no write until asked
     row = {"case_id": "a", "seed": 1, "status": "ok", "message": "", "success": True,

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.config import FieldSettings, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.config import FieldSettings, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.errors import PlanError
 from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
-from rigctl.errors import PlanError
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace

@@ -9,9 +9,9 @@ import time
 import numpy as np
 import zmq
 
-from rigctl.channels import Channel
-from rigctl.daemon.messages import parse_telemetry
-from rigctl.daemon.telemetry import CycleBatch, TelemetryPublisher
+from rigctl.apps.daemon.messages import parse_telemetry
+from rigctl.apps.daemon.telemetry import CycleBatch, TelemetryPublisher
+from rigctl.core.channels import Channel
 
 
 def received(sub: zmq.Socket, topics: set[str], timeout_s: float = 5.0) -> dict[str, bytes]:

@@ -1,4 +1,4 @@
-"""The winding model (`rigctl.thermal`) against closed forms and an ODE solver, and the emulated
+"""The winding model (`rigctl.physics.thermal`) against closed forms and an ODE solver, and the emulated
 supply's winding that trips it on over-temperature (`emulators/kepco_bop/model.py`)."""
 
 import math
@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from rigctl.config import CoilThermal
+from rigctl.core.config import CoilThermal
 from rigctl.emulators.kepco_bop.model import (
     OVER_TEMPERATURE,
     QUES_OVERTEMPERATURE,
     BopCoilModel,
 )
-from rigctl.thermal import (
+from rigctl.physics.thermal import (
     Windings,
     rest_to_pass,
     step_current,
@@ -159,7 +159,7 @@ def test_model_and_emulated_windings_agree_within_2_K_over_ten_emulated_minutes(
     `emulated_winding`, R_th and C_th 5 % off the rig file's) stepped by hand through ten
     minutes of a current program that changes every 15 s; the model is given the supplies'
     currents every 10 ms and the rig file's data."""
-    from rigctl.config import default_six_coil_coils
+    from rigctl.core.config import default_six_coil_coils
     from rigctl.emulators.bench import emulated_winding
 
     thermal = CoilThermal(thermal_resistance_K_per_W=0.5, thermal_capacity_J_per_K=1500.0,
@@ -188,7 +188,7 @@ def test_model_and_emulated_windings_agree_within_2_K_over_ten_emulated_minutes(
 
 
 def test_the_live_monitor_follows_the_model_and_says_warning_then_limit():
-    from rigctl.thermal import WindingMonitor
+    from rigctl.physics.thermal import WindingMonitor
 
     w = windings(2, c_th=20.0, limit=60.0, warning=55.0)
     monitor = WindingMonitor(w)
@@ -206,7 +206,7 @@ def test_the_live_monitor_follows_the_model_and_says_warning_then_limit():
 
 def board_windings(*, alpha=0.00393, r_th=2.5, c_th=4.0, warning=60.0, limit=70.0):
     """Four coil-board windings of 6 ohm on a 12 V supply, driven in SyRen units (12/127 V each)."""
-    from rigctl.config import CoilBoardSettings
+    from rigctl.core.config import CoilBoardSettings
 
     thermal = CoilThermal(thermal_resistance_K_per_W=r_th, thermal_capacity_J_per_K=c_th,
                           ambient_C=25.0, warning_C=warning, max_winding_C=limit, alpha_per_K=alpha)
@@ -214,7 +214,7 @@ def board_windings(*, alpha=0.00393, r_th=2.5, c_th=4.0, warning=60.0, limit=70.
 
 
 def test_without_alpha_a_held_voltage_gives_the_first_order_step_response():
-    from rigctl.thermal import step_voltage_one
+    from rigctl.physics.thermal import step_voltage_one
 
     w = board_windings(alpha=0.0)
     # T(t) = Ta + R_th V^2 / R0 (1 - exp(-t / (R_th C))): 8 V on 6 ohm, tau = 10 s, by hand
@@ -227,7 +227,7 @@ def test_without_alpha_a_held_voltage_gives_the_first_order_step_response():
 
 
 def test_with_alpha_the_voltage_step_follows_an_ode_solver():
-    from rigctl.thermal import step_voltage_one
+    from rigctl.physics.thermal import step_voltage_one
 
     w = board_windings()
 
@@ -246,7 +246,7 @@ def test_with_alpha_the_voltage_step_follows_an_ode_solver():
 
 
 def test_the_live_monitor_takes_the_boards_drive_as_volts_and_says_warning_then_limit():
-    from rigctl.thermal import WindingMonitor
+    from rigctl.physics.thermal import WindingMonitor
 
     w = board_windings(alpha=0.0, warning=50.0, limit=60.0)
     assert w.volts_per_unit == pytest.approx(12.0 / 127)
@@ -263,7 +263,7 @@ def test_the_live_monitor_takes_the_boards_drive_as_volts_and_says_warning_then_
 
 
 def test_the_emulated_board_coils_heat_by_the_syren_output_with_their_own_seeded_data():
-    from rigctl.config import CoilBoardSettings
+    from rigctl.core.config import CoilBoardSettings
     from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
 
     thermal = CoilThermal(thermal_resistance_K_per_W=2.5, thermal_capacity_J_per_K=4.0,
@@ -285,7 +285,7 @@ def test_the_emulated_board_coils_heat_by_the_syren_output_with_their_own_seeded
 
 
 def test_an_emulated_board_coil_past_its_cut_out_pulls_nothing_until_it_has_cooled():
-    from rigctl.config import CoilBoardSettings
+    from rigctl.core.config import CoilBoardSettings
     from rigctl.emulators.coilboard.coils import BoardCoils, ThermalErrors
 
     thermal = CoilThermal(thermal_resistance_K_per_W=4.0, thermal_capacity_J_per_K=1.0,

@@ -157,7 +157,7 @@ def test_find_dark_blobs_returns_marker_centres(rig):
 
 
 def test_why_tracking_is_lost_names_the_camera_and_the_agents_it_does_not_see(rig):
-    from rigctl.config import CameraSettings
+    from rigctl.core.config import CameraSettings
     from rigctl.vision.tracking import TrackedState, TrackingLoop
 
     settings = CameraSettings(url="http://127.0.0.1:9/stream", timeout_s=1.5, calibration=rig[2])

@@ -9,9 +9,9 @@ import time
 
 import pytest
 
-from rigctl.errors import ConfigError, DeviceTimeout, Disconnected, ProtocolError
-from rigctl.testing import ScriptedTransport
-from rigctl.transport import (
+from rigctl.apps.testing import ScriptedTransport
+from rigctl.core.errors import ConfigError, DeviceTimeout, Disconnected, ProtocolError
+from rigctl.core.transport import (
     SerialTransport,
     TcpTransport,
     camera_source,

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.cli.main import main
-from rigctl.config import dump_rig
-from rigctl.daemon.server import PlanRuns
-from rigctl.errors import RigError
+from rigctl.apps.cli.main import main
+from rigctl.apps.daemon.server import PlanRuns
+from rigctl.core.config import dump_rig
+from rigctl.core.errors import RigError
 from rigctl.rigs import rig_kind
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.cli.main import main as cli_main
-from rigctl.errors import PlanError
+from rigctl.apps.cli.main import main as cli_main
+from rigctl.core.errors import PlanError
 from rigctl.plans.checks import check_plan
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.schema import load_plan

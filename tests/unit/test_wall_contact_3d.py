@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 from rigctl.plans.wall_contact import centre_region
 from rigctl.plans.wall_contact_3d import plan_two_particles_3d, prism_region
 
@@ -183,7 +183,7 @@ def test_particles_with_the_same_x_y_are_refused() -> None:
 def test_cli_height_writes_a_3d_document_that_replays_to_the_goals(tmp_path):
     import json
 
-    from rigctl.cli.main import main
+    from rigctl.apps.cli.main import main
 
     workspace = tmp_path / "ws.json"
     workspace.write_text(json.dumps({"boundary": SECTIONS["cylinder"]}))

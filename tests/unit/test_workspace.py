@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.errors import PlanError
+from rigctl.core.errors import PlanError
 from rigctl.plans.workspace import GridWorkspace, ShapeWorkspace, Workspace
 
 # A 100 x 100 box with one 20 x 10 block in it (x 40..60, y 40..50).

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from rigctl.channels import Channel
-from rigctl.config import RigConfig
+from rigctl.core.channels import Channel
+from rigctl.core.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
 
 
@@ -18,7 +18,7 @@ def _bench_rig() -> RigConfig:
     """The rig `rigctl emulate coil-board` serves, as a plan's checks see it before the bench
     starts (its links' addresses are the bench's to choose then): the board's settings and a
     camera calibrated over the bench's field (`rigctl.emulators.coilboard.bench`)."""
-    from rigctl.config import CameraSettings, CoilBoardSettings, Emulation, RigInfo
+    from rigctl.core.config import CameraSettings, CoilBoardSettings, Emulation, RigInfo
     from rigctl.emulators.camera import PAPER_RESOLUTION, CameraModel
     from rigctl.emulators.coilboard.bench import BOARD_REPLY_TIMEOUT_S, CAMERA_FIELD_MM, CAMERA_FPS
 
@@ -44,8 +44,8 @@ def _devices(rig: RigConfig) -> list[Device]:
 def _make_safe(rig: RigConfig) -> dict[str, str | None]:
     """Every coil off (STOP, acknowledged with all outputs zero); the board's own 200 ms link
     watchdog zeroes them anyway once nobody talks to it."""
+    from rigctl.core.errors import RigError
     from rigctl.drivers.coilboard import CoilBoard
-    from rigctl.errors import RigError
 
     if rig.board is None:
         return {}
@@ -66,7 +66,7 @@ def _make_safe(rig: RigConfig) -> dict[str, str | None]:
 def _hold(rig: RigConfig, target: dict):
     """`{"drive": [v per coil]}`: whole SyRen drive units within the board's +-max_command, in the
     order of the board's coils (the pull's sense); ramps pass only through values between."""
-    from rigctl.errors import ConfigError, LimitError
+    from rigctl.core.errors import ConfigError, LimitError
     from rigctl.rigs.coil_board.actuators import BoardActuators
     from rigctl.run.hold import HoldRequest, target_values
 

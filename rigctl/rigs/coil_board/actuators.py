@@ -19,11 +19,11 @@ import time
 
 import numpy as np
 
-from rigctl.channels import Channel
-from rigctl.config import RigConfig
+from rigctl.core.channels import Channel
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, DeviceTimeout, RigError
 from rigctl.drivers.coilboard import CoilBoard
-from rigctl.errors import ConfigError, DeviceTimeout, RigError
-from rigctl.thermal import Windings
+from rigctl.physics.thermal import Windings
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The coil board's pre-flight checks (`rigctl.certificate`). A coil-board run is closed loop: a
+"""The coil board's pre-flight checks (`rigctl.run.certificate`). A coil-board run is closed loop: a
 move lasts until the camera sees it done, so its currents are not known before it starts. What is
 known bounds it: the drive of a move against the board's range; every coil at that drive for the
 longest run the settings allow (`max_moves` x `move_timeout_s`), the winding heated by V^2 / R(T)
@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigctl.certificate import Check, ceiling, link_checks, serial_seconds, size_checks
-from rigctl.config import RigConfig
+from rigctl.core.config import RigConfig
+from rigctl.core.transport import parse_url
 from rigctl.drivers.coilboard_frame import (
     ACK,
     MIN_FRAME_BYTES,
@@ -18,9 +18,9 @@ from rigctl.drivers.coilboard_frame import (
     REQUEST_PAYLOAD_BYTES,
     SET,
 )
+from rigctl.physics.thermal import Windings, step_voltage, voltage_steady_C
 from rigctl.plans.schema import MAX_DURATION_S
-from rigctl.thermal import Windings, step_voltage, voltage_steady_C
-from rigctl.transport import parse_url
+from rigctl.run.certificate import Check, ceiling, link_checks, serial_seconds, size_checks
 
 SYREN_BAUD = 9600  # firmware/coilboard/syren.h
 SYREN_PACKET_BYTES = 4  # address, command, data, checksum (SyRen packetized serial)

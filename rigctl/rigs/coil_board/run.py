@@ -47,9 +47,9 @@ from typing import ClassVar, TextIO
 
 import numpy as np
 
-from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, DeviceTimeout, PlanError
-from rigctl.identify import LinearEstimate
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, DeviceTimeout, PlanError
+from rigctl.physics.identify import LinearEstimate
 from rigctl.plans.checks import check_plan, plan_workspace
 from rigctl.plans.schema import GlobalMovesPlan
 from rigctl.plans.wall_contact import (
@@ -182,7 +182,7 @@ class RelativeDrift:
     and the gap also grows by mobility_diff x T (signed: a translation back shrinks it again,
     unlike the non-uniformity). mobility_diff = (m_1 - m_0) / mean(m).
 
-    k_along, k_across and mobility_diff are identified (`rigctl.identify.LinearEstimate`: the
+    k_along, k_across and mobility_diff are identified (`rigctl.physics.identify.LinearEstimate`: the
     Gaussian posterior of the log-mean gaps' linear model, with the uniform field of equal
     particles as its prior, the k's of weight `prior_weight`, mobility_diff of spread
     `mobility_prior_std`; re-linearised from every sample, since the scales depend on k_across)

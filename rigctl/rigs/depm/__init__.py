@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 
-from rigctl.channels import Channel
-from rigctl.config import RigConfig
+from rigctl.core.channels import Channel
+from rigctl.core.config import RigConfig
 from rigctl.rigs.base import Device, RigKind
 
 
@@ -33,7 +33,7 @@ def _bench_rig() -> RigConfig:
     """The rig `rigctl emulate depm` serves, as a plan's checks see it before the bench starts
     (its links' addresses are the bench's to choose then): the planner's default arms, magnets
     and limits, and the loopback round trip its pre-flight counts (`rigctl.emulators.depm`)."""
-    from rigctl.config import Emulation, PreflightSettings, RigInfo
+    from rigctl.core.config import Emulation, PreflightSettings, RigInfo
     from rigctl.emulators.depm import LOOPBACK_ROUND_TRIP_MS, default_settings
 
     return RigConfig(rig=RigInfo(kind="depm", name="emulated dEPM bench"), depm=default_settings(),
@@ -58,8 +58,8 @@ def _make_safe(rig: RigConfig) -> dict[str, str | None]:
     """Each arm reached anew: out of direct servo, holding where it is (a KUKA arm holds its
     pose with its brakes and drives when no motion is commanded; the Sunrise servo's own timeout
     stops it when targets stop coming)."""
+    from rigctl.core.errors import RigError
     from rigctl.drivers.kuka_sunrise import KukaArm
-    from rigctl.errors import RigError
 
     result: dict[str, str | None] = {}
     if rig.depm is None:
@@ -84,7 +84,7 @@ def _hold(rig: RigConfig, target: dict):
     its maximum and that keeps every constraint on its way, sampled every `check_step_s`."""
     import numpy as np
 
-    from rigctl.errors import ConfigError, LimitError
+    from rigctl.core.errors import ConfigError, LimitError
     from rigctl.plans.depm import rig_from_settings
     from rigctl.plans.depm_safety import SPEED_TOLERANCE, violations
     from rigctl.rigs.depm.actuators import ArmPair

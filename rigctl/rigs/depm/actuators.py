@@ -21,10 +21,10 @@ import logging
 
 import numpy as np
 
-from rigctl.channels import Channel
-from rigctl.config import RigConfig
+from rigctl.core.channels import Channel
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, RigError
 from rigctl.drivers.kuka_sunrise import N_JOINTS, KukaArm
-from rigctl.errors import ConfigError, RigError
 from rigctl.plans.depm import rig_from_settings
 
 log = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""The dual-EPM rig's pre-flight checks of a field-sequence plan (`rigctl.certificate`), on the
+"""The dual-EPM rig's pre-flight checks of a field-sequence plan (`rigctl.run.certificate`), on the
 plan's joint trajectories sampled every `check_step_s` and at every knot: each arm's joint range,
 speed and acceleration (as shares of the joints' maxima), the keep-out sphere (EPM and links),
 the EPM-EPM distance, the field and gradient at the workspace centre, the static field at the
@@ -8,7 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigctl.certificate import (
+from rigctl.core.config import RigConfig
+from rigctl.physics.magnetics import field_vector
+from rigctl.plans.depm import DepmRig, joint_trajectory
+from rigctl.plans.depm_safety import segment_point_distance
+from rigctl.plans.schema import MAX_DURATION_S
+from rigctl.run.certificate import (
     Check,
     ceiling,
     exposure_checks,
@@ -16,11 +21,6 @@ from rigctl.certificate import (
     link_checks,
     size_checks,
 )
-from rigctl.config import RigConfig
-from rigctl.magnetics import field_vector
-from rigctl.plans.depm import DepmRig, joint_trajectory
-from rigctl.plans.depm_safety import segment_point_distance
-from rigctl.plans.schema import MAX_DURATION_S
 
 MAX_KNOTS = 100_000
 

@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rigctl.kinematics import ArmKinematics
-from rigctl.magnetics import field_vector
+from rigctl.physics.kinematics import ArmKinematics
+from rigctl.physics.magnetics import field_vector
 from rigctl.plans.depm_safety import SafetyLimits, Violation, violations
 
 MAX_STEPS = 4

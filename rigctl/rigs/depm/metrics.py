@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rigctl.magnetics import U_COMPONENTS
+from rigctl.physics.magnetics import U_COMPONENTS
 
 STEADY_STATE_TOLERANCE = 0.02  # of the requested value
 FIELD_BAND_mT, GRADIENT_BAND_mT_per_m = 0.5, 5.0  # "close to 0" at the end of a fall (Sec. 4.2)

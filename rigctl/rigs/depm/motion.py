@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rigctl.kinematics import ArmKinematics
+from rigctl.physics.kinematics import ArmKinematics
 from rigctl.plans.depm_safety import SafetyLimits, Violation, violations
 
 TIMING_MARGIN = 0.02  # moves are timed this much slower than the limits allow

@@ -50,10 +50,10 @@ from collections import deque
 import numpy as np
 
 import rigctl.rigs.depm.correction as correction
-from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, DeviceError, LimitError
-from rigctl.kinematics import ArmKinematics, base_transform
-from rigctl.magnetics import U_COMPONENTS
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, DeviceError, LimitError
+from rigctl.physics.kinematics import ArmKinematics, base_transform
+from rigctl.physics.magnetics import U_COMPONENTS
 from rigctl.plans.depm import joint_trajectory, plan_violations, rig_from_settings
 from rigctl.plans.depm_safety import Violation
 from rigctl.rigs.depm.actuators import ArmPair

@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 
+from rigctl.core.errors import RigError
 from rigctl.drivers.hall import HallBoard, HallSample, HallStream
-from rigctl.errors import RigError
-from rigctl.magnetics import field_vector_from_sensors
+from rigctl.physics.magnetics import field_vector_from_sensors
 
 log = logging.getLogger(__name__)
 

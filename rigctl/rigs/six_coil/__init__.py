@@ -3,8 +3,8 @@ moves with their camera supervisor, and pair formation with pure pursuit."""
 
 from __future__ import annotations
 
-from rigctl.channels import Channel
-from rigctl.config import RigConfig
+from rigctl.core.channels import Channel
+from rigctl.core.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
 
 
@@ -55,7 +55,7 @@ def _hold(rig: RigConfig, target: dict):
     within its coil's limit, and the supplies' compliance R I + L dI/dt over the ramp to them."""
     import numpy as np
 
-    from rigctl.coils import actuation_matrix
+    from rigctl.physics.coils import actuation_matrix
     from rigctl.rigs.six_coil.allocate import check_current_limits, currents_for_field
     from rigctl.rigs.six_coil.supplies import CoilSupplies
     from rigctl.run.hold import HoldRequest, ramp, target_values

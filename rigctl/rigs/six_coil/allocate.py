@@ -2,7 +2,7 @@
 
 Air-core coils add linearly, so the field at a point is B = A I with A the 3 x n actuation matrix
 (T/A), each column the field of one coil per ampere there (from its loop geometry through
-`rigctl.magnetics.loop_field`, or measured and given in the rig file). With six coils and three
+`rigctl.physics.magnetics.loop_field`, or measured and given in the rig file). With six coils and three
 field components the system is underdetermined; the currents are the minimum-norm solution, which
 minimises the Joule heating sum(R I^2) for equal resistances:
 
@@ -29,10 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.coils import actuation_matrix
-from rigctl.config import RigConfig
-from rigctl.errors import LimitError, PlanError
-from rigctl.magnetics import U_COMPONENTS
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import LimitError, PlanError
+from rigctl.physics.coils import actuation_matrix
+from rigctl.physics.magnetics import U_COMPONENTS
 from rigctl.rigs.six_coil.realize import FieldProgram
 
 logger = logging.getLogger(__name__)

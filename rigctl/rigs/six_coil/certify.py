@@ -1,4 +1,4 @@
-"""The six-coil rig's pre-flight checks of a current program (`rigctl.certificate`): every coil's
+"""The six-coil rig's pre-flight checks of a current program (`rigctl.run.certificate`): every coil's
 current, its supply's voltage R(T) I + L dI/dt with the resistance at the winding's hottest, the
 winding's temperature, the field and gradient at the workspace centre, each supply link's time per
 stream cycle, and the program's size and duration."""
@@ -9,7 +9,13 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from rigctl.certificate import (
+from rigctl.core.config import RigConfig
+from rigctl.core.transport import parse_url
+from rigctl.physics.coils import actuation_matrix, u_actuation_matrix
+from rigctl.physics.magnetics import U_COMPONENTS
+from rigctl.physics.thermal import Windings
+from rigctl.plans.schema import MAX_DURATION_S, MAX_PROGRAM_SAMPLES
+from rigctl.run.certificate import (
     Check,
     ceiling,
     heating_checks,
@@ -17,12 +23,6 @@ from rigctl.certificate import (
     serial_seconds,
     size_checks,
 )
-from rigctl.coils import actuation_matrix, u_actuation_matrix
-from rigctl.config import RigConfig
-from rigctl.magnetics import U_COMPONENTS
-from rigctl.plans.schema import MAX_DURATION_S, MAX_PROGRAM_SAMPLES
-from rigctl.thermal import Windings
-from rigctl.transport import parse_url
 
 # one stream cycle on a supply's link: the setpoint and the query in one line, and its answer
 # (drivers/kepco_bop.py `send_setpoint`, the BOP's scientific-notation reply)

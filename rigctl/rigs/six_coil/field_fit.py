@@ -32,10 +32,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, DeviceError
-from rigctl.field_calibration import FORMAT, CoilFit, FieldCalibration
-from rigctl.magnetics import loop_field
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, DeviceError
+from rigctl.physics.field_calibration import FORMAT, CoilFit, FieldCalibration
+from rigctl.physics.magnetics import loop_field
 
 log = logging.getLogger(__name__)
 
@@ -267,7 +267,7 @@ def fit_calibration(rig: RigConfig, m: Measurements, *, name: str | None = None)
 def model_field(rig: RigConfig, points_m: np.ndarray, currents_A: np.ndarray) -> np.ndarray:
     """The field (P, K, 3) T the rig's model (its calibration if it names one, else the drawn
     coils) predicts at points (K, 3) m for currents (P, n) A."""
-    from rigctl.coils import coil_loops
+    from rigctl.physics.coils import coil_loops
 
     maps = np.stack([gain * loop_field(points_m, c, a, r, t, 1.0)
                      for c, a, r, t, gain in coil_loops(rig)], axis=-1)  # (K, 3, n)

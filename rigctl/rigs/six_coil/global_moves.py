@@ -17,9 +17,9 @@ from typing import TextIO
 
 import numpy as np
 
-from rigctl.config import RigConfig
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import PlanError
 from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.errors import PlanError
 from rigctl.plans.checks import check_plan, contact_for_rig, simulate
 from rigctl.plans.schema import Plan
 from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate

@@ -41,11 +41,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from rigctl.coils import u_actuation_matrix
-from rigctl.config import RigConfig
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, LimitError, PlanError
+from rigctl.core.record import RunRecord
 from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.errors import ConfigError, LimitError, PlanError
-from rigctl.identify import CommandedVelocity, RollingIdentifier
+from rigctl.physics.coils import u_actuation_matrix
+from rigctl.physics.identify import CommandedVelocity, RollingIdentifier
 from rigctl.plans.pair import (
     ZERO_RADIAL_ANGLE_RAD,
     PairPlannerOptions,
@@ -62,7 +63,6 @@ from rigctl.plans.pair import (
     state_of,
 )
 from rigctl.plans.schema import MAX_PROGRAM_SAMPLES, PairFormationPlan
-from rigctl.record import RunRecord
 from rigctl.rigs.six_coil.allocate import check_current_limits, field_and_pull_u
 from rigctl.rigs.six_coil.pursuit import PairPursuit, PursuitSettings, distance_to_path
 from rigctl.rigs.six_coil.supplies import CoilSupplies
@@ -307,7 +307,7 @@ def expected_headings(nodes: np.ndarray, stage_of: np.ndarray) -> np.ndarray:
 
 
 class PullIdentification:
-    """The pair's pull gain from tracking (`rigctl.identify`): how far the agents' centroid moves
+    """The pair's pull gain from tracking (`rigctl.physics.identify`): how far the agents' centroid moves
     for the pull commanded. The dipole forces between the agents are equal and opposite, so only
     the coils' pull and a drift move the centroid, c(t1) - c(t0) = g R(theta) int f dt + v (t1 - t0):
     the rolling robots' linear model with the centroid as the one agent and the integral of the

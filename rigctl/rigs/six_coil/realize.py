@@ -39,8 +39,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, PlanError
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, PlanError
 from rigctl.plans.schema import MAX_DURATION_S, MAX_PROGRAM_SAMPLES
 
 logger = logging.getLogger(__name__)

@@ -33,7 +33,7 @@ supply's compliance needs it. A refusal is a fault, never a clip. (The heating c
 samples at the stream's rate; the time the stream held the field at move ends while the supervisor
 judged and re-planned is not in it, and the run's live winding model watches that.)
 
-Each robot's own response is identified from what the camera saw (`rigctl.identify`): after every
+Each robot's own response is identified from what the camera saw (`rigctl.physics.identify`): after every
 move, the robots whose measured path touched no wall and no other robot update their rolling gain,
 heading bias and drift (a Kalman filter per robot, with its uncertainty); a robot that met a wall
 but no other robot updates them from the one-agent model's image of the move (linearised at the
@@ -66,21 +66,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rigctl.certificate import Certificate, certify
-from rigctl.coils import actuation_matrix
-from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, PlanError, RigError
-from rigctl.identify import RollingIdentifier
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import ConfigError, PlanError, RigError
+from rigctl.core.record import RunRecord
+from rigctl.physics.coils import actuation_matrix
+from rigctl.physics.identify import RollingIdentifier
 from rigctl.plans.checks import plan_model
 from rigctl.plans.correction import correct_by_contact
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.rrt import RrtOptions, plan_rrt, replay
 from rigctl.plans.schema import GlobalMovesPlan, dump_plan, parse_plan
-from rigctl.record import RunRecord
 from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate, currents_for_field
 from rigctl.rigs.six_coil.certify import current_program_checks
 from rigctl.rigs.six_coil.realize import NO_MOVE, FieldProgram, realize_global_moves
 from rigctl.rigs.six_coil.sequencer import Sequencer
+from rigctl.run.certificate import Certificate, certify
 from rigctl.run.hold import ramp
 from rigctl.run.interruptions import Suspension
 from rigctl.vision.tracking import TrackingLoop

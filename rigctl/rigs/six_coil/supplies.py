@@ -16,12 +16,12 @@ import time
 
 import numpy as np
 
-from rigctl.channels import Channel
-from rigctl.config import RigConfig
+from rigctl.core.channels import Channel
+from rigctl.core.config import RigConfig
+from rigctl.core.errors import RigError
+from rigctl.core.transport import open_transport
 from rigctl.drivers.kepco_bop import KepcoBop
-from rigctl.errors import RigError
-from rigctl.thermal import Windings
-from rigctl.transport import open_transport
+from rigctl.physics.thermal import Windings
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,119 @@
+"""`rigctl calibrate field --rig RIG.toml`: measure the six-coil rig's field with its Hall probe, fit
+each coil (`rigctl.rigs.six_coil.field_fit`), write the calibration file (mag_manip-style YAML,
+`rigctl.physics.field_calibration`) and name it in the rig file, so every later run allocates with it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from rigctl.core.errors import EXIT_OK, ConfigError
+
+
+def add_field_flags(p: argparse.ArgumentParser) -> None:
+    """The `calibrate field` options (the parser is `calibrate`'s, shared with the camera)."""
+    g = p.add_argument_group("field (six-coil rig with a [field_probe])")
+    g.add_argument("--grid-mm", type=float, default=None, metavar="MM",
+                   help="emulated bench: put its probe array on a 3 x 3 x 3 grid of +-MM about the "
+                   "centre (default 100); a real probe's board says where its sensors are")
+    g.add_argument("--patterns-seed", type=int, default=0, metavar="N",
+                   help="seed of the mixed current patterns (default 0)")
+    g.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not getattr(args, "quiet", False):
+        print(text, file=sys.stderr, flush=True)
+
+
+def cmd_calibrate_field(args: argparse.Namespace) -> int:
+    from rigctl.core.config import dump_rig, load_rig
+    from rigctl.physics.field_calibration import DEFAULT_GRID_HALF_MM, probe_grid_mm
+    from rigctl.rigs.doctor import preflight
+    from rigctl.rigs.owner import RigLock
+    from rigctl.rigs.six_coil.field_fit import (
+        drive_patterns,
+        fit_calibration,
+        measure,
+        prediction_error,
+    )
+
+    for flag, value in (("--plan", args.plan), ("--markers", args.markers),
+                        ("--marker-radius", args.marker_radius)):
+        if value is not None:
+            raise ConfigError(f"{flag} is for `rigctl calibrate camera`; the field is measured "
+                              "with the rig's [field_probe]")
+    rig_path = Path(args.rig)
+    rig = load_rig(rig_path)
+    if rig.rig.kind != "six-coil":
+        raise ConfigError(f"{rig_path}: field calibration is for six-coil rigs; this one is "
+                          f"{rig.rig.kind!r}")
+    if rig.field_probe is None:
+        raise ConfigError(f"{rig_path}: the rig has no [field_probe] table (url of the Hall probe "
+                          "board) to measure the field with")
+    if rig.actuation_matrix_T_per_A is not None:
+        raise ConfigError(f"{rig_path}: actuation_matrix_T_per_A overrides the coils' geometry; "
+                          "remove it to calibrate the coils")
+    if args.grid_mm is not None and not args.grid_mm > 0:
+        raise ConfigError(f"--grid-mm must be > 0, got {args.grid_mm:g}")
+    if args.grid_mm is not None and rig.emulation is None:
+        raise ConfigError("--grid-mm places the emulated bench's probe; a real probe's board says "
+                          "where its sensors are")
+    out = Path(args.output) if args.output else rig_path.with_name(f"{rig_path.stem}-field.yaml")
+    if out.suffix.lower() not in (".yaml", ".yml"):
+        raise ConfigError(f"-o {out}: the field calibration is a YAML file (.yaml)")
+    drawn = rig.model_copy(update={"field_calibration": None})
+    patterns = drive_patterns(drawn, seed=args.patterns_seed)
+    if rig.emulation is not None:
+        from rigctl.emulators.backdoor import BackdoorClient
+
+        half = DEFAULT_GRID_HALF_MM if args.grid_mm is None else args.grid_mm
+        with BackdoorClient(rig.emulation.backdoor) as backdoor:
+            backdoor.request("probe", points_mm=probe_grid_mm(half).tolist())
+        _say(args, f"emulated bench: probe array on a 3 x 3 x 3 grid of +-{half:g} mm")
+    with RigLock(drawn, "rigctl calibrate field"):
+        preflight(drawn)
+        _say(args, f"driving {len(patterns)} current patterns through the coils, reading the probe")
+        measured = measure(drawn, patterns, progress=lambda line: _say(args, "  " + line))
+    calibration = fit_calibration(drawn, measured)
+    relative = os.path.relpath(out.resolve(), rig_path.resolve().parent)
+    calibration = calibration.model_copy(update={"source": relative})
+    before = prediction_error(drawn, measured)
+    after = prediction_error(drawn.model_copy(update={"field_calibration": calibration}), measured)
+    out.write_text(calibration.to_yaml())
+    rig_path.write_text(dump_rig(rig.model_copy(update={"field_calibration": calibration})))
+    b0 = rig.field.b0_mT * 1e-3
+    result = {
+        "calibration": str(out), "rig": str(rig_path), "patterns": len(patterns),
+        "probe_points": len(measured.points_m), "duration_s": round(measured.duration_s, 2),
+        "probe_rms_error_pct_of_b0": {"drawn_coils": round(100 * before / b0, 3),
+                                      "calibrated": round(100 * after / b0, 3)},
+        "coils": {name: {"gain": round(c.gain, 5),
+                         "offset_mm": [round(v * 1e3, 2) for v in c.offset_m],
+                         "misalignment_deg": round(c.tilt_rad * 57.29577951308232, 3)}
+                  for name, c in calibration.coils.items()},
+    }
+    if args.json:
+        print(json.dumps(result))
+        return EXIT_OK
+    print(f"field calibrated in {measured.duration_s:.1f} s ({len(patterns)} patterns, "
+          f"{len(measured.points_m)} probe points); written to {out}, named in {rig_path}")
+    print(f"model vs probe, RMS over every pattern and point: drawn coils "
+          f"{100 * before / b0:.2f} % of {rig.field.b0_mT:g} mT, calibrated {100 * after / b0:.3f} %")
+    print(f"{'coil':6}{'gain':>9}{'offset mm':>24}{'tilt deg':>10}")
+    for name, c in result["coils"].items():
+        offset = ", ".join(f"{v:.1f}" for v in c["offset_mm"])
+        print(f"{name:6}{c['gain']:>9.4f}{offset:>24}{c['misalignment_deg']:>10.2f}")
+    return EXIT_OK
+
+
+def add_coil_error_flags(p: argparse.ArgumentParser) -> None:
+    """`rigctl emulate six-coil --coil-error F --coil-seed N` (`rigctl.emulators.coil_errors`)."""
+    g = p.add_argument_group("the emulated six-coil bench's coils as built")
+    g.add_argument("--coil-error", type=float, metavar="F",
+                   help="each coil's gain off by up to F, centre by up to F x its radius, axis by "
+                   "up to F rad (default 0.05; 0: the coils are exactly as the rig file says)")
+    g.add_argument("--coil-seed", type=int, metavar="N", help="seed of the coil errors (default 0)")

@@ -1,0 +1,139 @@
+"""`rigctl execute PLAN`: run a plan on the emulated bench of its rig kind, or on the rig a rig file
+names, and print the summary. One path for every rig: the registry's builder for the plan's kind
+makes the run; the options a rig does not take are refused by name."""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import sys
+from typing import TYPE_CHECKING
+
+from rigctl.core.errors import ConfigError, abort_on_sigterm
+
+if TYPE_CHECKING:
+    from rigctl.rigs.guardian import Guardian
+
+# run options: CLI flag -> the builder's keyword (a builder takes only those it names)
+_RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-scale": "time_scale"}
+# emulated-bench options (`rigctl emulate` flags): CLI flag -> the keywords of a bench's
+# constructor, one of which takes it
+_BENCH_FLAGS = {**dict.fromkeys(("--slip", "--speed-spread", "--drift", "--noise",
+                                 "--field-at-robots"), ("mismatch",)),
+                "--seed": ("seed", "mismatch"), "--world": ("world",), "--firmware": ("firmware",),
+                "--coil-error": ("coil_errors",), "--coil-seed": ("coil_errors",)}
+
+
+def refuse_foreign(flags: list[str], table: dict, target, where: str) -> None:
+    """Refuse by name (ConfigError) each of `flags` whose keyword in `table` the callable `target`
+    does not take; `where` says what was asked ("a global-moves run on a depm rig")."""
+    takes = set(inspect.signature(target).parameters)
+    for flag in flags:
+        wanted = table[flag]
+        if takes.isdisjoint((wanted,) if isinstance(wanted, str) else wanted):
+            raise ConfigError(f"{flag}: not an option of {where}")
+
+
+def refuse_foreign_bench_flags(args: argparse.Namespace, kind: str, where: str) -> None:
+    """The emulated-bench flags given that the bench of rig kind `kind` does not take, refused."""
+    flags = [arg for arg in _bench_args(args) if arg in _BENCH_FLAGS]
+    if flags:  # the bench's module (OpenCV, the world models) only imported to check them
+        from rigctl.emulators.base import bench_class
+
+        refuse_foreign(flags, _BENCH_FLAGS, bench_class(kind), where)
+
+
+def _run_options(args: argparse.Namespace) -> dict:
+    given = {"--open-loop": False if args.open_loop else None,
+             "--agnostic": True if args.agnostic else None, "--time-scale": args.time_scale}
+    return {flag: value for flag, value in given.items() if value is not None}
+
+
+def _bench_args(args: argparse.Namespace) -> list[str]:
+    """The emulated bench's flags given (model mismatch, world, firmware) as `rigctl emulate`
+    arguments."""
+    out = []
+    for flag in _BENCH_FLAGS:
+        value = getattr(args, flag[2:].replace("-", "_"), None)
+        if value is True:
+            out.append(flag)
+        elif value is not None and value is not False:
+            out += [flag, str(value)]
+    return out
+
+
+def _add_mismatch_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("model mismatch of the emulated world (recorded in the rig file)")
+    g.add_argument("--slip", type=float, help="distance per turn x F (e.g. 0.85); --world pair: the "
+                   "agents' speed under a force x F (the liquid 1/F times as viscous)")
+    g.add_argument("--speed-spread", type=float,
+                   help="each robot's distance per turn x (1 + s_i), s_i ~ N(0, F)")
+    g.add_argument("--drift", type=float, metavar="MM_PER_S",
+                   help="slow steady drift, direction drawn from --seed")
+    g.add_argument("--noise", type=float, metavar="MM",
+                   help="position jitter per turn while touching a wall or another robot")
+    g.add_argument("--seed", type=int, help="seed of the spread, drift direction and jitter")
+    g.add_argument("--field-at-robots", action="store_true",
+                   help="each robot feels the coils' field at its own position (not uniform)")
+
+
+def cmd_execute(args: argparse.Namespace) -> int:
+    if args.connect:
+        from rigctl.apps.cli.daemon import execute_remote
+
+        return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
+    from rigctl.rigs.guardian import Guardian
+
+    # the guardian first: its start overlaps the imports below; it is left last, so a SIGKILL at
+    # any point from the lock to the bench's stop leaves it to make the rig safe, stop the bench
+    with Guardian("rigctl execute") as guardian:
+        return _execute_guarded(args, guardian)
+
+
+def _execute_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
+    # here, not at the top: every other command (`estop` first) starts without these imports
+    from rigctl.apps.daemon.local import LocalControl
+    from rigctl.emulators.process import rig_for_run
+    from rigctl.plans.schema import load_plan
+    from rigctl.rigs import rig_kind
+    from rigctl.rigs.doctor import preflight
+    from rigctl.rigs.owner import RigLock
+    from rigctl.run.summary import exit_code, print_summary
+
+    plan = load_plan(args.plan)
+    kind = rig_kind(plan.rig)
+    build = kind.builder(plan.kind)
+    where = f"a {plan.kind} run on a {kind.name} rig"
+    given_options = _run_options(args)
+    refuse_foreign(list(given_options), _RUN_FLAGS, build, where)
+    options = {_RUN_FLAGS[flag]: value for flag, value in given_options.items()}
+    refuse_foreign_bench_flags(args, kind.name, where)
+    given, implied = _bench_args(args), kind.bench_args(plan)
+    if args.rig is not None and given:
+        raise ConfigError(f"{' '.join(given)}: these set up the emulated bench that execute starts "
+                          f"itself; give them to `rigctl emulate {kind.name}` when using --rig")
+    for flag, value in zip(implied[::2], implied[1::2]):
+        if flag in given and given[given.index(flag) + 1] != value:
+            raise ConfigError(f"a {plan.kind} plan runs with {flag} {value}")
+    if args.rig is None and kind.bench_rig is not None:  # refused before a bench is started
+        build(plan, kind.bench_rig(), runs_dir=args.runs, **options)
+    if args.rig is not None:  # the pre-flight certificate refuses before any device is opened
+        from rigctl.core.config import load_rig
+
+        build(plan, load_rig(args.rig), runs_dir=args.runs, **options)
+    bench = given + implied
+    world = f" ({bench[bench.index('--world') + 1]} world)" if "--world" in bench else ""
+    out = None if args.quiet else sys.stderr
+    abort_on_sigterm()  # SIGTERM ends a run as Ctrl-C does: an abort, recorded and summarised
+    with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig, \
+            RigLock(rig, "rigctl execute") as lock:  # one owner per rig: a second is refused
+        # a bench started here is this process's to stop: its rig file names its pid
+        guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
+        preflight(rig)  # every device answers and is made safe, or exit 2 naming it
+        run = build(plan, rig, runs_dir=args.runs, progress_out=out, **options)
+        guardian.wait_armed()  # nothing is energised unguarded
+        with LocalControl(run) as control:
+            lock.name_control(control.endpoint)  # where `rigctl estop --rig` and the rest find it
+            summary = run.execute()
+    print_summary(summary, args.json)
+    return exit_code(summary)

@@ -1,5 +1,0 @@
-"""The `rigctl` command line: one module per group of commands (`main` holds the parser)."""
-
-from rigctl.cli.main import build_parser, main
-
-__all__ = ["build_parser", "main"]
