@@ -19,6 +19,7 @@ import sys
 import time
 from pathlib import Path
 
+from rigctl.apps.cli.service import DEFAULT_VENV
 from rigctl.apps.client import Rig
 from rigctl.apps.testing import descendants, wait_for
 from rigctl.core.config import load_rig
@@ -37,13 +38,12 @@ def stop_post_command(rig_path: Path) -> list[str]:
                if k.strip() == "ExecStopPost"]
     argv = shlex.split(line.strip().lstrip("-@:+!"))  # systemd's prefixes, if any
     assert UNIT_RIG in argv, argv
-    return [str(rig_path) if a == UNIT_RIG else a for a in argv]
+    assert argv[0] == f"{DEFAULT_VENV}/bin/python3", argv  # the documented install's interpreter
+    return [sys.executable] + [str(rig_path) if a == UNIT_RIG else a for a in argv[1:]]
 
 
 def test_the_units_stop_post_makes_every_supply_safe_after_a_sigkill(tmp_path):
-    env = {**os.environ, "RIGCTL_LOCK_DIR": str(tmp_path / "locks"), "PYTHONUNBUFFERED": "1",
-           # `/usr/bin/env rigctl` finds this venv's rigctl, as it would the installed one
-           "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    env = {**os.environ, "RIGCTL_LOCK_DIR": str(tmp_path / "locks"), "PYTHONUNBUFFERED": "1"}
     with EmulatedBenchProcess("six-coil", tmp_path / "bench.toml") as rig_path, \
             BackdoorClient(load_rig(rig_path).emulation.backdoor) as backdoor:
         def currents() -> dict[str, float]:

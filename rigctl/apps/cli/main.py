@@ -35,6 +35,7 @@ from rigctl.apps.cli.paths import (
 )
 from rigctl.apps.cli.plan import points_mm
 from rigctl.apps.cli.plan import register as register_planners
+from rigctl.apps.cli.service import register_service
 from rigctl.apps.study.cli import register as register_study
 from rigctl.core.config import load_rig
 from rigctl.core.errors import (
@@ -307,6 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
     register_init(sub)
     register_faults(sub)
     register_study(sub)
+    register_service(sub)
     return parser
 
 
