@@ -6,11 +6,11 @@ polarised cylinder whose axis is its moment's direction and whose polarisation J
 (V = pi D^2 L / 4) gives it the rig file's dipole moment exactly: far away it is the planner's
 dipole (the l = 3 term of a cylinder decays as r^-5, two powers faster than the dipole's r^-3);
 within 15 cm of a magnet's centre it differs by 1-13 % (the issue's figure; checked in
-`tests/unit/test_epm_world.py`). The field is magpylib's closed form for an axially magnetised
-cylinder (`magpylib.core.magnet_cylinder_axial_Bfield`, Derby and Olbert 2010), which the field's
-community maintains and tests against its own consistency suite: the reason to take it rather
-than write the elliptic integrals here (its core kernel, called on every magnet's local
-coordinates at once, costs ~0.2 ms for the board's three sensors; the object interface ~5 ms).
+`tests/unit/test_epm_world.py`). The field is the closed form for an axially magnetised
+cylinder (Derby and Olbert 2010: `rigctl.physics.magnetics.cylinder_axial_field`), called on
+every magnet's local coordinates at once. It was magpylib's core kernel until the core install
+had to shed weight (magpylib brings plotly); the test still checks it against magpylib's own
+cylinder field (1e-9 relative).
 Gradients (for the backdoor's exact U) are central differences.
 """
 
@@ -19,9 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from magpylib.core import magnet_cylinder_axial_Bfield
 
-from rigctl.physics.magnetics import MU0, gradient_terms
+from rigctl.physics.magnetics import MU0, cylinder_axial_field, gradient_terms
 
 SEED_003_EPM_DIAMETER_M = 0.1016
 SEED_003_EPM_LENGTH_M = 0.1016
@@ -56,7 +55,7 @@ class CylinderEpms:
         # the axial cylinder's closed form in cylindrical coordinates, lengths over the radius
         radius = self.diameter_m / 2.0
         rho = np.hypot(local[..., 0], local[..., 1])
-        b_r, _, b_z = magnet_cylinder_axial_Bfield(
+        b_r, b_z = cylinder_axial_field(
             np.full(rho.size, self.length_m / self.diameter_m), rho.ravel() / radius,
             local[..., 2].ravel() / radius)
         polarization = (MU0 * strengths[live] / self.volume_m3)[:, None]  # T, (K, 1)

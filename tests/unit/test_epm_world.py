@@ -109,3 +109,21 @@ def test_the_emulated_hall_board_reads_the_cylinders():
     np.testing.assert_allclose(fields, expected, atol=noise)
     assert np.abs(fields - dipoles).max() > 5 * noise  # and not the dipole model's field
     assert truth["magnets"] == "cylinder"
+
+
+def test_the_cylinder_kernel_is_magpylibs_inside_outside_and_on_the_mantles_line():
+    """The closed form against magpylib's own kernel (an independent implementation of the same
+    paper), over points inside, outside, on the axis and at rho = 1 exactly (gamma = 0: the
+    integral's parameter p = 0, the branch Bulirsch's algorithm turns first)."""
+    from magpylib.core import magnet_cylinder_axial_Bfield
+
+    from rigctl.physics.magnetics import cylinder_axial_field
+
+    rng = np.random.default_rng(11)
+    rho = np.concatenate([rng.uniform(0, 6, 400), np.zeros(20), np.ones(20)])
+    z = np.concatenate([rng.uniform(-6, 6, 400), rng.uniform(-3, 3, 20), rng.uniform(1.5, 4, 20)])
+    half = np.full(rho.size, 0.9)
+    b_rho, _, b_z = magnet_cylinder_axial_Bfield(half, rho, z)
+    ours = cylinder_axial_field(half, rho, z)
+    np.testing.assert_allclose(ours[0], b_rho, rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(ours[1], b_z, rtol=1e-9, atol=1e-14)

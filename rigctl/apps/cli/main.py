@@ -48,6 +48,7 @@ from rigctl.core.errors import (
     RigError,
     interrupt_name,
 )
+from rigctl.core.extras import EXTRAS, MissingExtra, need
 from rigctl.core.logs import configure as configure_logs
 
 log = logging.getLogger("rigctl")
@@ -328,7 +329,13 @@ def main(argv: list[str] | None = None) -> int:
     # at realtime priority): the daemon logs INFO; interactive commands only warnings
     configure_logs(args.verbose, service=args.func.__name__ == "_cmd_daemon")
     try:
+        _need_extras(args)
         return args.func(args)
+    except ModuleNotFoundError as err:  # an optional part reached by a path _need_extras missed
+        if err.name not in EXTRAS:
+            raise
+        return _failed(args, "bad_input", f"error: {MissingExtra('this command', err.name)}",
+                       EXIT_BAD_INPUT)
     except (PlanError, ConfigError, LimitError, BadPath) as err:
         return _failed(args, "bad_input", f"error: {err}", EXIT_BAD_INPUT)
     except RigError as err:
@@ -336,6 +343,14 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as interrupt:  # outside a run (a run ends as an abort, summarised)
         return _failed(args, "interrupted",
                        f"interrupted ({interrupt_name(interrupt)}): nothing is running", EXIT_FAULT)
+
+
+def _need_extras(args: argparse.Namespace) -> None:
+    """Refuse, before anything starts, a command whose optional part is not installed."""
+    if args.func.__module__.startswith("rigctl.apps.study"):
+        need("distributed", "rigctl study")
+    if args.func.__name__ == "_cmd_daemon" and getattr(args, "console", None):
+        need("aiohttp", "the console (rigctl daemon --console)")
 
 
 def _failed(args: argparse.Namespace, code: str, line: str, status: int) -> int:
