@@ -294,8 +294,7 @@ class BopScpi:
                      _bare(lambda: m.list_direction)),
             _Command(_parse_pattern("[SOURce] LIST QUERy"), self._set_list_query,
                      _bare(lambda: str(self._list_query_start))),
-            _Command(_parse_pattern("[SOURce] LIST GENeration"),
-                     lambda text: _choice(text, {"DSEQ": "DSEQ", "DSEQUENCE": "DSEQ"}) and None,
+            _Command(_parse_pattern("[SOURce] LIST GENeration"), self._set_list_generation,
                      _bare(lambda: "DSEQ")),
             # trigger (BOP par. 3.6.3.1, 3.6.3.3, B.3)
             _Command(_parse_pattern("INITiate [IMMediate]"), _action(m.arm_trigger), None),
@@ -455,6 +454,11 @@ class BopScpi:
             raise _ScpiError(*SETTINGS_CONFLICT)
         setattr(self.model, attribute, value)
 
+    @staticmethod
+    def _set_list_generation(text: str) -> None:
+        """LIST:GEN: only the default sequence (DSEQ) is emulated; SEQ (LIST:SEQ) answers -102."""
+        _choice(text, {"DSEQ": "DSEQ", "DSEQUENCE": "DSEQ"})
+
     def _set_list_query(self, text: str) -> None:
         self._list_query_start = _integer(text, 0, LIST_MAX_POINTS - 1)
 
@@ -467,7 +471,8 @@ class BopScpi:
     def handle(self, line: str) -> str | None:
         """Execute one program message; the joined query responses, or None if there were none."""
         self._before_command()
-        self._responses = responses = []
+        responses: list[str] = []
+        self._responses = responses
         path: list[str] = []
         for unit in line.strip().split(";"):
             try:
