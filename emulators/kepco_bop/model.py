@@ -162,6 +162,12 @@ class BopCoilModel:
         self.voltage_protection_max_V = [PROTECTION_MARGIN * self.compliance_V] * 2
         self.current_protection_max_A = [PROTECTION_MARGIN * self.current_limit_A] * 2
         self._setups: dict[int, dict] = {}
+        # software limits (CURR:LIM / VOLT:LIM, BOP par. B.21-B.24): positive and negative
+        # magnitudes the settings may reach, at most the rating; *RST leaves them (the BOP keeps
+        # them for power-up with MEM:UPD)
+        self.current_soft_limit_A = [self.current_limit_A] * 2
+        self.voltage_soft_limit_V = [self.compliance_V] * 2
+        self.output_mode = "ACTIVE"  # OUTP:MODE: the emulated off state is always ACTIVE's
         self.clear_list()
         self.reset()
 
@@ -210,9 +216,11 @@ class BopCoilModel:
     def set_current(self, amps: float) -> bool:
         """CURR: the setpoint (current mode) or the current limit (voltage mode).
 
-        Refused with -222 when |amps| exceeds the rating, or is not positive as a limit.
+        Refused with -222 outside the software limits (CURR:LIM, at most the rating), or when not
+        positive as a limit.
         """
-        if not math.isfinite(amps) or abs(amps) > self.current_limit_A:
+        high, low = self.current_soft_limit_A
+        if not math.isfinite(amps) or not -low <= amps <= high:
             self.push_error(*DATA_OUT_OF_RANGE)
             return False
         if self.mode == "VOLT" and amps <= 0:
@@ -222,8 +230,10 @@ class BopCoilModel:
         return True
 
     def set_voltage(self, volts: float) -> bool:
-        """VOLT: the compliance (current mode, must be in (0, rating]) or the output voltage."""
-        if not math.isfinite(volts) or abs(volts) > self.compliance_V:
+        """VOLT: the compliance (current mode, must be in (0, rating]) or the output voltage; both
+        within the software limits (VOLT:LIM, at most the rating)."""
+        high, low = self.voltage_soft_limit_V
+        if not math.isfinite(volts) or not -low <= volts <= high:
             self.push_error(*DATA_OUT_OF_RANGE)
             return False
         if self.mode == "CURR" and volts <= 0:
@@ -372,6 +382,20 @@ class BopCoilModel:
                 limits[k] = min(limits[k], magnitude)
             else:
                 limits[k] = magnitude
+        return True
+
+    def set_soft_limit(self, channel: Literal["VOLT", "CURR"], magnitude: float,
+                       side: Literal["BOTH", "POS", "NEG"] = "BOTH") -> bool:
+        """CURR:LIM / VOLT:LIM [:POS|:NEG]: between 0 and the rating (-222 otherwise). A setting
+        beyond a lowered limit is not changed (guess: the manual does not say)."""
+        rating = self.compliance_V if channel == "VOLT" else self.current_limit_A
+        limits = self.voltage_soft_limit_V if channel == "VOLT" else self.current_soft_limit_A
+        magnitude = abs(magnitude)
+        if not math.isfinite(magnitude) or magnitude > rating:
+            self.push_error(*DATA_OUT_OF_RANGE)
+            return False
+        for k in (0, 1) if side == "BOTH" else (0,) if side == "POS" else (1,):
+            limits[k] = magnitude
         return True
 
     # -- the list ---------------------------------------------------------------------------------

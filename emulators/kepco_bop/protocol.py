@@ -56,8 +56,14 @@ Kepco SCPI products, used where the BOP manual we could read is silent (marked "
   manuals give; guess for this firmware), SYSTem:REMote ON|OFF (the emulator is always reachable;
   it only remembers the setting), SYSTem:BEEP, SYSTem:ERRor:CODE[:NEXT]? / :CODE:ALL? (codes only;
   ALL empties the queue: MST 488 par. B.47-B.48, guess for the BOP); DIAGnostic:TST?.
+- Also: CURRent|VOLTage[:LEVel]:LIMit[:BOTH|:POSitive|:NEGative] (software limits, 0 to the
+  rating: settings beyond them get -222 and MAX / MIN mean them, BOP par. B.2, B.21-B.24);
+  OUTPut:MODE ACTive|RESistive|BATTery (B.15-B.16; remembered, the emulated off state is always
+  the active one, right for a coil). MEASure[:SCALar]:CURRent|VOLTage[:DC]? in all its long and
+  short forms; with a parameter it is -108 (Kepco's MST 488 par. B.10 accepts SCPI's range and
+  resolution there and sets questionable bit 13; the BOP manual is silent, so we keep the error).
 - Not emulated (answered -113 like any unknown header): CAL, MEM, DISPlay, LIST:SEQuence and
-  LIST:SAMPle, CURR:LIM / VOLT:LIM software limits, SYST:PASS / KLOC / SEC / SET.
+  LIST:SAMPle, SYST:PASS / KLOC / SEC / SET.
 """
 
 from __future__ import annotations
@@ -153,15 +159,16 @@ def _action(act: Callable[[], object]) -> Callable[[str], None]:
     return write
 
 
-def _number(text: str, *, maximum: float) -> float:
-    """An NRf parameter, or MAX / MIN (the most positive / negative allowed value)."""
+def _number(text: str, *, maximum: float, minimum: float | None = None) -> float:
+    """An NRf parameter, or MAX / MIN (the most positive / negative allowed value; MIN is
+    -maximum unless given)."""
     word = text.strip().upper()
     if not word:
         raise _ScpiError(*MISSING_PARAMETER)
     if word in ("MAX", "MAXIMUM"):
         return maximum
     if word in ("MIN", "MINIMUM"):
-        return -maximum
+        return -maximum if minimum is None else minimum
     if not _NRF.fullmatch(word):
         raise _ScpiError(*NUMERIC_DATA_ERROR)
     value = float(word)
@@ -261,6 +268,8 @@ class BopScpi:
             *self._channel_commands("VOLT", "VOLTage", lambda: m.compliance_V),
             _Command(_parse_pattern("OUTPut [STATe]"), self._set_output,
                      _bare(lambda: "1" if m.output_on else "0")),
+            _Command(_parse_pattern("OUTPut MODE"), self._set_output_mode,
+                     _bare(lambda: m.output_mode)),
             _Command(_parse_pattern("MEASure [SCALar] CURRent [DC]"), None,
                      _bare(lambda: _scientific(m.current_A))),
             _Command(_parse_pattern("MEASure [SCALar] VOLTage [DC]"), None,
@@ -346,10 +355,19 @@ class BopScpi:
         maxima = ((lambda: m.current_protection_max_A) if channel == "CURR"
                   else (lambda: m.voltage_protection_max_V))
 
+        soft = ((lambda: m.current_soft_limit_A) if channel == "CURR"
+                else (lambda: m.voltage_soft_limit_V))
+
         def level_query(text: str) -> str:  # CURR? [MAX|MIN] (BOP par. B.20)
             if not text:
                 return _scientific(setpoint())
-            return _scientific(_number(text, maximum=rating()))
+            if text.strip().upper() not in ("MAX", "MAXIMUM", "MIN", "MINIMUM"):
+                raise _ScpiError(*SYNTAX_ERROR)
+            return _scientific(_number(text, maximum=soft()[0], minimum=-soft()[1]))
+
+        def soft_limit(side: str) -> Callable[[str], None]:
+            return lambda text: m.set_soft_limit(
+                channel, _number(text, maximum=rating()), side)  # type: ignore[arg-type]
 
         def trigger_write(text: str) -> None:
             value = _number(text, maximum=rating())
@@ -393,6 +411,9 @@ class BopScpi:
             _Command(_parse_pattern(prot + " LIMit [BOTH]"), protect("BOTH", True), pair(maxima)),
             _Command(_parse_pattern(prot + " LIMit POSitive"), protect("POS", True), one(maxima, 0)),
             _Command(_parse_pattern(prot + " LIMit NEGative"), protect("NEG", True), one(maxima, 1)),
+            _Command(_parse_pattern(level + " LIMit [BOTH]"), soft_limit("BOTH"), pair(soft)),
+            _Command(_parse_pattern(level + " LIMit POSitive"), soft_limit("POS"), one(soft, 0)),
+            _Command(_parse_pattern(level + " LIMit NEGative"), soft_limit("NEG"), one(soft, 1)),
             _Command(_parse_pattern(prot + " MODE"),  # only the fixed (digital) limits exist here
                      lambda text: None if _choice(text, {"FIX": "FIX", "FIXED": "FIX", "EXT": "EXT",
                                                          "EXTERNAL": "EXT", "LESS": "LESS",
@@ -418,13 +439,20 @@ class BopScpi:
             raise _ScpiError(*SYNTAX_ERROR)
 
     def _set_current(self, text: str) -> None:
-        self.model.set_current(_number(text, maximum=self.model.current_limit_A))
+        high, low = self.model.current_soft_limit_A
+        self.model.set_current(_number(text, maximum=high, minimum=-low))
 
     def _set_voltage(self, text: str) -> None:
-        self.model.set_voltage(_number(text, maximum=self.model.compliance_V))
+        high, low = self.model.voltage_soft_limit_V
+        self.model.set_voltage(_number(text, maximum=high, minimum=-low))
 
     def _set_output(self, text: str) -> None:
         self.model.set_output(_boolean(text))
+
+    def _set_output_mode(self, text: str) -> None:
+        self.model.output_mode = _choice(text, {"ACT": "ACTIVE", "ACTIVE": "ACTIVE",
+                                                "RES": "RESISTIVE", "RESISTIVE": "RESISTIVE",
+                                                "BATT": "BATTERY", "BATTERY": "BATTERY"})
 
     def _set_event_status_enable(self, text: str) -> None:
         self.model.event_status_enable = _integer(text, 0, 255)

@@ -265,3 +265,25 @@ def test_a_voltage_list_runs_in_voltage_mode(scpi) -> None:
     scpi.model.step(0.06)  # count 0 repeats until stopped: 0.09 s is in the second pass's -5 V
     assert scpi.model.voltage_setpoint_V == -5.0
     assert scpi.handle("VOLT:MODE?") == "LIST"
+
+
+# -- software limits and the output mode ---------------------------------------------------------
+
+def test_software_limits_bound_settings_and_give_max_and_min_their_meaning(scpi) -> None:
+    assert scpi.handle("CURR:LIM?") == "2.000000E+01,-2.000000E+01"  # the rating
+    scpi.handle("CURR:LIM:POS 6;:CURR:LIM:NEG 4")
+    scpi.handle("CURR MAX")
+    assert scpi.handle("CURR?;CURR? MAX;CURR? MIN") == \
+        "6.000000E+00;6.000000E+00;-4.000000E+00"  # "VOLT MAX ... set to the limit" (App. B.2)
+    scpi.handle("CURR -5")  # beyond the negative limit
+    scpi.handle("CURR:LIM 21")  # beyond the rating
+    assert errors(scpi) == ['-222,"Data out of range"'] * 2
+    assert float(scpi.handle("CURR?")) == 6.0
+
+
+def test_output_mode_is_remembered(scpi) -> None:
+    assert scpi.handle("OUTP:MODE?") == "ACTIVE"
+    scpi.handle("OUTP:MODE RES")
+    assert scpi.handle("OUTP:MODE?") == "RESISTIVE"
+    scpi.handle("OUTP:MODE LOUD")
+    assert errors(scpi) == ['-102,"Syntax error"']
