@@ -14,6 +14,13 @@ oversampling setting.
 
 Faults, besides the link's own (`endpoint.drop_link/stall/corrupt/restore`): `skip(n)` loses the
 next n samples (the sequence numbers jump), as when the reader computer misses I2C reads.
+
+`place(offsets_mm)` moves the sensors (the six-coil bench's probe array). The `hello` is the only
+place a client learns where the sensors are and how many there are, and it comes once, first on a
+connection (docs/hall-board.md); so the board closes its connections when its sensors move, as a
+reader computer does when it is restarted with a new board file, and each client's next connection
+starts with a hello that names the new positions. Without that, a connected client would go on
+placing the new sensors' readings at the old positions (or fail on a different count).
 """
 
 from __future__ import annotations
@@ -85,10 +92,8 @@ class HallBoardServer:
         self.name = name
         self.field_at = field_at
         self.now = now
-        self.offsets_mm = np.asarray(offsets_mm, dtype=float)
-        if self.offsets_mm.ndim != 2 or self.offsets_mm.shape[1] != 3:
-            raise ValueError(f"offsets_mm must be (n, 3), got {self.offsets_mm.shape}")
-        self.points_m = np.asarray(centre_m, dtype=float) + self.offsets_mm * 1e-3
+        self.centre_m = np.asarray(centre_m, dtype=float)
+        self.offsets_mm, self.points_m = self._positions(offsets_mm)
         self.model = HallSensorModel(spec, seed=seed)
         self.rate_hz = rate_hz
         self.seq = 0
@@ -97,6 +102,21 @@ class HallBoardServer:
         self.endpoint = server.serve_sessions_tcp(self, name=name, host=host, port=port)
         self.url = self.endpoint.url
         server.every(1.0 / rate_hz, self.tick)
+
+    def _positions(self, offsets_mm) -> tuple[np.ndarray, np.ndarray]:
+        """Offsets (n, 3) mm from the centre, and the sensors' points (n, 3) m."""
+        offsets = np.asarray(offsets_mm, dtype=float)
+        if offsets.ndim != 2 or offsets.shape[1] != 3 or len(offsets) < 1:
+            raise ValueError(f"offsets_mm must be (n, 3) with n >= 1, got {offsets.shape}")
+        return offsets, self.centre_m + offsets * 1e-3
+
+    def place(self, offsets_mm) -> None:
+        """Move the sensors to `offsets_mm` (n, 3) mm and close every connection, so that each
+        client's next one starts with a hello naming them (module docstring). Call in the loop
+        thread or through `server.call`."""
+        self.offsets_mm, self.points_m = self._positions(offsets_mm)
+        for session in list(self.sessions):
+            session.close()
 
     # -- SessionHandler -------------------------------------------------------------------------
     def connected(self, session: Session) -> None:
