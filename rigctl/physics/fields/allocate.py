@@ -32,8 +32,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rigctl.core.errors import LimitError
+from rigctl.core.jit import njit
 from rigctl.physics.fields.model import FieldModel
-from rigctl.physics.magnetics import GRADIENT_TERMS, wrench_map
+from rigctl.physics.magnetics import GRADIENT_TERMS
 
 FIELD_FLOOR_T = 1e-3
 """The field scale of a request for zero field (1 mT: the size of fields these rigs make)."""
@@ -61,10 +62,6 @@ class Allocation:
 
     currents_A: np.ndarray
     made: np.ndarray
-
-
-def _block_scale(value: np.ndarray, floor: float) -> float:
-    return max(float(np.linalg.norm(value)), floor)
 
 
 def _describe(rows: np.ndarray, kinds: list[str]) -> str:
@@ -105,43 +102,27 @@ def allocate(model: FieldModel, point_m: ArrayLike, field_T: ArrayLike, *,
     if (force_N is None) != (moment_Am2 is None):
         raise ValueError("a force request needs the dipole's moment_Am2, and only it")
     point = np.asarray(point_m, dtype=float).reshape(3)
-    field = np.asarray(field_T, dtype=float).reshape(3)
     n = model.n_coils
-    per_A = model.field_and_gradient_per_ampere(point[None, :])[0]  # (N + 1, 12)
-    a8 = np.empty((8, n + 1))
-    a8[0:3] = per_A[:, 0:3].T
-    a8[3:6] = per_A[:, 3:6].T  # G00, G01, G02
-    a8[6:8] = per_A[:, 7:9].T  # G11, G12
-    A, off = a8[:, :n], a8[:, n]
+    moment = np.zeros(3)
     if gradient_T_per_m is not None:
         if n < 8:
             raise LimitError(f"{n} coils cannot set field and gradient (8 independent terms) "
                              "at a point: 8 coils at least")
-        grad = np.asarray(gradient_T_per_m, dtype=float).reshape(5)
-        M, asked, off_rows = A, np.concatenate([field, grad]), off
-        kinds = ["field", "gradient"]
-        scale = np.repeat([_block_scale(field, FIELD_FLOOR_T),
-                           _block_scale(grad, GRADIENT_FLOOR_T_PER_M)], [3, 5])
+        mode, kinds = MODE_GRADIENT, ["field", "gradient"]
+        asked = np.concatenate([np.asarray(field_T, dtype=float).reshape(3),
+                                np.asarray(gradient_T_per_m, dtype=float).reshape(5)])
     elif force_N is not None:
-        force = np.asarray(force_N, dtype=float).reshape(3)
-        S = wrench_map(np.asarray(moment_Am2, dtype=float).reshape(3))[0:3]  # (3, 8)
-        M = np.concatenate([A[0:3], S @ A])
-        asked, off_rows = np.concatenate([field, force]), np.concatenate([off[0:3], S @ off])
-        kinds = ["field", "force"]
-        scale = np.repeat([_block_scale(field, FIELD_FLOOR_T),
-                           _block_scale(force, FORCE_FLOOR_N)], [3, 3])
+        mode, kinds = MODE_FORCE, ["field", "force"]
+        asked = np.concatenate([np.asarray(field_T, dtype=float).reshape(3),
+                                np.asarray(force_N, dtype=float).reshape(3)])
+        moment = np.asarray(moment_Am2, dtype=float).reshape(3)
     else:
-        M, asked, off_rows = A[0:3], field, off[0:3]
-        kinds = ["field"]
-        scale = np.full(3, _block_scale(field, FIELD_FLOOR_T))
-    b = asked - off_rows
-    w = 1.0 / scale if weights is None else np.asarray(weights, dtype=float).reshape(len(b))
-    Mw, bw = M * w[:, None], b * w
-    u, s, vt = np.linalg.svd(Mw, full_matrices=False)
-    keep = s > RANK_RCOND * s[0]
-    currents = vt[keep].T @ ((u.T @ bw)[keep] / s[keep])
-    residual = Mw @ currents - bw
-    if np.max(np.abs(residual)) > RESIDUAL_RTOL * max(1.0, float(np.max(np.abs(bw)))):
+        mode, kinds = MODE_FIELD, ["field"]
+        asked = np.asarray(field_T, dtype=float).reshape(3)
+    w = np.empty(0) if weights is None else np.asarray(weights, dtype=float).reshape(len(asked))
+    per_A = model.field_and_gradient_per_ampere(point[None, :])[0]
+    currents, made, M, off_rows, bad = _solve(per_A, mode, asked, moment, w)
+    if bad:
         raise LimitError(f"this rig cannot make {_describe(asked, kinds)} at {_mm(point)}; the "
                          f"nearest it makes is {_describe(M @ currents + off_rows, kinds)}")
     if current_limits_A is not None:
@@ -154,8 +135,60 @@ def allocate(model: FieldModel, point_m: ArrayLike, field_T: ArrayLike, *,
                 f"{_describe(asked, kinds)} at {_mm(point)} needs {currents[worst]:.4g} A in coil "
                 f"{model.coil_names[worst]} (limit {limits[worst]:.4g} A); within the limits "
                 f"this rig makes {1.0 / ratio[worst]:.1%} of it above the offset: "
-                f"{_describe(off_rows + b / ratio[worst], kinds)}")
-    return Allocation(currents_A=currents, made=A @ currents + off)
+                f"{_describe(off_rows + (asked - off_rows) / ratio[worst], kinds)}")
+    return Allocation(currents_A=currents, made=made)
+
+
+MODE_FIELD, MODE_GRADIENT, MODE_FORCE = 0, 1, 2
+
+
+@njit()
+def _solve(per_A, mode, asked, moment, weights):
+    """The numbers of `allocate` in one compiled call: (currents (N,), made U (8,), the rows M
+    (k, N), the offset's rows (k,), whether the request is out of reach)."""
+    n = per_A.shape[0] - 1
+    a8 = np.empty((8, n + 1))
+    for c in range(n + 1):
+        for i in range(3):
+            a8[i, c] = per_A[c, i]
+        a8[3, c] = per_A[c, 3]  # G00
+        a8[4, c] = per_A[c, 4]  # G01
+        a8[5, c] = per_A[c, 5]  # G02
+        a8[6, c] = per_A[c, 7]  # G11
+        a8[7, c] = per_A[c, 8]  # G12
+    k = asked.shape[0]
+    rows = np.empty((k, n + 1))  # the asked rows, offset in the last column
+    rows[0:3] = a8[0:3]
+    scale = np.empty(k)
+    field_size = max(np.sqrt(asked[0] ** 2 + asked[1] ** 2 + asked[2] ** 2), FIELD_FLOOR_T)
+    scale[0:3] = field_size
+    if mode == MODE_GRADIENT:
+        rows[3:8] = a8[3:8]
+        scale[3:8] = max(np.sqrt(np.sum(asked[3:8] ** 2)), GRADIENT_FLOOR_T_PER_M)
+    elif mode == MODE_FORCE:
+        # F = G m with G symmetric: rows of the five terms (seed 003 wrench map, force part)
+        mx, my, mz = moment[0], moment[1], moment[2]
+        rows[3] = mx * a8[3] + my * a8[4] + mz * a8[5]
+        rows[4] = mx * a8[4] + my * a8[6] + mz * a8[7]
+        rows[5] = mx * a8[5] + my * a8[7] - mz * (a8[3] + a8[6])
+        scale[3:6] = max(np.sqrt(np.sum(asked[3:6] ** 2)), FORCE_FLOOR_N)
+    w = 1.0 / scale if weights.shape[0] == 0 else weights
+    M = np.ascontiguousarray(rows[:, 0:n])
+    off_rows = rows[:, n].copy()
+    Mw = M * w.reshape(-1, 1)
+    bw = (asked - off_rows) * w
+    u, s, vt = np.linalg.svd(Mw, full_matrices=False)
+    ub = u.T @ bw
+    currents = np.zeros(n)
+    for i in range(s.shape[0]):
+        if s[i] > RANK_RCOND * s[0]:
+            currents += vt[i] * (ub[i] / s[i])
+    residual = np.max(np.abs(Mw @ currents - bw))
+    bad = residual > RESIDUAL_RTOL * max(1.0, np.max(np.abs(bw)))
+    made = a8[:, n].copy()
+    for c in range(n):
+        made += a8[:, c] * currents[c]
+    return currents, made, M, off_rows, bad
 
 
 def _mm(point_m: np.ndarray) -> str:
