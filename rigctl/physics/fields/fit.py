@@ -63,86 +63,99 @@ def _perpendicular_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Problem:
-    """The packed parameters and the residual of one fit."""
+    """Variable projection: the residual of a geometry with its best coefficients.
+
+    Every (source, order) pair is a *term* with its own coefficient. For a geometry the kernel
+    gives each term's field per unit coefficient U[k, t] (3,) at the probe points; a sample is
+    B[p, k] = sum_t D[p, coil(t)] c_t U[k, t] with D the drive (currents, and 1 for the offset).
+    Because every pattern is read at the same points, the normal equations factor:
+    (D^T D)[coil(t), coil(u)] * (sum_k U[k, t] . U[k, u]) c = sum_k U[k, t] . (D^T B)[coil(t), k],
+    so the coefficients of a geometry cost a T x T solve, not a fit over every sample.
+    """
 
     def __init__(self, start: MPEM, order: int, points: np.ndarray, currents: np.ndarray,
                  fields: np.ndarray, centre: np.ndarray) -> None:
         self.names = start.coil_names
+        n = len(self.names)
         self.coil_sources = [(k, s) for k, sources in enumerate(start.coil_sources)
                              for s in sources]
         S = len(self.coil_sources)
-        self.order = order
+        self.order, self.n_sources = order, S
         self.points, self.fields = points, fields
-        # currents with a column of ones for the offset pseudo-coil
-        self.drive = np.concatenate([currents, np.ones((currents.shape[0], 1))], axis=1)
-        n = len(self.names)
-        self.kinds = np.array([KIND_A if s.kind == "A" else KIND_B for _, s in self.coil_sources]
-                              + [KIND_A] * 3, dtype=np.int64)
-        self.coil_of = np.array([k for k, _ in self.coil_sources] + [n] * 3, dtype=np.int64)
-        self.coeff_start = np.arange(S + 4, dtype=np.int64) * order
+        drive = np.concatenate([currents, np.ones((currents.shape[0], 1))], axis=1)  # (P, n+1)
+        self.drive = drive
+        self.gram_drive = drive.T @ drive  # (n+1, n+1)
+        self.drive_fields = np.einsum("pc,pkj->ckj", drive, fields)  # (n+1, K, 3)
+        # terms: every source at every order 1..order, then the offset's uniform x, y, z
+        self.term_source = np.concatenate([np.repeat(np.arange(S), order), [S, S + 1, S + 2]])
+        self.term_order = np.concatenate([np.tile(np.arange(1, order + 1), S), [1, 1, 1]])
+        self.term_coil = np.array([self.coil_sources[s][0] if s < S else n
+                                   for s in self.term_source], dtype=np.int64)
+        T = len(self.term_source)
+        self.kinds = np.array([KIND_A if s >= S or self.coil_sources[s][1].kind == "A" else KIND_B
+                               for s in self.term_source], dtype=np.int64)
+        self.coeff_start = np.concatenate([[0], np.cumsum(self.term_order)]).astype(np.int64)
+        unit = np.zeros(int(self.coeff_start[-1]))
+        unit[self.coeff_start[1:] - 1] = 1.0  # each term: zeros below its order, 1 at it
+        self.unit = unit
+        self.columns = np.arange(T, dtype=np.int64)
         self.pos0 = np.array([s.position_m for _, s in self.coil_sources], dtype=float)
         dirs = np.array([s.direction for _, s in self.coil_sources], dtype=float)
         self.dir0 = dirs / np.linalg.norm(dirs, axis=1)[:, None]
         self.basis = [_perpendicular_basis(d) for d in self.dir0]
-        self.offset_pos = np.tile(centre, (3, 1))
-        self.n_coeffs = (S + 3) * order
-        self.n_sources = S
+        self.centre = centre
+        self.scale = float(np.sqrt(np.mean(fields**2)))
 
     def geometry(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        S = self.n_sources
-        g = x[self.n_coeffs:].reshape(S, 5)
-        positions = self.pos0 + g[:, 0:3]
-        dirs = np.array([d + t[0] * e1 + t[1] * e2
-                         for d, t, (e1, e2) in zip(self.dir0, g[:, 3:5], self.basis)])
+        """Positions and unit directions of the sources (and the offset's), x = per source
+        (dx, dy, dz in m, two tilts in rad)."""
+        g = x.reshape(self.n_sources, 5)
+        positions = np.concatenate([self.pos0 + g[:, 0:3], np.tile(self.centre, (3, 1))])
+        dirs = (self.dir0 + g[:, 3:4] * np.array([e1 for e1, _ in self.basis])
+                + g[:, 4:5] * np.array([e2 for _, e2 in self.basis]))
         dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-        return np.concatenate([positions, self.offset_pos]), np.concatenate([dirs, np.eye(3)])
+        return positions, np.concatenate([dirs, np.eye(3)])
 
-    def coefficients(self, x: np.ndarray) -> np.ndarray:
-        """Coefficients, offset's A sources' zeroed above order 1 (a uniform offset)."""
-        coeffs = x[:self.n_coeffs].copy()
-        off = coeffs[self.n_sources * self.order:].reshape(3, self.order)
-        off[:, 1:] = 0.0
-        return coeffs
-
-    def predict(self, x: np.ndarray) -> np.ndarray:
+    def solve(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(coefficients (T,), predicted fields (P, K, 3)) for geometry x."""
         positions, dirs = self.geometry(x)
-        per_col = _mpem_kernel(self.points, positions, dirs, self.kinds, self.coil_of,
-                               self.coeff_start, self.coefficients(x), len(self.names) + 1)
-        return np.einsum("kcj,pc->pkj", per_col[:, :, 0:3], self.drive)
+        term_pos, term_dir = positions[self.term_source], dirs[self.term_source]
+        U = _mpem_kernel(self.points, term_pos, term_dir, self.kinds, self.columns,
+                         self.coeff_start, self.unit, len(self.columns))[:, :, 0:3]  # (K, T, 3)
+        Uf = U.transpose(1, 0, 2).reshape(len(self.columns), -1)  # (T, K*3)
+        normal = self.gram_drive[np.ix_(self.term_coil, self.term_coil)] * (Uf @ Uf.T)
+        rhs = np.einsum("tq,tq->t", Uf, self.drive_fields.reshape(self.drive.shape[1], -1)[
+            self.term_coil])
+        size = np.sqrt(np.diag(normal))
+        size[size == 0] = 1.0
+        coeffs = np.linalg.lstsq(normal / np.outer(size, size), rhs / size, rcond=1e-12)[0] / size
+        per_coil = np.zeros((self.drive.shape[1], Uf.shape[1]))
+        np.add.at(per_coil, self.term_coil, coeffs[:, None] * Uf)
+        predicted = (self.drive @ per_coil).reshape(self.fields.shape)
+        return coeffs, predicted
 
-    def linear_coefficients(self) -> np.ndarray:
-        """Stage 1: coefficients by linear least squares, geometry at the start."""
-        total = self.n_coeffs
-        columns = np.empty((self.fields.size, total))
-        x = np.zeros(total + 5 * self.n_sources)
-        for t in range(total):
-            x[:total] = 0.0
-            x[t] = 1.0
-            columns[:, t] = self.predict(x).ravel()
-        offset_higher = [(self.n_sources + k) * self.order + o
-                         for k in range(3) for o in range(1, self.order)]
-        keep = np.setdiff1d(np.arange(total), offset_higher)
-        solution = np.zeros(total)
-        solution[keep] = np.linalg.lstsq(columns[:, keep], self.fields.ravel(), rcond=None)[0]
-        return solution
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        return ((self.solve(x)[1] - self.fields) / self.scale).ravel()
 
     def to_model(self, x: np.ndarray, name: str, workspace: np.ndarray) -> MPEM:
+        coeffs, _ = self.solve(x)
         positions, dirs = self.geometry(x)
-        coeffs = self.coefficients(x).reshape(-1, self.order)
+        per_source = coeffs[:self.n_sources * self.order].reshape(self.n_sources, self.order)
         coil_sources: list[list[Source]] = [[] for _ in self.names]
         for s, (k, src) in enumerate(self.coil_sources):
             coil_sources[k].append(Source(tuple(positions[s]), tuple(dirs[s]), src.kind,
-                                          tuple(coeffs[s])))
-        offset = [Source(tuple(self.offset_pos[i]), tuple(np.eye(3)[i]), "A",
-                         (float(coeffs[self.n_sources + i, 0]),)) for i in range(3)]
+                                          tuple(float(c) for c in per_source[s])))
+        offset = [Source(tuple(float(v) for v in self.centre), tuple(np.eye(3)[i]), "A",
+                         (float(coeffs[self.n_sources * self.order + i]),)) for i in range(3)]
         return MPEM(self.names, coil_sources, offset, name=name,
                     workspace_m=[(float(lo), float(hi)) for lo, hi in workspace])
 
 
 def fit_mpem(points_m: np.ndarray, currents_A: np.ndarray, fields_T: np.ndarray, start: MPEM,
              *, order: int = 3, name: str = "rigctl MPEM calibration",
-             max_evaluations: int = 4000) -> MpemFit:
-    """Fit an MPEM of `order` (1-3) to probe samples, starting from `start`'s geometry.
+             max_evaluations: int = 200) -> MpemFit:
+    """Fit an MPEM of `order` (1-3) to probe samples, starting from `start`'s geometry (its
+    coefficients are not used).
 
     points_m (K, 3) m, currents_A (P, N) A, fields_T (P, K, 3) T; the fitted model's workspace is
     the probe points' bounding box. ConfigError if the data cannot determine the model.
@@ -157,24 +170,22 @@ def fit_mpem(points_m: np.ndarray, currents_A: np.ndarray, fields_T: np.ndarray,
     if fields.shape != (currents.shape[0], points.shape[0], 3):
         raise ConfigError(f"fields must be (patterns, points, 3) = ({currents.shape[0]}, "
                           f"{points.shape[0]}, 3), got {fields.shape}")
+    if currents.shape[0] < start.n_coils + 1:
+        raise ConfigError(f"{currents.shape[0]} patterns cannot separate {start.n_coils} coils "
+                          "and the offset")
     started = time.perf_counter()
     lo, hi = points.min(axis=0), points.max(axis=0)
     problem = _Problem(start, order, points, currents, fields, 0.5 * (lo + hi))
-    n_params = problem.n_coeffs + 5 * problem.n_sources
+    n_params = len(problem.columns) + 5 * problem.n_sources
     if fields.size < 2 * n_params:
         raise ConfigError(f"{fields.size} field components cannot fit {n_params} parameters of an "
                           f"order-{order} MPEM: measure more points or patterns")
-    scale = float(np.sqrt(np.mean(fields**2)))
-    x0 = np.zeros(n_params)
-    x0[:problem.n_coeffs] = problem.linear_coefficients()
-
-    def residual(x: np.ndarray) -> np.ndarray:
-        return ((problem.predict(x) - fields) / scale).ravel()
-
-    # parameters scaled by the Jacobian's columns: coefficients (1e-7 T m^2/A) and positions
-    # (1e-3 m) differ by orders of magnitude
-    fit = least_squares(residual, x0, x_scale="jac", method="trf", max_nfev=max_evaluations)
-    rms = float(np.sqrt(np.mean(np.sum((fit.fun.reshape(fields.shape) * scale) ** 2, axis=-1))))
+    # geometry steps: positions in m (1 mm typical), tilts in rad (0.01 typical)
+    x_scale = np.tile([1e-3, 1e-3, 1e-3, 1e-2, 1e-2], problem.n_sources)
+    fit = least_squares(problem.residual, np.zeros(5 * problem.n_sources), x_scale=x_scale,
+                        method="trf", max_nfev=max_evaluations)
+    rms = float(np.sqrt(np.mean(np.sum((fit.fun.reshape(fields.shape) * problem.scale) ** 2,
+                                       axis=-1))))
     model = problem.to_model(fit.x, name, np.stack([lo, hi], axis=1))
     return MpemFit(model=model, rms_T=rms, duration_s=time.perf_counter() - started,
                    evaluations=int(fit.nfev))
