@@ -48,6 +48,10 @@ FORCE_FLOOR_N = 1e-6
 RESIDUAL_RTOL = 1e-6
 """Largest weighted residual accepted (the weights make each block of order one)."""
 
+LIMIT_RTOL = 1e-9
+"""A current this much (relative) above its limit is taken as at it: round-off of a request made
+at the limit on purpose."""
+
 RANK_RCOND = 1e-9
 """Singular values of W M below this times the largest are taken as zero: directions the rig
 cannot make."""
@@ -129,7 +133,7 @@ def allocate(model: FieldModel, point_m: ArrayLike, field_T: ArrayLike, *,
         limits = np.broadcast_to(np.asarray(current_limits_A, dtype=float), (n,))
         ratio = np.abs(currents) / limits
         worst = int(np.argmax(ratio))
-        if ratio[worst] > 1.0:
+        if ratio[worst] > 1.0 + LIMIT_RTOL:
             # currents are linear in the request above the offset: 1/ratio of it fits
             raise LimitError(
                 f"{_describe(asked, kinds)} at {_mm(point)} needs {currents[worst]:.4g} A in coil "
