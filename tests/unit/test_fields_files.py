@@ -123,6 +123,7 @@ def edit(path: list, value) -> dict:
     (edit(["Left", "Source_List"], ["Src_0", "Src_9"]), "Left.Src_9"),
     (edit(["Left", "Src_0", "A_Coeff"], [1.0]), "Left.Src_0"),  # both given
     (edit(["Left", "Src_0", "B_Coeff"], None), "Left.Src_0"),  # neither
+    (edit(["Left", "Src_0", "A_Coeff"], KeyError), "Left.Src_0.A_Coeff"),  # mag_manip: "both"
     (edit(["Left", "Src_0", "B_Coeff"], []), "Left.Src_0.B_Coeff"),
     (edit(["Left", "Src_0", "B_Coeff"], [1e-7, "x"]), "Left.Src_0.B_Coeff"),
     (edit(["Left", "Src_0", "Source_Direction"], [0.0, 0.0, 0.0]),

@@ -10,7 +10,8 @@ The layout (mag_manip `ElectromagnetCalibration::loadCalibration`; SI units):
     Coil_0:
       Source_List: [Src_0, Src_1]
       Src_0:
-        A_Coeff: ~                            # exactly one of A_Coeff / B_Coeff is null (~)
+        A_Coeff: ~                            # both keys present, exactly one null (~): mag_manip
+                                              # refuses a missing key as "both defined"
         B_Coeff: [b1, b2, b3]                 # orders 1, 2, 3 (`rigctl.physics.fields.mpem`)
         Source_Direction: [x, y, z]           # normalised on reading; must not be zero
         Source_Position: [x, y, z]            # m
@@ -61,7 +62,10 @@ def _source(node: object, where: str) -> Source:
     if not isinstance(node, dict):
         raise ConfigError(f"{where}: must be a mapping with A_Coeff, B_Coeff, Source_Direction "
                           "and Source_Position")
-    a, b = node.get("A_Coeff"), node.get("B_Coeff")
+    for key in ("A_Coeff", "B_Coeff"):
+        if key not in node:  # mag_manip takes a missing key for a given one: "both defined"
+            raise ConfigError(f"{where}.{key}: missing (write ~ for the one not used)")
+    a, b = node["A_Coeff"], node["B_Coeff"]
     if a is not None and b is not None:
         raise ConfigError(f"{where}: both A_Coeff and B_Coeff are given; exactly one must be null")
     if a is None and b is None:
