@@ -147,52 +147,134 @@ MODE_FIELD, MODE_GRADIENT, MODE_FORCE = 0, 1, 2
 
 
 @njit()
+def _dot(a, i, j, n):
+    total = 0.0
+    for c in range(n):
+        total += a[i, c] * a[j, c]
+    return total
+
+
+@njit()
+def _min_norm_solution(M, b):
+    """pinv(M) b for M (k, N), k <= N small, by one-sided Jacobi (Hestenes) SVD.
+
+    Rotating pairs of M's rows until they are orthogonal gives X = V^T M with V (k, k)
+    orthogonal, so M = V X: the singular values are X's row norms, the left singular vectors
+    V's columns, the right ones X's normalised rows, and pinv(M) b =
+    sum_i X_i (V_i . b) / |X_i|^2 over the singular values above RANK_RCOND times the largest.
+    Written in scalar loops: numba's np.linalg.svd (LAPACK) takes tens of seconds to compile.
+    """
+    k, n = M.shape
+    X = M.copy()
+    V = np.eye(k)
+    for _sweep in range(60):
+        rotated = False
+        for i in range(k - 1):
+            for j in range(i + 1, k):
+                alpha = _dot(X, i, i, n)
+                beta = _dot(X, j, j, n)
+                gamma = _dot(X, i, j, n)
+                if gamma == 0.0 or abs(gamma) <= 1e-15 * np.sqrt(alpha * beta):
+                    continue
+                rotated = True
+                zeta = (beta - alpha) / (2.0 * gamma)
+                t = (1.0 if zeta >= 0 else -1.0) / (abs(zeta) + np.sqrt(1.0 + zeta * zeta))
+                c = 1.0 / np.sqrt(1.0 + t * t)
+                s = c * t
+                for q in range(n):
+                    xi, xj = X[i, q], X[j, q]
+                    X[i, q], X[j, q] = c * xi - s * xj, s * xi + c * xj
+                for q in range(k):
+                    vi, vj = V[q, i], V[q, j]
+                    V[q, i], V[q, j] = c * vi - s * vj, s * vi + c * vj
+        if not rotated:
+            break
+    largest = 0.0
+    for i in range(k):
+        largest = max(largest, _dot(X, i, i, n))
+    out = np.zeros(n)
+    for i in range(k):
+        sq = _dot(X, i, i, n)
+        if sq > 0.0 and sq > (RANK_RCOND * RANK_RCOND) * largest:
+            vb = 0.0
+            for q in range(k):
+                vb += V[q, i] * b[q]
+            for q in range(n):
+                out[q] += X[i, q] * (vb / sq)
+    return out
+
+
+@njit()
+def _norm(values, first, last):
+    total = 0.0
+    for i in range(first, last):
+        total += values[i] * values[i]
+    return np.sqrt(total)
+
+
+@njit()
 def _solve(per_A, mode, asked, moment, weights):
     """The numbers of `allocate` in one compiled call: (currents (N,), made U (8,), the rows M
-    (k, N), the offset's rows (k,), whether the request is out of reach)."""
+    (k, N), the offset's rows (k,), whether the request is out of reach). Scalar loops only:
+    numba compiles array expressions slowly (seconds of CPU each)."""
     n = per_A.shape[0] - 1
     a8 = np.empty((8, n + 1))
     for c in range(n + 1):
-        for i in range(3):
+        for i in range(6):  # Bx, By, Bz, G00, G01, G02
             a8[i, c] = per_A[c, i]
-        a8[3, c] = per_A[c, 3]  # G00
-        a8[4, c] = per_A[c, 4]  # G01
-        a8[5, c] = per_A[c, 5]  # G02
         a8[6, c] = per_A[c, 7]  # G11
         a8[7, c] = per_A[c, 8]  # G12
     k = asked.shape[0]
-    rows = np.empty((k, n + 1))  # the asked rows, offset in the last column
-    rows[0:3] = a8[0:3]
+    rows = np.empty((k, n + 1))  # the asked rows, the offset in the last column
     scale = np.empty(k)
-    field_size = max(np.sqrt(asked[0] ** 2 + asked[1] ** 2 + asked[2] ** 2), FIELD_FLOOR_T)
-    scale[0:3] = field_size
+    field_size = max(_norm(asked, 0, 3), FIELD_FLOOR_T)
+    for c in range(n + 1):
+        for i in range(3):
+            rows[i, c] = a8[i, c]
+        if mode == MODE_GRADIENT:
+            for i in range(3, 8):
+                rows[i, c] = a8[i, c]
+        elif mode == MODE_FORCE:
+            # F = G m, G symmetric and traceless in its five terms (the wrench map's force rows)
+            mx, my, mz = moment[0], moment[1], moment[2]
+            rows[3, c] = mx * a8[3, c] + my * a8[4, c] + mz * a8[5, c]
+            rows[4, c] = mx * a8[4, c] + my * a8[6, c] + mz * a8[7, c]
+            rows[5, c] = mx * a8[5, c] + my * a8[7, c] - mz * (a8[3, c] + a8[6, c])
+    for i in range(3):
+        scale[i] = field_size
     if mode == MODE_GRADIENT:
-        rows[3:8] = a8[3:8]
-        scale[3:8] = max(np.sqrt(np.sum(asked[3:8] ** 2)), GRADIENT_FLOOR_T_PER_M)
+        size = max(_norm(asked, 3, 8), GRADIENT_FLOOR_T_PER_M)
+        for i in range(3, 8):
+            scale[i] = size
     elif mode == MODE_FORCE:
-        # F = G m with G symmetric: rows of the five terms (seed 003 wrench map, force part)
-        mx, my, mz = moment[0], moment[1], moment[2]
-        rows[3] = mx * a8[3] + my * a8[4] + mz * a8[5]
-        rows[4] = mx * a8[4] + my * a8[6] + mz * a8[7]
-        rows[5] = mx * a8[5] + my * a8[7] - mz * (a8[3] + a8[6])
-        scale[3:6] = max(np.sqrt(np.sum(asked[3:6] ** 2)), FORCE_FLOOR_N)
-    w = 1.0 / scale if weights.shape[0] == 0 else weights
-    M = np.ascontiguousarray(rows[:, 0:n])
-    off_rows = rows[:, n].copy()
-    Mw = M * w.reshape(-1, 1)
-    bw = (asked - off_rows) * w
-    u, s, vt = np.linalg.svd(Mw, full_matrices=False)
-    ub = u.T @ bw
-    currents = np.zeros(n)
-    for i in range(s.shape[0]):
-        if s[i] > RANK_RCOND * s[0]:
-            currents += vt[i] * (ub[i] / s[i])
-    residual = np.max(np.abs(Mw @ currents - bw))
-    bad = residual > RESIDUAL_RTOL * max(1.0, np.max(np.abs(bw)))
-    made = a8[:, n].copy()
-    for c in range(n):
-        made += a8[:, c] * currents[c]
-    return currents, made, M, off_rows, bad
+        size = max(_norm(asked, 3, 6), FORCE_FLOOR_N)
+        for i in range(3, 6):
+            scale[i] = size
+    M = np.empty((k, n))
+    Mw = np.empty((k, n))
+    off_rows = np.empty(k)
+    bw = np.empty(k)
+    for i in range(k):
+        w = 1.0 / scale[i] if weights.shape[0] == 0 else weights[i]
+        off_rows[i] = rows[i, n]
+        bw[i] = (asked[i] - off_rows[i]) * w
+        for c in range(n):
+            M[i, c] = rows[i, c]
+            Mw[i, c] = rows[i, c] * w
+    currents = _min_norm_solution(Mw, bw)
+    residual, size = 0.0, 1.0
+    for i in range(k):
+        made_i = 0.0
+        for c in range(n):
+            made_i += Mw[i, c] * currents[c]
+        residual = max(residual, abs(made_i - bw[i]))
+        size = max(size, abs(bw[i]))
+    made = np.empty(8)
+    for i in range(8):
+        made[i] = a8[i, n]
+        for c in range(n):
+            made[i] += a8[i, c] * currents[c]
+    return currents, made, M, off_rows, residual > RESIDUAL_RTOL * size
 
 
 def _mm(point_m: np.ndarray) -> str:
