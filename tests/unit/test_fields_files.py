@@ -64,6 +64,7 @@ def test_a_file_reads_as_mag_manip_reads_it():
     assert model.coil_names == ("Left", "Right")  # Coil_List order, Offset apart
     assert model.workspace_m == ((-0.02, 0.02), (-0.03, 0.03), (-0.01, 0.01))
     assert model.has_offset
+    assert model.in_workspace([[0.0, 0.0, 0.0], [0.0, 0.0, 0.011]]).tolist() == [True, False]
     # directions normalised; "1e-07" (a string to PyYAML, a number to yaml-cpp) is a number
     assert model.coil_sources[0][0].direction == (2.0, 0.0, 0.0)
     assert model.coil_sources[1][0].coefficients == (-1e-07,)

@@ -39,3 +39,18 @@ def test_the_cube_at_its_centre_against_the_on_axis_closed_forms():
     # the same matrix the six-coil allocator uses today
     assert np.allclose(A, u_actuation_matrix(rig), rtol=1e-12, atol=0)
     assert np.allclose(model.offset(np.zeros(3)), 0.0)
+
+
+def test_the_fits_starting_dipoles_are_the_loops_far_away():
+    """start_from_loops puts at each coil a dipole of the loop's moment N I pi a^2: far from the
+    coil (10 m, 50 radii) the two fields agree to the loop's (a/r)^2 correction."""
+    from rigctl.physics.fields.fit import start_from_loops
+
+    loops = LoopModel.from_rig(cube())
+    dipoles = start_from_loops(loops)
+    far = np.array([[10.0, 3.0, -4.0], [-6.0, 8.0, 2.0]])
+    for k in range(loops.n_coils):
+        currents = np.eye(loops.n_coils)[k]
+        expected = loops.field(far, currents)
+        assert np.allclose(dipoles.field(far, currents), expected, rtol=1e-3,
+                           atol=1e-3 * np.max(np.abs(expected)))

@@ -2,18 +2,21 @@
 
 Data: the probe's points (K, 3) m, the coil currents of each drive pattern (P, N) A (the supplies'
 measured currents), and the fields read (P, K, 3) T. The model is B = sum_j I_j B_j(x) + B_off(x),
-linear in every source's coefficients, non-linear in the sources' positions and directions. So:
+linear in every source's coefficients, non-linear in the sources' positions and directions.
 
-1. Starting values: the caller's start model gives each coil's sources' kinds, positions and
-   directions (`start_from_loops`: one B source, a dipole, at each drawn coil's centre along its
-   axis); the coefficients are not taken from it but solved for by linear least squares with the
-   geometry fixed, up to the order asked (1 to 3). The offset is a uniform field (three A sources
-   of order 1 along x, y, z at the workspace centre, geometry fixed): the ambient field and the
-   cores' remanence as far as they are uniform.
-2. Everything at once, by `scipy.optimize.least_squares` (trust-region reflective, 2-point
-   finite-difference Jacobian, residuals scaled by the RMS field so that the tolerances are
-   relative): every coefficient, every coil source's position (3) and direction (2 tilt angles
-   about the starting direction, as `rigctl.rigs.six_coil.field_fit` tilts a loop's axis).
+Starting values: the caller's start model gives each coil's sources' kinds, positions and
+directions (`start_from_loops`: one B source, a dipole, at each drawn coil's centre along its
+axis); its coefficients are not used. The offset is a uniform field (three A sources of order 1
+along x, y, z at the probe's centre, geometry fixed): the ambient field and the cores'
+remanence as far as they are uniform.
+
+Optimiser: `scipy.optimize.least_squares` (trust-region reflective, 2-point finite-difference
+Jacobian, x_scale 1 mm and 0.01 rad) over the geometry only, every coil source's position (3)
+and direction (2 tilt angles about its starting direction, as `rigctl.rigs.six_coil.field_fit`
+tilts a loop's axis), by variable projection: for each geometry the coefficients of every order
+up to the one asked (1 to 3) and the offset are the linear least-squares solution (`_Problem`),
+and the residual, scaled by the RMS field, is what remains. Solving the linear part exactly
+turned a 454 s joint fit of an order-3 octopole into a few seconds.
 
 `held_out_error` reports the fit's error on samples it did not see, in mT and in % of the mean
 field magnitude there.

@@ -10,8 +10,9 @@ u = d / r and c = u . z_s (the cosine of the angle to the source's axis), a sour
     Phi = B_n r^-(n+1) P_n(c)            (a "B" source: singular at p_s; order 1 is a dipole of
                                           moment 4 pi B_1 / mu0 along z_s)
 
-with P_n the Legendre polynomial, and B = -grad Phi (so coefficients carry T m^n / A and
-T m^(n+1)... per ampere; no mu0 appears). Both are solid harmonics, so the field is curl- and
+with P_n the Legendre polynomial, and B = -grad Phi: Phi is in T m, so A_n is in T m^(1-n) and
+B_n in T m^(n+2), per ampere of the coil's current (no mu0 appears; the Offset's without the
+ampere). Both are solid harmonics, so the field is curl- and
 divergence-free away from the B sources' positions. This is mag_manip's `ScalorPotential`: a
 source's coefficient list [c_1, c_2, ...] holds orders 1, 2, ...; a source has A or B
 coefficients, never both.
@@ -50,8 +51,8 @@ KIND_A, KIND_B = 0, 1
 @dataclass(frozen=True)
 class Source:
     """One multipole source: position (m), direction (normalised when the model is built),
-    kind ("A" or "B") and coefficients of orders 1, 2, ... (T m^n / A for A, T m^(n+1) / A for
-    B; for the Offset the same without the ampere)."""
+    kind ("A" or "B") and coefficients of orders 1, 2, ... (T m^(1-n) / A for A, T m^(n+2) / A
+    for B; for the Offset the same without the ampere)."""
 
     position_m: tuple[float, float, float]
     direction: tuple[float, float, float]

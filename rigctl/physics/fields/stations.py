@@ -17,7 +17,7 @@ from rigctl.physics.fields.mpem import MPEM, Source
 
 OCTOMAG_TIP_DISTANCE_M = 0.1
 OCTOMAG_DIPOLE = 5e-7
-"""B_1 (T m^2 / A): 2 B_1 / r^3 = 1 mT/A on the axis at r = 0.1 m."""
+"""B_1 (T m^3 / A): 2 B_1 / r^3 = 1 mT/A on the axis at r = 0.1 m."""
 
 
 def octomag_directions() -> np.ndarray:
