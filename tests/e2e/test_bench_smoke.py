@@ -74,6 +74,7 @@ QUICK = {
     "calibrate_field.py": ["--seeds", "0"],
     "study.py": ["--smoke", "--workers", "1"],
     "console.py": ["--smoke"],
+    "fields.py": ["--smoke"],  # with mag_manip's side venv present, its comparison runs too
 }
 
 # per script, figures (key paths) only its last stages write: present and not empty means the
@@ -103,6 +104,8 @@ FIGURES = {
     "study.py": [("planner_sweep", "runs"), ("campaign", "ran_ok")],
     "console.py": [("frames", "frames_drawn"), ("estop", "ok"), ("pages", "runs"),
                    ("websocket_watchers", "runs")],
+    "fields.py": [("eval", "best_us"), ("allocate_8dof", "best_us"), ("fit", "held_out_pct"),
+                  ("mag_manip", "available")],
 }
 
 
