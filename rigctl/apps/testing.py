@@ -24,6 +24,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -180,8 +181,7 @@ def daemon_on(bench, runs: Path) -> Iterator[tuple[Any, Any, Path]]:
             daemon.stop()
 
 
-PAIR_WORKSPACE = Path(__file__).resolve().parents[1] / "plans" / "examples" / \
-    "pair-formation-change-workspace.json"
+PAIR_WORKSPACE = Path(str(files("rigctl.plans") / "examples" / "pair-formation-change-workspace.json"))
 
 
 def plan_pair(folder: Path, *, goal: str, hold_s: float, start: str = "8,7,2,0",
