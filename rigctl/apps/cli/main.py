@@ -25,6 +25,7 @@ from rigctl.apps.cli.execute import (
     refuse_foreign_bench_flags,
 )
 from rigctl.apps.cli.faults import register_faults
+from rigctl.apps.cli.field import register_field
 from rigctl.apps.cli.init import register_init
 from rigctl.apps.cli.paths import (
     BadPath,
@@ -310,6 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
     register_faults(sub)
     register_study(sub)
     register_service(sub)
+    register_field(sub)
     return parser
 
 
