@@ -28,6 +28,7 @@ import select
 import shutil
 import subprocess
 import time
+from importlib.resources import files
 from pathlib import Path
 
 from rigctl.core.errors import DeviceError
@@ -35,9 +36,13 @@ from rigctl.core.errors import DeviceError
 log = logging.getLogger(__name__)
 
 DEVICE = "coil board (simavr)"
-REPO_ROOT = Path(__file__).resolve().parents[2]
-FIRMWARE_DIR = REPO_ROOT / "firmware" / "coilboard"
-DEFAULT_BUILD_DIR = REPO_ROOT / "build" / "coilboard-firmware"
+# the firmware's sources are package data (`rigctl.firmware`: firmware/ in a checkout); the build
+# goes to the checkout's build/ or, installed from a wheel, to the user's cache
+FIRMWARE_DIR = Path(str(files("rigctl.firmware") / "coilboard"))
+_CHECKOUT = FIRMWARE_DIR.parents[1]
+DEFAULT_BUILD_DIR = (_CHECKOUT / "build" / "coilboard-firmware" if (_CHECKOUT / "pyproject.toml").is_file()
+                     else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rigctl"
+                     / "coilboard-firmware")
 SIMAVR_HEADER = Path("/usr/include/simavr/sim_avr.h")
 LIBELF_HEADER = Path("/usr/include/libelf.h")
 APT_PACKAGES = "gcc-avr avr-libc simavr libsimavr-dev libelf-dev make gcc"
@@ -56,7 +61,7 @@ def missing_tools() -> list[str]:
     if not LIBELF_HEADER.exists():
         missing.append(f"the libelf headers ({LIBELF_HEADER})")
     if not (FIRMWARE_DIR / "Makefile").exists():
-        missing.append(f"the firmware sources ({FIRMWARE_DIR}: run from a checkout of the repository)")
+        missing.append(f"the firmware sources ({FIRMWARE_DIR}: reinstall rigctl, they ship with it)")
     return missing
 
 
