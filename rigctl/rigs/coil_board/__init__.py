@@ -21,11 +21,12 @@ def _bench_rig() -> RigConfig:
     from rigctl.core.config import CameraSettings, CoilBoardSettings, Emulation, RigInfo
     from rigctl.emulators.camera import PAPER_RESOLUTION, CameraModel
     from rigctl.emulators.coilboard.bench import BOARD_REPLY_TIMEOUT_S, CAMERA_FIELD_MM, CAMERA_FPS
+    from rigctl.rigs.coil_board.settings import CoilBoardRig
 
     camera = CameraSettings(url="http://127.0.0.1/stream.mjpg", stamped=True, fps=CAMERA_FPS,
                             resolution=PAPER_RESOLUTION, calibration=CameraModel.overhead(
                                 CAMERA_FIELD_MM, tilt_deg=4.0).calibration())  # as it mounts it
-    return RigConfig(rig=RigInfo(kind="coil-board", name="emulated coil-board bench"),
+    return CoilBoardRig(rig=RigInfo(kind="coil-board", name="emulated coil-board bench"),
                      board=CoilBoardSettings(url="/dev/null", reply_timeout_s=BOARD_REPLY_TIMEOUT_S),
                      camera=camera, emulation=Emulation(backdoor="tcp://127.0.0.1:1"))
 
@@ -87,9 +88,22 @@ def _hold(rig: RigConfig, target: dict):
                        "slip", lambda start, ramp_s: None, step=1.0)
 
 
+def _settings() -> type[RigConfig]:
+    from rigctl.rigs.coil_board.settings import CoilBoardRig
+
+    return CoilBoardRig
+
+
+
+def _template() -> str:
+    """The commented rig file of `rigctl init coil-board` (package data)."""
+    from importlib.resources import files
+
+    return (files("rigctl.rigs") / "templates" / "coil-board.toml").read_text()
+
 KIND = RigKind(
     name="coil-board",
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",
     plans={"global-moves": _global_moves},
-    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig,
-    bench="rigctl.emulators.coilboard.bench:CoilBoardBench")
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig, settings=_settings,
+    template=_template, bench="rigctl.emulators.coilboard.bench:CoilBoardBench")

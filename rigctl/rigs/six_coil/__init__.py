@@ -79,10 +79,23 @@ def _hold(rig: RigConfig, target: dict):
                        "slip", check_ramp)
 
 
+def _settings() -> type[RigConfig]:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
+
+    return SixCoilRig
+
+
+
+def _template() -> str:
+    """The commented rig file of `rigctl init six-coil` (package data)."""
+    from importlib.resources import files
+
+    return (files("rigctl.rigs") / "templates" / "six-coil.toml").read_text()
+
 KIND = RigKind(
     name="six-coil",
     description="six air-core coils fed by Kepco BOP supplies, overhead camera",
     plans={"global-moves": _global_moves, "pair-formation": _pair_formation},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold,
-    bench_args=_bench_args, bench_rig=_bench_rig,
-    bench="rigctl.emulators.bench:SixCoilBench")
+    bench_args=_bench_args, bench_rig=_bench_rig, settings=_settings,
+    template=_template, bench="rigctl.emulators.bench:SixCoilBench")
