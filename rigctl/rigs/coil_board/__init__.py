@@ -95,6 +95,25 @@ def _settings() -> type[RigConfig]:
 
 
 
+def _probe_board(rig: RigConfig, device: Device) -> str:
+    from rigctl.rigs.coil_board.probes import board
+
+    return board(rig, device)
+
+
+def _windings(rig: RigConfig):
+    """The board's four coils, each driven by a SyRen in drive units (a voltage)."""
+    from rigctl.physics.thermal import Windings
+
+    return Windings.of_board(rig.board)
+
+
+def _patience_s(rig: RigConfig) -> float:
+    """A request's retries and a reconnect after an unplug, the board's driver's own patience."""
+    board = rig.board
+    return board.reconnect_s + (board.retries + 1) * board.reply_timeout_s
+
+
 def _template() -> str:
     """The commented rig file of `rigctl init coil-board` (package data)."""
     from importlib.resources import files
@@ -106,4 +125,5 @@ KIND = RigKind(
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",
     plans={"global-moves": _global_moves},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig, settings=_settings,
-    template=_template, bench="rigctl.emulators.coilboard.bench:CoilBoardBench")
+    template=_template, bench="rigctl.emulators.coilboard.bench:CoilBoardBench",
+    probes={"board": _probe_board}, windings=_windings, patience_s=_patience_s)

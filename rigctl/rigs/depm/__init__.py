@@ -132,6 +132,23 @@ def _settings() -> type[RigConfig]:
 
 
 
+def _probe_arm(rig: RigConfig, device: Device) -> str:
+    from rigctl.rigs.depm.probes import arm
+
+    return arm(rig, device)
+
+
+def _probe_hall(rig: RigConfig, device: Device) -> str:
+    from rigctl.rigs.depm.probes import hall
+
+    return hall(rig, device)
+
+
+def _patience_s(rig: RigConfig) -> float:
+    """The arms' and the Hall board's reply timeout."""
+    return rig.depm.reply_timeout_s if rig.depm is not None else 0.0
+
+
 def _template() -> str:
     """The commented rig file of `rigctl init depm` (package data)."""
     from importlib.resources import files
@@ -143,4 +160,5 @@ KIND = RigKind(
     description="two KUKA LBR iiwa arms carrying permanent magnets, a three-sensor Hall board",
     plans={"field-sequence": _field_sequence},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig, settings=_settings,
-    template=_template, bench="rigctl.emulators.depm:DepmBench")
+    template=_template, bench="rigctl.emulators.depm:DepmBench",
+    probes={"arm": _probe_arm, "hall board": _probe_hall}, patience_s=_patience_s)
