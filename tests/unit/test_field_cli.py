@@ -16,7 +16,7 @@ from rigctl.physics.fields import write_mpem
 from rigctl.physics.fields.stations import octomag_like
 
 ROOT = Path(__file__).resolve().parents[2]
-SIX_COIL = ROOT / "rigctl" / "rigs" / "templates" / "six-coil.toml"
+SIX_COIL = ROOT / "rigctl" / "rigs" / "six_coil" / "template.toml"
 MU0 = 4e-7 * math.pi
 
 
@@ -79,7 +79,7 @@ def test_bad_requests_are_one_line_and_exit_2(capsys, argv, says):
 
 
 def test_a_rig_without_coils_and_a_missing_file_are_refused(capsys):
-    assert main(["field", str(ROOT / "rigctl" / "rigs" / "templates" / "depm.toml"), "--at", "0,0,0",
+    assert main(["field", str(ROOT / "rigctl" / "rigs" / "depm" / "template.toml"), "--at", "0,0,0",
                  "--currents", "1"]) == 2
     assert "no coils" in capsys.readouterr().err
     assert main(["field", "nope.yaml", "--at", "0,0,0", "--currents", "1"]) == 2

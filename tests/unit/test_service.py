@@ -21,7 +21,6 @@ from rigctl.apps.cli.service import DEFAULT_VENV, allowed_addresses, device_clas
 from rigctl.core.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
-TEMPLATES = ROOT / "rigctl" / "rigs" / "templates"
 needs_systemd = pytest.mark.skipif(shutil.which("systemd-analyze") is None,
                                    reason="systemd-analyze not installed (.ci/run installs it)")
 
@@ -54,14 +53,18 @@ def test_addresses_are_loopback_the_devices_and_the_operators_networks():
 
 
 def test_each_template_rigs_unit_opens_what_its_devices_sit_on():
-    six = render(str(TEMPLATES / "six-coil.toml"), python="/x/bin/python3", operators=[])
+    six = render(_template("six-coil"), python="/x/bin/python3", operators=[])
     unit = six["etc/systemd/system/rigctl.service"]
     assert [f"192.168.1.{k}" for k in range(11, 17)] == re.findall(r"IPAddressAllow=(192\.\S+)", unit)
     assert re.findall(r"DeviceAllow=(\S+)", unit) == ["char-video4linux"]  # the camera, url = 0
     assert "SupplementaryGroups=video\n" in unit and "m rigctl video" in six["etc/sysusers.d/rigctl.conf"]
-    board = render(str(TEMPLATES / "coil-board.toml"), python="/x/bin/python3", operators=[])
+    board = render(_template("coil-board"), python="/x/bin/python3", operators=[])
     assert re.findall(r"DeviceAllow=(\S+)", board["etc/systemd/system/rigctl.service"]) == [
         "char-ttyACM", "char-video4linux"]
+
+
+def _template(kind: str) -> str:
+    return str(ROOT / "rigctl" / "rigs" / kind.replace("-", "_") / "template.toml")
 
 
 def _exposure(unit: Path) -> float:
@@ -74,7 +77,7 @@ def _exposure(unit: Path) -> float:
 @pytest.mark.parametrize("kind", ["six-coil", "coil-board", "depm"])
 def test_the_installed_unit_verifies_and_rates_at_most_2(tmp_path, capsys, kind):
     venv = Path(sys.prefix)
-    assert main(["service", "install", "--venv", str(venv), "--rig", str(TEMPLATES / f"{kind}.toml"),
+    assert main(["service", "install", "--venv", str(venv), "--rig", _template(kind),
                  "--root", str(tmp_path)]) == 0
     unit = tmp_path / "etc/systemd/system/rigctl.service"
     assert f"ExecStart={venv}/bin/python3 -m rigctl daemon" in unit.read_text()

@@ -100,7 +100,7 @@ class ArmsSketch:
     def __init__(self, rig: RigConfig) -> None:
         from rigctl.physics.kinematics import ArmKinematics, base_transform
 
-        depm = rig.depm
+        depm = getattr(rig, "depm", None)  # only a dual-EPM rig's model has the table
         self.available = depm is not None
         if depm is None:
             return
