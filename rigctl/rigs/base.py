@@ -9,14 +9,16 @@ builders import their rig's modules when called, so `rigctl --help` does not loa
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rigctl.core.channels import Channel
 from rigctl.core.config import RigConfig
 
 if TYPE_CHECKING:
+    from rigctl.rigs.faults import FaultProfile
     from rigctl.run.hold import HoldRequest
 
 RunBuilder = Callable[..., Any]
@@ -40,6 +42,19 @@ class Device:
 
 
 @dataclass(frozen=True)
+class ReportHooks:
+    """What `rigctl report` draws differently for a kind: a channel group's title (`{"supplies":
+    "coil currents (six supplies)"}`), the panels only this kind has (`panels(data)` -> the
+    report's `TimePanel`s for a `RunData`), and `old_channels(channels, run_dir)`: the channels
+    of a record written before channels said their unit and group, as they were meant (the record's
+    folder holds its rig file)."""
+
+    group_titles: Mapping[str, str] = field(default_factory=dict)
+    panels: Callable[[Any], list[Any]] | None = None
+    old_channels: Callable[[list[Channel], Path], list[Channel]] | None = None
+
+
+@dataclass(frozen=True)
 class RigKind:
     name: str
     description: str
@@ -58,6 +73,14 @@ class RigKind:
     bench_rig: Callable[[], RigConfig] | None = None
     """The rig its emulated bench serves, known without starting it: `rigctl execute` refuses a
     plan against it before a bench is started."""
+    faults: Callable[[], FaultProfile] | None = None
+    """Its profile for `rigctl faults` (`rigctl.rigs.faults`); None: the campaign refuses it."""
+    scene: str = "camera"
+    """The console's view of it: "camera" (the overhead image with the tracked and planned paths)
+    or "arms" (the arm views, drawn from `scene_of`)."""
+    scene_of: Callable[[RigConfig], dict] | None = None
+    """What an "arms" scene draws of this rig (the arms' bases, the keep-out sphere)."""
+    report: ReportHooks = field(default_factory=ReportHooks)
 
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.core.errors import PlanError
