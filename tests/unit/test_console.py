@@ -87,7 +87,7 @@ def _kind(**scene) -> RigKind:
 
 
 def test_the_page_shows_the_scene_its_rig_kind_asks_for_and_the_camera_by_default(caplog):
-    from rigctl.rigs import rig_kind
+    from rigctl.core.registry import rig_kind
 
     depm = rig_kind("depm")
     rig = depm.bench_rig()

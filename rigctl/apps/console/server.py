@@ -161,7 +161,7 @@ class Console:
         self.token = token or secrets.token_urlsafe(24)
         self.plans_dir = Path(plans_dir) if plans_dir is not None else None
         self._curve = (server_key, client_key)
-        from rigctl.rigs import rig_kind
+        from rigctl.core.registry import rig_kind
 
         self.scene = console_scene(rig_kind(rig.rig.kind), rig)
         self.camera = CameraScene(rig)
@@ -520,7 +520,7 @@ class Console:
         return ws
 
     def _hello(self, page: _Page) -> dict:
-        from rigctl.rigs import rig_kind
+        from rigctl.core.registry import rig_kind
 
         channels = [{"name": c.name, "unit": c.unit, "low": c.low, "high": c.high,
                      "group": c.group} for c in rig_kind(self.rig.rig.kind).channels(self.rig)]
