@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rigctl.core.channels import Channel
@@ -72,6 +73,9 @@ class ReportHooks:
     """A channel group's title (`{"coil_current": "coil currents (six supplies)"}`)."""
     panels: Callable[[Any], list] | None = None
     """panels(RunData) -> [TimePanel]: the time panels only this kind has."""
+    old_channels: Callable[[list[Channel], Path], list[Channel]] | None = None
+    """old_channels(channels, run_dir): the channels of a record written before channels said
+    their unit and group, as they were meant (the record's folder holds its rig file)."""
 
 
 @dataclass(frozen=True)

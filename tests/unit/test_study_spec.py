@@ -152,3 +152,22 @@ def test_the_error_interval_is_over_seeds_one_sample_per_seed() -> None:
     (point,) = summarise(rows, "x", "error", share=False)
     assert point["n"] == 6 and point["mean"] == pytest.approx(2.0)
     assert point["high"] - 2.0 == pytest.approx(4.302653 / math.sqrt(3), rel=1e-6)
+
+
+def test_a_cases_rig_overrides_are_checked_by_its_own_rig_kinds_model() -> None:
+    """`rig.SECTION.KEY` of an execute case: the rig file is validated again by its rig kind's
+    model (the kind's own tables are not the common model's): a key of the kind's own table is
+    overridden, a key that table lacks and a value out of its range are refused in one line."""
+    from rigctl.apps.study.cases import _override
+    from rigctl.core.registry import rig_kind
+
+    board = rig_kind("coil-board")
+    rig = board.bench_rig()
+    changed = _override(rig, {"board.max_command": 100, "stream.reply_timeout_s": 2.0})
+    assert isinstance(changed, board.settings())
+    assert changed.board.max_command == 100 and changed.stream.reply_timeout_s == 2.0
+    with pytest.raises(ConfigError, match="no key 'microsteps'"):
+        _override(rig, {"board.microsteps": 16})
+    with pytest.raises(ConfigError, match="max_command") as refused:
+        _override(rig, {"board.max_command": 0})
+    assert "\n" not in str(refused.value)
