@@ -1,6 +1,7 @@
 """The one emulated-bench base: an `EmulatorServer`, one simulated clock, one backdoor command table
 and the `rigctl emulate KIND` flow, shared by the six-coil bench (`bench.py`), the coil-board bench
-(`coilboard/bench.py`) and the dual-EPM bench (`depm.py`); `BENCHES` maps a rig kind to its bench.
+(`coilboard/bench.py`) and the dual-EPM bench (`depm.py`); a rig kind names its bench in its
+`RigKind.bench` (`bench_class` asks the registry).
 
 A bench subclasses `EmulatedBench`: `_serve()` puts its devices on `self.server` (registering each
 with `add_device`) and returns the rig file that points at them, `advance()` steps its physics to
@@ -59,14 +60,6 @@ log = logging.getLogger(__name__)
 Command = Callable[[dict], dict]  # a backdoor request -> the reply's fields
 Fault = Callable[[dict], object]  # injects one fault; gets the request (for "n", "robot", ...)
 
-# rig kind -> "module:class" of its emulated bench, imported on demand
-BENCHES = {
-    "six-coil": "rigctl.emulators.bench:SixCoilBench",
-    "coil-board": "rigctl.emulators.coilboard.bench:CoilBoardBench",
-    "depm": "rigctl.emulators.depm:DepmBench",
-}
-
-
 def _loopback(host: str) -> bool:
     """Whether `host` (an address, or a name looked up) is this machine's loopback."""
     try:
@@ -78,12 +71,26 @@ def _loopback(host: str) -> bool:
             raise ConfigError(f"--host {host}: {err}") from None
 
 
+def bench_names() -> list[str]:
+    """The installed rig kinds that have an emulated bench (`RigKind.bench`), sorted."""
+    from rigctl.core.registry import kinds
+
+    return [name for name, kind in kinds().items() if kind.bench is not None]
+
+
 def bench_class(kind: str) -> type[EmulatedBench]:
-    """The bench class that emulates rig kind `kind`."""
-    if kind not in BENCHES:
-        raise ConfigError(f"no emulated bench for rig kind {kind!r}; there are {', '.join(BENCHES)}")
-    module, name = BENCHES[kind].split(":")
-    return getattr(importlib.import_module(module), name)
+    """The bench class that emulates rig kind `kind` (its `RigKind.bench`, imported now)."""
+    from rigctl.core.registry import kinds
+
+    found = kinds().get(kind)
+    if found is None or found.bench is None:
+        raise ConfigError(f"no emulated bench for rig kind {kind!r}; there are "
+                          f"{', '.join(bench_names())}")
+    module, name = found.bench.split(":")
+    bench = getattr(importlib.import_module(module), name)
+    if not (isinstance(bench, type) and issubclass(bench, EmulatedBench)):
+        raise ConfigError(f"rig kind {kind!r}: its bench {found.bench} is not an EmulatedBench")
+    return bench
 
 
 class SimClock:

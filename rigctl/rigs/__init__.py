@@ -1,27 +1,29 @@
 """The rig kinds: what differs between the six-coil manipulator, the coil board and the arms.
 
-`KINDS` is the one registry: `rigctl execute`, `rigctl emulate`, the daemon and its stream
-process look a rig kind up here instead of switching on its name. `prepare_run` is what refuses a
-plan on a rig: `rigctl validate`, `rigctl execute` and the daemon's `load` all call it, so each
-refuses exactly what the others do."""
+Each kind is a package that registers its `RigKind` under the entry-point group `rigctl.rigs`
+(`rigctl.core.registry`, which loads them on first use); the three here register themselves in
+rigctl's own pyproject.toml exactly as a lab's package would in its. `KINDS` and `rig_kind` read
+that registry: `rigctl execute`, `rigctl emulate`, the daemon and its stream process look a rig kind
+up there instead of switching on its name. `prepare_run` is what refuses a plan on a rig: `rigctl
+validate`, `rigctl execute` and the daemon's `load` all call it, so each refuses exactly what the
+others do."""
 
 from __future__ import annotations
 
 from typing import Any
 
 from rigctl.core.config import RigConfig
-from rigctl.core.errors import ConfigError, PlanError
-from rigctl.rigs import coil_board, depm, six_coil
+from rigctl.core.errors import PlanError
+from rigctl.core.registry import kinds, rig_kind
 from rigctl.rigs.base import Device, RigKind
 
-KINDS: dict[str, RigKind] = {k.name: k for k in (six_coil.KIND, coil_board.KIND, depm.KIND)}
 
-
-def rig_kind(name: str) -> RigKind:
-    try:
-        return KINDS[name]
-    except KeyError:
-        raise ConfigError(f"rig kind {name!r} is not one of {', '.join(KINDS)}") from None
+def __getattr__(name: str) -> Any:
+    """`KINDS`: the installed rig kinds by name, read from the registry when first asked for (so
+    that importing `rigctl.rigs` loads no kind)."""
+    if name == "KINDS":
+        return kinds()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def prepare_run(plan: Any, rig: RigConfig, *, runs_dir: Any = "runs", **run: Any) -> Any:

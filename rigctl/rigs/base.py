@@ -3,20 +3,27 @@
 A `RigKind` names the plan kinds it runs (each a builder of the one engine `Run`), how an
 operator's manual hold becomes setpoints (`hold`: every rig runs `hold` plans too), the channels
 its actuators stream, its devices (for `status` and the direct make-safe), and how to make every
-device safe with no run to ask (the e-stop with nothing active, a stream process that died). The
-builders import their rig's modules when called, so `rigctl --help` does not load every rig.
+device safe with no run to ask (the e-stop with nothing active, a stream process that died). It
+also carries everything else the applications ask of a rig: its rig file's model (`settings`), its
+emulated bench, its `rigctl init` template, its `doctor` probes, its heating windings, how long
+its devices may take to answer, what `calibrate` can do on it, its fault profile, its console
+scene and its report's sections. A kind registers its `RigKind` under the entry-point group
+`rigctl.rigs` (`rigctl.core.registry`); docs/rig-kinds.md says how to write one. The hooks import
+their rig's modules when called, so `rigctl --help` does not load every rig.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from rigctl.core.channels import Channel
 from rigctl.core.config import RigConfig
 
 if TYPE_CHECKING:
+    from rigctl.physics.thermal import Windings
+    from rigctl.rigs.faults import FaultProfile
     from rigctl.run.hold import HoldRequest
 
 RunBuilder = Callable[..., Any]
@@ -39,6 +46,38 @@ class Device:
     kind: str  # "supply", "board", "arm", "hall board", "camera"
 
 
+Probe = Callable[[RigConfig, "Device"], str]
+"""`rigctl doctor`'s read-only probe of one device: a one-line detail of what it answered, or
+RigError (or OSError) saying why it did not."""
+
+def _default_settings() -> type[RigConfig]:
+    return RigConfig
+
+
+def no_windings(rig: RigConfig) -> Windings | None:
+    return None
+
+
+def no_patience(rig: RigConfig) -> float:
+    return 0.0
+
+
+@dataclass(frozen=True)
+class ReportHooks:
+    """What `rigctl report` shows of a kind beyond every rig's sections."""
+
+    group_titles: Mapping[str, str] = field(default_factory=dict)
+    """A channel group's title (`{"coil_current": "coil currents (six supplies)"}`)."""
+    panels: Callable[[Any], list] | None = None
+    """panels(RunData) -> [TimePanel]: the time panels only this kind has."""
+
+
+@dataclass(frozen=True)
+class StudyHooks:
+    """What `rigctl study` needs of a kind to run a case on its emulated bench beyond `bench` and
+    `bench_args`: nothing yet (a field is added when a kind needs one)."""
+
+
 @dataclass(frozen=True)
 class RigKind:
     name: str
@@ -58,6 +97,36 @@ class RigKind:
     bench_rig: Callable[[], RigConfig] | None = None
     """The rig its emulated bench serves, known without starting it: `rigctl execute` refuses a
     plan against it before a bench is started."""
+    settings: Callable[[], type[RigConfig]] = _default_settings
+    """The rig file's model for this kind: `RigConfig` (the common tables) or a subclass adding
+    the kind's own tables. `load_rig` validates a rig file whose `[rig] kind` names this kind
+    with it."""
+    bench: str | None = None
+    """"module:Class" of its emulated bench (a `rigctl.emulators.base.EmulatedBench`), which
+    `rigctl emulate KIND` starts; None: the kind has no emulator."""
+    template: Callable[[], str] | None = None
+    """The commented rig file `rigctl init KIND` writes."""
+    probes: Mapping[str, Probe] = field(default_factory=dict)
+    """`rigctl doctor`'s probe per `Device.kind` its `devices()` lists (the core probes a
+    "camera" itself)."""
+    windings: Callable[[RigConfig], Windings | None] = no_windings
+    """The windings the heating model watches (`rigctl.physics.thermal.Windings`), in the order
+    of its channels; None where nothing heats."""
+    patience_s: Callable[[RigConfig], float] = no_patience
+    """How long the daemon's stream host waits for a device's reply beyond `[stream]
+    reply_timeout_s` (the arms: their own reply timeout)."""
+    calibrations: frozenset[str] = frozenset()
+    """What `rigctl calibrate` can do on it ("field"; "camera" needs only a `[camera]`)."""
+    field_fit: Callable[..., Any] | None = None
+    """`rigctl calibrate field`'s fit of this kind's field model to probe samples."""
+    faults: Callable[[], FaultProfile] | None = None
+    """Its profile for `rigctl faults` (None: the campaign does not run on it)."""
+    scene: str = "camera"
+    """The console's view: "camera" (the overhead image, tracked and planned paths) or "arms"."""
+    scene_of: Callable[[RigConfig], dict] | None = None
+    """What an "arms" scene draws (bases, link lengths), as JSON-ready data."""
+    report: ReportHooks = field(default_factory=ReportHooks)
+    study: StudyHooks | None = None
 
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.core.errors import PlanError

@@ -277,7 +277,9 @@ def main(argv: list[str]) -> int:
     # device it cannot reach would repeat that at every try
     logging.disable(logging.ERROR)
     import rigctl.core.config  # noqa: F401  the slow imports, done before the owner needs us
-    import rigctl.rigs  # noqa: F401
+    from rigctl.core.registry import kinds
+
+    kinds()
 
     ward = Ward(owner, owner_pid, sys.stdout.buffer)
     if ended_normally(owner_words(sys.stdin.buffer), ward) or ward.rig is None:

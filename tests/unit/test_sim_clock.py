@@ -59,5 +59,5 @@ def test_every_rig_kind_has_its_bench_class() -> None:
     assert [bench_class(kind) for kind in ("six-coil", "coil-board", "depm")] == [
         SixCoilBench, CoilBoardBench, DepmBench]
     with pytest.raises(ConfigError, match="no emulated bench for rig kind 'maglev'; there are "
-                       "six-coil, coil-board, depm"):
+                       "coil-board, depm, six-coil"):
         bench_class("maglev")

@@ -91,4 +91,5 @@ KIND = RigKind(
     name="coil-board",
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",
     plans={"global-moves": _global_moves},
-    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig)
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig,
+    bench="rigctl.emulators.coilboard.bench:CoilBoardBench")

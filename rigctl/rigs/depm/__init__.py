@@ -128,4 +128,5 @@ KIND = RigKind(
     name="depm",
     description="two KUKA LBR iiwa arms carrying permanent magnets, a three-sensor Hall board",
     plans={"field-sequence": _field_sequence},
-    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig)
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig,
+    bench="rigctl.emulators.depm:DepmBench")

@@ -84,4 +84,5 @@ KIND = RigKind(
     description="six air-core coils fed by Kepco BOP supplies, overhead camera",
     plans={"global-moves": _global_moves, "pair-formation": _pair_formation},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold,
-    bench_args=_bench_args, bench_rig=_bench_rig)
+    bench_args=_bench_args, bench_rig=_bench_rig,
+    bench="rigctl.emulators.bench:SixCoilBench")
