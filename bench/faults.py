@@ -23,12 +23,12 @@ import os
 import sys
 import time
 
-from rigctl.apps.faults import PROFILES, as_json, parse_cell, run_campaign
+from rigctl.apps.faults import as_json, parse_cell, profiled_kinds, run_campaign
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rig", choices=[*PROFILES, "all"], default="all")
+    parser.add_argument("--rig", choices=[*profiled_kinds(), "all"], default="all")
     parser.add_argument("--cell", action="append", metavar="PATH/DEVICE:KIND/PHASE",
                         help="only this cell (repeatable), e.g. daemon/x+:stall/moving")
     parser.add_argument("--all-devices", action="store_true",
@@ -50,7 +50,7 @@ def main() -> None:
             with open(args.cells_out, "a") as out:
                 out.write(json.dumps(cell.as_dict()) + "\n")
 
-    cells = run_campaign(list(PROFILES) if args.rig == "all" else [args.rig], quick=False,
+    cells = run_campaign(profiled_kinds() if args.rig == "all" else [args.rig], quick=False,
                          progress=sys.stderr, hold_s=args.hold, all_devices=args.all_devices,
                          only=args.cell, on_cell=save)
     document = as_json(cells)

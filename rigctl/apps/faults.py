@@ -19,6 +19,10 @@ SyRen output 0, both arms at rest), and whether the run record is complete (summ
 readable (its events, ending in a terminal state or a fault, and its stream, read by
 `rigctl.core.record`). A cell passes when its outcome is named, every device ended safe and its record,
 if a run began, is intact.
+
+What differs per rig kind (its short plan, when its devices drive and when they are safe, what
+suspends a run, the quick subset) is the kind's own `FaultProfile` (`rigctl.rigs.faults`), asked of
+the registry: a kind with none is refused by name, and the campaign names no kind itself.
 """
 
 from __future__ import annotations
@@ -39,42 +43,31 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Self, TextIO
 
-import numpy as np
-
 from rigctl.apps.client import CommandRefused, Rig
 from rigctl.core.children import end_child
-from rigctl.core.config import RigConfig, dump_rig, load_rig
-from rigctl.core.errors import DeviceError, DeviceTimeout, Disconnected, RigError, on_interrupt_signal
+from rigctl.core.config import dump_rig, load_rig
+from rigctl.core.errors import (
+    ConfigError,
+    DeviceError,
+    DeviceTimeout,
+    Disconnected,
+    RigError,
+    on_interrupt_signal,
+)
 from rigctl.core.record import describe_run, read_events, read_stream
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
+from rigctl.rigs.base import RigKind
+from rigctl.rigs.faults import POLL_S, STREAM_PROCESS, Fault, FaultProfile, wait_until
 
 PHASES = ("before", "moving", "paused", "suspended", "ramping")
 """before energising, mid-move, paused, suspended, ramping down."""
 OUTCOMES = ("completed", "suspended and resumed", "paused and resumed", "faulted", "e-stopped",
             "aborted", "refused")
-SAFE_CURRENT_A = 0.05
 CLEARING_KINDS = {"restore", "unstall", "replug"}  # backdoor kinds that end a fault, not faults
-STREAM_PROCESS = "stream process"  # the daemon's own faults' device
 TERMINAL = {"done", "aborted", "faulted", "estopped"}
 ACTIVE = {"running", "paused", "suspended"}
-POLL_S = 0.01
 BACKDOOR_TIMEOUT_S = 10.0  # a loaded machine: the bench's answers took over 5 s
-
-
-@dataclass(frozen=True)
-class Fault:
-    """One fault: a bench device's backdoor kind (with its arguments), or a signal to the
-    daemon's stream process; `clear` is what ends it (a backdoor kind, or "SIGCONT")."""
-
-    device: str
-    kind: str
-    args: tuple[tuple[str, Any], ...] = ()
-    clear: str | None = "restore"
-
-    @property
-    def label(self) -> str:
-        return f"{self.device}:{self.kind}"
 
 
 @dataclass
@@ -112,129 +105,28 @@ class Cell:
 # -- the rigs ----------------------------------------------------------------------------------
 
 
-def _six_coil_plan() -> dict:
-    """Two magnets, two moves (about 5 s of streaming): plans/examples/fig4-quick.json."""
-    return json.loads((_EXAMPLES / "fig4-quick.json").read_text())
+def fault_profile(kind: RigKind) -> FaultProfile:
+    """The kind's profile for the campaign; ConfigError in one line for a kind that has none."""
+    if kind.faults is None:
+        raise ConfigError(f"rig kind {kind.name!r} has no fault profile: `rigctl faults` runs "
+                          f"{', '.join(profiled_kinds()) or 'no installed kind'}")
+    return kind.faults()
 
 
-def _coil_board_plan() -> dict:
-    """Two particles 8 mm to the right on the board (closed loop through the camera)."""
-    return {"schema": "rigctl.plan/1", "kind": "global-moves", "rig": "coil-board",
-            "name": "faults: to the right",
-            "workspace": {"boundary": {"disk": [0.0, 0.0, 23.0]}, "obstacles": []},
-            "agents": [{"start": [-4.0, -5.0], "goal": [4.0, -5.0], "radius": 0.5},
-                       {"start": [-4.0, 5.0], "goal": [4.0, 5.0], "radius": 0.5}],
-            "moves": [[8.0, 0.0]], "tolerance_mm": 1.0, "min_separation_mm": 0.0}
+def profiled_kinds() -> list[str]:
+    """The installed rig kinds that have a fault profile, by name."""
+    from rigctl.rigs import KINDS
+
+    return [name for name, kind in KINDS.items() if kind.faults is not None]
 
 
-def _depm_plan() -> dict:
-    """Both EPMs 0.45 m from the centre, the wrist joint A7 turning 30 degrees and back, each pose
-    held 1 s: the field-sequence plan's shape with the U each pose makes (seed 003 eq. 8)."""
-    from rigctl.physics.kinematics import DEFAULT_BASES, default_arms
-    from rigctl.physics.magnetics import field_vector
-    from rigctl.plans.depm import EPM_MOMENT_AM2
+def rig_profile(name: str) -> FaultProfile:
+    """The fault profile of the installed rig kind `name` (ConfigError naming the installed kinds
+    for an unknown one, or the kinds with a profile for one without)."""
+    from rigctl.rigs import rig_kind
 
-    arms = default_arms()
-    seed = np.array([0, 0.5, 0, -1.2, 0, 0.8, 0.0])
-    q0 = np.array([arm.solve(np.array([x, 0.0, 0.0]), np.array([0, 0, 1.0]), seed,
-                             keep_out=(np.zeros(3), 0.15)).q for arm, x in zip(arms, (-0.45, 0.45))])
-    q1 = q0.copy()
-    q1[:, 6] += np.radians(30)
+    return fault_profile(rig_kind(name))
 
-    def u_mT(q: np.ndarray) -> list[float]:
-        poses = [arm.epm_pose(joints) for arm, joints in zip(arms, q)]
-        centres = np.array([p for p, _ in poses])
-        moments = EPM_MOMENT_AM2 * np.array([d for _, d in poses])
-        return [round(float(v), 9) for v in field_vector(np.zeros(3), centres, moments) * 1e3]
-
-    move, hold = 1.5, 1.0  # 30 deg in 1.5 s: 30 deg/s peak at most (A7's limit is 40.5)
-    t = [0.0, 0.5, 0.5 + move, 0.5 + move + hold, 0.5 + 2 * move + hold, 0.5 + 2 * move + 2 * hold]
-    knots = [q0, q0, q1, q1, q0, q0]
-    segments = [
-        {"name": "turn", "U": u_mT(q1), "start_s": t[1], "reached_s": t[2], "end_s": t[3],
-         "residual": [0.0] * 8},
-        {"name": "back", "U": u_mT(q0), "start_s": t[3], "reached_s": t[4], "end_s": t[5],
-         "residual": [0.0] * 8}]
-    return {"schema": "rigctl.plan/1", "kind": "field-sequence", "rig": "depm",
-            "name": "faults: wrist turn", "epm_moment_Am2": EPM_MOMENT_AM2,
-            "tool_offset_mm": float(arms[0].model.tool_offset_m * 1e3),
-            "sequence": [{"name": s["name"], "U": s["U"], "hold_s": hold} for s in segments],
-            "t_s": t, "segments": segments,
-            "arms": [{"name": arm.name, "position_mm": list(arm.base[:3, 3] * 1e3),
-                      "rpy_deg": list(DEFAULT_BASES[i][2]),
-                      "joints_rad": [list(k[i]) for k in knots]} for i, arm in enumerate(arms)]}
-
-
-def _arm_speeds(truth: dict) -> np.ndarray:
-    return np.abs([arm["qd"] for arm in truth["arms"].values()])
-
-
-@dataclass(frozen=True)
-class RigProfile:
-    """What differs per rig: its short plan, the rig file the campaign runs it with, when its
-    devices drive something and when they are safe (the emulator's truth), what suspends a run
-    (a fault that holds the field: None where the rig has no camera), and how to put the bench
-    back to where the plan starts."""
-
-    plan: Callable[[], dict]
-    driving: Callable[[dict], bool]
-    safe: Callable[[dict], bool]
-    safe_means: str
-    suspend_with: Fault | None
-    quick: tuple[tuple[str, str, str], ...]  # (path, fault label, phase) of the quick campaign
-    reset: Callable[[Any], None] = lambda backdoor: None  # gets what has `request` (a backdoor)
-    tune: Callable[[RigConfig], RigConfig] = lambda rig: rig
-
-
-def _tune_six_coil(rig: RigConfig) -> RigConfig:
-    # a watchdog that tolerates a loaded machine: a run faulted by a scheduling gap says nothing
-    # about the fault injected (a dropped link still stops it at once, a stalled one in 0.5 s)
-    return rig.model_copy(update={"stream": rig.stream.model_copy(update={"reply_timeout_s": 0.5})})
-
-
-def _park_arms(backdoor: Any) -> None:
-    """Both arms at rest with no client, then parked upright (all joints 0) as the plan expects
-    them before its approach."""
-    _wait(lambda: all(a["mode"] == "idle" and a["connections"] == 0
-                      for a in backdoor.request("truth")["arms"].values()), 30.0,
-          "both arms at rest with no client")
-    for arm in backdoor.request("truth")["arms"]:
-        backdoor.request("place", arm=arm, q=[0.0] * 7)
-
-
-PROFILES: dict[str, RigProfile] = {
-    "six-coil": RigProfile(
-        plan=_six_coil_plan,
-        driving=lambda t: max(abs(c) for c in t["currents_A"].values()) > 0.5,
-        safe=lambda t: all(abs(c) < SAFE_CURRENT_A for c in t["currents_A"].values()),
-        safe_means="every coil current under 50 mA",
-        suspend_with=Fault("camera", "freeze"),
-        tune=_tune_six_coil,
-        quick=(("daemon", "x+:drop_link", "before"), ("daemon", "x+:stall", "moving"),
-               ("daemon", "x+:overtemp", "paused"), ("daemon", "camera:drop_link", "suspended"),
-               ("daemon", f"{STREAM_PROCESS}:sigkill", "moving"),
-               ("daemon", f"{STREAM_PROCESS}:sigstop", "moving"),
-               ("execute", "camera:freeze", "moving"))),
-    "coil-board": RigProfile(
-        plan=_coil_board_plan,
-        driving=lambda t: any(t["outputs"]),
-        safe=lambda t: not any(t["outputs"]),
-        safe_means="every SyRen output 0",
-        suspend_with=Fault("camera", "freeze"),
-        quick=(("daemon", "board:stall", "moving"),)),
-    "depm": RigProfile(
-        plan=_depm_plan,
-        driving=lambda t: _arm_speeds(t).max() > 0.01,
-        safe=lambda t: not _arm_speeds(t).any(),
-        safe_means="both arms at rest: every joint speed 0",
-        suspend_with=None,
-        reset=_park_arms,
-        quick=(("daemon", "left:stall_joint", "moving"),)),
-}
-
-_EXAMPLES = Path(__file__).resolve().parent / "plans" / "examples"
-if not _EXAMPLES.is_dir():  # a checkout: plans/ beside rigctl/
-    _EXAMPLES = Path(__file__).resolve().parents[1] / "plans" / "examples"
 
 # the arguments a kind needs, and what ends it (default: "restore")
 KIND_ARGS: dict[str, dict] = {"corrupt": {"n": 3}, "drop_frames": {"n": 30}, "skip": {"n": 20},
@@ -286,14 +178,6 @@ def campaign_faults(kinds: dict[str, list[str]], *, all_devices: bool = False) -
 
 
 # -- helpers -----------------------------------------------------------------------------------
-
-
-def _wait(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out after {timeout_s:g} s waiting for {what}")
-        time.sleep(POLL_S)
 
 
 def stream_process_pid(daemon_pid: int) -> int | None:
@@ -377,7 +261,7 @@ class RigCampaign:
                  progress: TextIO | None = None, all_devices: bool = False) -> None:
         self.all_devices = all_devices
         self.kind = kind
-        self.profile = PROFILES[kind]
+        self.profile = rig_profile(kind)
         self.folder = folder
         self.hold_s = hold_s
         self.settle_s = settle_s
@@ -538,14 +422,14 @@ class RigCampaign:
                     refused = err
             else:
                 self.client.execute(self.plan_id)
-                _wait(lambda: self.profile.driving(self.truth()), 60.0, "the devices to drive")
+                wait_until(lambda: self.profile.driving(self.truth()), 60.0, "the devices to drive")
                 if phase == "paused":
                     self.client.pause()
-                    _wait(lambda: self.client.status()["state"] == "paused", 60.0, "paused")
+                    wait_until(lambda: self.client.status()["state"] == "paused", 60.0, "paused")
                 elif phase == "suspended":
                     self.inject(suspend, pid)
                     try:
-                        _wait(lambda: self.client.status()["state"] == "suspended", 10.0,
+                        wait_until(lambda: self.client.status()["state"] == "suspended", 10.0,
                               "suspended")
                     except TimeoutError:
                         cell.note = (f"phase not reached: {suspend.label} did not suspend the "
@@ -601,10 +485,7 @@ class RigCampaign:
         cell.safe = safe_now
         cell.safe_before_clear = safe_at is not None and safe_at - t_fault < self.hold_s
         if not safe_now:
-            truth = self.truth()
-            shown = {k: truth[k] for k in ("currents_A", "outputs") if k in truth}
-            if "arms" in truth:
-                shown["qd_max"] = float(_arm_speeds(truth).max())
+            shown = self.profile.unsafe_detail(self.truth())
             cell.note = (cell.note + "; " if cell.note else "") + f"not safe at the end: {shown}"
 
     def _watch(self, t_fault: float, on_poll: Callable[[float, dict, dict], bool],
@@ -666,7 +547,7 @@ class RigCampaign:
                       before: set[Path], out_path: Path) -> Cell:
         t_fault = None
         try:
-            _wait(lambda: self.profile.driving(self.truth()) or proc.poll() is not None, 60.0,
+            wait_until(lambda: self.profile.driving(self.truth()) or proc.poll() is not None, 60.0,
                   "the devices to drive")
             if proc.poll() is None:
                 self.inject(fault, None)
@@ -901,5 +782,5 @@ def as_json(cells: list[Cell]) -> dict:
     """The campaign as one JSON document: ok, the figures per rig, what "safe" means per rig,
     every cell."""
     return {"ok": every_cell_ok(cells), "figures": figures(cells),
-            "safe_means": {k: PROFILES[k].safe_means for k in dict.fromkeys(c.rig for c in cells)},
+            "safe_means": {k: rig_profile(k).safe_means for k in dict.fromkeys(c.rig for c in cells)},
             "cells": [c.as_dict() for c in cells]}

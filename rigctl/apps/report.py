@@ -20,6 +20,10 @@ said in a line of text at the bottom, never shown as an empty panel):
   series, `rigctl.physics.identify`), one panel per unit (a rolling gain, a heading bias, a drift, the
   coil board's non-uniformity rates), each estimate with its +-1 standard deviation shaded.
 
+What a rig kind draws its own way comes from its `RigKind.report` (`rigctl.rigs.base.ReportHooks`):
+its channel groups' titles, the channels of its records from before channels had units, and any
+panel only it has; the report names no rig kind.
+
 Faults and e-stops (red) and re-plans (purple) are marked on every time axis. The title names the
 run (its start time and plan) and states the verdict. The dual-EPM rig's panels run on the plan's
 clock (its emulated bench may run K times faster than real time); the run's own events are put on
@@ -53,6 +57,7 @@ from matplotlib.lines import Line2D  # noqa: E402
 from rigctl.core.channels import Channel  # noqa: E402
 from rigctl.core.errors import ConfigError  # noqa: E402
 from rigctl.core.record import _read_journal, read_events, read_series, read_stream  # noqa: E402
+from rigctl.rigs.base import ReportHooks  # noqa: E402
 from rigctl.run.certificate import read_certificate, summary_line  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -166,31 +171,28 @@ def _plan_clock(events: list[dict]):
             lambda tp: (np.asarray(tp, dtype=float) - offset) / slope, scale)
 
 
+def report_hooks(rig: str | None) -> ReportHooks:
+    """What the record's rig kind draws its own way (`RigKind.report`); the defaults for a record
+    of a kind not installed here (its panels then take the generic titles)."""
+    from rigctl.rigs import KINDS
+
+    kind = KINDS.get(rig) if rig else None
+    return kind.report if kind is not None else ReportHooks()
+
+
 def _stream_traces(stream: dict, data: RunData) -> list[Trace]:
     traces = []
     channels: list[Channel] = stream["channels"]
-    legacy_board = (data.rig == "coil-board"
-                    and all(c.unit == "A" and c.low is None and not c.group for c in channels))
-    limit = _board_limit(data.run_dir) if legacy_board else None
-    for channel in channels:
-        cmd, meas = stream.get(channel.column("cmd")), stream.get(channel.column("meas"))
+    # a record from before channels had units and groups: as its rig kind meant them (the
+    # columns keep the names and units they were written with)
+    old_channels = report_hooks(data.rig).old_channels
+    meant = old_channels(channels, data.run_dir) if old_channels is not None else channels
+    for written, channel in zip(channels, meant, strict=True):
+        cmd, meas = stream.get(written.column("cmd")), stream.get(written.column("meas"))
         if cmd is None or meas is None:
             continue
-        if legacy_board:
-            # Coil-board records from before channels called the SyRen drive values amps.
-            channel = Channel(channel.name, "drive", -limit, limit, "board")
         traces.append(Trace(channel, stream["t_s"], np.asarray(cmd, float), np.asarray(meas, float)))
     return traces
-
-
-def _board_limit(run_dir: Path) -> float:
-    try:
-        import tomllib
-
-        rig = tomllib.loads((run_dir / "rig.toml").read_text())
-        return float(rig.get("board", {}).get("max_command", 127))
-    except (OSError, ValueError, ImportError):
-        return 127.0
 
 
 def _old_joint_traces(path: Path) -> list[Trace]:
@@ -390,11 +392,13 @@ class TimePanel:
     weight: float = 1.0  # its share of the column's height
 
 
-def _group_title(group: str, unit: str, rig: str | None) -> str:
-    if group == "supplies" or (not group and unit == "A"):
-        name = "coil currents (six supplies)" if rig == "six-coil" else "coil currents"
-    elif group == "board" or unit == "drive":
-        name = "coil board drive (SyRen)"
+def _group_title(group: str, unit: str, hooks: ReportHooks) -> str:
+    """A channel group's panel title: the rig kind's own name for it, else the group's name (amps
+    in no group: coil currents; an arm's joint angles: its joints)."""
+    if group in hooks.group_titles:
+        name = hooks.group_titles[group]
+    elif not group and unit == "A":
+        name = "coil currents"
     elif unit == "rad":
         name = f"{group} arm joints"
     else:
@@ -407,6 +411,7 @@ def _actuator_panels(data: RunData, clock: str) -> list[TimePanel]:
     for trace in data.traces:
         groups.setdefault(trace.channel.group, []).append(trace)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    hooks = report_hooks(data.rig)
     panels = []
     for group, traces in groups.items():
         t_axis, axis_clock = _on_clock(data, traces[0].t, traces[0].clock, clock)
@@ -438,7 +443,7 @@ def _actuator_panels(data: RunData, clock: str) -> list[TimePanel]:
                         label="limits")
             unit = units[0] if len(units) == 1 else ", ".join(units)
             ax.set_ylabel(UNIT_LABELS.get(unit, unit), fontsize=8)
-            ax.set_title(_group_title(group, unit, data.rig), fontsize=9)
+            ax.set_title(_group_title(group, unit, hooks), fontsize=9)
             ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.02), borderaxespad=0.2,
                       handlelength=1.5, frameon=False)
 
@@ -733,8 +738,10 @@ def build_figure(run_dir: str | Path) -> Figure:
     clock = PLAN_CLOCK if is_field_run else RUN_CLOCK
     paths = _agent_paths(data.plan, data.events, data.summary) if data.plan else []
     left: list[TimePanel] = _field_panels(data)
+    own_panels = report_hooks(data.rig).panels  # what only this rig kind draws
     right: list[TimePanel] = (_actuator_panels(data, clock) + _winding_panels(data, clock)
-                              + _period_panel(data, clock) + _identification_panels(data, clock))
+                              + _period_panel(data, clock) + _identification_panels(data, clock)
+                              + (own_panels(data) if own_panels is not None else []))
     notes = _missing(data, paths, is_field_run)
     if not paths and not left:  # one column of time panels
         left, right = right, []

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from rigctl.apps.faults import OUTCOMES, PROFILES
+from rigctl.apps.faults import OUTCOMES, rig_profile
 from rigctl.apps.testing import run_rigctl
 
 
@@ -31,7 +31,7 @@ def test_the_quick_campaign_passes_and_its_records_say_what_it_reports(tmp_path)
 
     cells = document["cells"]
     assert {(c["path"], c["fault"], c["phase"]) for c in cells if c["rig"] == "six-coil"} == \
-        set(PROFILES["six-coil"].quick)
+        set(rig_profile("six-coil").quick)
     assert {c["rig"] for c in cells} == {"six-coil", "coil-board", "depm"}
     for cell in cells:
         assert cell["outcome"] in OUTCOMES and cell["safe"], cell

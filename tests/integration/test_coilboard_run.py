@@ -334,11 +334,11 @@ def test_a_measured_position_alg_1_pulls_into_its_region_does_not_re_plan_every_
     loop must drive Alg. 1's moves, not re-plan again each cycle without ever yielding (it starved
     the stream process until the daemon killed it). The moves are driven by a perfect rig here:
     each ends exactly where Alg. 1 expects."""
-    from rigctl.apps.faults import _coil_board_plan
     from rigctl.plans.schema import parse_plan
     from rigctl.rigs.coil_board import run as board_run
+    from rigctl.rigs.coil_board.faults import quick_plan
 
-    plan = parse_plan(_coil_board_plan())  # the campaign's plan, where the storm was seen
+    plan = parse_plan(quick_plan())  # the campaign's plan, where the storm was seen
     program = board_run.CoilBoardProgram(plan, rig)
     # where the camera had them then: radius 0.5 on a 23 mm dish, so the region's radius is 22.5
     measured = np.array([[-23.217, 2.556], [5.108, -21.929]])

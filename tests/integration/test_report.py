@@ -237,3 +237,43 @@ def test_a_record_cut_off_before_the_stream_draws_only_what_it_has(tmp_path):
     assert "did not finish" in text
     paths = by_gid(fig, "paths")
     assert not lines(paths, "measured 0")  # nothing measured, nothing drawn
+
+
+def _stream_only_record(tmp_path, rig: str, channels: list, rig_toml: str | None = None):
+    """A record of `rig` with a short stream of `channels` and nothing else (no plan paths)."""
+    record = RunRecord(tmp_path, f"{rig} stream")
+    record.write_file("plan.json", json.dumps({"schema": "rigctl.plan/1", "name": "stream only",
+                                               "kind": "hold", "rig": rig}))
+    if rig_toml is not None:
+        record.write_file("rig.toml", rig_toml)
+    record.open_stream(channels, rate_hz=100.0)
+    for k in range(10):
+        values = [float(k + j) for j in range(len(channels))]
+        record.stream_row(k, 0, values, values)
+    record.finish({"state": "done", "rig": rig, "faults": []})
+    return record.path
+
+
+def test_a_panel_title_is_the_rig_kinds_own_and_a_kind_not_installed_gets_its_group(
+        global_moves_record, tmp_path):
+    currents = by_gid(build_figure(global_moves_record[0]), "actuators:supplies")
+    assert currents.get_title().startswith("coil currents (six supplies):")
+    # a record of a rig kind not installed here still draws, its panel titled by its group
+    run_dir = _stream_only_record(tmp_path, "spinner", [Channel("m1", "A", -2.0, 2.0, "driver")])
+    panel = by_gid(build_figure(run_dir), "actuators:driver")
+    assert panel.get_title().startswith("driver:")
+    assert sorted({line.get_ydata()[0] for line in lines(panel, "limit")}) == [-2.0, 2.0]
+
+
+def test_an_old_coil_board_record_draws_its_amps_as_the_boards_drive_values(tmp_path):
+    """Coil-board records from before channels had units wrote the SyRen drive values as amps
+    with no limit and no group: drawn as the board's drive, limited by its rig file's
+    max_command."""
+    run_dir = _stream_only_record(tmp_path, "coil-board", ["c0", "c1", "c2", "c3"],
+                                  rig_toml="[board]\nmax_command = 90\n")
+    board = by_gid(build_figure(run_dir), "actuators:board")
+    assert board.get_title().startswith("coil board drive (SyRen):")
+    assert board.get_ylabel() == "SyRen drive (-127..127)"
+    assert sorted({line.get_ydata()[0] for line in lines(board, "limit")}) == [-90.0, 90.0]
+    (measured,) = lines(board, "measured c3")
+    np.testing.assert_allclose(measured.get_ydata(), np.arange(10) + 3.0)

@@ -14,10 +14,13 @@ from rigctl.apps.faults import (
     campaign_faults,
     check_record,
     every_cell_ok,
+    fault_profile,
     figures,
     matrix,
     outcome_of,
     parse_cell,
+    profiled_kinds,
+    rig_profile,
     stop_latency,
 )
 from rigctl.core.record import RunRecord
@@ -160,3 +163,36 @@ def test_the_stop_latency_is_read_from_the_record_and_its_worst_is_held_to_one_p
     assert "worst 3.10 ms (execute x+:stall @ moving), one stream period 1.0 ms: OVER" \
         in matrix(cells)
     assert "one stream period 1.0 ms: within" in matrix(cells[:1])
+
+
+def test_each_kind_with_a_profile_gives_a_plan_for_itself_and_quick_cells_the_campaign_reads():
+    """The campaign asks each installed kind for its profile: its short plan is a plan for that
+    kind (the six-coil one is read from plans/examples, wherever rigctl is installed), and its quick
+    cells are cells the campaign can parse. (The six-coil plan's path, taken beside the module
+    that read it, was lost when the campaign moved into rigctl/apps.)"""
+    from rigctl.plans.schema import parse_plan
+
+    kinds = profiled_kinds()
+    assert kinds, "no installed kind has a fault profile"
+    for name in kinds:
+        profile = rig_profile(name)
+        plan = parse_plan(profile.plan(), f"{name}'s fault plan")
+        assert plan.rig == name
+        for path, label, phase in profile.quick:
+            assert parse_cell(f"{path}/{label}/{phase}") == (path, label, phase)
+
+
+def test_a_kind_without_a_fault_profile_is_refused_in_one_line_naming_those_with_one():
+    from rigctl.core.errors import ConfigError
+    from rigctl.rigs.base import RigKind
+
+    bare = RigKind(name="spinner", description="a magnet on a stepper", plans={},
+                   channels=lambda rig: [], devices=lambda rig: [], make_safe=lambda rig: {},
+                   hold=lambda rig, target: None)
+    with pytest.raises(ConfigError) as refused:
+        fault_profile(bare)
+    message = str(refused.value)
+    assert "\n" not in message and "'spinner' has no fault profile" in message
+    assert all(name in message for name in profiled_kinds())
+    with pytest.raises(ConfigError, match="not one of"):
+        rig_profile("no-such-kind")

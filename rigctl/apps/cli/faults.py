@@ -1,5 +1,6 @@
 """`rigctl faults [--rig KIND] [--quick] [--json] [-o OUT]`: the fault campaign (`rigctl.apps.faults`)
-on the emulated benches, a matrix of what became of every run and every device."""
+on the emulated benches, a matrix of what became of every run and every device. The rig kinds
+are the installed ones that have a fault profile (the registry's); `--rig` names one of them."""
 
 from __future__ import annotations
 
@@ -11,15 +12,24 @@ from pathlib import Path
 from rigctl.apps.cli.paths import folder, output_file
 from rigctl.core.errors import EXIT_NOT_REACHED, EXIT_OK, ConfigError
 
-RIGS = ("six-coil", "coil-board", "depm")
-
 
 def _cmd_faults(args: argparse.Namespace) -> int:
-    from rigctl.apps.faults import as_json, every_cell_ok, matrix, run_campaign
+    from rigctl.apps.faults import (
+        as_json,
+        every_cell_ok,
+        matrix,
+        profiled_kinds,
+        rig_profile,
+        run_campaign,
+    )
 
     if not 0 < args.hold <= 60:
         raise ConfigError(f"--hold must be > 0 and at most 60 s, got {args.hold:g}")
-    rigs = list(RIGS) if args.rig is None else [args.rig]
+    if args.rig is not None:
+        rig_profile(args.rig)  # a kind not installed, or with no profile: refused in one line
+    rigs = profiled_kinds() if args.rig is None else [args.rig]
+    if not rigs:
+        raise ConfigError("no installed rig kind has a fault profile")
     print(f"fault campaign ({'quick' if args.quick else 'full'}) on the emulated "
           f"{', '.join(rigs)} bench{'es' if len(rigs) > 1 else ''}: nothing real is energised",
           file=sys.stderr, flush=True)
@@ -46,11 +56,13 @@ def register_faults(sub: argparse._SubParsersAction) -> None:
         "inject every fault the bench's backdoor offers (and SIGKILL / SIGSTOP of the daemon's "
         "stream process) before energising, mid-move, paused, suspended and ramping down; some "
         "also against a local `rigctl execute`. Prints a matrix: the run's outcome, the seconds "
-        "from the fault to every device safe (read from the emulator: coil currents under "
-        "50 mA, SyRen outputs 0, arms at rest), and failed cells in full. Exit 0 when every cell "
+        "from the fault to every device safe (read from the emulator, as the rig kind's fault "
+        "profile says: every coil current under 50 mA, every motor driver output 0, the arms at "
+        "rest), and failed cells in full. Exit 0 when every cell "
         "ended in a named outcome with every device safe and its run record intact, else 1. "
         "Nothing real is energised.")
-    p.add_argument("--rig", choices=RIGS, help="one rig kind (default: all three)")
+    p.add_argument("--rig", metavar="KIND",
+                   help="one rig kind (default: every installed kind with a fault profile)")
     p.add_argument("--quick", action="store_true",
                    help="a small representative subset (about 2-3 minutes; what CI runs)")
     p.add_argument("--all-devices", action="store_true",

@@ -5,6 +5,8 @@ from __future__ import annotations
 from rigctl.core.channels import Channel
 from rigctl.core.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
+from rigctl.rigs.coil_board.faults import fault_profile
+from rigctl.rigs.coil_board.report import REPORT
 
 
 def _global_moves(plan, rig: RigConfig, **run):
@@ -90,6 +92,8 @@ def _hold(rig: RigConfig, target: dict):
 KIND = RigKind(
     name="coil-board",
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",
+    faults=fault_profile,
+    report=REPORT,
     plans={"global-moves": _global_moves},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig,
     bench="rigctl.emulators.coilboard.bench:CoilBoardBench")

@@ -13,6 +13,8 @@ import math
 from rigctl.core.channels import Channel
 from rigctl.core.config import RigConfig
 from rigctl.rigs.base import Device, RigKind
+from rigctl.rigs.depm.faults import fault_profile
+from rigctl.rigs.depm.scene import arms_scene
 
 
 def _field_sequence(plan, rig: RigConfig, *, agnostic: bool = False, time_scale: float = 1.0,
@@ -127,6 +129,9 @@ def _hold(rig: RigConfig, target: dict):
 KIND = RigKind(
     name="depm",
     description="two KUKA LBR iiwa arms carrying permanent magnets, a three-sensor Hall board",
+    faults=fault_profile,
+    scene="arms",
+    scene_of=arms_scene,
     plans={"field-sequence": _field_sequence},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig,
     bench="rigctl.emulators.depm:DepmBench")

@@ -6,6 +6,8 @@ from __future__ import annotations
 from rigctl.core.channels import Channel
 from rigctl.core.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
+from rigctl.rigs.six_coil.faults import fault_profile
+from rigctl.rigs.six_coil.report import REPORT
 
 
 def _global_moves(plan, rig: RigConfig, *, closed_loop: bool | None = None, **run):
@@ -82,6 +84,8 @@ def _hold(rig: RigConfig, target: dict):
 KIND = RigKind(
     name="six-coil",
     description="six air-core coils fed by Kepco BOP supplies, overhead camera",
+    faults=fault_profile,
+    report=REPORT,
     plans={"global-moves": _global_moves, "pair-formation": _pair_formation},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold,
     bench_args=_bench_args, bench_rig=_bench_rig,
