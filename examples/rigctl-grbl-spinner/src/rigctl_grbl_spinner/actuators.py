@@ -2,7 +2,10 @@
 
 A cycle takes the wanted rate (turns/s, signed) and streams the jog that covers it for the time
 since the last cycle (`driver.GrblController.jog`), then asks `?` and returns the rate the status
-report gives (its feed, signed by the MPos change). A wanted rate of zero after a nonzero one
+report gives (its feed, signed by the MPos change). GRBL's planner runs only as fast as it could
+stop within what it holds (v^2 / 2a of angle): a queue of exactly that would slow the rotor at
+every late cycle, so the jogs also keep `LEAD_S` of motion more queued (the angle sent less the
+MPos reported, topped up by at most one cycle's angle per cycle). A wanted rate of zero after a nonzero one
 sends a jog cancel, so the rotor stops at `$120` from where it is instead of running out the
 planner's queue; no jog is sent until the controller reports `Idle` again (GRBL would flush it).
 "Energised" is a no-op: GRBL holds the stepper enabled; the rotor turns only when jogged. The
@@ -27,6 +30,7 @@ log = logging.getLogger(__name__)
 
 DEVICE = "grbl"
 MIN_JOG_DEG = 0.001  # GRBL's 3 decimals: a shorter jog is nothing
+LEAD_S = 0.06  # motion kept queued beyond the planner's stopping distance: late cycles' margin
 
 
 def spinner_channels(rig: SpinnerConfig) -> list[Channel]:
@@ -50,6 +54,7 @@ class SpinnerActuators:
         self._last_position: float | None = None
         self._wanted = 0.0
         self._cancelling = False
+        self._end_deg: float | None = None  # where the jogs sent so far end (MPos, degrees)
 
     @classmethod
     def connect(cls, rig: SpinnerConfig) -> SpinnerActuators:
@@ -62,7 +67,7 @@ class SpinnerActuators:
             controller.close()
             raise
         actuators = cls(controller, rig.grbl, spinner_channels(rig))
-        actuators._last_position = status.position_deg
+        actuators._last_position = actuators._end_deg = status.position_deg
         return actuators
 
     def energise(self) -> None:
@@ -85,9 +90,10 @@ class SpinnerActuators:
                 c.realtime(JOG_CANCEL)
                 self._cancelling = True
         elif not self._cancelling:
-            delta = wanted * 360.0 * dt
+            delta = wanted * 360.0 * dt + self._top_up(wanted, dt)
             if abs(delta) >= MIN_JOG_DEG:
                 c.jog(delta, wanted)
+                self._end_deg = (self._end_deg or 0.0) + delta
         self._wanted = wanted
         status = c.query_status()
         if c.alarm is not None:
@@ -95,13 +101,24 @@ class SpinnerActuators:
         if c.banners > 1:
             raise DeviceError("the controller reset itself (its welcome banner came unasked)",
                               device=DEVICE)
-        if self._cancelling and status.state == "Idle":
+        if status.state == "Idle":  # nothing queued (a jog cancel flushed what was)
             self._cancelling = False
+            self._end_deg = status.position_deg
         moved = 0.0 if self._last_position is None else status.position_deg - self._last_position
         self._last_position = status.position_deg
         rate = status.feed_deg_min / 21600.0
         self.measured[0] = math.copysign(rate, moved) if moved else (rate if wanted >= 0 else -rate)
         return self.measured
+
+    def _top_up(self, wanted_hz: float, dt: float) -> float:
+        """Degrees to add to this cycle's jog so that the queue holds the planner's stopping
+        distance and `LEAD_S` more at the wanted rate (never more than one cycle's angle)."""
+        if self._end_deg is None or self._last_position is None:
+            return 0.0
+        v = abs(wanted_hz) * 360.0
+        wanted_queue = v * v / (2 * self.settings.acceleration_deg_s2) + v * LEAD_S
+        queued = math.copysign(1.0, wanted_hz) * (self._end_deg - self._last_position)
+        return math.copysign(min(max(wanted_queue - queued, 0.0), v * dt), wanted_hz)
 
     def emergency_zero(self) -> list[str]:
         return [] if self.controller.emergency_stop() else [DEVICE]

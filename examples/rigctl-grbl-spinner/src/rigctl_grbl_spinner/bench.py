@@ -14,7 +14,7 @@ Backdoor: the table of rigctl's `emulators/base.py` (`ping`, `help`, `speed`, `f
 `n` replies garbage, `restore`) and `reboot` (the board resets itself: banner, planner flushed),
 plus `{"cmd": "truth"}`: the rotor's angle (degrees, unbounded) and rate (turns/s, signed), the
 controller's state, the blocks queued, the bytes the host overran its RX buffer by, lines
-executed, simulated time.
+executed, simulated time (and `agents`: none, as every bench's truth has them).
 """
 
 from __future__ import annotations
@@ -93,6 +93,7 @@ class SpinnerBench(EmulatedBench):
     def _truth(self, request: dict) -> dict:
         self.advance()
         m = self.machine
-        return {"angle_deg": m.position_deg, "rate_hz": m.rate_hz, "state": m.status_state(),
+        # "agents": none (the daemon samples every emulated bench's agents while a run lasts)
+        return {"agents": [], "angle_deg": m.position_deg, "rate_hz": m.rate_hz, "state": m.status_state(),
                 "queued_blocks": len(m.queue), "lost_bytes": self.wire.lost_bytes,
                 "lines": self.wire.lines, "sim_time_s": m.time_s}

@@ -79,10 +79,14 @@ def parse_spin_plan(data: dict, source: str = "plan") -> SpinSequencePlan:
 
 def settle_s(previous_hz: float, rate_hz: float, rig: SpinnerConfig) -> float:
     """How long a segment takes to be at its rate: the change at the acceleration limit, GRBL's
-    planner queue at that rate (v / 2a) and a few stream cycles of latency."""
+    planner queue at that rate (v / 2a and the actuators' `LEAD_S`) and a few stream cycles of
+    latency."""
+    from rigctl_grbl_spinner.actuators import LEAD_S
+
     g = rig.grbl
     a = g.max_acceleration_hz_per_s
-    return abs(rate_hz - previous_hz) / a + abs(rate_hz) / (2 * a) + SETTLE_CYCLES / g.rate_hz
+    return (abs(rate_hz - previous_hz) / a + abs(rate_hz) / (2 * a) + LEAD_S
+            + SETTLE_CYCLES / g.rate_hz)
 
 
 def spin_checks(plan: SpinSequencePlan, rig: SpinnerConfig) -> list[Check]:
