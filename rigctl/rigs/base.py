@@ -131,6 +131,10 @@ class RigKind:
     """What an "arms" scene draws (bases, link lengths), as JSON-ready data."""
     report: ReportHooks = field(default_factory=ReportHooks)
     study: StudyHooks | None = None
+    plan_models: Mapping[str, Callable[[], type]] = field(default_factory=dict)
+    """The document model (a pydantic class, schema `rigctl.plan/1`) of each plan kind this kind
+    brings that `rigctl.plans.schema` does not know, by plan kind: `parse_plan` validates such a
+    plan with it (a lab's plan kinds; the papers' kinds are in the schema's union)."""
 
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.core.errors import PlanError
