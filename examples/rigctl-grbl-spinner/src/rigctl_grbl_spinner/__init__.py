@@ -32,6 +32,12 @@ def _spin_sequence(plan, rig, **run):
     return build_spin_run(plan, rig, **run)
 
 
+def _spin_plan_model() -> type:
+    from rigctl_grbl_spinner.spin import SpinSequencePlan
+
+    return SpinSequencePlan
+
+
 def _channels(rig) -> list[Channel]:
     from rigctl_grbl_spinner.actuators import spinner_channels
 
@@ -104,4 +110,4 @@ KIND = RigKind(
     plans={"spin-sequence": _spin_sequence},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig,
     settings=_settings, bench="rigctl_grbl_spinner.bench:SpinnerBench", template=_template,
-    probes={DEVICE_KIND: _probe}, faults=_faults)
+    probes={DEVICE_KIND: _probe}, faults=_faults, plan_models={"spin-sequence": _spin_plan_model})
