@@ -88,8 +88,9 @@ def test_doctor_asks_the_emulated_controller_for_its_status(bench, tmp_path):
     rig_path, backdoor = bench
     done = run_rigctl("doctor", "--rig", str(rig_path), "--json", cwd=tmp_path)
     assert done.returncode == 0, done.stdout + done.stderr
-    (probe,) = json.loads(done.stdout)["devices"] if "devices" in done.stdout else [None]
-    assert "Idle" in done.stdout and backdoor.request("truth")["lines"] == 0  # a `?` only
+    (probe,) = json.loads(done.stdout)["devices"]
+    assert probe["device"] == "grbl" and probe["ok"] and probe["detail"].startswith("Idle, MPos X")
+    assert backdoor.request("truth")["lines"] == 0  # read-only: a `?`, no line sent
 
 
 def test_execute_spins_at_the_plans_rates(bench, tmp_path):
