@@ -43,6 +43,9 @@ from rigctl.emulators.kepco_bop.model import BopCoilModel
 from rigctl.physics.thermal import Windings, step_current, winding_temperatures
 from rigctl.plans.schema import load_plan
 from rigctl.rigs import rig_kind
+from rigctl.rigs.coil_board.settings import CoilBoardRig
+from rigctl.rigs.depm.settings import DepmRig
+from rigctl.rigs.six_coil.settings import SixCoilRig
 from rigctl.run.certificate import certify
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "plans" / "examples"
@@ -88,14 +91,14 @@ def bench_rigs(repeat: int) -> dict:
     from rigctl.rigs.coil_board.run import CoilBoardRunSettings
 
     out = {}
-    six = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
+    six = SixCoilRig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
     name, plan = six_coil_longest(six)
     out["six-coil"] = {"plan": name, **bench_plan_run("six-coil", six, plan, repeat,
                                                       closed_loop=False)}
-    depm = RigConfig(rig=RigInfo(kind="depm"), depm=depm_settings())
+    depm = DepmRig(rig=RigInfo(kind="depm"), depm=depm_settings())
     out["depm"] = {"plan": "depm-plan.json",
                    **bench_plan_run("depm", depm, load_plan(EXAMPLES / "depm-plan.json"), repeat)}
-    board = RigConfig(rig=RigInfo(kind="coil-board"), board=CoilBoardSettings(url="/dev/pts/0"))
+    board = CoilBoardRig(rig=RigInfo(kind="coil-board"), board=CoilBoardSettings(url="/dev/pts/0"))
     plan = load_plan(EXAMPLES / "coilboard-disk.json")
     ms, checks = least(lambda: board_checks(board, CoilBoardRunSettings(), len(plan.moves)), repeat)
     out["coil-board"] = {"plan": "coilboard-disk.json", "certificate_ms": ms,
@@ -105,7 +108,7 @@ def bench_rigs(repeat: int) -> dict:
 
 
 def bench_winding_model(seconds: float) -> dict:
-    rig = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
+    rig = SixCoilRig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
     w = Windings.of_coils(rig.coils)
     currents = np.random.default_rng(1).uniform(-20, 20, (int(seconds * 100), 6))
     t0 = time.perf_counter()

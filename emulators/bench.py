@@ -57,6 +57,7 @@ from rigctl.core.config import (
     RigConfig,
     RigInfo,
     default_six_coil_coils,
+    settings_of,
 )
 from rigctl.core.errors import ConfigError
 from rigctl.emulators.base import EmulatedBench
@@ -125,7 +126,7 @@ class SixCoilBench(EmulatedBench):
         # "rolling": the rolling magnets of seed 000; "pair": two interacting agents (seed 002,
         # emulators/world/pair.py), placed with {"cmd": "place", ..., "pair": {physics}}
         self.world_kind = world
-        self.template = template or RigConfig(
+        self.template = template or settings_of("six-coil")(
             rig=RigInfo(kind="six-coil", name="emulated six-coil bench"),
             coils=default_six_coil_coils(),
         )

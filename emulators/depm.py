@@ -28,7 +28,7 @@ import argparse
 
 import numpy as np
 
-from rigctl.core.config import DepmSettings, Emulation, PreflightSettings, RigConfig, RigInfo
+from rigctl.core.config import DepmSettings, Emulation, PreflightSettings, RigConfig, RigInfo, settings_of
 from rigctl.core.errors import ConfigError
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.hall.board import HallBoardServer
@@ -113,7 +113,7 @@ class DepmBench(EmulatedBench):
         depm = self.settings.model_copy(update={"arm_urls": [a.url for a in self.arms],
                                                 "hall_url": hall.url})
         assert self.backdoor is not None
-        return RigConfig(rig=RigInfo(kind="depm", name="emulated dEPM bench"), depm=depm,
+        return settings_of("depm")(rig=RigInfo(kind="depm", name="emulated dEPM bench"), depm=depm,
                          emulation=Emulation(backdoor=self.backdoor.url, seed=self.seed),
                          preflight=PreflightSettings(kst_round_trip_ms=LOOPBACK_ROUND_TRIP_MS))
 

@@ -1251,7 +1251,7 @@ def cli(args) -> int:
         from rigctl.core.errors import ConfigError
 
         config = load_rig(args.rig)
-        if config.depm is None:
+        if getattr(config, "depm", None) is None:
             raise ConfigError(f"--rig: {args.rig} has no [depm] table (rig kind {config.rig.kind!r})")
         rig = rig_from_settings(config.depm)
     stats = PlanStats()

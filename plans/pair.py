@@ -37,6 +37,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
+from rigctl.core.config import settings_of
 from rigctl.core.errors import PlanError
 from rigctl.core.jit import njit
 
@@ -957,9 +958,9 @@ def rig_max_pull(rig, physics: PairPhysics, field_mT: float) -> float:
 
 
 def default_rig():
-    from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+    from rigctl.core.config import RigInfo, default_six_coil_coils
 
-    return RigConfig(rig=RigInfo(kind="six-coil", name="emulated six-coil bench"),
+    return settings_of("six-coil")(rig=RigInfo(kind="six-coil", name="emulated six-coil bench"),
                      coils=default_six_coil_coils())
 
 

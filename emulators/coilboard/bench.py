@@ -43,7 +43,7 @@ import os
 
 import numpy as np
 
-from rigctl.core.config import CoilBoardSettings, CoilThermal, Emulation, RigConfig, RigInfo
+from rigctl.core.config import CoilBoardSettings, CoilThermal, Emulation, RigConfig, RigInfo, settings_of
 from rigctl.core.errors import ConfigError
 from rigctl.emulators.base import EmulatedBench
 from rigctl.emulators.camera.render import Scene
@@ -104,7 +104,7 @@ class CoilBoardBench(EmulatedBench):
         board_url = self._start_firmware()
         camera = self._serve_camera(CAMERA_FIELD_MM, tilt_deg=4.0, seed=4, fps=CAMERA_FPS)
         assert self.backdoor is not None
-        return RigConfig(
+        return settings_of("coil-board")(
             rig=RigInfo(kind="coil-board", name=f"emulated {self.title}"),
             # The emulated board shares a process (and Python's GIL) with the camera's renderer
             # and the world: allow it more than a real board's 2 ms per reply.

@@ -1,9 +1,16 @@
 """The rig file: one TOML document that says what hardware (or emulator) a run talks to.
 
-A rig file names the rig kind, the field settings the realizer uses, the geometry the allocator
-needs, and one entry per device with the URL its driver opens. The emulated bench writes the same
-format with an `[emulation]` table, so a run cannot tell a bench from a rig except by that table.
-This module is the one config loader: everything reads rig files through `load_rig`.
+A rig file names the rig kind (`[rig] kind`), and the kind decides the rest of its schema: its
+`RigKind.settings` is a subclass of `RigConfig` adding the kind's own tables (the six-coil rig's
+coils and field settings, the coil board's `[board]`, the arms' `[depm]`: each kind's package
+holds its model). `RigConfig` here has what every rig has: `[rig]`, `[stream]`, `[camera]`,
+`[preflight]`, `[emulation]`, `[daemon]`. This module also keeps the building blocks a kind's
+tables use (`RigTable`, `DeviceUrl`, `CoilThermal`) and the table models of the kinds rigctl ships
+(`Coil`, `CoilBoardSettings`, `DepmSettings`, ...): their drivers, emulators and planners, below
+the rig kinds, read them too. The emulated bench writes the same format with an `[emulation]` table,
+so a run cannot tell a bench from a rig except by that table. This module is the one config loader:
+everything reads rig files through `load_rig`, which asks the registry (`rigctl.core.registry`)
+for the kind's model.
 
 Units: lengths in mm, fields in mT, currents in A, voltages in V, times in s, unless a key's
 name says otherwise.
@@ -14,7 +21,7 @@ from __future__ import annotations
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Union
 
 import tomli_w
 from pydantic import (
@@ -23,6 +30,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    TypeAdapter,
     ValidationError,
     field_validator,
     model_validator,
@@ -31,11 +39,8 @@ from pydantic import (
 from rigctl.core.camera_model import Calibration
 from rigctl.core.errors import ConfigError
 from rigctl.core.transport import camera_source, parse_url
-from rigctl.physics.field_calibration import FieldCalibration, load_field_calibration
 
 BOARD_FULL_SCALE = 127  # a coil-board drive is -127..127 (a SyRen's full scale; the wire's MAX_COMMAND)
-
-RigKind = Literal["six-coil", "coil-board", "depm"]
 
 Vector3 = tuple[float, float, float]
 
@@ -56,46 +61,30 @@ DeviceUrl = Annotated[str, AfterValidator(_checked(parse_url))]
 CameraSource = Annotated[str, BeforeValidator(_checked(camera_source))]  # `url = 0` is an index
 
 
-class _Strict(BaseModel):
+class RigTable(BaseModel):
+    """A table of a rig file: unknown keys are refused (a misspelt key is an error, not a default),
+    and a loaded rig does not change."""
+
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+_Strict = RigTable
+
+
 class RigInfo(_Strict):
-    kind: RigKind
+    kind: str = Field(description="an installed rig kind (`rigctl init --help` lists them)")
     name: str = "unnamed rig"
 
+    @field_validator("kind")
+    @classmethod
+    def _installed(cls, kind: str) -> str:
+        from rigctl.core.registry import kind_names
 
-class FieldSettings(_Strict):
-    """How a six-coil rig turns moves into a rotating field (seed 000 eq. 1-2)."""
-
-    b0_mT: Annotated[float, Field(gt=0, description="magnitude of the rotating field")] = 3.0
-    rolling_turns_per_s: Annotated[float, Field(gt=0, description="rolling speed omega")] = 2.0
-    steering_deg_per_s: Annotated[float, Field(gt=0, description="steering speed Omega")] = 180.0
-    ramp_s: Annotated[float, Field(ge=0, description="field ramp at start and end")] = 0.1
-    hold_s: Annotated[
-        float, Field(ge=0, description="dwell after each segment so the coils settle (>= 5 L/R)")
-    ] = 0.1
-    rest_s: Annotated[
-        float, Field(ge=0, le=3600, description="after each move's hold the field ramps to zero "
-                     "and stays off this long, so the coils cool (the pre-flight certificate says "
-                     "how long a plan needs)")] = 0.0
-    initial_heading_deg: Annotated[
-        float, Field(description="direction of the first field in the xy plane (magnets align)")
-    ] = 0.0
-    whole_turns: bool = Field(
-        default=True,
-        description="moves must be whole turns of the magnets (false: fractional turns, B may end "
-        "tilted out of the floor plane)",
-    )
-
-
-class MagnetSettings(_Strict):
-    """The rolling cylindrical magnets: one turn rolls them 2*pi*radius_mm."""
-
-    radius_mm: Annotated[float, Field(gt=0)] = 10.0 / (2.0 * math.pi)
-    min_field_mT: Annotated[
-        float, Field(ge=0, description="below this the magnets do not follow the field")
-    ] = 0.5
+        names = kind_names()
+        if kind not in names:
+            raise ValueError(f"{kind!r} is not an installed rig kind; the installed kinds are "
+                             f"{', '.join(names) or 'none'}")
+        return kind
 
 
 class CoilThermal(_Strict):
@@ -131,35 +120,6 @@ class CoilThermal(_Strict):
             raise ValueError(f"need ambient_C < warning_C <= max_winding_C, got {self.ambient_C}, "
                              f"{self.warning_C}, {self.max_winding_C}")
         return self
-
-
-class Coil(_Strict):
-    """One air-core coil (a circular loop of `turns` turns) and the supply pair that feeds it.
-
-    `axis` is the direction of the coil's field at its centre for positive current;
-    `centre_mm` is the loop's centre relative to the workspace centre.
-    """
-
-    name: str
-    url: DeviceUrl = Field(description="the master supply: tcp://10.0.0.11:5025, "
-                           "TCPIP::10.0.0.11::5025::SOCKET or serial:///dev/ttyUSB0?baud=9600")
-    centre_mm: Vector3
-    axis: Vector3
-    loop_radius_mm: Annotated[float, Field(gt=0)]
-    turns: Annotated[int, Field(gt=0)]
-    resistance_ohm: Annotated[float, Field(gt=0)]
-    inductance_H: Annotated[float, Field(gt=0)]
-    current_limit_A: Annotated[float, Field(gt=0, le=20.0)] = 20.0
-    compliance_V: Annotated[float, Field(gt=0, le=100.0)] = 100.0
-    thermal: CoilThermal = CoilThermal()
-
-    @field_validator("axis")
-    @classmethod
-    def _unit_axis(cls, axis: Vector3) -> Vector3:
-        norm = math.sqrt(sum(a * a for a in axis))
-        if norm == 0:
-            raise ValueError("axis must not be the zero vector")
-        return tuple(a / norm for a in axis)  # type: ignore[return-value]
 
 
 class StreamSettings(_Strict):
@@ -199,6 +159,78 @@ class CameraSettings(_Strict):
     calibration: Calibration | None = Field(
         default=None, description="pixel -> mm homography (`rigctl calibrate camera`)"
     )
+
+
+class FieldSettings(_Strict):
+    """How a six-coil rig turns moves into a rotating field (seed 000 eq. 1-2)."""
+
+    b0_mT: Annotated[float, Field(gt=0, description="magnitude of the rotating field")] = 3.0
+    rolling_turns_per_s: Annotated[float, Field(gt=0, description="rolling speed omega")] = 2.0
+    steering_deg_per_s: Annotated[float, Field(gt=0, description="steering speed Omega")] = 180.0
+    ramp_s: Annotated[float, Field(ge=0, description="field ramp at start and end")] = 0.1
+    hold_s: Annotated[
+        float, Field(ge=0, description="dwell after each segment so the coils settle (>= 5 L/R)")
+    ] = 0.1
+    rest_s: Annotated[
+        float, Field(ge=0, le=3600, description="after each move's hold the field ramps to zero "
+                     "and stays off this long, so the coils cool (the pre-flight certificate says "
+                     "how long a plan needs)")] = 0.0
+    initial_heading_deg: Annotated[
+        float, Field(description="direction of the first field in the xy plane (magnets align)")
+    ] = 0.0
+    whole_turns: bool = Field(
+        default=True,
+        description="moves must be whole turns of the magnets (false: fractional turns, B may end "
+        "tilted out of the floor plane)",
+    )
+
+
+class MagnetSettings(_Strict):
+    """The rolling cylindrical magnets: one turn rolls them 2*pi*radius_mm."""
+
+    radius_mm: Annotated[float, Field(gt=0)] = 10.0 / (2.0 * math.pi)
+    min_field_mT: Annotated[
+        float, Field(ge=0, description="below this the magnets do not follow the field")
+    ] = 0.5
+
+
+
+class Coil(_Strict):
+    """One air-core coil (a circular loop of `turns` turns) and the supply pair that feeds it.
+
+    `axis` is the direction of the coil's field at its centre for positive current;
+    `centre_mm` is the loop's centre relative to the workspace centre.
+    """
+
+    name: str
+    url: DeviceUrl = Field(description="the master supply: tcp://10.0.0.11:5025, "
+                           "TCPIP::10.0.0.11::5025::SOCKET or serial:///dev/ttyUSB0?baud=9600")
+    centre_mm: Vector3
+    axis: Vector3
+    loop_radius_mm: Annotated[float, Field(gt=0)]
+    turns: Annotated[int, Field(gt=0)]
+    resistance_ohm: Annotated[float, Field(gt=0)]
+    inductance_H: Annotated[float, Field(gt=0)]
+    current_limit_A: Annotated[float, Field(gt=0, le=20.0)] = 20.0
+    compliance_V: Annotated[float, Field(gt=0, le=100.0)] = 100.0
+    thermal: CoilThermal = CoilThermal()
+
+    @field_validator("axis")
+    @classmethod
+    def _unit_axis(cls, axis: Vector3) -> Vector3:
+        norm = math.sqrt(sum(a * a for a in axis))
+        if norm == 0:
+            raise ValueError("axis must not be the zero vector")
+        return tuple(a / norm for a in axis)  # type: ignore[return-value]
+
+
+
+class FieldProbe(_Strict):
+    """A six-coil rig's Hall probe (array) for `rigctl calibrate field`: a Hall board stream
+    (docs/hall-board.md) whose `hello` says where its sensors are, mm from the workspace centre."""
+
+    url: DeviceUrl = Field(description="the probe board's sample stream, tcp://host:port")
+    timeout_s: Annotated[float, Field(gt=0, description="no sample this long: a fault")] = 1.0
 
 
 class CoilBoardSettings(_Strict):
@@ -316,19 +348,6 @@ class PreflightSettings(_Strict):
                      "(time `KukaArm.servo`)")] = 5.0
 
 
-class FieldProbe(_Strict):
-    """A six-coil rig's Hall probe (array) for `rigctl calibrate field`: a Hall board stream
-    (docs/hall-board.md) whose `hello` says where its sensors are, mm from the workspace centre."""
-
-    url: DeviceUrl = Field(description="the probe board's sample stream, tcp://host:port")
-    timeout_s: Annotated[float, Field(gt=0, description="no sample this long: a fault")] = 1.0
-
-
-def _calibration_file(value):
-    """`field_calibration = "FILE.yaml"` (load_rig makes it relative to the rig file) is read."""
-    return load_field_calibration(value) if isinstance(value, (str, Path)) else value
-
-
 class Emulation(_Strict):
     """Present only in rig files written by `rigctl emulate`: where the bench's backdoor is."""
 
@@ -371,46 +390,55 @@ class DaemonSettings(BaseModel):
 
 
 class RigConfig(_Strict):
+    """What every rig file has; a rig kind's `settings` subclasses it with the kind's own tables
+    (and their checks). A rig of a kind is an instance of that kind's model (`parse_rig`)."""
+
     rig: RigInfo
-    field: FieldSettings = FieldSettings()
-    magnets: MagnetSettings = MagnetSettings()
-    coils: list[Coil] = []
-    actuation_matrix_T_per_A: list[list[float]] | None = Field(
-        default=None,
-        description="measured 3 x n_coils matrix at the workspace centre; overrides the geometry",
-    )
-    field_calibration: Annotated[FieldCalibration | None, BeforeValidator(_calibration_file)] = Field(
-        default=None, description="a `rigctl calibrate field` file (YAML): the allocator's coils")
-    field_probe: FieldProbe | None = None
     stream: StreamSettings = StreamSettings()
     camera: CameraSettings | None = None
     daemon: DaemonSettings | None = None
     emulation: Emulation | None = None
-    depm: DepmSettings | None = None
-    board: CoilBoardSettings | None = None
     preflight: PreflightSettings = PreflightSettings()
 
     @model_validator(mode="after")
-    def _check_kind(self) -> "RigConfig":
-        if self.rig.kind == "six-coil":
-            if len(self.coils) != 6:
-                raise ValueError(f"a six-coil rig needs 6 [[coils]] entries, found {len(self.coils)}")
-            names = [c.name for c in self.coils]
-            if len(set(names)) != len(names):
-                raise ValueError(f"coil names must be unique, got {names}")
-        if self.rig.kind == "coil-board" and self.board is None:
-            raise ValueError("a coil-board rig needs a [board] table (at least its url)")
-        if self.actuation_matrix_T_per_A is not None:
-            rows = self.actuation_matrix_T_per_A
-            if len(rows) != 3 or any(len(r) != len(self.coils) for r in rows):
-                raise ValueError(
-                    f"actuation_matrix_T_per_A must be 3 rows of {len(self.coils)} columns"
-                )
+    def _of_its_kind(self) -> RigConfig:
+        model = settings_of(self.rig.kind)
+        if not isinstance(self, model):
+            raise ValueError(f"a {self.rig.kind} rig is a {model.__module__}.{model.__name__}, "
+                             f"not a {type(self).__name__}")
         return self
 
     @property
     def emulated(self) -> bool:
         return self.emulation is not None
+
+    def toml_data(self) -> dict[str, Any]:
+        """The rig as a rig file's data (`dump_rig`): every table, None values left out."""
+        return self.model_dump(mode="json", exclude_none=True)
+
+    def for_record(self) -> tuple[RigConfig, dict[str, str]]:
+        """The rig as a run record keeps it, and the files it names (file name -> text) that the
+        record keeps beside it: none here; a kind whose rig file names other files copies them."""
+        return self, {}
+
+
+def settings_of(kind: str) -> type[RigConfig]:
+    """The rig file model of the installed rig kind `kind` (ConfigError naming the installed ones)."""
+    from rigctl.core.registry import rig_kind
+
+    model = rig_kind(kind).settings()
+    if not (isinstance(model, type) and issubclass(model, RigConfig)):
+        raise ConfigError(f"rig kind {kind!r}: its settings {model!r} are not a RigConfig")
+    return model
+
+
+def rig_json_schema() -> dict:
+    """The JSON Schema of a rig file: one of the installed kinds' models."""
+    from rigctl.core.registry import kind_names
+
+    models = tuple(settings_of(name) for name in kind_names())
+    schema = TypeAdapter(Union[models]).json_schema() if len(models) > 1 else models[0].model_json_schema()
+    return {"title": "rig file", **schema}
 
 
 def default_six_coil_coils(urls: list[str] | None = None) -> list[Coil]:
@@ -451,9 +479,20 @@ def _format_validation_error(err: ValidationError, source: str) -> str:
     return "\n".join(lines)
 
 
-def parse_rig(data: dict, source: str = "rig file") -> RigConfig:
+def parse_rig(data: dict, source: str = "rig file", *, rig_dir: Path | None = None) -> RigConfig:
+    """A rig file's data validated with its kind's model (`[rig] kind`, asked of the registry).
+    `rig_dir`: where the rig file is (a file it names is relative to it). ConfigError, one line
+    per problem, each naming `source` and the key."""
+    info = data.get("rig") if isinstance(data, dict) else None
+    kind = info.get("kind") if isinstance(info, dict) else None
+    model = RigConfig  # no kind or not a string: RigInfo's check says so
+    if isinstance(kind, str):
+        try:
+            model = settings_of(kind)
+        except ConfigError as err:
+            raise ConfigError(f"{source}: rig.kind: {err}") from None
     try:
-        return RigConfig.model_validate(data)
+        return model.model_validate(data, context={"rig_dir": rig_dir})
     except ValidationError as err:
         raise ConfigError(_format_validation_error(err, source)) from None
 
@@ -467,23 +506,9 @@ def load_rig(path: str | Path) -> RigConfig:
         raise ConfigError(f"rig file {path} does not exist") from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
-    if isinstance(data.get("field_calibration"), str):  # a file named relative to the rig file
-        data["field_calibration"] = str(path.parent / data["field_calibration"])
-    return parse_rig(data, str(path))
-
-
-SIX_COIL_TABLES = ("field", "magnets", "coils", "actuation_matrix_T_per_A", "field_calibration",
-                   "field_probe")
+    return parse_rig(data, str(path), rig_dir=path.parent)
 
 
 def dump_rig(rig: RigConfig) -> str:
-    """The rig as TOML text, loadable by `load_rig`: only the tables its kind reads (a coil-board
-    or depm rig has no [field], [magnets] or coils)."""
-    data = rig.model_dump(mode="json", exclude_none=True)
-    data.pop("field_calibration", None)
-    if rig.field_calibration is not None and rig.field_calibration.source is not None:
-        data["field_calibration"] = rig.field_calibration.source  # named by its file, as before
-    if rig.rig.kind != "six-coil":
-        for key in SIX_COIL_TABLES:
-            data.pop(key, None)
-    return tomli_w.dumps(data)
+    """The rig as TOML text, loadable by `load_rig`: the tables its kind's model has."""
+    return tomli_w.dumps(rig.toml_data())

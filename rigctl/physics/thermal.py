@@ -73,25 +73,25 @@ class Windings:
 
     @classmethod
     def of_coils(cls, coils: Sequence) -> Windings:
-        """The six-coil rig's windings (`RigConfig.coils`)."""
+        """Air-core coils fed by current supplies (each with `name`, `resistance_ohm`, `thermal`)."""
         return cls.of([c.name for c in coils], [c.resistance_ohm for c in coils],
                       [c.thermal for c in coils])
 
     @classmethod
     def of_board(cls, board) -> Windings:
-        """The coil board's four windings (`CoilBoardSettings`), all alike, driven in SyRen units:
-        a drive d puts d / 127 of the supply across its coil (`volts_per_unit`)."""
+        """A board's windings, all alike (`coil_names`, `coil_resistance_ohm`, `coil_thermal`),
+        driven in drive units: a drive d puts d x `volts_per_unit` across its coil."""
         n = len(board.coil_names)
         return cls.of(board.coil_names, [board.coil_resistance_ohm] * n, [board.coil_thermal] * n,
                       volts_per_unit=board.volts_per_unit)
 
     @classmethod
     def of_rig(cls, rig) -> Windings | None:
-        """The windings a rig's run watches (`RigConfig`): the coil board's, the six coils', none
-        for the arms (permanent magnets)."""
-        if rig.board is not None:
-            return cls.of_board(rig.board)
-        return cls.of_coils(rig.coils) if rig.rig.kind == "six-coil" else None
+        """The windings a rig's run watches (a `RigConfig`), as its kind says (`RigKind.windings`):
+        None where nothing heats (permanent magnets)."""
+        from rigctl.core.registry import rig_kind
+
+        return rig_kind(rig.rig.kind).windings(rig)
 
     def off_by(self, fraction: ArrayLike, capacity_fraction: ArrayLike | None = None) -> Windings:
         """The same windings with R_th `fraction` and C_th `capacity_fraction` (default: the

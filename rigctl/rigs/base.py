@@ -47,7 +47,7 @@ class Device:
     kind: str  # "supply", "board", "arm", "hall board", "camera"
 
 
-Probe = Callable[[RigConfig, "Device"], str]
+DeviceProbe = Callable[[RigConfig, "Device"], str]
 """`rigctl doctor`'s read-only probe of one device: a one-line detail of what it answered, or
 RigError (or OSError) saying why it did not."""
 
@@ -110,7 +110,7 @@ class RigKind:
     `rigctl emulate KIND` starts; None: the kind has no emulator."""
     template: Callable[[], str] | None = None
     """The commented rig file `rigctl init KIND` writes."""
-    probes: Mapping[str, Probe] = field(default_factory=dict)
+    probes: Mapping[str, DeviceProbe] = field(default_factory=dict)
     """`rigctl doctor`'s probe per `Device.kind` its `devices()` lists (the core probes a
     "camera" itself)."""
     windings: Callable[[RigConfig], Windings | None] = no_windings

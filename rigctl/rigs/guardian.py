@@ -32,6 +32,7 @@ when it acts (20-140 ms more at that load, once the rest is loaded).
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import select
@@ -161,10 +162,10 @@ class Ward:
         self.since = time.monotonic()
 
     def arm(self, rig_json: str) -> None:
-        from rigctl.core.config import RigConfig
+        from rigctl.core.config import parse_rig
         from rigctl.rigs import rig_kind
 
-        self.rig = RigConfig.model_validate_json(rig_json)
+        self.rig = parse_rig(json.loads(rig_json), "the owner's rig")
         self.make_safe = rig_kind(self.rig.rig.kind).make_safe
         self.since = time.monotonic()
         try:

@@ -199,11 +199,10 @@ class Run(RunControl):
         program, rig = self.program, self.rig
         record = self.record = RunRecord(self.runs_dir, getattr(program.plan, "name", None) or "plan")
         record.write_file("plan.json", dump_plan(program.plan))
-        calibration = rig.field_calibration
-        if calibration is not None:  # the snapshot names its own copy of the calibration file
-            record.write_file("field_calibration.yaml", calibration.to_yaml())
-            calibration = calibration.model_copy(update={"source": "field_calibration.yaml"})
-        record.write_file("rig.toml", dump_rig(rig.model_copy(update={"field_calibration": calibration})))
+        snapshot, files = rig.for_record()  # the snapshot names its own copies of the rig's files
+        for name, text in files.items():
+            record.write_file(name, text)
+        record.write_file("rig.toml", dump_rig(snapshot))
         record.event("prepared", rate_hz=program.rate_hz, duration_s=program.duration_s,
                      **{k: v for k, v in program.info.items() if k not in ("duration_s",)})
         record.write_file("certificate.json", self.certificate.to_json())

@@ -30,6 +30,7 @@ from rigctl.emulators.bench import SixCoilBench
 from rigctl.physics.thermal import Windings, winding_temperatures
 from rigctl.plans.schema import parse_plan
 from rigctl.rigs.six_coil.global_moves import Run
+from rigctl.rigs.six_coil.settings import SixCoilRig
 from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.run.certificate import CertificateRefused, read_certificate
 
@@ -45,7 +46,7 @@ MARGIN = PreflightSettings(heating_margin=0.5)
 
 def rig_with(thermal: CoilThermal, **update) -> RigConfig:
     coils = [c.model_copy(update={"thermal": thermal}) for c in default_six_coil_coils()]
-    return RigConfig(rig=RigInfo(kind="six-coil", name="hot bench"), coils=coils, stream=PATIENT,
+    return SixCoilRig(rig=RigInfo(kind="six-coil", name="hot bench"), coils=coils, stream=PATIENT,
                      preflight=MARGIN, **update)
 
 

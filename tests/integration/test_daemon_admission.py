@@ -12,7 +12,8 @@ import pytest
 import zmq
 
 from rigctl.apps.daemon.server import Daemon
-from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.config import RigInfo, default_six_coil_coils
+from rigctl.rigs.six_coil.settings import SixCoilRig
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier
@@ -24,7 +25,7 @@ FLOOD_S = 1.5
 
 
 def test_a_flood_gets_the_budget_shared_and_an_estop_does_not_wait(tmp_path):
-    rig = RigConfig(rig=RigInfo(kind="six-coil", name="budget"), coils=default_six_coil_coils())
+    rig = SixCoilRig(rig=RigInfo(kind="six-coil", name="budget"), coils=default_six_coil_coils())
     d = Daemon(rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
                events="tcp://127.0.0.1:0", runs_dir=tmp_path, request_rate_hz=RATE_HZ)
     d.start_thread()

@@ -18,9 +18,10 @@ from hypothesis import HealthCheck, given, settings
 
 from rigctl.apps.daemon.messages import HARD_MAX_MESSAGE_BYTES, Command
 from rigctl.apps.daemon.server import Daemon
-from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.config import RigInfo, default_six_coil_coils
 from rigctl.core.errors import PlanError
 from rigctl.plans.schema import MAX_IMAGE_PIXELS
+from rigctl.rigs.six_coil.settings import SixCoilRig
 
 _spec = importlib.util.spec_from_file_location(
     "fuzz_daemon", Path(__file__).resolve().parents[2] / "bench" / "fuzz_daemon.py")
@@ -139,7 +140,7 @@ class SlowPlans:
 
 def test_a_load_past_its_deadline_answers_deadline_and_blocks_neither_commands_nor_shutdown(tmp_path):
     plans = SlowPlans()
-    rig = RigConfig(rig=RigInfo(kind="six-coil", name="slow"), coils=default_six_coil_coils())
+    rig = SixCoilRig(rig=RigInfo(kind="six-coil", name="slow"), coils=default_six_coil_coils())
     d = Daemon(rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
                events="tcp://127.0.0.1:0", runs_dir=tmp_path, run_factory=plans)
     d.load_deadline_s = 0.5

@@ -15,9 +15,10 @@ from rigctl.apps.client import CommandRefused, DaemonUnreachable, Rig
 from rigctl.apps.daemon.messages import MAX_REQUEST_BYTES, DaemonState, StateMsg
 from rigctl.apps.daemon.server import TRANSITIONS, Daemon
 from rigctl.apps.daemon.telemetry import CycleBatch
-from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.config import RigInfo, default_six_coil_coils
 from rigctl.core.errors import PlanError
 from rigctl.core.stream import StreamLoop
+from rigctl.rigs.six_coil.settings import SixCoilRig
 from rigctl.run.control import RunState
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
@@ -166,7 +167,7 @@ class StandInHold:
 
 @pytest.fixture
 def daemon(tmp_path):
-    rig = RigConfig(rig=RigInfo(kind="six-coil", name="test rig"), coils=default_six_coil_coils())
+    rig = SixCoilRig(rig=RigInfo(kind="six-coil", name="test rig"), coils=default_six_coil_coils())
     factory = StandInRuns()
     d = Daemon(rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
                events="tcp://127.0.0.1:0", runs_dir=tmp_path, run_factory=factory)

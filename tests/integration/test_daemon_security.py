@@ -11,14 +11,15 @@ from rigctl.apps.daemon.keys import allow, new_keypair
 from rigctl.apps.daemon.messages import is_loopback_endpoint
 from rigctl.apps.daemon.sdnotify import SystemdNotifier
 from rigctl.apps.daemon.server import Daemon
-from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.config import RigInfo, default_six_coil_coils
 from rigctl.core.errors import ConfigError
+from rigctl.rigs.six_coil.settings import SixCoilRig
 
 # no process started (emulators, where there are any, serve real sockets from this process): the
 # quick tier
 pytestmark = pytest.mark.quick
 
-RIG = RigConfig(rig=RigInfo(kind="six-coil", name="secure rig"), coils=default_six_coil_coils())
+RIG = SixCoilRig(rig=RigInfo(kind="six-coil", name="secure rig"), coils=default_six_coil_coils())
 LOOPBACK = dict(command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0", events="tcp://127.0.0.1:0")
 
 

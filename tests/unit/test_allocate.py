@@ -24,6 +24,7 @@ from rigctl.core.errors import ConfigError, LimitError
 from rigctl.physics.coils import actuation_matrix
 from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate, currents_for_field
 from rigctl.rigs.six_coil.realize import FieldProgram, realize_global_moves
+from rigctl.rigs.six_coil.settings import SixCoilRig
 
 MU0 = 4e-7 * math.pi
 
@@ -36,7 +37,7 @@ B_PER_AMP = on_axis_per_amp(0.35)  # 1.5347e-4 T/A
 
 
 def cube(coils: list[Coil] | None = None, **field) -> RigConfig:
-    return RigConfig(
+    return SixCoilRig(
         rig=RigInfo(kind="six-coil"),
         coils=coils or default_six_coil_coils(),
         field=FieldSettings(**field),

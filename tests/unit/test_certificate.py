@@ -24,7 +24,10 @@ from rigctl.physics.thermal import Windings
 from rigctl.plans.schema import load_plan
 from rigctl.rigs.coil_board.certify import board_checks, drive_for_limit
 from rigctl.rigs.coil_board.run import CoilBoardRunSettings
+from rigctl.rigs.coil_board.settings import CoilBoardRig
+from rigctl.rigs.depm.settings import DepmRig
 from rigctl.rigs.six_coil.certify import current_program_checks
+from rigctl.rigs.six_coil.settings import SixCoilRig
 from rigctl.run.certificate import exposure_checks, rig_hash
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
@@ -32,7 +35,7 @@ MU0 = 4e-7 * math.pi
 
 
 def six_coil(**update) -> RigConfig:
-    return RigConfig(**{"rig": RigInfo(kind="six-coil"), "coils": default_six_coil_coils(), **update})
+    return SixCoilRig(**{"rig": RigInfo(kind="six-coil"), "coils": default_six_coil_coils(), **update})
 
 
 def by(checks, check, subject):
@@ -81,7 +84,7 @@ def test_a_serial_supply_link_cannot_carry_100_Hz_at_9600_baud():
 
 def test_the_coil_board_s_links_and_heating_against_hand_figures():
     board = CoilBoardSettings(url="serial:///dev/ttyACM0?baud=115200")
-    rig = RigConfig(rig=RigInfo(kind="coil-board"), board=board)
+    rig = CoilBoardRig(rig=RigInfo(kind="coil-board"), board=board)
     settings = CoilBoardRunSettings()  # 50 Hz, full drive, 60 moves of at most 30 s
     checks = board_checks(rig, settings, n_moves=4)
     host = by(checks, "link time per cycle", "host link (115200 baud, SET + ACK)")
@@ -92,7 +95,7 @@ def test_the_coil_board_s_links_and_heating_against_hand_figures():
     assert not by(fast, "link time per cycle", "SyRen bus (9600 baud, a packet per coil)").passed
     assert all(c.passed for c in checks if c.check == "winding temperature")
 
-    hot = RigConfig(rig=RigInfo(kind="coil-board"), board=board.model_copy(update={"supply_V": 24.0}))
+    hot = CoilBoardRig(rig=RigInfo(kind="coil-board"), board=board.model_copy(update={"supply_V": 24.0}))
     refused = [c for c in board_checks(hot, settings, 4) if not c.passed]
     assert refused and all(c.check == "winding temperature" for c in refused)
 
@@ -123,7 +126,7 @@ def test_the_depm_example_plan_is_certified_and_a_tighter_exposure_limit_refuses
     from rigctl.rigs.depm.run import FieldSequenceProgram
 
     plan = load_plan(EXAMPLES / "depm-plan.json")
-    rig = RigConfig(rig=RigInfo(kind="depm"), depm=default_settings())
+    rig = DepmRig(rig=RigInfo(kind="depm"), depm=default_settings())
     checks = FieldSequenceProgram(plan, rig).checks()
     assert all(c.passed for c in checks)
     kinds = {c.check for c in checks}
@@ -165,7 +168,7 @@ def test_each_arm_s_link_is_checked_against_the_servo_period():
     from rigctl.rigs.depm.run import FieldSequenceProgram
 
     plan = load_plan(EXAMPLES / "depm-plan.json")
-    rig = RigConfig(rig=RigInfo(kind="depm"), depm=default_settings(),
+    rig = DepmRig(rig=RigInfo(kind="depm"), depm=default_settings(),
                     preflight=PreflightSettings(kst_round_trip_ms=6.0))
     links = [c for c in FieldSequenceProgram(plan, rig).checks() if c.check == "link time per cycle"]
     assert [c.subject for c in links] == ["arm left (KST servo target and answer)",

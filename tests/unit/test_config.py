@@ -12,7 +12,6 @@ import pytest
 from rigctl.core.config import (
     CameraSettings,
     CoilBoardSettings,
-    RigConfig,
     RigInfo,
     default_six_coil_coils,
     dump_rig,
@@ -20,6 +19,7 @@ from rigctl.core.config import (
     parse_rig,
 )
 from rigctl.core.errors import ConfigError
+from rigctl.rigs.coil_board.settings import CoilBoardRig
 
 
 def six_coil(**tables) -> dict:
@@ -88,7 +88,7 @@ def test_a_bad_url_exits_2_before_any_connection(tmp_path) -> None:
 
 
 def test_a_coil_board_rig_file_has_only_its_own_tables() -> None:
-    rig = RigConfig(rig=RigInfo(kind="coil-board"), board=CoilBoardSettings(url="/dev/pts/3"),
+    rig = CoilBoardRig(rig=RigInfo(kind="coil-board"), board=CoilBoardSettings(url="/dev/pts/3"),
                     camera=CameraSettings(url="0"))
     written = tomllib.loads(dump_rig(rig))
     assert set(written) == {"rig", "stream", "board", "camera", "preflight"}  # every kind reads [preflight]

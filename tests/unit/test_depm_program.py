@@ -18,12 +18,13 @@ from rigctl.rigs.depm.run import (
     _Tracking,
     stream_rates,
 )
+from rigctl.rigs.depm.settings import DepmRig
 
 PLAN = Path(__file__).resolve().parents[2] / "plans" / "examples" / "depm-plan.json"
 
 
 def rig(emulated: bool = True, **depm) -> RigConfig:
-    return RigConfig(rig=RigInfo(kind="depm", name="test"),
+    return DepmRig(rig=RigInfo(kind="depm", name="test"),
                      depm=default_settings().model_copy(update=depm),
                      emulation=Emulation(backdoor="tcp://127.0.0.1:1") if emulated else None)
 

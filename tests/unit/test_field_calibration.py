@@ -20,10 +20,11 @@ from rigctl.rigs.six_coil.field_fit import (
     fit_coil,
     measured_maps,
 )
+from rigctl.rigs.six_coil.settings import SixCoilRig
 
 
 def _rig(**update) -> RigConfig:
-    return RigConfig(rig=RigInfo(kind="six-coil", name="test"), coils=default_six_coil_coils(),
+    return SixCoilRig(rig=RigInfo(kind="six-coil", name="test"), coils=default_six_coil_coils(),
                      **update)
 
 

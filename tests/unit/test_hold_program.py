@@ -5,8 +5,9 @@ drive units, the arms' rest where they stand, and what it refuses."""
 import numpy as np
 import pytest
 
-from rigctl.core.config import CoilBoardSettings, RigConfig, RigInfo, StreamSettings
+from rigctl.core.config import CoilBoardSettings, RigInfo, StreamSettings
 from rigctl.core.errors import LimitError, RigError
+from rigctl.rigs.coil_board.settings import CoilBoardRig
 from rigctl.run.engine import RunContext
 from rigctl.run.hold import HoldPlan, HoldProgram, HoldRequest, ramp_samples
 
@@ -19,7 +20,7 @@ class Events:
         self.events.append((name, fields))
 
 
-RIG = RigConfig(rig=RigInfo(kind="coil-board", name="unit"), board=CoilBoardSettings(url="/dev/null"),
+RIG = CoilBoardRig(rig=RigInfo(kind="coil-board", name="unit"), board=CoilBoardSettings(url="/dev/null"),
                 stream=StreamSettings(rate_hz=100.0, ramp_down_s=0.03))
 
 

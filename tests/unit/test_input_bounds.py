@@ -21,7 +21,7 @@ from rigctl.apps.daemon.messages import (
     decode_request,
     read_json,
 )
-from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.config import RigInfo, default_six_coil_coils
 from rigctl.core.errors import PlanError
 from rigctl.plans.schema import (
     MAX_DURATION_S,
@@ -31,6 +31,7 @@ from rigctl.plans.schema import (
     parse_plan,
 )
 from rigctl.rigs.six_coil.realize import realize_global_moves
+from rigctl.rigs.six_coil.settings import SixCoilRig
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 
@@ -186,7 +187,7 @@ def test_validate_refuses_json_python_cannot_hold(tmp_path, capsys, text):
 
 
 def test_a_six_coil_program_over_the_sample_bound_is_refused_before_it_is_allocated():
-    rig = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
+    rig = SixCoilRig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
     per_turn = 2 * math.pi * rig.magnets.radius_mm
     turns_per_move = 100
     # rolling alone: turns / (turns per s) * rate samples
@@ -197,7 +198,7 @@ def test_a_six_coil_program_over_the_sample_bound_is_refused_before_it_is_alloca
 
 
 def test_a_six_coil_program_that_would_last_over_an_hour_is_refused():
-    rig = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
+    rig = SixCoilRig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
     per_turn = 2 * math.pi * rig.magnets.radius_mm
     # each move: one turn (0.5 s at 2 turns/s) and the hold after it
     seconds_per_move = 1 / rig.field.rolling_turns_per_s + rig.field.hold_s
@@ -217,7 +218,7 @@ def test_a_pair_program_over_the_sample_bound_is_refused_before_it_is_built():
     count = 3000  # of 1 s at 1 kHz: 3e6 samples, within the plan's own bounds (segments, 1 h)
     document["segments"] = [{**segment, "dt_s": 1.0}] * count
     plan = parse_plan(document, "pair.json")
-    rig = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils(),
+    rig = SixCoilRig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils(),
                     stream=StreamSettings(rate_hz=1000.0))
     assert count * 1000.0 > MAX_PROGRAM_SAMPLES
     with pytest.raises(PlanError, match="samples of program at 1000 Hz"):

@@ -13,6 +13,7 @@ import pytest
 
 from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils, dump_rig
 from rigctl.rigs.owner import RigInUse, RigLock, holder_of
+from rigctl.rigs.six_coil.settings import SixCoilRig
 
 HOLD = textwrap.dedent("""
     import sys, time
@@ -27,7 +28,7 @@ HOLD = textwrap.dedent("""
 def six_coil_rig(port0: int) -> RigConfig:
     coils = [c.model_copy(update={"url": f"tcp://127.0.0.1:{port0 + i}"})
              for i, c in enumerate(default_six_coil_coils())]
-    return RigConfig(rig=RigInfo(kind="six-coil", name="test"), coils=coils)
+    return SixCoilRig(rig=RigInfo(kind="six-coil", name="test"), coils=coils)
 
 
 @pytest.fixture(autouse=True)

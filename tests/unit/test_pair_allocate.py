@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.core.config import RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.config import RigInfo, default_six_coil_coils
 from rigctl.core.errors import LimitError
 from rigctl.physics.coils import (
     coil_field_and_gradient,
@@ -22,9 +22,10 @@ from rigctl.physics.coils import (
 )
 from rigctl.physics.magnetics import gradient_from_terms, loop_field
 from rigctl.rigs.six_coil.allocate import currents_for_u, field_and_pull_u
+from rigctl.rigs.six_coil.settings import SixCoilRig
 
 MU0 = 4e-7 * math.pi
-RIG = RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
+RIG = SixCoilRig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils())
 
 
 def on_axis_gradient(s_m, turns=400, a=0.2):

@@ -26,13 +26,14 @@ from rigctl.rigs.six_coil.realize import (
     STEERING,
     realize_global_moves,
 )
+from rigctl.rigs.six_coil.settings import SixCoilRig
 
 B0 = 3e-3
 MOVES = np.array([[20.0, 0.0], [6.0, 8.0], [0.0, 0.0], [-30.0, 0.0]])
 
 
 def six_coil_rig(**field) -> RigConfig:
-    return RigConfig(
+    return SixCoilRig(
         rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils(), field=FieldSettings(**field)
     )
 

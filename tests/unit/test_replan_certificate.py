@@ -19,6 +19,7 @@ from rigctl.core.errors import LimitError, PlanError
 from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate
 from rigctl.rigs.six_coil.certify import current_program_checks
 from rigctl.rigs.six_coil.realize import realize_global_moves
+from rigctl.rigs.six_coil.settings import SixCoilRig
 from rigctl.rigs.six_coil.supervisor import SupervisedSequencer, certified_replan, lead_in
 
 R, L, V = 1.5, 0.03, 100.0
@@ -34,7 +35,7 @@ def rig(rate_hz: float = 1000.0, inductance_H: float = L) -> RigConfig:
     matrix = np.zeros((3, 6))
     for j in range(6):
         matrix[j // 2, j] = GAIN  # x+, x-, y+, y-, z+, z-
-    return RigConfig(rig=RigInfo(kind="six-coil"), coils=coils,
+    return SixCoilRig(rig=RigInfo(kind="six-coil"), coils=coils,
                      actuation_matrix_T_per_A=matrix.tolist(),
                      field=FieldSettings(whole_turns=False),  # the closed loop's corrections
                      stream=StreamSettings(rate_hz=rate_hz),

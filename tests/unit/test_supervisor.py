@@ -15,6 +15,7 @@ from rigctl.plans.schema import parse_workspace
 from rigctl.plans.workspace import Workspace
 from rigctl.rigs.six_coil.allocate import CurrentProgram
 from rigctl.rigs.six_coil.realize import realize_global_moves
+from rigctl.rigs.six_coil.settings import SixCoilRig
 from rigctl.rigs.six_coil.supervisor import ReplanBudget, SupervisedSequencer, SupervisorSettings
 
 TURN_MM = 10.0
@@ -22,7 +23,7 @@ R = TURN_MM / (2 * math.pi)
 
 
 def rig(whole_turns: bool) -> RigConfig:
-    return RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils(),
+    return SixCoilRig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils(),
                      field=FieldSettings(whole_turns=whole_turns))
 
 

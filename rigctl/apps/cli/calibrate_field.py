@@ -1,6 +1,7 @@
-"""`rigctl calibrate field --rig RIG.toml`: measure the six-coil rig's field with its Hall probe, fit
-each coil (`rigctl.rigs.six_coil.field_fit`), write the calibration file (mag_manip-style YAML,
-`rigctl.physics.field_calibration`) and name it in the rig file, so every later run allocates with it."""
+"""`rigctl calibrate field --rig RIG.toml`: measure a rig's field with its Hall probe, fit each coil
+(its kind's `RigKind.field_fit`: the six-coil rig's is `rigctl.rigs.six_coil.field_fit`), write the
+calibration file (mag_manip-style YAML, `rigctl.physics.field_calibration`) and name it in the rig
+file, so every later run allocates with it. A kind without "field" in its `calibrations` is refused."""
 
 from __future__ import annotations
 
@@ -31,15 +32,10 @@ def _say(args: argparse.Namespace, text: str) -> None:
 
 def cmd_calibrate_field(args: argparse.Namespace) -> int:
     from rigctl.core.config import dump_rig, load_rig
+    from rigctl.core.registry import kind_names, rig_kind
     from rigctl.physics.field_calibration import DEFAULT_GRID_HALF_MM, probe_grid_mm
     from rigctl.rigs.doctor import preflight
     from rigctl.rigs.owner import RigLock
-    from rigctl.rigs.six_coil.field_fit import (
-        drive_patterns,
-        fit_calibration,
-        measure,
-        prediction_error,
-    )
 
     for flag, value in (("--plan", args.plan), ("--markers", args.markers),
                         ("--marker-radius", args.marker_radius)):
@@ -48,9 +44,12 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
                               "with the rig's [field_probe]")
     rig_path = Path(args.rig)
     rig = load_rig(rig_path)
-    if rig.rig.kind != "six-coil":
-        raise ConfigError(f"{rig_path}: field calibration is for six-coil rigs; this one is "
-                          f"{rig.rig.kind!r}")
+    kind = rig_kind(rig.rig.kind)
+    if "field" not in kind.calibrations or kind.field_fit is None:
+        able = [n for n in kind_names() if "field" in rig_kind(n).calibrations]
+        raise ConfigError(f"{rig_path}: field calibration is for {' or '.join(able) or 'no'} rigs; "
+                          f"this one is {rig.rig.kind!r}")
+    fit = kind.field_fit()
     if rig.field_probe is None:
         raise ConfigError(f"{rig_path}: the rig has no [field_probe] table (url of the Hall probe "
                           "board) to measure the field with")
@@ -66,7 +65,7 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise ConfigError(f"-o {out}: the field calibration is a YAML file (.yaml)")
     drawn = rig.model_copy(update={"field_calibration": None})
-    patterns = drive_patterns(drawn, seed=args.patterns_seed)
+    patterns = fit.drive_patterns(drawn, seed=args.patterns_seed)
     if rig.emulation is not None:
         from rigctl.emulators.backdoor import BackdoorClient
 
@@ -77,12 +76,12 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
     with RigLock(drawn, "rigctl calibrate field"):
         preflight(drawn)
         _say(args, f"driving {len(patterns)} current patterns through the coils, reading the probe")
-        measured = measure(drawn, patterns, progress=lambda line: _say(args, "  " + line))
-    calibration = fit_calibration(drawn, measured)
+        measured = fit.measure(drawn, patterns, progress=lambda line: _say(args, "  " + line))
+    calibration = fit.fit_calibration(drawn, measured)
     relative = os.path.relpath(out.resolve(), rig_path.resolve().parent)
     calibration = calibration.model_copy(update={"source": relative})
-    before = prediction_error(drawn, measured)
-    after = prediction_error(drawn.model_copy(update={"field_calibration": calibration}), measured)
+    before = fit.prediction_error(drawn, measured)
+    after = fit.prediction_error(drawn.model_copy(update={"field_calibration": calibration}), measured)
     out.write_text(calibration.to_yaml())
     rig_path.write_text(dump_rig(rig.model_copy(update={"field_calibration": calibration})))
     b0 = rig.field.b0_mT * 1e-3

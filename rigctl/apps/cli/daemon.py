@@ -30,6 +30,7 @@ from rigctl.core.errors import (
     ConfigError,
     PlanError,
 )
+from rigctl.core.registry import entry_point_names
 
 if TYPE_CHECKING:
     from rigctl.rigs.guardian import Guardian
@@ -536,7 +537,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "`READY command=... telemetry=... events=...` when serving. SIGTERM ramps down and exits 0.")
     p.add_argument("--rig", type=input_file("rig file"),
                    help="rig file (TOML) of any rig kind; default: an emulated bench")
-    p.add_argument("--bench", choices=["six-coil", "coil-board", "depm"],
+    p.add_argument("--bench", choices=entry_point_names(),
                    help="without --rig: which emulated bench to start (default six-coil)")
     p.add_argument("--command", help=f"command endpoint (default {DEFAULT_COMMAND_ENDPOINT})")
     p.add_argument("--telemetry", help=f"telemetry (data) endpoint (default {DEFAULT_TELEMETRY_ENDPOINT})")

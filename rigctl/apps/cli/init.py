@@ -1,25 +1,27 @@
 """`rigctl init KIND [-o FILE] [--force]`: a commented rig file for real hardware.
 
-The templates (`rigctl/rigs/templates/KIND.toml`, package data) carry the seed papers' hardware
-and say in comments what a lab must change; each loads with `load_rig` as it is, so `rigctl doctor`
-can check it before anything is edited.
+Each rig kind brings its template (`RigKind.template`; rigctl's own three keep theirs in
+`rigctl/rigs/templates/KIND.toml`, package data): the seed papers' hardware, with comments saying
+what a lab must change; each loads with `load_rig` as it is, so `rigctl doctor` can check it
+before anything is edited. The kinds offered are the registry's.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-from importlib.resources import files
 from pathlib import Path
-from typing import get_args
 
-from rigctl.core.config import RigKind
 from rigctl.core.errors import EXIT_OK, ConfigError
+from rigctl.core.registry import entry_point_names, rig_kind
 
 
 def template(kind: str) -> str:
-    """The commented rig file of a rig kind, as text."""
-    return (files("rigctl.rigs") / "templates" / f"{kind}.toml").read_text()
+    """The commented rig file of a rig kind, as text (ConfigError for a kind without one)."""
+    make = rig_kind(kind).template
+    if make is None:
+        raise ConfigError(f"rig kind {kind!r} has no rig file template for `rigctl init`")
+    return make()
 
 
 def _cmd_init(args: argparse.Namespace) -> int:
@@ -45,7 +47,7 @@ def register_init(sub) -> None:
         description="Write a rig file for real hardware: every device with its address, the "
         "settings of the seed papers' rig, and comments saying what to change. Check it with "
         "`rigctl doctor --rig FILE` (nothing is energised). Refuses to overwrite a file.")
-    p.add_argument("kind", choices=get_args(RigKind), help="rig kind")
+    p.add_argument("kind", choices=entry_point_names(), help="rig kind (the installed ones)")
     p.add_argument("-o", "--output", help="write the rig file here (default: print it)")
     p.add_argument("--force", action="store_true", help="overwrite an existing file")
     p.set_defaults(func=_cmd_init)

@@ -48,6 +48,7 @@ from rigctl.core.errors import (
     interrupt_name,
 )
 from rigctl.core.logs import configure as configure_logs
+from rigctl.core.registry import entry_point_names
 
 log = logging.getLogger("rigctl")
 
@@ -181,9 +182,9 @@ def _cmd_schema(args: argparse.Namespace) -> int:
 
         schema = plan_json_schema()
     else:
-        from rigctl.core.config import RigConfig
+        from rigctl.core.config import rig_json_schema
 
-        schema = RigConfig.model_json_schema()
+        schema = rig_json_schema()
     print(json.dumps(schema, indent=2))
     return EXIT_OK
 
@@ -271,7 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("emulate", help="start an emulated bench and write the rig file for it",
                        description="Serve every device of the rig kind on its real protocol on "
                        "loopback, write a rig file pointing at them, run until interrupted.")
-    p.add_argument("kind", choices=["six-coil", "coil-board", "depm"], help="rig kind")
+    p.add_argument("kind", choices=entry_point_names(), help="rig kind (the installed ones)")
     p.add_argument("--rig-out", default="bench.toml", type=output_file("rig file"),
                    help="where to write the rig file")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")

@@ -304,15 +304,12 @@ class RunHost:
 
 def device_patience_s(rig: RigConfig) -> float:
     """The longest a healthy stream cycle may wait on the rig's own devices before the run itself
-    faults: a supply's reply timeout; the coil board's retries and its reconnect after an unplug;
-    an arm's or the Hall board's reply timeout. A stream process silent for twice this is hung."""
-    patience = rig.stream.reply_timeout_s
-    if rig.board is not None:
-        board = rig.board
-        patience = max(patience, board.reconnect_s + (board.retries + 1) * board.reply_timeout_s)
-    if rig.depm is not None:
-        patience = max(patience, rig.depm.reply_timeout_s)
-    return patience
+    faults: `[stream] reply_timeout_s`, or longer where its kind says its devices may take longer
+    (`RigKind.patience_s`: the coil board's retries and reconnect, the arms' reply timeout). A
+    stream process silent for twice this is hung."""
+    from rigctl.rigs import rig_kind
+
+    return max(rig.stream.reply_timeout_s, rig_kind(rig.rig.kind).patience_s(rig))
 
 
 class _RecordView:

@@ -273,7 +273,7 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
 
 def _override(rig, overrides: dict[str, Any]):
     """The rig with `SECTION.KEY` values replaced (checked by the rig file's own model)."""
-    from rigctl.core.config import RigConfig
+    from rigctl.core.config import parse_rig
     from rigctl.core.errors import ConfigError
 
     data = rig.model_dump(mode="json")
@@ -287,7 +287,7 @@ def _override(rig, overrides: dict[str, Any]):
         if key not in node:
             raise ConfigError(f"rig.{dotted}: the rig file has no key {key!r}")
         node[key] = value
-    return RigConfig.model_validate(data)
+    return parse_rig(data, "rig")
 
 
 def _inject(fault: dict, backdoor_url: str, runs: Path, proc: subprocess.Popen) -> float | None:

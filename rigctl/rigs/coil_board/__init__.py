@@ -23,11 +23,12 @@ def _bench_rig() -> RigConfig:
     from rigctl.core.config import CameraSettings, CoilBoardSettings, Emulation, RigInfo
     from rigctl.emulators.camera import PAPER_RESOLUTION, CameraModel
     from rigctl.emulators.coilboard.bench import BOARD_REPLY_TIMEOUT_S, CAMERA_FIELD_MM, CAMERA_FPS
+    from rigctl.rigs.coil_board.settings import CoilBoardRig
 
     camera = CameraSettings(url="http://127.0.0.1/stream.mjpg", stamped=True, fps=CAMERA_FPS,
                             resolution=PAPER_RESOLUTION, calibration=CameraModel.overhead(
                                 CAMERA_FIELD_MM, tilt_deg=4.0).calibration())  # as it mounts it
-    return RigConfig(rig=RigInfo(kind="coil-board", name="emulated coil-board bench"),
+    return CoilBoardRig(rig=RigInfo(kind="coil-board", name="emulated coil-board bench"),
                      board=CoilBoardSettings(url="/dev/null", reply_timeout_s=BOARD_REPLY_TIMEOUT_S),
                      camera=camera, emulation=Emulation(backdoor="tcp://127.0.0.1:1"))
 
@@ -89,11 +90,44 @@ def _hold(rig: RigConfig, target: dict):
                        "slip", lambda start, ramp_s: None, step=1.0)
 
 
+def _settings() -> type[RigConfig]:
+    from rigctl.rigs.coil_board.settings import CoilBoardRig
+
+    return CoilBoardRig
+
+
+
+def _probe_board(rig: RigConfig, device: Device) -> str:
+    from rigctl.rigs.coil_board.probes import board
+
+    return board(rig, device)
+
+
+def _windings(rig: RigConfig):
+    """The board's four coils, each driven by a SyRen in drive units (a voltage)."""
+    from rigctl.physics.thermal import Windings
+
+    return Windings.of_board(rig.board)
+
+
+def _patience_s(rig: RigConfig) -> float:
+    """A request's retries and a reconnect after an unplug, the board's driver's own patience."""
+    board = rig.board
+    return board.reconnect_s + (board.retries + 1) * board.reply_timeout_s
+
+
+def _template() -> str:
+    """The commented rig file of `rigctl init coil-board` (package data)."""
+    from importlib.resources import files
+
+    return (files("rigctl.rigs") / "templates" / "coil-board.toml").read_text()
+
 KIND = RigKind(
     name="coil-board",
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",
     faults=fault_profile,
     report=REPORT,
     plans={"global-moves": _global_moves},
-    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig,
-    bench="rigctl.emulators.coilboard.bench:CoilBoardBench")
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig, settings=_settings,
+    template=_template, bench="rigctl.emulators.coilboard.bench:CoilBoardBench",
+    probes={"board": _probe_board}, windings=_windings, patience_s=_patience_s)

@@ -37,8 +37,9 @@ def _bench_rig() -> RigConfig:
     and limits, and the loopback round trip its pre-flight counts (`rigctl.emulators.depm`)."""
     from rigctl.core.config import Emulation, PreflightSettings, RigInfo
     from rigctl.emulators.depm import LOOPBACK_ROUND_TRIP_MS, default_settings
+    from rigctl.rigs.depm.settings import DepmRig
 
-    return RigConfig(rig=RigInfo(kind="depm", name="emulated dEPM bench"), depm=default_settings(),
+    return DepmRig(rig=RigInfo(kind="depm", name="emulated dEPM bench"), depm=default_settings(),
                      emulation=Emulation(backdoor="tcp://127.0.0.1:1"),
                      preflight=PreflightSettings(kst_round_trip_ms=LOOPBACK_ROUND_TRIP_MS))
 
@@ -126,6 +127,36 @@ def _hold(rig: RigConfig, target: dict):
                        pose_now=lambda arms_open: arms_open.joint_positions())
 
 
+def _settings() -> type[RigConfig]:
+    from rigctl.rigs.depm.settings import DepmRig
+
+    return DepmRig
+
+
+
+def _probe_arm(rig: RigConfig, device: Device) -> str:
+    from rigctl.rigs.depm.probes import arm
+
+    return arm(rig, device)
+
+
+def _probe_hall(rig: RigConfig, device: Device) -> str:
+    from rigctl.rigs.depm.probes import hall
+
+    return hall(rig, device)
+
+
+def _patience_s(rig: RigConfig) -> float:
+    """The arms' and the Hall board's reply timeout."""
+    return rig.depm.reply_timeout_s if rig.depm is not None else 0.0
+
+
+def _template() -> str:
+    """The commented rig file of `rigctl init depm` (package data)."""
+    from importlib.resources import files
+
+    return (files("rigctl.rigs") / "templates" / "depm.toml").read_text()
+
 KIND = RigKind(
     name="depm",
     description="two KUKA LBR iiwa arms carrying permanent magnets, a three-sensor Hall board",
@@ -133,5 +164,6 @@ KIND = RigKind(
     scene="arms",
     scene_of=arms_scene,
     plans={"field-sequence": _field_sequence},
-    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig,
-    bench="rigctl.emulators.depm:DepmBench")
+    channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig, settings=_settings,
+    template=_template, bench="rigctl.emulators.depm:DepmBench",
+    probes={"arm": _probe_arm, "hall board": _probe_hall}, patience_s=_patience_s)

@@ -81,6 +81,40 @@ def _hold(rig: RigConfig, target: dict):
                        "slip", check_ramp)
 
 
+def _settings() -> type[RigConfig]:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
+
+    return SixCoilRig
+
+
+
+def _probe_supply(rig: RigConfig, device: Device, timed: bool = False) -> str:
+    from rigctl.rigs.six_coil.probes import supply
+
+    return supply(rig, device, timed)
+
+
+def _windings(rig: RigConfig):
+    """The six air-core coils, each fed a current by its supply."""
+    from rigctl.physics.thermal import Windings
+
+    return Windings.of_coils(rig.coils)
+
+
+def _field_fit():
+    """`rigctl calibrate field`'s measurement and fit (drive_patterns, measure, fit_calibration,
+    prediction_error)."""
+    from rigctl.rigs.six_coil import field_fit
+
+    return field_fit
+
+
+def _template() -> str:
+    """The commented rig file of `rigctl init six-coil` (package data)."""
+    from importlib.resources import files
+
+    return (files("rigctl.rigs") / "templates" / "six-coil.toml").read_text()
+
 KIND = RigKind(
     name="six-coil",
     description="six air-core coils fed by Kepco BOP supplies, overhead camera",
@@ -88,5 +122,7 @@ KIND = RigKind(
     report=REPORT,
     plans={"global-moves": _global_moves, "pair-formation": _pair_formation},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold,
-    bench_args=_bench_args, bench_rig=_bench_rig,
-    bench="rigctl.emulators.bench:SixCoilBench")
+    bench_args=_bench_args, bench_rig=_bench_rig, settings=_settings,
+    template=_template, bench="rigctl.emulators.bench:SixCoilBench",
+    probes={"supply": _probe_supply}, windings=_windings,
+    calibrations=frozenset({"field"}), field_fit=_field_fit)

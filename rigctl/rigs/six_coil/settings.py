@@ -1,0 +1,78 @@
+"""The six-coil rig's file: `[rig] kind = "six-coil"` adds its tables to every rig's (`SixCoilRig`,
+the kind's `settings`).
+
+`[field]` how moves become a rotating field (seed 000 eq. 1-2), `[magnets]` the rolling magnets,
+`[[coils]]` the six air-core coils and the supplies that feed them, an optional measured
+`actuation_matrix_T_per_A` or a `rigctl calibrate field` file (`field_calibration`), and the Hall
+probe that calibration reads (`[field_probe]`).
+
+Units: lengths in mm, fields in mT, currents in A, voltages in V, times in s, unless a key's
+name says otherwise.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import BeforeValidator, Field, ValidationInfo, model_validator
+
+from rigctl.core.config import Coil, FieldProbe, FieldSettings, MagnetSettings, RigConfig
+from rigctl.physics.field_calibration import FieldCalibration, load_field_calibration
+
+
+def _calibration_file(value, info: ValidationInfo):
+    """`field_calibration = "FILE.yaml"` is read, relative to the rig file (`load_rig` says where
+    it is; with no rig file, to the working directory)."""
+    if not isinstance(value, (str, Path)):
+        return value
+    rig_dir = (info.context or {}).get("rig_dir")
+    return load_field_calibration(str(rig_dir / value) if rig_dir is not None else value)
+
+
+class SixCoilRig(RigConfig):
+    """A six-coil rig file: every rig's tables and the coils', checked together (six coils with
+    distinct names; a measured matrix of 3 rows, one column per coil)."""
+
+    field: FieldSettings = FieldSettings()
+    magnets: MagnetSettings = MagnetSettings()
+    coils: list[Coil] = []
+    actuation_matrix_T_per_A: list[list[float]] | None = Field(
+        default=None,
+        description="measured 3 x n_coils matrix at the workspace centre; overrides the geometry",
+    )
+    field_calibration: Annotated[FieldCalibration | None, BeforeValidator(_calibration_file)] = Field(
+        default=None, description="a `rigctl calibrate field` file (YAML): the allocator's coils")
+    field_probe: FieldProbe | None = None
+
+    @model_validator(mode="after")
+    def _six_coils(self) -> SixCoilRig:
+        if len(self.coils) != 6:
+            raise ValueError(f"a six-coil rig needs 6 [[coils]] entries, found {len(self.coils)}")
+        names = [c.name for c in self.coils]
+        if len(set(names)) != len(names):
+            raise ValueError(f"coil names must be unique, got {names}")
+        if self.actuation_matrix_T_per_A is not None:
+            rows = self.actuation_matrix_T_per_A
+            if len(rows) != 3 or any(len(r) != len(self.coils) for r in rows):
+                raise ValueError(
+                    f"actuation_matrix_T_per_A must be 3 rows of {len(self.coils)} columns"
+                )
+        return self
+
+    def toml_data(self) -> dict[str, Any]:
+        """The calibration named by its file, as the rig file named it (not its data inline)."""
+        data = super().toml_data()
+        data.pop("field_calibration", None)
+        if self.field_calibration is not None and self.field_calibration.source is not None:
+            data["field_calibration"] = self.field_calibration.source
+        return data
+
+    def for_record(self) -> tuple[RigConfig, dict[str, str]]:
+        """The record keeps its own copy of the calibration file, and its rig.toml names that."""
+        calibration = self.field_calibration
+        if calibration is None:
+            return self, {}
+        copy = calibration.model_copy(update={"source": "field_calibration.yaml"})
+        return (self.model_copy(update={"field_calibration": copy}),
+                {"field_calibration.yaml": calibration.to_yaml()})
