@@ -152,3 +152,29 @@ def test_the_error_interval_is_over_seeds_one_sample_per_seed() -> None:
     (point,) = summarise(rows, "x", "error", share=False)
     assert point["n"] == 6 and point["mean"] == pytest.approx(2.0)
     assert point["high"] - 2.0 == pytest.approx(4.302653 / math.sqrt(3), rel=1e-6)
+
+
+def test_a_cases_rig_overrides_are_checked_by_its_own_rig_kinds_model() -> None:
+    """`rig.SECTION.KEY` of an execute case: the rig file is validated again by the model it was
+    read with, a rig kind's own (a kind's tables are not the common model's): a key of the kind's
+    own table is overridden, and one that table lacks is refused in one line."""
+    from pydantic import BaseModel, ConfigDict
+
+    from rigctl.apps.study.cases import _override
+    from rigctl.core.config import RigConfig
+    from rigctl.rigs import KINDS
+
+    class Stepper(BaseModel):
+        model_config = ConfigDict(extra="forbid", frozen=True)
+        steps_per_turn: int = 200
+
+    class SpinnerRig(RigConfig):  # a rig kind's settings: the common tables and its own
+        stepper: Stepper = Stepper()
+
+    common = next(k.bench_rig() for k in KINDS.values() if k.bench_rig is not None)
+    rig = SpinnerRig.model_validate(common.model_dump())
+    changed = _override(rig, {"stepper.steps_per_turn": 400, "stream.reply_timeout_s": 2.0})
+    assert isinstance(changed, SpinnerRig)
+    assert changed.stepper.steps_per_turn == 400 and changed.stream.reply_timeout_s == 2.0
+    with pytest.raises(ConfigError, match="no key 'microsteps'"):
+        _override(rig, {"stepper.microsteps": 16})

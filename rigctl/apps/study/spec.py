@@ -36,20 +36,19 @@ from typing import Any
 
 from rigctl.core.errors import ConfigError
 
-PLANNERS = ("rrt", "coverage", "reachable", "wall-contact", "pair", "depm")
-COMMANDS = tuple(f"plan {p}" for p in PLANNERS) + ("execute",)
 # options whose value is a file or folder: resolved against the spec's folder
 PATH_OPTIONS = {"workspace", "tree", "rig", "rig-file", "sequence", "plan", "save-tree"}
 # `execute` case keys that set up the case's emulated bench (`rigctl emulate` flags)
 BENCH_OPTIONS = ("slip", "speed-spread", "drift", "noise", "field-at-robots", "world", "firmware",
                  "coil-error", "coil-seed")
 EXECUTE_KEYS = set(BENCH_OPTIONS) | {"plan", "speed", "fault", "open-loop", "seed", "backdoor"}
-# default figures: (success, error) keys of each command's JSON
+# the commands a study runs, each with its default figures: (success, error) keys of its JSON
 DEFAULT_FIGURES = {
-    "plan rrt": ("solved", "distance"), "plan wall-contact": ("solved", "length"),
-    "plan pair": ("solved", None), "plan depm": (None, None), "plan coverage": (None, "coverage"),
-    "plan reachable": (None, "fraction"), "execute": ("reached", "error_mm"),
+    "plan rrt": ("solved", "distance"), "plan coverage": (None, "coverage"),
+    "plan reachable": (None, "fraction"), "plan wall-contact": ("solved", "length"),
+    "plan pair": ("solved", None), "plan depm": (None, None), "execute": ("reached", "error_mm"),
 }
+COMMANDS = tuple(DEFAULT_FIGURES)
 
 
 @dataclass(frozen=True)
