@@ -33,7 +33,8 @@ READY_PREFIX = "READY "
 
 
 class EmulatedBenchProcess:
-    """Context manager: `with EmulatedBenchProcess("six-coil", rig_path) as rig_file: ...`"""
+    """Context manager: `with EmulatedBenchProcess(kind, rig_path) as rig_file: ...` (any rig
+    kind with a `RigKind.bench`)."""
 
     def __init__(self, kind: str, rig_out: str | Path, *, extra_args: list[str] | None = None,
                  start_timeout_s: float = 60.0) -> None:

@@ -16,14 +16,17 @@ from rigctl.plans.model import Contact, GlobalInputModel
 from rigctl.plans.schema import REPLAY_TOLERANCE_MM, GlobalMovesPlan, load_workspace
 from rigctl.plans.workspace import Workspace
 
+WALL_CONTACT: dict[str, Contact] = {"six-coil": "slide", "coil-board": "non-slip"}
+"""How agents meet walls on each rig kind the global-moves planners plan for: rolling magnets
+slide (six-coil), particles stick (coil-board)."""
+
 
 def contact_for_rig(rig: str) -> Contact:
-    """How agents meet walls on a rig: rolling magnets slide (six-coil), particles stick (coil-board)."""
-    if rig == "six-coil":
-        return "slide"
-    if rig == "coil-board":
-        return "non-slip"
-    raise PlanError(f"rig {rig!r} runs no global-moves plans (expected six-coil or coil-board)")
+    """How agents meet walls on a rig kind (`WALL_CONTACT`)."""
+    try:
+        return WALL_CONTACT[rig]
+    except KeyError:
+        raise PlanError(f"rig {rig!r} runs no global-moves plans (expected six-coil or coil-board)") from None
 
 
 def plan_workspace(plan: GlobalMovesPlan):

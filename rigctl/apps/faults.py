@@ -55,6 +55,7 @@ from rigctl.core.errors import (
     on_interrupt_signal,
 )
 from rigctl.core.record import describe_run, read_events, read_stream
+from rigctl.core.registry import kinds, rig_kind
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.rigs.base import RigKind
@@ -115,16 +116,12 @@ def fault_profile(kind: RigKind) -> FaultProfile:
 
 def profiled_kinds() -> list[str]:
     """The installed rig kinds that have a fault profile, by name."""
-    from rigctl.rigs import KINDS
-
-    return [name for name, kind in KINDS.items() if kind.faults is not None]
+    return [name for name, kind in kinds().items() if kind.faults is not None]
 
 
 def rig_profile(name: str) -> FaultProfile:
     """The fault profile of the installed rig kind `name` (ConfigError naming the installed kinds
     for an unknown one, or the kinds with a profile for one without)."""
-    from rigctl.rigs import rig_kind
-
     return fault_profile(rig_kind(name))
 
 

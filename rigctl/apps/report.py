@@ -174,9 +174,9 @@ def _plan_clock(events: list[dict]):
 def report_hooks(rig: str | None) -> ReportHooks:
     """What the record's rig kind draws its own way (`RigKind.report`); the defaults for a record
     of a kind not installed here (its panels then take the generic titles)."""
-    from rigctl.rigs import KINDS
+    from rigctl.core.registry import kinds
 
-    kind = KINDS.get(rig) if rig else None
+    kind = kinds().get(rig) if rig else None
     return kind.report if kind is not None else ReportHooks()
 
 

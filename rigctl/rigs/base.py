@@ -65,15 +65,15 @@ def no_patience(rig: RigConfig) -> float:
 
 @dataclass(frozen=True)
 class ReportHooks:
-    """What `rigctl report` draws differently for a kind: a channel group's title (`{"supplies":
-    "coil currents (six supplies)"}`), the panels only this kind has (`panels(data)` -> the
-    report's `TimePanel`s for a `RunData`), and `old_channels(channels, run_dir)`: the channels
-    of a record written before channels said their unit and group, as they were meant (the record's
-    folder holds its rig file)."""
+    """What `rigctl report` shows of a kind beyond every rig's sections."""
 
     group_titles: Mapping[str, str] = field(default_factory=dict)
-    panels: Callable[[Any], list[Any]] | None = None
+    """A channel group's title (`{"coil_current": "coil currents (six supplies)"}`)."""
+    panels: Callable[[Any], list] | None = None
+    """panels(RunData) -> [TimePanel]: the time panels only this kind has."""
     old_channels: Callable[[list[Channel], Path], list[Channel]] | None = None
+    """old_channels(channels, run_dir): the channels of a record written before channels said
+    their unit and group, as they were meant (the record's folder holds its rig file)."""
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ def test_the_arms_page_and_estop(rig, browser, screenshots):
     wait_page(driver, "!document.getElementById('execute').disabled", 120.0, "the plan loaded")
     click(driver, "execute")
     wait_for(lambda: moving(backdoor.request("truth")), 60.0, "the arms moving")
+    assert js(driver, "document.getElementById('plot-field').hidden")  # no coil field streamed
     # at rest, so the sketch and the emulator's joints describe the same pose: pause now
     click(driver, "pause-now")
     wait_page(driver, "rigctlConsole.state === 'paused'", 30.0, "paused")

@@ -106,6 +106,8 @@ def test_camera_tracked_positions_pause_resume_and_estop(rig, browser, screensho
               "newer camera frames drawn")
     wait_for(lambda: energised(backdoor), 30.0, "the supplies energised")
     assert js(driver, "document.getElementById('camera').width") > 100
+    # the field the daemon computes from the currents is plotted once it streams it
+    wait_page(driver, "!document.getElementById('plot-field').hidden", 10.0, "the field plot shown")
     # pause (at the end of the move): the magnets stop, so what the tracker saw in the last
     # frame drawn and the emulator's truth can be compared at rest
     click(driver, "pause")

@@ -1,15 +1,18 @@
-"""The console's pieces that need no browser: its address and TLS rules, and the plan's geometry
-in the camera's pixels (checked against the homography applied by hand)."""
+"""The console's pieces that need no browser: its address and TLS rules, the plan's geometry
+in the camera's pixels (checked against the homography applied by hand), and the scene a rig
+kind asks for."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from rigctl.apps.console.scene import CameraScene, plan_paths_mm, shape_polygon_mm
-from rigctl.apps.console.server import check_options, parse_address
+from rigctl.apps.console.scene import ArmsSketch, CameraScene, plan_paths_mm, shape_polygon_mm
+from rigctl.apps.console.server import check_options, console_scene, parse_address
 from rigctl.core.camera_model import Calibration
 from rigctl.core.errors import ConfigError
+from rigctl.physics.kinematics import ArmKinematics, base_transform
+from rigctl.rigs.base import RigKind
 
 
 def test_addresses():
@@ -75,3 +78,38 @@ def test_the_plan_in_the_cameras_pixels():
     assert drawn["radii_px"][0] == pytest.approx(np.linalg.norm(edge - start), abs=0.1)
     # no camera: nothing to draw over
     assert CameraScene(_Rig(None)).of_plan(plan)["boundary"] == []
+
+
+def _kind(**scene) -> RigKind:
+    return RigKind(name="spinner", description="a magnet on a stepper", plans={},
+                   channels=lambda rig: [], devices=lambda rig: [], make_safe=lambda rig: {},
+                   hold=lambda rig, target: None, **scene)
+
+
+def test_the_page_shows_the_scene_its_rig_kind_asks_for_and_the_camera_by_default(caplog):
+    from rigctl.core.registry import rig_kind
+
+    depm = rig_kind("depm")
+    rig = depm.bench_rig()
+    scene, arms = console_scene(depm, rig)
+    assert scene == "arms"
+    # the sketch stands each arm on its base from the rig file: the base origin is the first
+    # point, the EPM the last, as the arm's kinematics at those joints put it
+    sketch = ArmsSketch(arms)
+    assert sketch.names == list(rig.depm.arm_names)
+    q = np.linspace(-0.5, 0.5, 14)
+    drawn = sketch.of_joints(q.tolist())
+    for i, (position, rpy, arm) in enumerate(zip(rig.depm.arm_positions_mm, rig.depm.arm_rpy_deg,
+                                                 drawn["arms"])):
+        kinematics = ArmKinematics(base=base_transform(np.asarray(position) * 1e-3, rpy))
+        assert np.allclose(arm["points_mm"][0], position, atol=0.05)
+        epm_mm = kinematics.epm_pose(q[7 * i:7 * i + 7])[0] * 1e3
+        assert np.allclose(arm["points_mm"][8], epm_mm, atol=0.05)
+    assert drawn["keep_out_mm"] == rig.depm.keep_out_radius_mm
+
+    assert console_scene(rig_kind("coil-board"), rig) == ("camera", None)
+    assert console_scene(_kind(), rig) == ("camera", None)  # a kind that says nothing
+    # one that asks for a scene the console cannot draw gets the camera's, and a warning
+    assert console_scene(_kind(scene="hologram"), rig) == ("camera", None)
+    assert console_scene(_kind(scene="arms"), rig) == ("camera", None)  # no scene_of
+    assert "hologram" in caplog.text and "without scene_of" in caplog.text

@@ -155,26 +155,19 @@ def test_the_error_interval_is_over_seeds_one_sample_per_seed() -> None:
 
 
 def test_a_cases_rig_overrides_are_checked_by_its_own_rig_kinds_model() -> None:
-    """`rig.SECTION.KEY` of an execute case: the rig file is validated again by the model it was
-    read with, a rig kind's own (a kind's tables are not the common model's): a key of the kind's
-    own table is overridden, and one that table lacks is refused in one line."""
-    from pydantic import BaseModel, ConfigDict
-
+    """`rig.SECTION.KEY` of an execute case: the rig file is validated again by its rig kind's
+    model (the kind's own tables are not the common model's): a key of the kind's own table is
+    overridden, a key that table lacks and a value out of its range are refused in one line."""
     from rigctl.apps.study.cases import _override
-    from rigctl.core.config import RigConfig
-    from rigctl.rigs import KINDS
+    from rigctl.core.registry import rig_kind
 
-    class Stepper(BaseModel):
-        model_config = ConfigDict(extra="forbid", frozen=True)
-        steps_per_turn: int = 200
-
-    class SpinnerRig(RigConfig):  # a rig kind's settings: the common tables and its own
-        stepper: Stepper = Stepper()
-
-    common = next(k.bench_rig() for k in KINDS.values() if k.bench_rig is not None)
-    rig = SpinnerRig.model_validate(common.model_dump())
-    changed = _override(rig, {"stepper.steps_per_turn": 400, "stream.reply_timeout_s": 2.0})
-    assert isinstance(changed, SpinnerRig)
-    assert changed.stepper.steps_per_turn == 400 and changed.stream.reply_timeout_s == 2.0
+    board = rig_kind("coil-board")
+    rig = board.bench_rig()
+    changed = _override(rig, {"board.max_command": 100, "stream.reply_timeout_s": 2.0})
+    assert isinstance(changed, board.settings())
+    assert changed.board.max_command == 100 and changed.stream.reply_timeout_s == 2.0
     with pytest.raises(ConfigError, match="no key 'microsteps'"):
-        _override(rig, {"stepper.microsteps": 16})
+        _override(rig, {"board.microsteps": 16})
+    with pytest.raises(ConfigError, match="max_command") as refused:
+        _override(rig, {"board.max_command": 0})
+    assert "\n" not in str(refused.value)

@@ -1,7 +1,7 @@
 """`rigctl init KIND [-o FILE] [--force]`: a commented rig file for real hardware.
 
 Each rig kind brings its template (`RigKind.template`; rigctl's own three keep theirs in
-`rigctl/rigs/templates/KIND.toml`, package data): the seed papers' hardware, with comments saying
+`template.toml` in each kind's package, package data): the seed papers' hardware, with comments saying
 what a lab must change; each loads with `load_rig` as it is, so `rigctl doctor` can check it
 before anything is edited. The kinds offered are the registry's.
 """

@@ -32,6 +32,7 @@ import numpy as np
 from rigctl.apps.cli.paths import coordinates_are_values, input_file, output_file
 from rigctl.core.config import MagnetSettings, load_rig
 from rigctl.core.errors import ConfigError, PlanError
+from rigctl.core.registry import entry_point_names
 
 if TYPE_CHECKING:  # numba compiles nothing for the commands that do not plan
     from rigctl.plans.checks import WorkspaceSource
@@ -97,7 +98,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--min-separation", type=float, default=0.0, metavar="D",
                    help="keep robot centres at least r1 + r2 + D mm apart")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
-    p.add_argument("--rig", choices=["six-coil", "coil-board"], default="six-coil",
+    # the installed kinds; one the planner has no wall contact for is refused by name
+    # (`rigctl.plans.checks.WALL_CONTACT`, not imported here: it loads the planner)
+    p.add_argument("--rig", choices=entry_point_names(), default="six-coil",
                    help="rig kind: six-coil (robots slide along walls, moves are whole magnet "
                    "turns) or coil-board (robots stick to walls)")
     p.add_argument("--rig-file", metavar="RIG.toml", type=input_file("rig file"),
@@ -281,13 +284,14 @@ def _check_configuration(ws, points: np.ndarray, radii: np.ndarray, gap: float, 
 def _turn_mm(args: argparse.Namespace) -> float | None:
     if args.rig != "six-coil":
         return None
+    radius = MagnetSettings().radius_mm
     if args.rig_file:
         try:
-            radius = load_rig(args.rig_file).magnets.radius_mm
+            rig = load_rig(args.rig_file)
         except ConfigError as err:
             raise PlanError(f"--rig-file: {err}") from None
-    else:
-        radius = MagnetSettings().radius_mm
+        # a rig file of another kind has no magnets of its own: the default ones, as before
+        radius = getattr(rig, "magnets", MagnetSettings()).radius_mm
     return 2.0 * math.pi * radius
 
 
@@ -365,8 +369,8 @@ def run_rrt(args: argparse.Namespace) -> int:
             tree = RrtTree.load(args.tree)
         except PlanError as err:
             raise PlanError(f"--tree: {err}") from None
-    options = _options(args, tree.meta if tree is not None else None)
     contact = contact_for_rig(args.rig)
+    options = _options(args, tree.meta if tree is not None else None)
 
     exact = source.workspace()
     _check_configuration(exact, starts, radii, args.min_separation, "--start")

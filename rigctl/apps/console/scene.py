@@ -1,12 +1,15 @@
-"""What the console draws over the camera image, and the dual-EPM rig's sketch, as plain geometry.
+"""What the console draws of a rig, as plain geometry: one of two scenes, as its rig kind says
+(`RigKind.scene`).
 
-The browser draws pixels; this module turns the plan's millimetres into the camera's pixels with
-the rig's own calibration (`Calibration.to_px`, lens distortion included), so an overlay lands
-where the tracker measures. Every shape becomes a polygon first (a disk: `DISK_VERTICES`
-corners), because a rectangle on the floor is a quadrilateral, not a rectangle, in a tilted
-camera's picture. The dual-EPM rig has no camera: `arms_sketch` gives both arms' joint origins,
-the magnets and the keep-out sphere in mm, from the arms' measured joints and the rig's
-kinematics, for a top and a side view.
+"camera": the browser draws pixels; `CameraScene` turns the plan's millimetres into the camera's
+pixels with the rig's own calibration (`Calibration.to_px`, lens distortion included), so an
+overlay lands where the tracker measures. Every shape becomes a polygon first (a disk:
+`DISK_VERTICES` corners), because a rectangle on the floor is a quadrilateral, not a rectangle, in
+a tilted camera's picture.
+
+"arms": a rig of arms and no camera; `ArmsSketch` gives every arm's joint origins, its magnet and
+the keep-out sphere in mm, from the arms' measured joints and the arms' kinematics at the bases
+the kind's `scene_of` names, for a top and a side view.
 """
 
 from __future__ import annotations
@@ -95,23 +98,24 @@ class CameraScene:
 
 
 class ArmsSketch:
-    """Both arms of a dual-EPM rig from their joints: joint origins, EPM centres, keep-out sphere."""
+    """Arms from their joints: joint origins, magnet centres, keep-out sphere. `scene`: what the
+    rig kind's `scene_of` says of its arms ({"arms": [{"name", "position_mm", "rpy_deg"}],
+    "keep_out_mm", "epm_radius_mm"}); None (a camera rig): nothing to sketch."""
 
-    def __init__(self, rig: RigConfig) -> None:
+    def __init__(self, scene: dict | None) -> None:
         from rigctl.physics.kinematics import ArmKinematics, base_transform
 
-        depm = rig.depm
-        self.available = depm is not None
-        if depm is None:
-            return
-        self.names = list(depm.arm_names)
-        self.arms = [ArmKinematics(base=base_transform(np.asarray(p) * 1e-3, rpy), name=n)
-                     for n, p, rpy in zip(depm.arm_names, depm.arm_positions_mm, depm.arm_rpy_deg)]
-        self.keep_out_mm = float(depm.keep_out_radius_mm)
-        self.epm_radius_mm = float(depm.epm_radius_mm)
+        arms = (scene or {}).get("arms") or []
+        self.available = bool(arms)
+        self.names = [str(a["name"]) for a in arms]
+        self.arms = [ArmKinematics(base=base_transform(np.asarray(a["position_mm"]) * 1e-3,
+                                                       a["rpy_deg"]), name=str(a["name"]))
+                     for a in arms]
+        self.keep_out_mm = float((scene or {}).get("keep_out_mm", 0.0))
+        self.epm_radius_mm = float((scene or {}).get("epm_radius_mm", 0.0))
 
     def of_joints(self, joints_rad: list[float]) -> dict:
-        """`joints_rad` (14,): the first arm's seven, then the second's -> {"arms": [{"name",
+        """`joints_rad` (7 n_arms,): the first arm's seven, then the next's -> {"arms": [{"name",
         "points_mm" (9, 3): base, frames 1-7, EPM}], "keep_out_mm", "epm_radius_mm"}."""
         q = np.asarray(joints_rad, dtype=float).reshape(len(self.arms), 7)
         arms = []

@@ -41,6 +41,7 @@ from typing import Any
 from rigctl.apps.console.scene import ArmsSketch, CameraScene
 from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError
+from rigctl.rigs.base import RigKind
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +118,20 @@ class _Page:
     authenticated: bool = False
 
 
+def console_scene(kind: RigKind, rig: RigConfig) -> tuple[str, dict | None]:
+    """(the page's scene, what an "arms" scene draws) for a rig of `kind`, as the kind says
+    (`RigKind.scene`, `scene_of`): "camera" (the overhead image and the plan over it) unless
+    the kind asks for its "arms" and says what they are; a scene the console does not know is
+    shown as the camera's, with a warning."""
+    if kind.scene == "arms" and kind.scene_of is not None:
+        return "arms", kind.scene_of(rig)
+    if kind.scene != "camera":
+        log.warning("rig kind %s asks for a %r scene, which the console does not draw%s: shown "
+                    "as the camera's", kind.name, kind.scene,
+                    "" if kind.scene != "arms" else " without scene_of")
+    return "camera", None
+
+
 class Console:
     """The console of one daemon: `start()` binds and returns the page's URL, `stop()` ends it.
 
@@ -146,8 +161,11 @@ class Console:
         self.token = token or secrets.token_urlsafe(24)
         self.plans_dir = Path(plans_dir) if plans_dir is not None else None
         self._curve = (server_key, client_key)
+        from rigctl.core.registry import rig_kind
+
+        self.scene = console_scene(rig_kind(rig.rig.kind), rig)
         self.camera = CameraScene(rig)
-        self.arms = ArmsSketch(rig)
+        self.arms = ArmsSketch(self.scene[1])
         self._pages: set[_Page] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -502,7 +520,7 @@ class Console:
         return ws
 
     def _hello(self, page: _Page) -> dict:
-        from rigctl.rigs import rig_kind
+        from rigctl.core.registry import rig_kind
 
         channels = [{"name": c.name, "unit": c.unit, "low": c.low, "high": c.high,
                      "group": c.group} for c in rig_kind(self.rig.rig.kind).channels(self.rig)]
@@ -514,6 +532,7 @@ class Console:
                         "camera": None if self.rig.camera is None else {
                             "resolution": (calibration.resolution
                                            if calibration is not None else None)},
+                        "scene": self.scene[0],
                         "arms": self.arms.names if self.arms.available else None},
                 "plans": self._plan_files(), "status": self._status}
 

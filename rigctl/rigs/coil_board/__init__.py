@@ -120,7 +120,7 @@ def _template() -> str:
     """The commented rig file of `rigctl init coil-board` (package data)."""
     from importlib.resources import files
 
-    return (files("rigctl.rigs") / "templates" / "coil-board.toml").read_text()
+    return (files("rigctl.rigs.coil_board") / "template.toml").read_text()
 
 KIND = RigKind(
     name="coil-board",

@@ -155,7 +155,7 @@ def _template() -> str:
     """The commented rig file of `rigctl init depm` (package data)."""
     from importlib.resources import files
 
-    return (files("rigctl.rigs") / "templates" / "depm.toml").read_text()
+    return (files("rigctl.rigs.depm") / "template.toml").read_text()
 
 KIND = RigKind(
     name="depm",

@@ -113,7 +113,7 @@ def _template() -> str:
     """The commented rig file of `rigctl init six-coil` (package data)."""
     from importlib.resources import files
 
-    return (files("rigctl.rigs") / "templates" / "six-coil.toml").read_text()
+    return (files("rigctl.rigs.six_coil") / "template.toml").read_text()
 
 KIND = RigKind(
     name="six-coil",

@@ -117,14 +117,16 @@ function onHello(msg) {
   const select = $("plan-choice");
   select.length = 1;
   for (const name of msg.plans) select.add(new Option(name, name));
-  const arms = !!rig.arms;
+  // the scene is the rig kind's: "arms" (the arm views) or "camera" (the image and the plan)
+  const arms = rig.scene === "arms";
   $("camera").hidden = arms; $("arms").hidden = !arms;
   $("view-title").textContent = arms ? "Arms (top and side views)" : "Camera";
   $("legend").textContent = arms
     ? "grey: arm links (joint origins); red: EPMs; dashed: keep-out sphere"
     : "filled: tracked (camera), ring: expected by the plan, x: goal, dashed: planned path, grey: obstacles";
-  const six = rig.kind === "six-coil";
-  $("field-title").hidden = !six; $("plot-field").hidden = !six;
+  // the field plot appears with the first `field` telemetry (a daemon that knows its coils'
+  // actuation matrix sends it)
+  $("field-title").hidden = true; $("plot-field").hidden = true;
   const units = [...new Set(rig.channels.map((c) => c.unit))];
   plots = {
     actuators: new TimePlot($("plot-actuators"), { yLabel: units.join(", ") }),
@@ -197,6 +199,7 @@ function onActuators(msg) {
 
 function onField(msg) {
   if (!plots) return;
+  $("field-title").hidden = false; $("plot-field").hidden = false;
   ["x", "y", "z"].forEach((axis, j) => {
     plots.field.add(`B${axis} meas.`, msg.t, msg.measured_mT[j]);
     plots.field.add(`B${axis} cmd.`, msg.t, msg.commanded_mT[j], { dashed: true });
@@ -311,7 +314,7 @@ function drawOverlays(ctx, s, trackedPx, lost) {
   });
 }
 
-// -- the dual-EPM rig's arms -----------------------------------------------------------------------
+// -- the arms scene -------------------------------------------------------------------------------
 function drawArms(msg) {
   C.arms = msg;
   const canvas = $("arms"), ctx = canvas.getContext("2d");
