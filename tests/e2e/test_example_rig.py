@@ -97,6 +97,8 @@ def test_execute_spins_at_the_plans_rates(bench, tmp_path):
     rig_path, backdoor = bench
     plan = tmp_path / "spin.json"
     plan.write_text(json.dumps(spin_plan((2.0, 0.8), (-1.0, 0.7))))
+    checked = run_rigctl("validate", str(plan), "--rig", str(rig_path), cwd=tmp_path)
+    assert checked.returncode == 0, checked.stdout + checked.stderr
     angle0 = backdoor.request("truth")["angle_deg"]
     done = run_rigctl("execute", str(plan), "--rig", str(rig_path), "--json",
                       "--runs", str(tmp_path / "runs"), cwd=tmp_path)
