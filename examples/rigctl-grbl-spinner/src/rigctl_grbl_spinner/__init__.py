@@ -98,6 +98,12 @@ def _probe(rig, device: Device) -> str:
     return probe(rig.grbl)
 
 
+def _patience_s(rig) -> float:
+    """A healthy cycle may wait twice on the controller: for room in its RX buffer, for its
+    status report (each within `[grbl] reply_timeout_s`)."""
+    return 2.0 * rig.grbl.reply_timeout_s
+
+
 def _faults():
     from rigctl_grbl_spinner.faults import fault_profile
 
@@ -110,4 +116,5 @@ KIND = RigKind(
     plans={"spin-sequence": _spin_sequence},
     channels=_channels, devices=_devices, make_safe=_make_safe, hold=_hold, bench_rig=_bench_rig,
     settings=_settings, bench="rigctl_grbl_spinner.bench:SpinnerBench", template=_template,
-    probes={DEVICE_KIND: _probe}, faults=_faults, plan_models={"spin-sequence": _spin_plan_model})
+    probes={DEVICE_KIND: _probe}, faults=_faults, patience_s=_patience_s,
+    plan_models={"spin-sequence": _spin_plan_model})

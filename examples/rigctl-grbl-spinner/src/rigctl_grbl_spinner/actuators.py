@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from rigctl.core.channels import Channel
-from rigctl.core.errors import DeviceError, RigError
+from rigctl.core.errors import DeviceError, LimitError, RigError
 from rigctl_grbl_spinner.driver import JOG_CANCEL, GrblController, stop_rotor
 from rigctl_grbl_spinner.settings import GrblSettings, SpinnerConfig
 
@@ -76,8 +76,6 @@ class SpinnerActuators:
     def cycle(self, setpoints: np.ndarray) -> np.ndarray:
         wanted = float(setpoints[0])
         if abs(wanted) > self.settings.max_rate_hz + 1e-9:
-            from rigctl.core.errors import LimitError
-
             raise LimitError(f"{wanted:g} Hz is beyond the rig's max_rate_hz "
                              f"{self.settings.max_rate_hz:g}", device=DEVICE)
         now = time.monotonic()
