@@ -51,7 +51,7 @@ GENERIC_PROBES: dict[str, DeviceProbe] = {"camera": _camera}
 def _probe_for(kind, device: Device) -> DeviceProbe:
     probe = kind.probes.get(device.kind) or GENERIC_PROBES.get(device.kind)
     if probe is None:
-        raise RigError(f"no doctor probe for a {device.kind!r} (rig kind {kind.name})",
+        raise RigError(f"rig kind {kind.name} has no doctor probe for a {device.kind!r}",
                        device=device.name)
     return probe
 

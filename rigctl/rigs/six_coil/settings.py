@@ -4,7 +4,9 @@ the kind's `settings`).
 `[field]` how moves become a rotating field (seed 000 eq. 1-2), `[magnets]` the rolling magnets,
 `[[coils]]` the six air-core coils and the supplies that feed them, an optional measured
 `actuation_matrix_T_per_A` or a `rigctl calibrate field` file (`field_calibration`), and the Hall
-probe that calibration reads (`[field_probe]`).
+probe that calibration reads (`[field_probe]`). The tables' models are `rigctl.core.config`'s (the
+emulated bench and the planners, below the rig layer, build them too); the checks of the whole,
+and the calibration file (read through `rigctl.physics.field_calibration`), are here.
 
 Units: lengths in mm, fields in mT, currents in A, voltages in V, times in s, unless a key's
 name says otherwise.
