@@ -182,13 +182,18 @@ def test_each_kind_with_a_profile_gives_a_plan_for_itself_and_quick_cells_the_ca
             assert parse_cell(f"{path}/{label}/{phase}") == (path, label, phase)
 
 
-def test_a_kind_without_a_fault_profile_is_refused_in_one_line_naming_those_with_one():
-    from rigctl.core.errors import ConfigError
+def _bare_kind():
     from rigctl.rigs.base import RigKind
 
-    bare = RigKind(name="spinner", description="a magnet on a stepper", plans={},
+    return RigKind(name="spinner", description="a magnet on a stepper", plans={},
                    channels=lambda rig: [], devices=lambda rig: [], make_safe=lambda rig: {},
                    hold=lambda rig, target: None)
+
+
+def test_a_kind_without_a_fault_profile_is_refused_in_one_line_naming_those_with_one():
+    from rigctl.core.errors import ConfigError
+
+    bare = _bare_kind()
     with pytest.raises(ConfigError) as refused:
         fault_profile(bare)
     message = str(refused.value)
@@ -196,3 +201,23 @@ def test_a_kind_without_a_fault_profile_is_refused_in_one_line_naming_those_with
     assert all(name in message for name in profiled_kinds())
     with pytest.raises(ConfigError, match="'no-such-kind' is not installed"):
         rig_profile("no-such-kind")
+
+
+def test_rigctl_faults_runs_the_kinds_with_a_profile_and_refuses_one_without(monkeypatch, capsys):
+    """`rigctl faults --rig KIND` for an installed kind with no profile: one line, exit 2, no bench
+    started; the campaign's kinds are the installed ones with a profile (asked of the registry,
+    here with one more kind installed that has none)."""
+    from rigctl.apps import faults
+    from rigctl.apps.cli.main import main
+    from rigctl.core.errors import EXIT_BAD_INPUT
+    from rigctl.core.registry import kinds
+
+    installed = {**kinds(), "spinner": _bare_kind()}
+    monkeypatch.setattr(faults, "kinds", lambda: installed)
+    monkeypatch.setattr(faults, "rig_kind", installed.__getitem__)
+    assert {"six-coil", "coil-board", "depm"} <= set(profiled_kinds())
+    assert "spinner" not in profiled_kinds()
+    assert main(["faults", "--rig", "spinner", "--quick"]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'spinner' has no fault profile" in err
+    assert "starting its emulated bench" not in err
