@@ -49,7 +49,9 @@ class Device:
 
 DeviceProbe = Callable[[RigConfig, "Device"], str]
 """`rigctl doctor`'s read-only probe of one device: a one-line detail of what it answered, or
-RigError (or OSError) saying why it did not."""
+RigError (or OSError) saying why it did not. One that also takes a `timed` keyword is asked by
+`rigctl doctor` to time its device's round trip."""
+
 
 def _default_settings() -> type[RigConfig]:
     return RigConfig
@@ -117,12 +119,15 @@ class RigKind:
     """The windings the heating model watches (`rigctl.physics.thermal.Windings`), in the order
     of its channels; None where nothing heats."""
     patience_s: Callable[[RigConfig], float] = no_patience
-    """How long the daemon's stream host waits for a device's reply beyond `[stream]
-    reply_timeout_s` (the arms: their own reply timeout)."""
+    """How long the kind's devices may take to answer (s): the daemon's stream host waits the
+    larger of this and `[stream] reply_timeout_s` before it calls a stream process hung (the
+    coil board: its retries and a reconnect; the arms: their own reply timeout)."""
     calibrations: frozenset[str] = frozenset()
     """What `rigctl calibrate` can do on it ("field"; "camera" needs only a `[camera]`)."""
-    field_fit: Callable[..., Any] | None = None
-    """`rigctl calibrate field`'s fit of this kind's field model to probe samples."""
+    field_fit: Callable[[], Any] | None = None
+    """`rigctl calibrate field`'s measurement and fit, imported when called: an object with
+    `drive_patterns`, `measure`, `fit_calibration` and `prediction_error` (the six-coil rig's:
+    the module `rigctl.rigs.six_coil.field_fit`)."""
     faults: Callable[[], FaultProfile] | None = None
     """Its profile for `rigctl faults` (None: the campaign does not run on it)."""
     scene: str = "camera"
@@ -130,7 +135,9 @@ class RigKind:
     scene_of: Callable[[RigConfig], dict] | None = None
     """What an "arms" scene draws (bases, link lengths), as JSON-ready data."""
     report: ReportHooks = field(default_factory=ReportHooks)
+    """What `rigctl report` adds for this kind."""
     study: StudyHooks | None = None
+    """What `rigctl study` needs beyond `bench` and `bench_args` (None: nothing)."""
     plan_models: Mapping[str, Callable[[], type]] = field(default_factory=dict)
     """The document model (a pydantic class, schema `rigctl.plan/1`) of each plan kind this kind
     brings that `rigctl.plans.schema` does not know, by plan kind: `parse_plan` validates such a

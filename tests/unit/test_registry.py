@@ -83,3 +83,15 @@ def test_rigctl_rigs_loads_no_kind_until_asked():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
     assert out.strip() == "['rigctl.rigs.base']"
+
+
+def test_the_cli_s_kind_choices_load_no_kind():
+    """`rigctl --help` (every subcommand's parser, choices included) imports no rig kind's code:
+    the choices are the entry points' names."""
+    import subprocess
+
+    code = ("import sys; from rigctl.apps.cli.main import build_parser; p = build_parser(); "
+            "print(sorted(m for m in sys.modules if m.startswith('rigctl.rigs.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "[]"
