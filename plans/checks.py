@@ -48,7 +48,11 @@ def simulate(plan: GlobalMovesPlan) -> GlobalMovesPlan:
     """A copy of the plan with `expected` filled in by the global-input model (other kinds: by
     their own planner's model)."""
     if plan.kind != "global-moves":
-        return _kind_module(plan).simulate(plan)
+        module = _kind_module(plan)
+        if module is None:
+            raise PlanError(f"{plan.kind}: no model here fills a {plan.kind} plan's states "
+                            "(--simulate is for the planners' kinds)")
+        return module.simulate(plan)
     model = plan_model(plan)
     start = np.array([agent.start for agent in plan.agents], dtype=float)
     states = model.rollout(start, np.array(plan.moves, dtype=float).reshape(-1, 2))
@@ -87,7 +91,10 @@ def check_plan(plan: GlobalMovesPlan) -> None:
     are checked by their own planner's module (`_kind_module(plan).check`).
     """
     if plan.kind != "global-moves":
-        return _kind_module(plan).check(plan)
+        module = _kind_module(plan)
+        # an installed rig kind's own plan kind (`RigKind.plan_models`): its builder and the
+        # pre-flight certificate check it, as they do every plan
+        return None if module is None else module.check(plan)
     source = plan.source
     if not plan.moves:
         raise PlanError(f"{source}: moves: empty; a plan makes at least one move")
@@ -131,7 +138,7 @@ def _kind_module(plan):
     import importlib
 
     modules = {"field-sequence": "rigctl.plans.depm", "pair-formation": "rigctl.plans.pair"}
-    return importlib.import_module(modules[plan.kind])
+    return importlib.import_module(modules[plan.kind]) if plan.kind in modules else None
 
 
 class WorkspaceSource:

@@ -552,13 +552,31 @@ def parse_plan(
             f"{source}: schema: {data['schema']!r} is not a plan format this version reads "
             f"(expected {SCHEMA_ID!r})"
         )
+    model = _installed_plan_model(data.get("kind"))
     try:
-        plan = _PLAN_ADAPTER.validate_python(data)
+        plan = (_PLAN_ADAPTER if model is None else model).validate_python(data)
     except ValidationError as err:
         raise PlanError(_describe(err, source)) from None
+    if model is not None:
+        return plan  # a lab's plan kind: its model is its own
     plan._source = source
     plan._base_dir = Path(base_dir) if base_dir is not None else Path(source).parent
     return plan
+
+
+def _installed_plan_model(kind: Any) -> TypeAdapter | None:
+    """The model an installed rig kind registers (`RigKind.plan_models`) for a plan kind this
+    schema does not know; None for the schema's own kinds and for kinds nobody registers (the
+    union then names what it expected)."""
+    if not isinstance(kind, str) or kind in PLAN_KINDS:
+        return None
+    from rigctl.core.registry import kinds
+
+    for rig_kind in kinds().values():
+        model = rig_kind.plan_models.get(kind)
+        if model is not None:
+            return TypeAdapter(model())
+    return None
 
 
 def load_plan(path: str | Path) -> GlobalMovesPlan:

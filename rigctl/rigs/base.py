@@ -138,6 +138,10 @@ class RigKind:
     """What `rigctl report` adds for this kind."""
     study: StudyHooks | None = None
     """What `rigctl study` needs beyond `bench` and `bench_args` (None: nothing)."""
+    plan_models: Mapping[str, Callable[[], type]] = field(default_factory=dict)
+    """The document model (a pydantic class, schema `rigctl.plan/1`) of each plan kind this kind
+    brings that `rigctl.plans.schema` does not know, by plan kind: `parse_plan` validates such a
+    plan with it (a lab's plan kinds; the papers' kinds are in the schema's union)."""
 
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.core.errors import PlanError
