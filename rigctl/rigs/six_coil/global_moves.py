@@ -1,10 +1,14 @@
-"""Execute a plan on a rig: validate, realize, allocate, check every limit, then energise and stream.
+"""A global-moves plan on the six-coil rig (seed 000), as a program of the one run engine.
 
-Order matters for safety. Everything that can refuse a plan (schema, semantics, whole turns,
-current and voltage limits) runs before a single connection is opened. Only then are the supplies
-identified, configured and switched on, and the current program streamed at the rig's rate. Any
-device fault stops the stream, ramps every other supply to zero and switches it off, and is
-reported as a fault naming the device and the reason; the run record keeps everything up to it.
+Order matters for safety. `prepare` does everything that can refuse a plan, with no I/O: the
+plan's checks, its field program (`realize`: whole turns) and the coils' currents (`allocate`)
+within their current and voltage limits; the engine's pre-flight certificate adds the coils'
+heating (`checks`). `GlobalMovesProgram` then gives the stream each cycle's currents through its
+`Sequencer` (the engine's pause, resume and abort requests taken at a move's end or at once, by
+ramps) and, closed loop, through the camera `Supervisor` that judges every move and re-plans.
+`Run` is the engine's run of it on the Kepco supplies (`CoilSupplies`): the engine opens,
+energises and ramps them down, stops on a device fault naming it, records and summarises;
+`execute_plan` runs one and returns its summary.
 """
 
 from __future__ import annotations
