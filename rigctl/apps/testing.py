@@ -180,7 +180,7 @@ def daemon_on(bench, runs: Path) -> Iterator[tuple[Any, Any, Path]]:
             daemon.stop()
 
 
-PAIR_WORKSPACE = Path(__file__).resolve().parents[1] / "plans" / "examples" / \
+PAIR_WORKSPACE = Path(__file__).resolve().parents[2] / "plans" / "examples" / \
     "pair-formation-change-workspace.json"
 
 
