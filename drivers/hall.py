@@ -1,4 +1,4 @@
-"""Driver for the dEPM rig's Hall-sensor board, and the gradient estimator of seed 003 eq. 24.
+"""Driver for the dEPM rig's Hall-sensor board.
 
 The board (three MLX90395-like 3-axis Hall sensors read over I2C by a small computer) streams
 newline-delimited JSON over TCP (docs/hall-board.md): first a `hello` line that describes the
@@ -7,9 +7,10 @@ with a sequence number, the board's timestamp, the raw 16-bit counts and saturat
 
 `HallBoard` reads that stream with a deadline on every line and counts sequence gaps (lost
 samples); `HallStream` does the same in a thread of its own so a run can stream joint targets
-while the samples pile up. `field_vector_from_sensors` turns the three sensors' fields into the
-8-vector U at the reference sensor (eq. 24 generalised to least squares; see its docstring), and is
-the one estimator both the execution and the tests use.
+while the samples pile up. The driver hands over fields per sensor; turning them into the 8-vector
+U at the reference sensor (seed 003 eq. 24) is physics, not the board's:
+`rigctl.physics.magnetics.field_vector_from_sensors`, used by the dEPM program's sensors
+(`rigctl.rigs.depm.sensors`).
 """
 
 from __future__ import annotations

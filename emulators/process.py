@@ -107,13 +107,10 @@ class EmulatedBenchProcess:
 
 
 @contextmanager
-def rig_for_run(rig_file: str | None, kind: str, *, extra_args: list[str] | None = None,
-                progress_out: TextIO | None = None, world: str = "") -> Iterator[RigConfig]:
-    """The rig a `rigctl execute` runs on: the rig file given, or else an emulated bench of `kind`
-    started for this run on loopback (so nothing real is energised) and stopped after it."""
-    if rig_file is not None:
-        yield load_rig(rig_file)
-        return
+def bench_for_run(kind: str, *, extra_args: list[str] | None = None,
+                  progress_out: TextIO | None = None, world: str = "") -> Iterator[RigConfig]:
+    """The rig a `rigctl execute` without --rig runs on: an emulated bench of `kind` started for
+    this run on loopback (so nothing real is energised) and stopped after it."""
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
         if progress_out:
             print(f"no --rig given: starting the emulated {kind} bench{world} on loopback "

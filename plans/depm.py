@@ -920,6 +920,58 @@ def _made_safe(rig: DepmRig, knots: list) -> tuple[np.ndarray, np.ndarray]:
                     "added knots")
 
 
+def _check_options(planner: str, waypoints: int, k: int) -> None:
+    if planner not in ("hybrid", "agnostic"):
+        raise PlanError(f"planner must be 'hybrid' or 'agnostic', got {planner!r}")
+    if waypoints < 2:
+        raise PlanError(f"--waypoints: need at least 2, got {waypoints}")
+    if k < 1:
+        raise PlanError(f"--k: need at least 1, got {k}")
+
+
+def _controller_end(rig: DepmRig, end_poses: Sequence[tuple[np.ndarray, np.ndarray]],
+                    end_joints: Sequence[np.ndarray] | None, i: int, q_now: np.ndarray) -> np.ndarray:
+    """(A, 7) joints for component `i`'s commanded EPM poses as the arm's own controller finds
+    them from where it stands, knowing nothing of the keep-out sphere or the magnets."""
+    positions, directions = end_poses[i]
+    taught = None if end_joints is None else end_joints[i]
+    return np.array([
+        _controller_joints(arm, positions[a], directions[a], q_now[a],
+                           None if taught is None else taught[a])
+        for a, arm in enumerate(rig.arms)
+    ])
+
+
+def _best_transition(rig: DepmRig, q_now: np.ndarray, U_now: np.ndarray,
+                     ends: Iterator[tuple[EpmPoses, np.ndarray]], waypoints: int, k: int, bulge_m: float,
+                     component: str) -> tuple[np.ndarray, np.ndarray]:
+    """The hybrid transition from `q_now` (A, 7) to the first end pose of `ends` (as
+    `_reachable_ends` gives them) whose path the arms follow without changing configuration (a
+    configuration change swings the magnets off the planned path); failing that, among
+    END_POSE_TRIALS end poses the one with the fewest changes. Its knots (A, n, 7) rad and the
+    n - 1 durations between them, s."""
+    best = None
+    for trial, (end, q_end) in enumerate(itertools.islice(ends, END_POSE_TRIALS)):
+        try:
+            path, jumps = _hybrid_transition(rig, q_now, U_now, end, q_end, waypoints, k,
+                                             bulge_m, None if best is None else best[0])
+            q, h = _made_safe(rig, path)
+        except PlanError as err:
+            log.debug("%s: end pose %d: %s", component, trial, err)
+            continue
+        if best is None or jumps < best[0]:
+            best = (jumps, q, h)
+        if jumps == 0:
+            break
+    if best is None:
+        raise PlanError(
+            f"sequence component {component!r}: no path to any of its end poses "
+            "keeps the EPMs apart and clear of the keep-out sphere; raise --k or change "
+            "the sequence"
+        )
+    return best[1], best[2]
+
+
 def plan_sequence(
     sequence: Sequence[SequenceComponent],
     rig: DepmRig | None = None,
@@ -945,12 +997,7 @@ def plan_sequence(
     when its own solve from where it stands finds none (`_controller_joints`).
     Timing goes into `stats` if given.
     """
-    if planner not in ("hybrid", "agnostic"):
-        raise PlanError(f"planner must be 'hybrid' or 'agnostic', got {planner!r}")
-    if waypoints < 2:
-        raise PlanError(f"--waypoints: need at least 2, got {waypoints}")
-    if k < 1:
-        raise PlanError(f"--k: need at least 1, got {k}")
+    _check_options(planner, waypoints, k)
     if planner == "agnostic" and end_poses is None:
         hybrid = plan_sequence(sequence, rig, waypoints=waypoints, k=k, q_start=q_start,
                                bulge_m=bulge_m, name=name, stats=stats)
@@ -966,49 +1013,15 @@ def plan_sequence(
         started, started_cpu = time.perf_counter(), time.process_time()
         target = np.asarray(component.U, dtype=float) * U_TO_SI
         if end_poses is not None:
-            # The arm's own controller: joints for the commanded EPM pose from where it stands,
-            # knowing nothing of the keep-out sphere or the magnets.
-            positions, directions = end_poses[len(segments)]
-            taught = None if end_joints is None else end_joints[len(segments)]
-            q_end = np.array([
-                _controller_joints(arm, positions[a], directions[a], q_now[a],
-                                   None if taught is None else taught[a])
-                for a, arm in enumerate(rig.arms)
-            ])
+            q_end = _controller_end(rig, end_poses, end_joints, len(segments), q_now)
         else:
             positions, directions = rig.epm_poses(q_now)
             ends = _reachable_ends(target, rig, q_now, positions, directions, component.name)
-            end, q_end = next(ends)
+            first_end = next(ends)
         im_done = time.perf_counter()
         if planner == "hybrid":
-            # The first end pose whose path the arms follow without changing configuration
-            # (a configuration change swings the magnets off the planned path); failing that,
-            # among END_POSE_TRIALS end poses the one with the fewest changes.
-            best = None
-            for trial in range(END_POSE_TRIALS):
-                if trial:
-                    try:
-                        end, q_end = next(ends)
-                    except StopIteration:
-                        break
-                try:
-                    path, jumps = _hybrid_transition(rig, q_now, U_now, end, q_end, waypoints, k,
-                                                     bulge_m, None if best is None else best[0])
-                    q, h = _made_safe(rig, path)
-                except PlanError as err:
-                    log.debug("%s: end pose %d: %s", component.name, trial, err)
-                    continue
-                if best is None or jumps < best[0]:
-                    best = (jumps, end, q, h)
-                if jumps == 0:
-                    break
-            if best is None:
-                raise PlanError(
-                    f"sequence component {component.name!r}: no path to any of its end poses "
-                    "keeps the EPMs apart and clear of the keep-out sphere; raise --k or change "
-                    "the sequence"
-                )
-            _, end, q, h = best
+            q, h = _best_transition(rig, q_now, U_now, itertools.chain([first_end], ends),
+                                    waypoints, k, bulge_m, component.name)
             q_end = q[:, -1]
         else:
             q = np.stack([q_now, q_end], axis=1)  # (A, 2, 7)

@@ -99,74 +99,108 @@ def violations(
     q = np.asarray(q, dtype=float)
     if q.ndim != 3 or q.shape[0] != len(arms) or q.shape[1] != len(times) or q.shape[2] != 7:
         raise ValueError(f"q must have shape ({len(arms)}, {len(times)}, 7), got {q.shape}")
-    centre = np.asarray(limits.centre_m, dtype=float)
     found: list[Violation] = []
-
-    def first(mask: np.ndarray) -> int | None:
-        hits = np.flatnonzero(mask)
-        return int(hits[0]) if len(hits) else None
-
     epm_centres = []
     for a, arm in enumerate(arms):
         frames = arm.frames(q[a])  # (T, 9, 4, 4)
-        epm = frames[:, 8, :3, 3]
-        epm_centres.append(epm)
-        clearance = np.linalg.norm(epm - centre, axis=-1) - limits.epm_radius_m
-        i = first(clearance < limits.keep_out_radius_m)
+        epm_centres.append(frames[:, 8, :3, 3])
+        found += _inside_keep_out(times, frames, arm, limits)
+        found += _outside_ranges(times, q[a], arm)
+        found += _too_fast(times, None if qdot is None else np.asarray(qdot, dtype=float)[a],
+                           None if qddot is None else np.asarray(qddot, dtype=float)[a], arm, limits)
+    found += _epms_too_close(times, epm_centres, arms, limits)
+    return sorted(found, key=lambda v: v.time_s)
+
+
+def _first(mask: np.ndarray) -> int | None:
+    """The first sample where `mask` (T,) holds, or None."""
+    hits = np.flatnonzero(mask)
+    return int(hits[0]) if len(hits) else None
+
+
+def _inside_keep_out(times: np.ndarray, frames: np.ndarray, arm: ArmKinematics,
+                     limits: SafetyLimits) -> list[Violation]:
+    """The arm's EPM and each of its link capsules ((T, 9, 4, 4) frames) inside the keep-out
+    sphere about the workspace centre."""
+    centre = np.asarray(limits.centre_m, dtype=float)
+    found = []
+    clearance = np.linalg.norm(frames[:, 8, :3, 3] - centre, axis=-1) - limits.epm_radius_m
+    i = _first(clearance < limits.keep_out_radius_m)
+    if i is not None:
+        found.append(Violation(
+            float(times[i]), arm.name, "EPM", "inside the keep-out sphere about the centre",
+            float(clearance[i]) * 1e3, limits.keep_out_radius_m * 1e3, "mm clearance",
+        ))
+    origins = frames[:, :, :3, 3]
+    index = np.array(arm.model.capsule_links)
+    segments = origins[:, index, :]  # (T, L, 2, 3)
+    distance = segment_point_distance(segments, centre) - np.array(arm.model.capsule_radii_m)
+    for link, name in enumerate(arm.model.capsule_names):
+        i = _first(distance[:, link] < limits.keep_out_radius_m)
         if i is not None:
             found.append(Violation(
-                float(times[i]), arm.name, "EPM", "inside the keep-out sphere about the centre",
-                float(clearance[i]) * 1e3, limits.keep_out_radius_m * 1e3, "mm clearance",
+                float(times[i]), arm.name, f"link {name}",
+                "inside the keep-out sphere about the centre",
+                float(distance[i, link]) * 1e3, limits.keep_out_radius_m * 1e3, "mm clearance",
             ))
-        origins = frames[:, :, :3, 3]
-        index = np.array(arm.model.capsule_links)
-        segments = origins[:, index, :]  # (T, L, 2, 3)
-        distance = segment_point_distance(segments, centre) - np.array(arm.model.capsule_radii_m)
-        for link, name in enumerate(arm.model.capsule_names):
-            i = first(distance[:, link] < limits.keep_out_radius_m)
-            if i is not None:
-                found.append(Violation(
-                    float(times[i]), arm.name, f"link {name}",
-                    "inside the keep-out sphere about the centre",
-                    float(distance[i, link]) * 1e3, limits.keep_out_radius_m * 1e3, "mm clearance",
-                ))
-        lower, upper = arm.model.lower_rad, arm.model.upper_rad
+    return found
+
+
+def _outside_ranges(times: np.ndarray, q: np.ndarray, arm: ArmKinematics) -> list[Violation]:
+    """The arm's joints (q: (T, 7) rad) outside their ranges."""
+    found = []
+    lower, upper = arm.model.lower_rad, arm.model.upper_rad
+    for j in range(7):
+        i = _first((q[:, j] < lower[j] - 1e-9) | (q[:, j] > upper[j] + 1e-9))
+        if i is not None:
+            bound = lower[j] if q[i, j] < lower[j] else upper[j]
+            found.append(Violation(
+                float(times[i]), arm.name, f"joint A{j + 1}", "outside its range",
+                float(np.degrees(q[i, j])), float(np.degrees(bound)), "deg",
+            ))
+    return found
+
+
+def _too_fast(times: np.ndarray, qdot: np.ndarray | None, qddot: np.ndarray | None,
+              arm: ArmKinematics, limits: SafetyLimits) -> list[Violation]:
+    """The arm's joint speeds (qdot: (T, 7) rad/s) and accelerations (qddot: (T, 7) rad/s^2)
+    beyond their share of the joints' maxima; None skips that check."""
+    found = []
+    rates = (
+        (qdot, limits.speed_fraction * arm.model.max_speed, np.degrees, "deg/s",
+         f"faster than {limits.speed_fraction:.0%} of its maximum speed"),
+        (qddot, limits.accel_fraction * arm.model.max_accel, np.asarray, "rad/s^2",
+         f"accelerating beyond {limits.accel_fraction:.0%} of its assumed maximum"),
+    )
+    for values, cap, shown, unit, constraint in rates:
+        if values is None:
+            continue
+        rate = np.abs(values)
         for j in range(7):
-            i = first((q[a, :, j] < lower[j] - 1e-9) | (q[a, :, j] > upper[j] + 1e-9))
+            i = _first(rate[:, j] > cap[j] * (1.0 + SPEED_TOLERANCE))
             if i is not None:
-                bound = lower[j] if q[a, i, j] < lower[j] else upper[j]
                 found.append(Violation(
-                    float(times[i]), arm.name, f"joint A{j + 1}", "outside its range",
-                    float(np.degrees(q[a, i, j])), float(np.degrees(bound)), "deg",
+                    float(times[i]), arm.name, f"joint A{j + 1}", constraint,
+                    float(shown(rate[i, j])), float(shown(cap[j])), unit,
                 ))
-        rates = (
-            (qdot, limits.speed_fraction * arm.model.max_speed, np.degrees, "deg/s",
-             f"faster than {limits.speed_fraction:.0%} of its maximum speed"),
-            (qddot, limits.accel_fraction * arm.model.max_accel, np.asarray, "rad/s^2",
-             f"accelerating beyond {limits.accel_fraction:.0%} of its assumed maximum"),
-        )
-        for values, cap, shown, unit, constraint in rates:
-            if values is None:
-                continue
-            rate = np.abs(np.asarray(values, dtype=float)[a])
-            for j in range(7):
-                i = first(rate[:, j] > cap[j] * (1.0 + SPEED_TOLERANCE))
-                if i is not None:
-                    found.append(Violation(
-                        float(times[i]), arm.name, f"joint A{j + 1}", constraint,
-                        float(shown(rate[i, j])), float(shown(cap[j])), unit,
-                    ))
+    return found
+
+
+def _epms_too_close(times: np.ndarray, epm_centres: list[np.ndarray],
+                    arms: Sequence[ArmKinematics], limits: SafetyLimits) -> list[Violation]:
+    """Each pair of EPMs (centres (T, 3) m per arm) closer than the minimum distance."""
+    found = []
     for a in range(len(arms)):
         for b in range(a + 1, len(arms)):
             gap = np.linalg.norm(epm_centres[a] - epm_centres[b], axis=-1)
-            i = first(gap < limits.epm_min_distance_m)
+            i = _first(gap < limits.epm_min_distance_m)
             if i is not None:
                 found.append(Violation(
                     float(times[i]), f"{arms[a].name}+{arms[b].name}", "EPMs",
                     "EPM-EPM distance below the minimum",
                     float(gap[i]) * 1e3, limits.epm_min_distance_m * 1e3, "mm",
                 ))
-    return sorted(found, key=lambda v: v.time_s)
+    return found
 
 
 def check_samples(

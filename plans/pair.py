@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rigctl.core.config import settings_of
-from rigctl.core.errors import PlanError
+from rigctl.core.errors import EXIT_NOT_REACHED, EXIT_OK, PlanError
 from rigctl.core.jit import njit
 
 log = logging.getLogger(__name__)
@@ -881,7 +881,6 @@ def check(plan) -> None:
 
 PULL_MARGIN = 0.8
 """Share of the rig's largest pull the planner uses: the rest is for the tracking controller."""
-EXIT_SOLVED, EXIT_NOT_SOLVED, EXIT_BAD_INPUT = 0, 1, 2
 
 
 def add_cli(planners) -> None:
@@ -977,7 +976,7 @@ def run_cli(args) -> int:
         if args.json:
             print(json.dumps({"rank": result["rank"],
                               "zero_radial_angle_deg": result["zero_radial_angle_deg"]}))
-        return EXIT_SOLVED if result["stlc"] else EXIT_NOT_SOLVED
+        return EXIT_OK if result["stlc"] else EXIT_NOT_REACHED
     if not args.workspace or not args.output:
         raise PlanError("plan pair: give --workspace, --start, --goal and -o (or --check CONFIG)")
     from rigctl.core.config import load_rig
@@ -1029,4 +1028,4 @@ def run_cli(args) -> int:
           f"{path.nodes} nodes in {path.seconds:.2f} s; written to {output}")
     if args.json:
         print(json.dumps(summary))
-    return EXIT_SOLVED if path.solved else EXIT_NOT_SOLVED
+    return EXIT_OK if path.solved else EXIT_NOT_REACHED

@@ -49,6 +49,7 @@ from numpy.typing import ArrayLike
 
 from rigctl.core.errors import PlanError
 from rigctl.core.jit import njit
+from rigctl.physics.geometry import signed_area
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +104,7 @@ class PolygonRegion:
 
     def __post_init__(self) -> None:
         v = np.asarray(self.vertices, dtype=float)
-        if _signed_area(v) < 0:
+        if signed_area(v) < 0:
             v = v[::-1].copy()
         edge = np.roll(v, -1, axis=0) - v
         length = np.hypot(edge[:, 0], edge[:, 1])
@@ -568,11 +569,6 @@ def _nearest_in_chord_region(
 
 
 # ---------------------------------------------------------------- small convex geometry
-
-
-def _signed_area(v: np.ndarray) -> float:
-    x, y = v[:, 0], v[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
 def _clip_polygon(vertices: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray | None:

@@ -47,6 +47,7 @@ from scipy import ndimage
 
 from rigctl.core.errors import PlanError
 from rigctl.core.jit import njit
+from rigctl.physics.geometry import signed_area
 
 if TYPE_CHECKING:
     from rigctl.plans.schema import ImageWorkspaceSpec, ShapeWorkspaceSpec
@@ -407,7 +408,7 @@ class _Polygon(_Family):
 
     def __init__(self, vertices) -> None:
         v = np.asarray(vertices, dtype=float)
-        if _signed_area(v) < 0:
+        if signed_area(v) < 0:
             v = v[::-1]
         self.vertices = v
         self.edge = np.roll(v, -1, axis=0) - v
@@ -836,11 +837,6 @@ def _load_kernels() -> None:
     _shape_query(one, *table, True, *outputs)
     _shape_sweep_clear(one, one, rho, *table, np.empty(1, dtype=bool))
     _shape_slide_clear(one, one, rho, one, 1e-7, *table[:7], np.empty(1, dtype=bool))
-
-
-def _signed_area(vertices: np.ndarray) -> float:
-    x, y = vertices[:, 0], vertices[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
 class GridWorkspace(Workspace):

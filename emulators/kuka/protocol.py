@@ -94,66 +94,88 @@ class KstServer:
 
     # -- commands -------------------------------------------------------------------------------
     def _handle(self, session: Session, line: str) -> list[str]:
-        model = self.model
-        try:
-            if line.startswith("jRelVel"):
-                model.set_relative_velocity(float(parse_fields(line, 1)[0]))
-                return [ACK]
-            if line.startswith("TFtrans"):
-                self.tool_mm_rad = parse_fields(line, 6)
-                return [ACK]
-            if line.startswith("jpJP_"):
-                model.servo_to(parse_fields(line, N_JOINTS))
-                return [format_joints(model.q)]
-            if line.startswith("jf_"):
+        """One command line -> the lines sent back: the first entry of `COMMANDS` whose word
+        starts the line handles it; a malformed or refused one is answered `nak`."""
+        for word, command in self.COMMANDS:
+            if line.startswith(word):
                 try:
-                    model.servo_to(parse_fields(line, N_JOINTS))
+                    return command(self, session, line)
                 except (TargetRejected, ValueError) as err:
-                    # KST: a bad fast-mode target ends the servo motion; nothing is sent back
-                    log.warning("%s: %s; direct servo stopped", self.name, err)
-                    if model.mode == "servo":
-                        model.stop()
-                return []
-            if line.startswith("jp_"):
-                target = parse_fields(line, N_JOINTS)
-                if model.mode == "servo":
-                    model.servo_to(target)
-                else:
-                    self._pending_target = target
-                return [ACK]
-            if line.startswith("doPTPinJS"):
-                # the server acknowledges first, then moves; a refused move is its exception path
-                if self._pending_target is None:
-                    return [ACK, NAK]
-                try:
-                    model.start_ptp(self._pending_target)
-                except TargetRejected as err:
-                    log.warning("%s: PTP refused: %s", self.name, err)
-                    return [ACK, NAK]
-                self._ptp_waiting += 1
-                replies = [ACK]
-                if model.mode == "idle":  # zero-length move: finished already
-                    self.deliver_completions_into(replies)
-                return replies
-            if line.startswith("getJointsPositions"):
-                return [format_joints(model.q)]
-            if line.startswith("startDirectServoJoints"):
-                model.start_servo()
-                return [ACK]
-            if line.startswith("stopDirectServoJoints"):
-                if model.mode == "servo":
-                    model.stop()
-                return [ACK]
-            if line.startswith("end"):
-                if model.mode in ("servo", "ptp"):
-                    model.stop()
-                session.close()
-                return []
-        except (TargetRejected, ValueError) as err:
-            log.warning("%s: refused %r: %s", self.name, line[:80], err)
-            return [NAK]
+                    log.warning("%s: refused %r: %s", self.name, line[:80], err)
+                    return [NAK]
         log.warning("%s: unknown command %r", self.name, line[:80])
         return [NAK]
+
+    def _relative_velocity(self, session: Session, line: str) -> list[str]:
+        self.model.set_relative_velocity(float(parse_fields(line, 1)[0]))
+        return [ACK]
+
+    def _tool_frame(self, session: Session, line: str) -> list[str]:
+        self.tool_mm_rad = parse_fields(line, 6)
+        return [ACK]
+
+    def _servo_and_read(self, session: Session, line: str) -> list[str]:
+        self.model.servo_to(parse_fields(line, N_JOINTS))
+        return [format_joints(self.model.q)]
+
+    def _servo_fast(self, session: Session, line: str) -> list[str]:
+        model = self.model
+        try:
+            model.servo_to(parse_fields(line, N_JOINTS))
+        except (TargetRejected, ValueError) as err:
+            # KST: a bad fast-mode target ends the servo motion; nothing is sent back
+            log.warning("%s: %s; direct servo stopped", self.name, err)
+            if model.mode == "servo":
+                model.stop()
+        return []
+
+    def _joint_target(self, session: Session, line: str) -> list[str]:
+        target = parse_fields(line, N_JOINTS)
+        if self.model.mode == "servo":
+            self.model.servo_to(target)
+        else:
+            self._pending_target = target
+        return [ACK]
+
+    def _ptp(self, session: Session, line: str) -> list[str]:
+        # the server acknowledges first, then moves; a refused move is its exception path
+        if self._pending_target is None:
+            return [ACK, NAK]
+        try:
+            self.model.start_ptp(self._pending_target)
+        except TargetRejected as err:
+            log.warning("%s: PTP refused: %s", self.name, err)
+            return [ACK, NAK]
+        self._ptp_waiting += 1
+        replies = [ACK]
+        if self.model.mode == "idle":  # zero-length move: finished already
+            self.deliver_completions_into(replies)
+        return replies
+
+    def _read_joints(self, session: Session, line: str) -> list[str]:
+        return [format_joints(self.model.q)]
+
+    def _start_servo(self, session: Session, line: str) -> list[str]:
+        self.model.start_servo()
+        return [ACK]
+
+    def _stop_servo(self, session: Session, line: str) -> list[str]:
+        if self.model.mode == "servo":
+            self.model.stop()
+        return [ACK]
+
+    def _end(self, session: Session, line: str) -> list[str]:
+        if self.model.mode in ("servo", "ptp"):
+            self.model.stop()
+        session.close()
+        return []
+
+    COMMANDS: tuple[tuple[str, Callable[..., list[str]]], ...] = (
+        ("jRelVel", _relative_velocity), ("TFtrans", _tool_frame), ("jpJP_", _servo_and_read),
+        ("jf_", _servo_fast), ("jp_", _joint_target), ("doPTPinJS", _ptp),
+        ("getJointsPositions", _read_joints), ("startDirectServoJoints", _start_servo),
+        ("stopDirectServoJoints", _stop_servo), ("end", _end))
+    """The command words of the module docstring's table, in the order they are tried."""
 
     def deliver_completions_into(self, replies: list[str]) -> None:
         for reached in self.model.collect_finished():

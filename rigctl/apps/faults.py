@@ -405,41 +405,8 @@ class RigCampaign:
         self._daemon_ready()
         assert self.client is not None and self.daemon is not None
         before = set(self.runs_dir.glob("*")) if self.runs_dir.is_dir() else set()
-        pid = stream_process_pid(self.daemon.pid)
         suspend = self.profile.suspend_with
-        refused = None
-        t_fault = None
-        try:
-            if phase == "before":
-                self.inject(fault, pid)
-                t_fault = time.monotonic()
-                try:
-                    self.client.execute(self.plan_id)
-                except CommandRefused as err:
-                    refused = err
-            else:
-                self.client.execute(self.plan_id)
-                wait_until(lambda: self.profile.driving(self.truth()), 60.0, "the devices to drive")
-                if phase == "paused":
-                    self.client.pause()
-                    wait_until(lambda: self.client.status()["state"] == "paused", 60.0, "paused")
-                elif phase == "suspended":
-                    self.inject(suspend, pid)
-                    try:
-                        wait_until(lambda: self.client.status()["state"] == "suspended", 10.0,
-                              "suspended")
-                    except TimeoutError:
-                        cell.note = (f"phase not reached: {suspend.label} did not suspend the "
-                                     f"run (state {self.client.status()['state']})")
-                elif phase == "ramping":
-                    self.client.abort()
-                pid = stream_process_pid(self.daemon.pid)
-                self.inject(fault, pid)
-                t_fault = time.monotonic()
-        except (TimeoutError, RigError) as err:
-            cell.note = f"phase not reached: {err}"
-        if t_fault is None:  # the phase was not reached: clean up and say so
-            t_fault = time.monotonic()
+        t_fault, pid, refused = self._daemon_phase(cell, fault, phase)
         resumed = [False]
 
         def while_held(now: float, status: dict, truth: dict) -> bool:
@@ -463,14 +430,59 @@ class RigCampaign:
         if refused is not None and not new:
             cell.outcome, cell.reason = "refused", f"{refused.code}: {refused.reason}"
             return cell
-        cell.record, cell.run = check_record(new[-1] if new else None)
-        if new:
-            summary_path = new[-1] / "summary.json"
-            summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
-            events = read_events(new[-1])
-            cell.outcome, cell.device, cell.reason = outcome_of(events, summary)
-            cell.decision_to_stopping_s, cell.stream_period_s = stop_latency(events)
+        self._read_record(cell, new[-1] if new else None)
         return cell
+
+    def _daemon_phase(self, cell: Cell, fault: Fault, phase: str
+                      ) -> tuple[float, int | None, CommandRefused | None]:
+        """Bring the daemon's run to `phase` and inject `fault` there: (when it was injected, the
+        stream process's pid it was injected with, the refusal of a run faulted before it began).
+        A phase not reached is said in the cell's note (the time is then now)."""
+        assert self.client is not None and self.daemon is not None
+        pid = stream_process_pid(self.daemon.pid)
+        suspend = self.profile.suspend_with
+        refused = t_fault = None
+        try:
+            if phase == "before":
+                self.inject(fault, pid)
+                t_fault = time.monotonic()
+                try:
+                    self.client.execute(self.plan_id)
+                except CommandRefused as err:
+                    refused = err
+            else:
+                self.client.execute(self.plan_id)
+                wait_until(lambda: self.profile.driving(self.truth()), 60.0, "the devices to drive")
+                if phase == "paused":
+                    self.client.pause()
+                    wait_until(lambda: self.client.status()["state"] == "paused", 60.0, "paused")
+                elif phase == "suspended":
+                    self.inject(suspend, pid)
+                    try:
+                        wait_until(lambda: self.client.status()["state"] == "suspended", 10.0,
+                                   "suspended")
+                    except TimeoutError:
+                        cell.note = (f"phase not reached: {suspend.label} did not suspend the "
+                                     f"run (state {self.client.status()['state']})")
+                elif phase == "ramping":
+                    self.client.abort()
+                pid = stream_process_pid(self.daemon.pid)
+                self.inject(fault, pid)
+                t_fault = time.monotonic()
+        except (TimeoutError, RigError) as err:
+            cell.note = f"phase not reached: {err}"
+        return (time.monotonic() if t_fault is None else t_fault), pid, refused
+
+    def _read_record(self, cell: Cell, run_dir: Path | None) -> None:
+        """The cell's record check and, from the record, its outcome and stop latency."""
+        cell.record, cell.run = check_record(run_dir)
+        if run_dir is None:
+            return
+        summary_path = run_dir / "summary.json"
+        summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
+        events = read_events(run_dir)
+        cell.outcome, cell.device, cell.reason = outcome_of(events, summary)
+        cell.decision_to_stopping_s, cell.stream_period_s = stop_latency(events)
 
     def _finish(self, cell: Cell, t_fault: float, stop_at: float | None, safe_at: float | None,
                 safe_now: bool) -> None:

@@ -8,9 +8,10 @@ and the daemon print `str(err)` and never a stack trace.
 from __future__ import annotations
 
 EXIT_OK, EXIT_NOT_REACHED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
-"""Exit status of every command: 0 success (for `execute`: every agent reached its goal), 1 the
-job ran but did not succeed (goal missed, plan not solved), 2 bad input (nothing was energised),
-3 a device fault stopped the run."""
+"""Exit status of every command, the one table: 0 success (for `execute`: every agent reached its
+goal; for a planner: solved), 1 the job ran but did not succeed (a goal missed; for a planner, not
+solved, its best plan still written: the same number, so it has no name of its own), 2 bad input
+(nothing was energised), 3 a device fault stopped the run."""
 
 
 class RigError(Exception):

@@ -191,13 +191,13 @@ class Run(RunControl):
                       "its end (rigctl estop cuts a ramp short)")
         return summary
 
-    def _execute(self, winding_down: ExitStack) -> RunSummary:
-        from rigctl.emulators.backdoor import BackdoorClient
+    def _open_record(self) -> RunRecord:
+        """The run's record, begun with what it runs: the plan, the rig file (its field
+        calibration copied beside it), the pre-flight certificate."""
         from rigctl.plans.schema import dump_plan
-        from rigctl.run.progress import Progress
 
         program, rig = self.program, self.rig
-        record = self.record = RunRecord(self.runs_dir, getattr(program.plan, "name", None) or "plan")
+        record = RunRecord(self.runs_dir, getattr(program.plan, "name", None) or "plan")
         record.write_file("plan.json", dump_plan(program.plan))
         snapshot, files = rig.for_record()  # the snapshot names its own copies of the rig's files
         for name, text in files.items():
@@ -208,6 +208,40 @@ class Run(RunControl):
         record.write_file("certificate.json", self.certificate.to_json())
         record.event("certified", checks=len(self.certificate.checks),
                      rig_sha256=self.certificate.rig_hash)
+        return record
+
+    def _to_safe(self, actuators: Actuators, record: RunRecord, faults: list[dict]) -> list[str]:
+        """Ramp every actuator down (at once after an e-stop) and close it; the devices not
+        confirmed safe, tried again, are returned, recorded and added to `faults`."""
+        # an e-stop during this ramp cuts it short (the drivers latch at zero)
+        ramp_s = 0.0 if self._estop.is_set() else self.rig.stream.ramp_down_s
+        # from here every command to every device is on its way to safe: how long after
+        # the run decided to stop (the loop's last cycle, or the error that ended it)
+        now = time.monotonic()
+        record.event("stopping", ramp_s=ramp_s, after_decision_s=round(
+            now - (self._decided_at if self._decided_at is not None else now), 6))
+        unconfirmed = actuators.stop(ramp_s)
+        self._supplies = None  # off and closed: nothing left for an e-stop to write to
+        if unconfirmed:
+            unconfirmed = self._reach_again(type(actuators), unconfirmed, record)
+        if not unconfirmed:
+            record.event("safe", devices=actuators.names)
+            return unconfirmed
+        record.event("unsafe", devices=unconfirmed, reason="not confirmed safe: check these by hand")
+        named = {f["device"] for f in faults}
+        for name in unconfirmed:  # e.g. its link dropped while the run ramped down
+            if name not in named:
+                faults.append({"device": name, "kind": "Unconfirmed",
+                               "reason": f"{name}: not confirmed safe when the run stopped "
+                                         "(check it by hand)"})
+        return unconfirmed
+
+    def _execute(self, winding_down: ExitStack) -> RunSummary:
+        from rigctl.emulators.backdoor import BackdoorClient
+        from rigctl.run.progress import Progress
+
+        program, rig = self.program, self.rig
+        record = self.record = self._open_record()
         started = time.monotonic()
         faults: list[dict] = []
         stats: StreamStats | None = None
@@ -252,28 +286,7 @@ class Run(RunControl):
         finally:
             winding_down.enter_context(shielded_from_interrupts())
             if actuators is not None:
-                # an e-stop during this ramp cuts it short (the drivers latch at zero)
-                ramp_s = 0.0 if self._estop.is_set() else rig.stream.ramp_down_s
-                # from here every command to every device is on its way to safe: how long after
-                # the run decided to stop (the loop's last cycle, or the error that ended it)
-                now = time.monotonic()
-                record.event("stopping", ramp_s=ramp_s, after_decision_s=round(
-                    now - (self._decided_at if self._decided_at is not None else now), 6))
-                unconfirmed = actuators.stop(ramp_s)
-                self._supplies = None  # off and closed: nothing left for an e-stop to write to
-                if unconfirmed:
-                    unconfirmed = self._reach_again(type(actuators), unconfirmed, record)
-                if unconfirmed:
-                    record.event("unsafe", devices=unconfirmed,
-                                 reason="not confirmed safe: check these by hand")
-                    named = {f["device"] for f in faults}
-                    for name in unconfirmed:  # e.g. its link dropped while the run ramped down
-                        if name not in named:
-                            faults.append({"device": name, "kind": "Unconfirmed",
-                                           "reason": f"{name}: not confirmed safe when the run "
-                                                     "stopped (check it by hand)"})
-                else:
-                    record.event("safe", devices=actuators.names)
+                unconfirmed = self._to_safe(actuators, record, faults)
             self.progress.done()
         try:
             outcome = program.finish(ctx)

@@ -36,6 +36,7 @@ from rigctl.core.camera_model import (
     x_axis_angle_deg,
 )
 from rigctl.core.errors import ConfigError
+from rigctl.physics.geometry import signed_area
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +161,7 @@ def find_boundary_corners(
     corners = np.array(
         [_intersect(lines[i - 1], lines[i]) for i in range(n_corners)], dtype=float
     )
-    if _signed_area(corners) < 0:  # findContours order varies; report clockwise on screen
+    if signed_area(corners) < 0:  # findContours order varies; report clockwise on screen
         corners = corners[::-1]
     return corners
 
@@ -224,13 +225,6 @@ def _intersect(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray
     return p + s * d
 
 
-def _signed_area(points: np.ndarray) -> float:
-    """Signed (shoelace) area of a polygon (n, 2): in picture coordinates (v down) > 0 when it runs
-    clockwise on screen, in floor coordinates (y up) > 0 when counter-clockwise."""
-    x, y = points[:, 0], points[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
-
-
 def calibration_from_corners(
     corners_px: ArrayLike,
     corners_mm: ArrayLike,
@@ -253,7 +247,7 @@ def calibration_from_corners(
     if len(px) != n:
         raise CalibrationError(f"found {len(px)} corners, the boundary has {n}", device="camera")
     # Floor y is up and picture v is down: a camera that does not mirror flips the shoelace sign.
-    if (_signed_area(px) > 0) == (_signed_area(mm) > 0):
+    if (signed_area(px) > 0) == (signed_area(mm) > 0):
         px = px[::-1]
     candidates = []
     for shift in range(n):
@@ -455,7 +449,7 @@ def boundary_corners_mm(boundary: object) -> np.ndarray:
         return np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]])
     if kind == "polygon":
         vertices = np.asarray(value, dtype=float).reshape(-1, 2)
-        return vertices if _signed_area(vertices) > 0 else vertices[::-1]
+        return vertices if signed_area(vertices) > 0 else vertices[::-1]
     raise CalibrationError(
         f"a {kind} boundary has no corners; calibrate from markers instead", device="camera"
     )
@@ -477,7 +471,7 @@ def floor_corners_mm(workspace, n_corners: int, *, pitch_mm: float | None = None
     picture = (255.0 * np.clip(clearance / pitch_mm + 0.5, 0.0, 1.0)).astype(np.uint8)
     px = find_boundary_corners(picture, n_corners)
     mm = np.column_stack([xs[0] + px[:, 0] * pitch_mm, ys[0] - px[:, 1] * pitch_mm])
-    return mm if _signed_area(mm) > 0 else mm[::-1]
+    return mm if signed_area(mm) > 0 else mm[::-1]
 
 
 __all__ = [

@@ -100,7 +100,7 @@ def test_an_exception_in_handling_a_request_is_an_internal_reply_logged_with_its
         raise RuntimeError("a bug")
 
     monkeypatch.setattr(daemon, "_replay_key", broken)  # on the command thread, outside handlers
-    with caplog.at_level(logging.ERROR, logger="rigctl.apps.daemon.server"):
+    with caplog.at_level(logging.ERROR, logger="rigctl.apps.daemon.requests"):
         assert answered(probe, [b'{"id":"abcdefgh","cmd":"abort"}']) == "internal"
     assert any(r.exc_info and "a bug" in str(r.exc_info[1]) for r in caplog.records)
     monkeypatch.undo()

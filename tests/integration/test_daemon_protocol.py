@@ -13,7 +13,8 @@ import zmq
 
 from rigctl.apps.client import CommandRefused, DaemonUnreachable, Rig
 from rigctl.apps.daemon.messages import MAX_REQUEST_BYTES, DaemonState, StateMsg
-from rigctl.apps.daemon.server import TRANSITIONS, Daemon
+from rigctl.apps.daemon.server import Daemon
+from rigctl.apps.daemon.states import TRANSITIONS
 from rigctl.apps.daemon.telemetry import CycleBatch
 from rigctl.core.config import RigInfo, default_six_coil_coils
 from rigctl.core.errors import PlanError

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from rigctl.core.config import FieldSettings, RigConfig, RigInfo, default_six_coil_coils
+from rigctl.core.config import FieldSettings, RigConfig, RigInfo, default_six_coil_coils, settings_of
 from rigctl.physics.coils import u_actuation_matrix
 from rigctl.physics.fields import LoopModel
 
@@ -15,7 +15,7 @@ MU0 = 4e-7 * math.pi
 
 
 def cube() -> RigConfig:
-    return RigConfig(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils(),
+    return settings_of("six-coil")(rig=RigInfo(kind="six-coil"), coils=default_six_coil_coils(),
                      field=FieldSettings())
 
 

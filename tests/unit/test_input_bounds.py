@@ -97,7 +97,7 @@ REQUEST_IDS = (st.none() | st.booleans() | st.floats(allow_nan=False) | st.text(
        st.sampled_from([(", ", ": "), (",", ":"), (" ,\n", " :\t")]))
 def test_the_quick_path_takes_only_bare_requests_and_reads_their_id_as_json_does(
         request_id, cmd, args, id_first, separators):
-    from rigctl.apps.daemon.server import QUICK_REQUEST
+    from rigctl.apps.daemon.requests import QUICK_REQUEST
 
     fields = {"id": request_id, "cmd": cmd} if id_first else {"cmd": cmd, "id": request_id}
     if args is not None:
@@ -120,7 +120,7 @@ def test_the_quick_path_takes_only_bare_requests_and_reads_their_id_as_json_does
     ("a" * 128, True), ("a" * 129, False), ("", True), ('a"b', False), ("a\\b", False),
     ("\u00e9", False), (10**17, True), (-(10**18 - 1), True), (10**18, False), (0, True)])
 def test_the_quick_path_bounds_its_ids(request_id, taken):
-    from rigctl.apps.daemon.server import QUICK_REQUEST
+    from rigctl.apps.daemon.requests import QUICK_REQUEST
 
     payload = json.dumps({"id": request_id, "cmd": "status", "args": {}}).encode()
     assert (QUICK_REQUEST.fullmatch(payload) is not None) == taken == _plain_id(request_id)

@@ -21,7 +21,7 @@ import pytest
 from pydantic import BaseModel
 
 from rigctl.apps.cli.main import main
-from rigctl.apps.daemon.server import PlanRuns
+from rigctl.apps.daemon.plan_runs import PlanRuns
 from rigctl.core.errors import PlanError
 from rigctl.plans.schema import (
     FieldSequencePlan,

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from rigctl.apps.cli.main import main
-from rigctl.apps.daemon.server import PlanRuns
+from rigctl.apps.daemon.plan_runs import PlanRuns
 from rigctl.core.config import dump_rig
 from rigctl.core.errors import RigError
 from rigctl.rigs import rig_kind

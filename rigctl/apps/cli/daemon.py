@@ -437,7 +437,7 @@ def _plan_document(plan_path: str | Path) -> dict:
 def execute_remote(plan_path: str | Path, endpoint: str, *, json_out: bool = False,
                    quiet: bool = False, server_key: str | None = None,
                    client_key: str | None = None) -> int:
-    """Submit a plan to a running daemon, follow it with a progress bar, print the summary.
+    """Submit a plan to a running daemon, follow its progress, print the summary.
 
     Returns the exit status (0 reached, 1 not reached, 2 refused, 3 fault / e-stop / no daemon).
     """
@@ -486,28 +486,27 @@ def _step(run: dict) -> str:
 
 
 def _follow(rig, out, started: dict) -> dict:
-    """Poll `status` until the run is over; draw a progress bar on a terminal."""
-    tty = bool(out is not None and out.isatty())
-    samples = max(1, int(started.get("samples") or 1))
-    last_line = ""
+    """Poll `status` until the run is over, showing its progress as a local `rigctl execute` does
+    (`rigctl.run.progress.Progress`), timed from when the daemon started it."""
+    from rigctl.run.progress import Progress
+
+    t0 = time.monotonic()
+    progress = Progress(out, int(started.get("moves") or started.get("segments") or 0),
+                        float(started.get("duration_s") or 0.0))  # 0: a duration not known
     while True:
         status = rig.status()
         run = status.get("run")
         if run is None and status["state"] not in ("running", "paused", "suspended"):
             break
-        if out is not None and run is not None:
-            done = min(1.0, max(0, run["sample"]) / samples)  # a closed loop may take longer
-            bar = "#" * int(30 * done) + "-" * (30 - int(30 * done))
-            line = f"[{bar}] {100 * done:5.1f} %  {_step(run)}  {status['state']}"
-            if tty:
-                out.write("\r" + line)
-                out.flush()
-            elif line.split("%")[0] != last_line.split("%")[0] and int(100 * done) % 10 == 0:
-                out.write(line + "\n")
-            last_line = line
+        if run is not None:
+            move = run["move"] if isinstance(run.get("move"), int) else -1
+            # a pair or dEPM run counts segments; one paused or suspended says so
+            what = _step(run) if "segments" in run else None
+            if status["state"] != "running":
+                what = f"{_step(run)} {status['state']}"
+            progress.update(move, time.monotonic() - t0, what)
         time.sleep(0.2)
-    if tty:
-        out.write("\n")
+    progress.done()
     return status
 
 

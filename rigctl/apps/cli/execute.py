@@ -5,6 +5,8 @@ makes the run; the options a rig does not take are refused by name."""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import inspect
 import sys
 from typing import TYPE_CHECKING
@@ -93,7 +95,7 @@ def cmd_execute(args: argparse.Namespace) -> int:
 def _execute_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
     # here, not at the top: every other command (`estop` first) starts without these imports
     from rigctl.apps.daemon.local import LocalControl
-    from rigctl.emulators.process import rig_for_run
+    from rigctl.emulators.process import bench_for_run
     from rigctl.plans.schema import load_plan
     from rigctl.rigs import rig_kind
     from rigctl.rigs.doctor import preflight
@@ -115,22 +117,30 @@ def _execute_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
     for flag, value in zip(implied[::2], implied[1::2]):
         if flag in given and given[given.index(flag) + 1] != value:
             raise ConfigError(f"a {plan.kind} plan runs with {flag} {value}")
-    if args.rig is None and kind.bench_rig is not None:  # refused before a bench is started
-        build(plan, kind.bench_rig(), runs_dir=args.runs, **options)
-    if args.rig is not None:  # the pre-flight certificate refuses before any device is opened
-        from rigctl.core.config import load_rig
-
-        build(plan, load_rig(args.rig), runs_dir=args.runs, **options)
     bench = given + implied
     world = f" ({bench[bench.index('--world') + 1]} world)" if "--world" in bench else ""
     out = None if args.quiet else sys.stderr
+    build_on = functools.partial(build, plan, runs_dir=args.runs, progress_out=out, **options)
+    if args.rig is not None:  # the pre-flight certificate refuses before any device is opened
+        from rigctl.core.config import load_rig
+
+        rig = load_rig(args.rig)
+        run = build_on(rig)
+        where_it_runs = contextlib.nullcontext(rig)
+    else:
+        # the bench's own rig file (its links' addresses, its world) is known only once it is up:
+        # the run is built on that; a plan the bench's rig refuses is refused before it starts
+        run = None
+        if kind.bench_rig is not None:
+            build(plan, kind.bench_rig(), runs_dir=args.runs, **options)
+        where_it_runs = bench_for_run(kind.name, extra_args=bench, progress_out=out, world=world)
     abort_on_sigterm()  # SIGTERM ends a run as Ctrl-C does: an abort, recorded and summarised
-    with rig_for_run(args.rig, kind.name, extra_args=bench, progress_out=out, world=world) as rig, \
-            RigLock(rig, "rigctl execute") as lock:  # one owner per rig: a second is refused
+    with where_it_runs as rig, RigLock(rig, "rigctl execute") as lock:  # one owner: a second is refused
         # a bench started here is this process's to stop: its rig file names its pid
         guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
         preflight(rig)  # every device answers and is made safe, or exit 2 naming it
-        run = build(plan, rig, runs_dir=args.runs, progress_out=out, **options)
+        if run is None:
+            run = build_on(rig)
         guardian.wait_armed()  # nothing is energised unguarded
         with LocalControl(run) as control:
             lock.name_control(control.endpoint)  # where `rigctl estop --rig` and the rest find it

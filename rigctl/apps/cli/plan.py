@@ -31,15 +31,13 @@ import numpy as np
 
 from rigctl.apps.cli.paths import coordinates_are_values, input_file, output_file
 from rigctl.core.config import MagnetSettings, load_rig
-from rigctl.core.errors import ConfigError, PlanError
+from rigctl.core.errors import EXIT_NOT_REACHED, EXIT_OK, ConfigError, PlanError
 from rigctl.core.registry import entry_point_names
 
 if TYPE_CHECKING:  # numba compiles nothing for the commands that do not plan
     from rigctl.plans.checks import WorkspaceSource
 
 log = logging.getLogger(__name__)
-
-EXIT_SOLVED, EXIT_NOT_SOLVED, EXIT_BAD_INPUT = 0, 1, 2
 
 DEFAULT_ROBOSTEP_MM = 5.0
 DEFAULT_RADIUS_MM = 5.0
@@ -418,7 +416,7 @@ def run_rrt(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"solved": solved, "nodes": result.nodes, "seconds": round(seconds, 4),
                           "distance": distance, "moves": len(moves)}))
-    return EXIT_SOLVED if solved else EXIT_NOT_SOLVED
+    return EXIT_OK if solved else EXIT_NOT_REACHED
 
 
 def _write_plan(output: Path, source: WorkspaceSource, rig: str, name: str, starts, goals, radii,
@@ -474,7 +472,7 @@ def run_coverage(args: argparse.Namespace) -> int:
                           "total": result.total, "nodes": len(tree), "grid_mm": args.grid,
                           "box": list(result.box),
                           "cells_per_robot": list(result.cells_per_robot)}))
-    return EXIT_SOLVED
+    return EXIT_OK
 
 
 # ---------------------------------------------------------------- plan wall-contact
@@ -529,7 +527,7 @@ def run_wall_contact(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"solved": result.solved, "moves": len(result.moves),
                           "length": round(result.length, 6), "seconds": round(seconds, 6)}))
-    return EXIT_SOLVED if result.solved else EXIT_NOT_SOLVED
+    return EXIT_OK if result.solved else EXIT_NOT_REACHED
 
 
 def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
@@ -563,7 +561,7 @@ def _run_wall_contact_3d(args: argparse.Namespace, document: dict) -> int:
     if args.json:
         print(json.dumps({"solved": result.solved, "moves": len(result.moves),
                           "length": round(result.length, 6), "seconds": round(result.seconds, 6)}))
-    return EXIT_SOLVED if result.solved else EXIT_NOT_SOLVED
+    return EXIT_OK if result.solved else EXIT_NOT_REACHED
 
 
 # ---------------------------------------------------------------- plan reachable
@@ -605,4 +603,4 @@ def run_reachable(args: argparse.Namespace) -> int:
           f"{seconds:.2f} s)", file=sys.stderr)
     if args.json:
         print(json.dumps({"fraction": round(fractions[-1], 6)}))
-    return EXIT_SOLVED
+    return EXIT_OK

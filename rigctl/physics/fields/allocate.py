@@ -213,10 +213,9 @@ def _norm(values, first, last):
 
 
 @njit()
-def _solve(per_A, mode, asked, moment, weights):
-    """The numbers of `allocate` in one compiled call: (currents (N,), made U (8,), the rows M
-    (k, N), the offset's rows (k,), whether the request is out of reach). Scalar loops only:
-    numba compiles array expressions slowly (seconds of CPU each)."""
+def _eight_rows(per_A):
+    """U's eight rows per coil (and the offset's, last column) from the field and the full
+    gradient per ampere: Bx, By, Bz, then the five gradient terms G00 G01 G02 G11 G12."""
     n = per_A.shape[0] - 1
     a8 = np.empty((8, n + 1))
     for c in range(n + 1):
@@ -224,11 +223,14 @@ def _solve(per_A, mode, asked, moment, weights):
             a8[i, c] = per_A[c, i]
         a8[6, c] = per_A[c, 7]  # G11
         a8[7, c] = per_A[c, 8]  # G12
-    k = asked.shape[0]
-    rows = np.empty((k, n + 1))  # the asked rows, the offset in the last column
-    scale = np.empty(k)
-    field_size = max(_norm(asked, 0, 3), FIELD_FLOOR_T)
-    for c in range(n + 1):
+    return a8
+
+
+@njit()
+def _asked_rows(a8, mode, moment, k):
+    """The rows of what is asked (field; field and gradient; field and force on `moment`)."""
+    rows = np.empty((k, a8.shape[1]))  # the asked rows, the offset in the last column
+    for c in range(a8.shape[1]):
         for i in range(3):
             rows[i, c] = a8[i, c]
         if mode == MODE_GRADIENT:
@@ -240,6 +242,14 @@ def _solve(per_A, mode, asked, moment, weights):
             rows[3, c] = mx * a8[3, c] + my * a8[4, c] + mz * a8[5, c]
             rows[4, c] = mx * a8[4, c] + my * a8[6, c] + mz * a8[7, c]
             rows[5, c] = mx * a8[5, c] + my * a8[7, c] - mz * (a8[3, c] + a8[6, c])
+    return rows
+
+
+@njit()
+def _row_scales(asked, mode, k):
+    """Each row's size: a block's rows are weighted by 1 / (the size of that block's request)."""
+    scale = np.empty(k)
+    field_size = max(_norm(asked, 0, 3), FIELD_FLOOR_T)
     for i in range(3):
         scale[i] = field_size
     if mode == MODE_GRADIENT:
@@ -250,6 +260,19 @@ def _solve(per_A, mode, asked, moment, weights):
         size = max(_norm(asked, 3, 6), FORCE_FLOOR_N)
         for i in range(3, 6):
             scale[i] = size
+    return scale
+
+
+@njit()
+def _solve(per_A, mode, asked, moment, weights):
+    """The numbers of `allocate` in one compiled call: (currents (N,), made U (8,), the rows M
+    (k, N), the offset's rows (k,), whether the request is out of reach). Scalar loops only:
+    numba compiles array expressions slowly (seconds of CPU each)."""
+    n = per_A.shape[0] - 1
+    a8 = _eight_rows(per_A)
+    k = asked.shape[0]
+    rows = _asked_rows(a8, mode, moment, k)
+    scale = _row_scales(asked, mode, k)
     M = np.empty((k, n))
     Mw = np.empty((k, n))
     off_rows = np.empty(k)

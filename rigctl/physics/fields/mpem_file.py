@@ -84,6 +84,38 @@ def _source(node: object, where: str) -> Source:
     return Source(tuple(position), tuple(direction), kind, tuple(coefficients))
 
 
+def _workspace(data: dict, source: str) -> list[list[float]]:
+    """Workspace_Dimensions: [[xmin, xmax], [ymin, ymax], [zmin, zmax]] in m."""
+    workspace = data["Workspace_Dimensions"]
+    if not isinstance(workspace, list) or len(workspace) != 3:
+        raise ConfigError(f"{source}: Workspace_Dimensions: must be [[xmin, xmax], [ymin, ymax], "
+                          f"[zmin, zmax]] in m, got {workspace!r}")
+    bounds = [_numbers(pair, 2, f"{source}: Workspace_Dimensions[{i}]")
+              for i, pair in enumerate(workspace)]
+    for axis, (lo, hi) in zip("xyz", bounds):
+        if lo > hi:
+            raise ConfigError(f"{source}: Workspace_Dimensions: {axis}min {lo} > {axis}max {hi}")
+    return bounds
+
+
+def _coil_sources(data: dict, tag: str, source: str) -> list[Source]:
+    """The sources of one Coil_List entry, in its Source_List order."""
+    coil = data.get(tag)
+    if not isinstance(coil, dict):
+        raise ConfigError(f"{source}: {tag}: Coil_List names it, but the file has no mapping "
+                          "for it")
+    tags = coil.get("Source_List")
+    if not isinstance(tags, list) or not tags:
+        raise ConfigError(f"{source}: {tag}.Source_List: must list the coil's sources")
+    sources = []
+    for src in tags:
+        if str(src) not in coil:
+            raise ConfigError(f"{source}: {tag}.{src}: Source_List names it, but {tag} does "
+                              "not describe it")
+        sources.append(_source(coil[str(src)], f"{source}: {tag}.{src}"))
+    return sources
+
+
 def parse_mpem(data: object, source: str = "MPEM calibration") -> MPEM:
     """An MPEM from the mapping a mag_manip calibration file holds (ConfigError naming the key)."""
     if not isinstance(data, dict):
@@ -94,15 +126,7 @@ def parse_mpem(data: object, source: str = "MPEM calibration") -> MPEM:
     name = data["System_Name"]
     if not isinstance(name, (str, int, float)) or isinstance(name, bool):
         raise ConfigError(f"{source}: System_Name: must be a string, got {name!r}")
-    workspace = data["Workspace_Dimensions"]
-    if not isinstance(workspace, list) or len(workspace) != 3:
-        raise ConfigError(f"{source}: Workspace_Dimensions: must be [[xmin, xmax], [ymin, ymax], "
-                          f"[zmin, zmax]] in m, got {workspace!r}")
-    bounds = [_numbers(pair, 2, f"{source}: Workspace_Dimensions[{i}]")
-              for i, pair in enumerate(workspace)]
-    for axis, (lo, hi) in zip("xyz", bounds):
-        if lo > hi:
-            raise ConfigError(f"{source}: Workspace_Dimensions: {axis}min {lo} > {axis}max {hi}")
+    bounds = _workspace(data, source)
     names = data["Coil_List"]
     if not isinstance(names, list) or not names:
         raise ConfigError(f"{source}: Coil_List: must list the coils")
@@ -112,19 +136,7 @@ def parse_mpem(data: object, source: str = "MPEM calibration") -> MPEM:
         if tag in seen:
             raise ConfigError(f"{source}: Coil_List: {tag} is listed twice")
         seen.add(tag)
-        coil = data.get(tag)
-        if not isinstance(coil, dict):
-            raise ConfigError(f"{source}: {tag}: Coil_List names it, but the file has no mapping "
-                              "for it")
-        tags = coil.get("Source_List")
-        if not isinstance(tags, list) or not tags:
-            raise ConfigError(f"{source}: {tag}.Source_List: must list the coil's sources")
-        sources = []
-        for src in tags:
-            if str(src) not in coil:
-                raise ConfigError(f"{source}: {tag}.{src}: Source_List names it, but {tag} does "
-                                  "not describe it")
-            sources.append(_source(coil[str(src)], f"{source}: {tag}.{src}"))
+        sources = _coil_sources(data, tag, source)
         if OFFSET_MARK in tag:
             if offset is not None:
                 raise ConfigError(f"{source}: {tag}: a second Offset coil (after {offset[0]}); "

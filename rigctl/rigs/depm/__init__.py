@@ -24,9 +24,6 @@ def _field_sequence(plan, rig: RigConfig, *, agnostic: bool = False, time_scale:
     if agnostic:
         from rigctl.plans.depm import baseline_of
 
-        if run.get("progress_out") is not None:
-            print("the magnetic-agnostic baseline: straight joint moves to the plan's end poses",
-                  file=run["progress_out"], flush=True)
         plan = baseline_of(plan)
     return FieldSequenceRun(plan, rig, time_scale=time_scale, closed_loop=closed_loop, **run)
 

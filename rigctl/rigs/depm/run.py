@@ -321,20 +321,15 @@ class FieldSequenceProgram(RequestedControl):
         self._last_target = q_now.copy()
         record.event("approach", duration_s=round(approach.duration_s, 3), q_from=q_now.tolist(),
                      q_to=q_start.tolist())
+        if self.plan.planner == "agnostic":
+            self._ctx.say("the magnetic-agnostic baseline: straight joint moves to the plan's end poses")
         self._ctx.say(f"approach: the arms to the plan's first pose, one after the other, at "
                       f"{self.limits.speed_fraction:.0%} speed ({approach.duration_s:.1f} s)")
 
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
         tl = self.timeline
         assert tl is not None and self._last_target is not None
-        dt = 0.0 if self._last_k is None else (k - self._last_k) / self.plan_rate_hz
-        if self._last_k is not None:
-            self.skipped += max(0, k - self._last_k - 1)
-        self._last_k = k
-        now = time.monotonic()
-        if self._last_cycle_s is not None:
-            self.max_cycle_gap_s = max(self.max_cycle_gap_s, now - self._last_cycle_s)
-        self._last_cycle_s = now
+        dt, now = self._tick(k)
         if measured is not None:
             self._check_tracking(k / self.plan_rate_hz, measured)
         samples = []
@@ -342,13 +337,7 @@ class FieldSequenceProgram(RequestedControl):
             samples = self._poll_hall(now)
         self._cycles += 1
         if self.requests.abort_wanted:
-            if self._abort_sent:
-                return None
-            self._abort_sent = True  # stop where they are: hold the measured pose, then end
-            target = (measured if measured is not None else self._last_target).reshape(
-                len(self.arms), -1)
-            tl.hold(target)
-            return self._step(k, target, samples, stage="abort")
+            return self._abort_step(k, measured, samples)
         if tl.finished:
             self._take(samples)
             self._ctx.record.event("plan_done", t_plan_s=self.plan_time_reached_s)
@@ -363,6 +352,37 @@ class FieldSequenceProgram(RequestedControl):
                 self._correct(tl, dt, samples, now)
             target = (tl.held if tl.held is not None else tl.advance(0.0)).copy()
             return self._step(k, target, samples, "paused" if self.paused else "hall correction")
+        return self._timeline_step(k, dt, measured, samples, hold)
+
+    def _tick(self, k: int) -> tuple[float, float]:
+        """Cycle `k` begins: the plan time since the last cycle (s) and the monotonic time now;
+        the cycles skipped and the longest gap between two are counted for the summary."""
+        dt = 0.0 if self._last_k is None else (k - self._last_k) / self.plan_rate_hz
+        if self._last_k is not None:
+            self.skipped += max(0, k - self._last_k - 1)
+        self._last_k = k
+        now = time.monotonic()
+        if self._last_cycle_s is not None:
+            self.max_cycle_gap_s = max(self.max_cycle_gap_s, now - self._last_cycle_s)
+        self._last_cycle_s = now
+        return dt, now
+
+    def _abort_step(self, k: int, measured: np.ndarray | None, samples: list) -> Step | None:
+        """An abort stops the arms where they are: one step holding the measured pose, then the
+        end."""
+        if self._abort_sent:
+            return None
+        self._abort_sent = True
+        target = (measured if measured is not None else self._last_target).reshape(
+            len(self.arms), -1)
+        self.timeline.hold(target)
+        return self._step(k, target, samples, stage="abort")
+
+    def _timeline_step(self, k: int, dt: float, measured: np.ndarray | None, samples: list,
+                       hold: bool) -> Step:
+        """The timeline's next target, `dt` s of plan on: held where a pause (at the measured
+        pose if immediate) or a suspension asks, released when neither does."""
+        tl = self.timeline
         if hold and tl.held is None:
             now_pose = self.requests.immediate and self.requests.pause_wanted and measured is not None
             tl.hold(measured.reshape(len(self.arms), -1) if now_pose else self._last_target)

@@ -199,36 +199,13 @@ def realize_global_moves(
         `field.b0_mT` below `magnets.min_field_mT`, so the magnets would not follow.
     """
     moves = np.asarray(moves_mm, dtype=float)
-    if moves.ndim != 2 or moves.shape[1] != 2:
-        raise PlanError(
-            f"moves must be an (m, 2) array of xy displacements in mm, got shape {moves.shape}"
-        )
-    if not np.isfinite(moves).all():
-        bad = int(np.flatnonzero(~np.isfinite(moves).all(axis=1))[0])
-        raise PlanError(f"move {bad}: displacement {moves[bad].tolist()} is not finite")
+    turns = _turns_of(moves, rig)
     fs = rig.field
-    if fs.b0_mT < rig.magnets.min_field_mT:
-        raise ConfigError(
-            f"field.b0_mT {fs.b0_mT} is below magnets.min_field_mT {rig.magnets.min_field_mT}: "
-            "the magnets would not follow the field"
-        )
-    if fs.whole_turns:
-        turns = _check_moves(moves, rig.magnets.radius_mm).astype(float)
-    else:
-        turns = np.linalg.norm(moves, axis=1) / (2.0 * math.pi * rig.magnets.radius_mm)
-
     rate = rig.stream.rate_hz
     b0 = fs.b0_mT * 1e-3
-    steer_rad_per_s = math.radians(fs.steering_deg_per_s)
     n_ramp = _samples(fs.ramp_s, rate)
     n_hold = _samples(fs.hold_s, rate)
-    most = (turns.sum() / fs.rolling_turns_per_s + len(moves) * (math.pi / steer_rad_per_s)) * rate \
-        + (len(moves) + 2) * (n_hold + 1) + 2 * n_ramp  # an upper bound, before any allocation
-    if fs.rest_s > 0:
-        most += len(moves) * (_samples(fs.rest_s, rate) + 2 * n_ramp)
-    if most > MAX_PROGRAM_SAMPLES:
-        raise PlanError(f"moves: up to {most:.3g} samples of field program at {rate:g} Hz; "
-                        f"at most {MAX_PROGRAM_SAMPLES} (fewer or shorter moves)")
+    _check_size(turns, rig)
 
     fields: list[np.ndarray] = []
     segments: list[np.ndarray] = []
@@ -263,38 +240,9 @@ def realize_global_moves(
     for i, (d, n_turns) in enumerate(zip(moves, turns)):
         move_start = count
         if n_turns > 0:
-            d_hat = np.array([d[0], d[1], 0.0]) / math.hypot(d[0], d[1])
-            u = np.cross(_Z_HAT, d_hat)
-            e0 = d_hat if h @ d_hat >= 0.0 else -d_hat
-
-            # steering: turn h into e0 the short way about z, keeping the vertical part
-            phi = math.atan2(h[0] * e0[1] - h[1] * e0[0], h @ e0)
-            n_steer = _samples(abs(phi) / steer_rad_per_s, rate)
-            start = math.atan2(h[1], h[0])
-            angles = start + phi * np.arange(n_steer) / max(n_steer, 1)
-            steer = np.stack([np.cos(tilt) * np.cos(angles), np.cos(tilt) * np.sin(angles),
-                              np.full(n_steer, math.sin(tilt))], axis=1)
+            steer, roll, h, tilt = _steer_and_roll(i, d, n_turns, h, tilt, fs, rate)
             emit(b0 * steer, i, STEERING)
-
-            # rolling: n_turns about u, from the angle alpha0 at which B now stands in the
-            # rolling plane (0 when B is horizontal, e.g. after whole turns)
-            w = np.cross(u, e0)  # +-z
-            alpha0 = math.atan2(math.sin(tilt) * float(w @ _Z_HAT), math.cos(tilt))
-            n_roll = max(1, _samples(n_turns / fs.rolling_turns_per_s, rate))
-            alpha = alpha0 + 2.0 * math.pi * n_turns * np.arange(n_roll) / n_roll
-            roll = np.cos(alpha)[:, None] * e0 + np.sin(alpha)[:, None] * w
             emit(b0 * roll, i, ROLLING)
-            end = alpha0 + 2.0 * math.pi * n_turns
-            end_b = math.cos(end) * e0 + math.sin(end) * w
-            if fs.whole_turns or abs(math.cos(end)) < 1e-12:
-                h = e0
-            else:
-                h = e0 if math.cos(end) > 0 else -e0
-            tilt = math.atan2(float(end_b[2]), abs(math.cos(end)))
-            if fs.whole_turns:
-                tilt = 0.0
-            logger.debug("move %d: %.3f turns along %s, steering %.1f deg", i, n_turns, d_hat[:2],
-                         math.degrees(phi))
         else:
             logger.debug("move %d is zero: hold only", i)
         emit(np.repeat(field_now()[None, :], n_hold, axis=0), NO_MOVE, HOLD)
@@ -321,3 +269,79 @@ def realize_global_moves(
         rate_hz=rate,
         move_spans=np.array(move_spans, dtype=int).reshape(-1, 2),
     )
+
+
+def _turns_of(moves: np.ndarray, rig: RigConfig) -> np.ndarray:
+    """Turns of the magnets (m,) for moves (m, 2) mm: checked whole with `field.whole_turns`.
+    PlanError for moves of the wrong shape or not finite, ConfigError for a field too weak for
+    the magnets to follow."""
+    if moves.ndim != 2 or moves.shape[1] != 2:
+        raise PlanError(
+            f"moves must be an (m, 2) array of xy displacements in mm, got shape {moves.shape}"
+        )
+    if not np.isfinite(moves).all():
+        bad = int(np.flatnonzero(~np.isfinite(moves).all(axis=1))[0])
+        raise PlanError(f"move {bad}: displacement {moves[bad].tolist()} is not finite")
+    fs = rig.field
+    if fs.b0_mT < rig.magnets.min_field_mT:
+        raise ConfigError(
+            f"field.b0_mT {fs.b0_mT} is below magnets.min_field_mT {rig.magnets.min_field_mT}: "
+            "the magnets would not follow the field"
+        )
+    if fs.whole_turns:
+        return _check_moves(moves, rig.magnets.radius_mm).astype(float)
+    return np.linalg.norm(moves, axis=1) / (2.0 * math.pi * rig.magnets.radius_mm)
+
+
+def _check_size(turns: np.ndarray, rig: RigConfig) -> None:
+    """PlanError if the program of moves of `turns` (m,) could exceed MAX_PROGRAM_SAMPLES: an
+    upper bound on its samples, before anything is allocated."""
+    fs, rate = rig.field, rig.stream.rate_hz
+    n_ramp, n_hold = _samples(fs.ramp_s, rate), _samples(fs.hold_s, rate)
+    steer_rad_per_s = math.radians(fs.steering_deg_per_s)
+    most = (turns.sum() / fs.rolling_turns_per_s + len(turns) * (math.pi / steer_rad_per_s)) * rate \
+        + (len(turns) + 2) * (n_hold + 1) + 2 * n_ramp
+    if fs.rest_s > 0:
+        most += len(turns) * (_samples(fs.rest_s, rate) + 2 * n_ramp)
+    if most > MAX_PROGRAM_SAMPLES:
+        raise PlanError(f"moves: up to {most:.3g} samples of field program at {rate:g} Hz; "
+                        f"at most {MAX_PROGRAM_SAMPLES} (fewer or shorter moves)")
+
+
+def _steer_and_roll(i: int, d: np.ndarray, n_turns: float, h: np.ndarray, tilt: float, fs,
+                    rate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Move `i`, d (2,) mm of `n_turns` turns, from the field's horizontal direction `h` (3,) and
+    its `tilt` (rad) out of the floor: the field's directions (unit, (n, 3)) steering, then
+    rolling (module docstring, 1 and 2), and `h` and `tilt` after it."""
+    steer_rad_per_s = math.radians(fs.steering_deg_per_s)
+    d_hat = np.array([d[0], d[1], 0.0]) / math.hypot(d[0], d[1])
+    u = np.cross(_Z_HAT, d_hat)
+    e0 = d_hat if h @ d_hat >= 0.0 else -d_hat
+
+    # steering: turn h into e0 the short way about z, keeping the vertical part
+    phi = math.atan2(h[0] * e0[1] - h[1] * e0[0], h @ e0)
+    n_steer = _samples(abs(phi) / steer_rad_per_s, rate)
+    start = math.atan2(h[1], h[0])
+    angles = start + phi * np.arange(n_steer) / max(n_steer, 1)
+    steer = np.stack([np.cos(tilt) * np.cos(angles), np.cos(tilt) * np.sin(angles),
+                      np.full(n_steer, math.sin(tilt))], axis=1)
+
+    # rolling: n_turns about u, from the angle alpha0 at which B now stands in the
+    # rolling plane (0 when B is horizontal, e.g. after whole turns)
+    w = np.cross(u, e0)  # +-z
+    alpha0 = math.atan2(math.sin(tilt) * float(w @ _Z_HAT), math.cos(tilt))
+    n_roll = max(1, _samples(n_turns / fs.rolling_turns_per_s, rate))
+    alpha = alpha0 + 2.0 * math.pi * n_turns * np.arange(n_roll) / n_roll
+    roll = np.cos(alpha)[:, None] * e0 + np.sin(alpha)[:, None] * w
+    end = alpha0 + 2.0 * math.pi * n_turns
+    end_b = math.cos(end) * e0 + math.sin(end) * w
+    if fs.whole_turns or abs(math.cos(end)) < 1e-12:
+        h = e0
+    else:
+        h = e0 if math.cos(end) > 0 else -e0
+    tilt = math.atan2(float(end_b[2]), abs(math.cos(end)))
+    if fs.whole_turns:
+        tilt = 0.0
+    logger.debug("move %d: %.3f turns along %s, steering %.1f deg", i, n_turns, d_hat[:2],
+                 math.degrees(phi))
+    return steer, roll, h, tilt
