@@ -16,17 +16,17 @@ from rigctl.plans.model import Contact, GlobalInputModel
 from rigctl.plans.schema import REPLAY_TOLERANCE_MM, GlobalMovesPlan, load_workspace
 from rigctl.plans.workspace import Workspace
 
-WALL_CONTACT: dict[str, Contact] = {"six-coil": "slide", "coil-board": "non-slip"}
-"""How agents meet walls on each rig kind the global-moves planners plan for: rolling magnets
-slide (six-coil), particles stick (coil-board)."""
-
 
 def contact_for_rig(rig: str) -> Contact:
-    """How agents meet walls on a rig kind (`WALL_CONTACT`)."""
-    try:
-        return WALL_CONTACT[rig]
-    except KeyError:
-        raise PlanError(f"rig {rig!r} runs no global-moves plans (expected six-coil or coil-board)") from None
+    """How agents meet walls on a rig kind: its `RigKind.wall_contact` (rolling magnets slide,
+    particles stick), asked of the registry."""
+    from rigctl.core.registry import kinds
+
+    found = kinds().get(rig)
+    if found is None or found.wall_contact is None:
+        runs = sorted(n for n, k in kinds().items() if k.wall_contact is not None)
+        raise PlanError(f"rig {rig!r} runs no global-moves plans (expected one of {', '.join(runs)})")
+    return found.wall_contact
 
 
 def plan_workspace(plan: GlobalMovesPlan):

@@ -47,7 +47,25 @@ from rigctl.core.errors import PlanError
 log = logging.getLogger(__name__)
 
 SCHEMA_ID = "rigctl.plan/1"
-RigName = Literal["six-coil", "coil-board"]  # rigs that run global-moves plans
+
+
+def _runs(plan_kind: str):
+    """A plan's `rig`: an installed rig kind that runs `plan_kind` plans (the registry says)."""
+
+    def check(rig: str) -> str:
+        from rigctl.core.registry import kinds
+
+        able = sorted(n for n, k in kinds().items() if plan_kind in k.plans)
+        if rig not in able:
+            raise PydanticCustomError("rig_kind", "a {plan_kind} plan runs on {able}, not {rig}",
+                                      {"plan_kind": plan_kind, "able": " or ".join(able), "rig": repr(rig)})
+        return rig
+
+    return Annotated[str, AfterValidator(check),
+                     Field(description=f"an installed rig kind that runs {plan_kind} plans")]
+
+
+RigName = _runs("global-moves")  # rigs that run global-moves plans
 Contact = Literal["slide", "non-slip"]
 
 # Bounds: what a plan may hold, checked before anything is allocated from it, so that no number
@@ -384,7 +402,7 @@ class FieldSequencePlan(_PlanDocument):
     `rigctl.plans.depm.joint_trajectory(plan)` evaluates them; both arms share the knot times."""
 
     kind: Literal["field-sequence"]
-    rig: Literal["depm"]
+    rig: _runs("field-sequence")
     planner: Literal["hybrid", "agnostic"] = "hybrid"
     arm_model: Literal["lbr-iiwa-14-r820"] = "lbr-iiwa-14-r820"
     epm_moment_Am2: _number(1e-3, 1e5) = Field(
@@ -474,7 +492,7 @@ class PairFormationPlan(_PlanDocument):
     """Two interacting agents steered by the field angle psi and a pulling gradient (seed 002)."""
 
     kind: Literal["pair-formation"]
-    rig: Literal["six-coil"]
+    rig: _runs("pair-formation")
     workspace: WorkspaceSpec
     agents: PairAgents = PairAgents()
     field_mT: _number(1e-3, 1e4) = Field(

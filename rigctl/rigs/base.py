@@ -139,6 +139,9 @@ class RigKind:
     study: StudyHooks | None = None
     """What `rigctl study` needs beyond `bench` and `bench_args` (None: nothing)."""
     plan_models: Mapping[str, Callable[[], type]] = field(default_factory=dict)
+    wall_contact: str | None = None
+    """How agents meet walls in the kind's global-moves plans, for the global-input model and its
+    planners: "slide" (rolling magnets) or "non-slip" (particles stick); None: it runs none."""
     """The document model (a pydantic class, schema `rigctl.plan/1`) of each plan kind this kind
     brings that `rigctl.plans.schema` does not know, by plan kind: `parse_plan` validates such a
     plan with it (a lab's plan kinds; the papers' kinds are in the schema's union)."""

@@ -97,7 +97,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="keep robot centres at least r1 + r2 + D mm apart")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
     # the installed kinds; one the planner has no wall contact for is refused by name
-    # (`rigctl.plans.checks.WALL_CONTACT`, not imported here: it loads the planner)
+    # (`RigKind.wall_contact`, asked by rigctl.plans.checks when the plan is checked)
     p.add_argument("--rig", choices=entry_point_names(), default="six-coil",
                    help="rig kind: six-coil (robots slide along walls, moves are whole magnet "
                    "turns) or coil-board (robots stick to walls)")

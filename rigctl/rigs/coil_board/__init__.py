@@ -123,6 +123,7 @@ def _template() -> str:
     return (files("rigctl.rigs.coil_board") / "template.toml").read_text()
 
 KIND = RigKind(
+    wall_contact="non-slip",
     name="coil-board",
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",
     faults=fault_profile,

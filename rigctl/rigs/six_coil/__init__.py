@@ -116,6 +116,7 @@ def _template() -> str:
     return (files("rigctl.rigs.six_coil") / "template.toml").read_text()
 
 KIND = RigKind(
+    wall_contact="slide",
     name="six-coil",
     description="six air-core coils fed by Kepco BOP supplies, overhead camera",
     faults=fault_profile,
