@@ -22,6 +22,7 @@ RigKind = Any  # a rigctl.rigs.base.RigKind: the rig layer's class, above the co
 log = logging.getLogger(__name__)
 
 GROUP = "rigctl.rigs"
+DEFAULT_GROUP = "rigctl.default"  # one entry: the kind commands use when not told one
 
 _loaded: tuple[dict[str, RigKind], dict[str, str]] | None = None  # (kinds, broken name -> why)
 
@@ -66,6 +67,21 @@ def entry_point_names() -> list[str]:
     """The names registered in the group, sorted, without loading any rig kind's code: what
     `rigctl emulate --help` may list."""
     return sorted({point.name for point in entry_points(group=GROUP)})
+
+
+def default_kind() -> str:
+    """The kind a command uses when it is not told one (`rigctl daemon` without `--rig` or
+    `--bench`, `rigctl plan rrt` without `--rig`): the one the entry-point group `rigctl.default`
+    points at (rigctl's own: the seed papers' six-coil rig), found by its value among the rig
+    kinds' entry points, so no kind's code is loaded."""
+    rigs = {point.value: point.name for point in entry_points(group=GROUP)}
+    for point in entry_points(group=DEFAULT_GROUP):
+        if point.value in rigs:
+            return rigs[point.value]
+    names = entry_point_names()
+    if not names:
+        raise ConfigError("no rig kind is installed (entry points rigctl.rigs): reinstall rigctl")
+    return names[0]
 
 
 def rig_kind(name: str) -> RigKind:

@@ -139,6 +139,10 @@ class RigKind:
     study: StudyHooks | None = None
     """What `rigctl study` needs beyond `bench` and `bench_args` (None: nothing)."""
     plan_models: Mapping[str, Callable[[], type]] = field(default_factory=dict)
+    turn_mm: Callable[[RigConfig | None], float] | None = None
+    """The length (mm) of one whole roll of the kind's agents, for a kind whose global moves must
+    be whole rolls (rolling magnets), from its rig file (None: the kind's defaults); the planners
+    quantise moves to it. None: moves of any length."""
     wall_contact: str | None = None
     """How agents meet walls in the kind's global-moves plans, for the global-input model and its
     planners: "slide" (rolling magnets) or "non-slip" (particles stick); None: it runs none."""

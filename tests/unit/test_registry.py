@@ -95,3 +95,21 @@ def test_the_cli_s_kind_choices_load_no_kind():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_the_default_kind_is_the_one_pyproject_names_and_loads_no_kind():
+    """`rigctl daemon` and `rigctl plan rrt` untold use the kind the `rigctl.default` entry point
+    names (pyproject.toml, read here on its own), found without importing any kind's code."""
+    import subprocess
+    import sys
+    import tomllib
+    from pathlib import Path
+
+    project = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())
+    points = project["project"]["entry-points"]
+    (value,) = points["rigctl.default"].values()
+    expected = next(name for name, target in points["rigctl.rigs"].items() if target == value)
+    code = ("import sys; from rigctl.core.registry import default_kind; print(default_kind()); "
+            "print(any(m.startswith('rigctl.rigs.') for m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == [expected, "False"]

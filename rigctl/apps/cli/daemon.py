@@ -30,7 +30,7 @@ from rigctl.core.errors import (
     ConfigError,
     PlanError,
 )
-from rigctl.core.registry import entry_point_names
+from rigctl.core.registry import default_kind, entry_point_names
 
 if TYPE_CHECKING:
     from rigctl.rigs.guardian import Guardian
@@ -114,7 +114,7 @@ def _serve_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
                                   "says which rig it is: give one of them")
             rig = load_rig(args.rig)
         else:
-            kind = args.bench or "six-coil"
+            kind = args.bench or default_kind()
             tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="rigctl-daemon-bench-"))
             print(f"no --rig given: starting the emulated {kind} bench on loopback "
                   "(nothing real is energised)", file=sys.stderr)

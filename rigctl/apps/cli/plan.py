@@ -30,9 +30,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rigctl.apps.cli.paths import coordinates_are_values, input_file, output_file
-from rigctl.core.config import MagnetSettings, load_rig
+from rigctl.core.config import load_rig
 from rigctl.core.errors import EXIT_NOT_REACHED, EXIT_OK, ConfigError, PlanError
-from rigctl.core.registry import entry_point_names
+from rigctl.core.registry import default_kind, entry_point_names, kinds, rig_kind
 
 if TYPE_CHECKING:  # numba compiles nothing for the commands that do not plan
     from rigctl.plans.checks import WorkspaceSource
@@ -98,7 +98,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
     # the installed kinds; one the planner has no wall contact for is refused by name
     # (`RigKind.wall_contact`, asked by rigctl.plans.checks when the plan is checked)
-    p.add_argument("--rig", choices=entry_point_names(), default="six-coil",
+    p.add_argument("--rig", choices=entry_point_names(), default=default_kind(),
                    help="rig kind: six-coil (robots slide along walls, moves are whole magnet "
                    "turns) or coil-board (robots stick to walls)")
     p.add_argument("--rig-file", metavar="RIG.toml", type=input_file("rig file"),
@@ -280,17 +280,17 @@ def _check_configuration(ws, points: np.ndarray, radii: np.ndarray, gap: float, 
 
 
 def _turn_mm(args: argparse.Namespace) -> float | None:
-    if args.rig != "six-coil":
+    """One whole roll of the kind's agents (its `RigKind.turn_mm`), None for moves of any length."""
+    turn = rig_kind(args.rig).turn_mm
+    if turn is None:
         return None
-    radius = MagnetSettings().radius_mm
+    rig = None
     if args.rig_file:
         try:
             rig = load_rig(args.rig_file)
         except ConfigError as err:
             raise PlanError(f"--rig-file: {err}") from None
-        # a rig file of another kind has no magnets of its own: the default ones, as before
-        radius = getattr(rig, "magnets", MagnetSettings()).radius_mm
-    return 2.0 * math.pi * radius
+    return turn(rig)
 
 
 def _options(args: argparse.Namespace, tree_meta: dict | None):
@@ -478,6 +478,16 @@ def run_coverage(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- plan wall-contact
 
 
+def _non_slip_kind() -> str:
+    """The rig kind whose particles stick to walls (`RigKind.wall_contact`): what seed 004's
+    planner plans for."""
+    sticky = sorted(n for n, k in kinds().items() if k.wall_contact == "non-slip")
+    if len(sticky) != 1:
+        raise PlanError(f"wall-contact: plans for the one installed rig kind whose particles stick "
+                        f"to walls; found {', '.join(sticky) or 'none'}")
+    return sticky[0]
+
+
 def run_wall_contact(args: argparse.Namespace) -> int:
     """`rigctl plan wall-contact`: Alg. 1 of seed 004, the plan written. Returns the exit status."""
     from rigctl.plans.checks import WorkspaceSource
@@ -519,7 +529,7 @@ def run_wall_contact(args: argparse.Namespace) -> int:
     verdict = "solved" if result.solved else "NOT SOLVED"
     name = (f"wall-contact: {verdict}, {len(result.moves)} moves, {result.length:.3f} mm, "
             f"ends {result.error:.3g} mm from the goal" + (", goals swapped" if swapped else ""))
-    _write_plan(output, source, "coil-board", name, starts, chosen, radii, result.moves,
+    _write_plan(output, source, _non_slip_kind(), name, starts, chosen, radii, result.moves,
                 result.states, args.epsilon, 0.0)
     print(f"wall-contact: {verdict}: {len(result.moves)} moves, path {result.length:.3f} mm, "
           f"{result.error:.3g} mm from the goal, {seconds * 1e3:.1f} ms -> {output}",

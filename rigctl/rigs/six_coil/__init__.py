@@ -115,8 +115,19 @@ def _template() -> str:
 
     return (files("rigctl.rigs.six_coil") / "template.toml").read_text()
 
+def _turn_mm(rig: RigConfig | None) -> float:
+    """One whole roll of a rolling magnet: 2 pi r, r from the rig file's [magnets] (or the
+    default magnets for none, or for a rig file of another kind)."""
+    import math
+
+    from rigctl.core.config import MagnetSettings
+
+    return 2.0 * math.pi * (getattr(rig, "magnets", None) or MagnetSettings()).radius_mm
+
+
 KIND = RigKind(
     wall_contact="slide",
+    turn_mm=_turn_mm,
     name="six-coil",
     description="six air-core coils fed by Kepco BOP supplies, overhead camera",
     faults=fault_profile,
