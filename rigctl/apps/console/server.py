@@ -167,6 +167,7 @@ class Console:
         self.camera = CameraScene(rig)
         self.arms = ArmsSketch(self.scene[1])
         self._pages: set[_Page] = set()
+        self._commands: set[asyncio.Task] = set()  # commands in flight (kept until done)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._ready = threading.Event()
@@ -510,7 +511,11 @@ class Console:
                 async for message in ws:
                     if message.type != WSMsgType.TEXT:
                         break
-                    asyncio.create_task(self._command(page, message.data))
+                    # the loop keeps only a weak reference to a task: a command (the e-stop among
+                    # them) is held here until it is done, or it could be collected mid-flight
+                    command = asyncio.create_task(self._command(page, message.data))
+                    self._commands.add(command)
+                    command.add_done_callback(self._commands.discard)
             finally:
                 writer.cancel()
         except TimeoutError:
