@@ -205,7 +205,7 @@ def heal(case: RigCase, backdoor: BackdoorClient) -> None:
 
 def settle_daemon(shared: SharedDaemon, case: RigCase, backdoor: BackdoorClient) -> None:
     """The daemon idle with no run, after whatever the test did: the bench's faults restored,
-    a run still on aborted, a fault or an e-stop reset."""
+    a run still on aborted, a fault or an e-stop reset, every device confirmed safe."""
     heal(case, backdoor)
     rig = shared.rig
     if rig.status()["state"] in RUN_ACTIVE:
@@ -214,6 +214,10 @@ def settle_daemon(shared: SharedDaemon, case: RigCase, backdoor: BackdoorClient)
     if rig.status()["state"] != "idle":
         rig.reset()
     wait_state(rig, "idle", timeout_s=10)
+    # a device a run could not confirm safe (its link was down) is made safe by the daemon once
+    # it answers again; until then the daemon starts no run (`_require_safe`)
+    wait_for(lambda: all(d["health"] != "unsafe" for d in rig.status()["devices"]), 30,
+             "the daemon to confirm every device safe")
 
 
 def alive(pid: int) -> bool:
