@@ -24,6 +24,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
@@ -180,7 +181,8 @@ def daemon_on(bench, runs: Path) -> Iterator[tuple[Any, Any, Path]]:
             daemon.stop()
 
 
-PAIR_WORKSPACE = Path(__file__).resolve().parents[1] / "plans" / "examples" / \
+# the examples are rigctl.plans' (the checkout's plans/ folder; rigctl/plans once installed)
+PAIR_WORKSPACE = Path(find_spec("rigctl.plans").submodule_search_locations[0]) / "examples" / \
     "pair-formation-change-workspace.json"
 
 
