@@ -185,8 +185,9 @@ class SharedDaemon:
 @pytest.fixture(scope="module", params=["daemon", "execute"])
 def owner(bench, request, tmp_path_factory):
     """Who runs the plan on the shared bench: a daemon shared by the module's daemon tests of the
-    case, or (None) a `rigctl execute` of each test's own. A kind's daemon tests run together and
-    the daemon is stopped before its `execute` tests, which need the rig's lock."""
+    case, or (None) a `rigctl execute` of each test's own. pytest runs a kind's daemon tests
+    together (a parameter of module scope): the daemon is up for them only, never while an
+    `execute` test needs the rig's lock."""
     if request.param == "execute":
         yield None
         return
