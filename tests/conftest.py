@@ -23,8 +23,8 @@ import pytest
 TIERS = ("quick", "integration", "e2e", "browser")
 FOLDER_TIER = {"unit": "quick", "integration": "integration", "e2e": "e2e", "browser": "browser"}
 TESTS = Path(__file__).resolve().parent
-# modules whose tests share no bench (function-scoped fixtures) and take long: spread over the
-# workers test by test
+# modules whose tests take long and mostly share no bench: spread over the workers test by test
+# (a test that shares one names its group itself, as test_run_control's per rig kind do)
 SPREAD = {"e2e/test_bench_smoke.py", "e2e/test_run_control.py"}
 # the modules that take longest (wall time summed over their tests, measured with
 # RIGCTL_TEST_CPU), started first so that no worker is left with a long one at the end; the rest
@@ -63,7 +63,17 @@ def tier_of(item: pytest.Item) -> list[str]:
     return [FOLDER_TIER[folder]] if folder in FOLDER_TIER else []
 
 
-def pytest_collection_modifyitems(config, items: list[pytest.Item]) -> None:
+def shares_a_fixture(item: pytest.Item) -> bool:
+    """Whether the test uses a fixture set up once for more tests than itself (module, class or
+    package scope: a started bench): then its module's tests go to one worker, which sets it up
+    once; a session fixture is set up once per worker whatever the grouping."""
+    defs = getattr(item, "_fixtureinfo", None)
+    return defs is not None and any(d.scope in ("module", "class", "package")
+                                    for fixture in defs.name2fixturedefs.values() for d in fixture)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_collection_modifyitems(config, items: list[pytest.Item]):
     wrong = []
     for item in items:
         tiers = tier_of(item)
@@ -73,9 +83,10 @@ def pytest_collection_modifyitems(config, items: list[pytest.Item]) -> None:
             continue
         if item.get_closest_marker(tiers[0]) is None:
             item.add_marker(getattr(pytest.mark, tiers[0]))
-        # xdist (-n, --dist loadgroup): a module's tests go to one worker, so a bench it starts
-        # once serves them all; tests of the modules in SPREAD go to whichever worker is free
-        if item.get_closest_marker("xdist_group") is None and \
+        # xdist (-n, --dist loadgroup): a module's tests that share a fixture (a bench it starts
+        # once) go to one worker, which starts it once; a test that names its group keeps it
+        # (test_run_control: one per rig kind); every other test goes to whichever worker is free
+        if item.get_closest_marker("xdist_group") is None and shares_a_fixture(item) and \
                 Path(item.path).resolve().relative_to(TESTS).as_posix() not in SPREAD:
             item.add_marker(pytest.mark.xdist_group(Path(item.path).stem))
     rank = {stem: i for i, stem in enumerate(LONGEST_FIRST)}
@@ -83,6 +94,16 @@ def pytest_collection_modifyitems(config, items: list[pytest.Item]) -> None:
     if wrong:
         raise pytest.UsageError("every test is in exactly one tier (tests/conftest.py says how): "
                                 + "; ".join(wrong[:10]) + (" ..." if len(wrong) > 10 else ""))
+    yield  # the other plugins' hooks: xdist's worker names each test's group in its node id ...
+    # ... as `_nodeid`, which pytest 9.2 no longer reads (a node's id is `_id`): every group was
+    # ignored and each module's bench started on both workers. Where the two differ, the id
+    # xdist meant is the one its scheduler gets.
+    for item in items:
+        meant = getattr(item, "_nodeid", None)
+        if meant is not None and meant != item.nodeid and hasattr(item, "_id"):
+            from _pytest.nodeid import coerce_node_id
+
+            item._id = coerce_node_id(meant)
 
 
 _tier_time: dict[str, list[float]] = {}  # tier -> [tests, seconds in setup + call + teardown]

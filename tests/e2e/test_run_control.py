@@ -8,6 +8,15 @@ Python firmware emulator and the real firmware in simavr.
 
 Physical safety is read from each emulator's ground truth, not from rigctl: supply currents under
 50 mA, the SyRen outputs the board's wire carries at zero, the arms' joint speeds at rest.
+
+One bench per rig kind serves the module's tests of that kind (starting a bench and a daemon was
+3-9 s of every test's 6-35, at load 5-10), and one daemon on it serves the daemon's tests: each
+test's run is loaded and placed anew (the run places its agents through the backdoor), and after
+each test the run is ended, the bench's faults restored and the daemon reset, then every device
+read safe from the bench's ground truth, so that no test starts on what the one before left
+(`rig_on_bench`). A kind's tests are one xdist group (one worker, one bench); the rest spread.
+The tests that need a bench of their own (SIGINT or SIGTERM to a `rigctl execute` that started
+its bench; an e-stop with no owner) start one.
 """
 
 from __future__ import annotations
@@ -23,7 +32,7 @@ from pathlib import Path
 import pytest
 
 from rigctl.apps.client import DaemonUnreachable, Rig
-from rigctl.apps.testing import wait_for
+from rigctl.apps.testing import descendants, wait_for
 from rigctl.core.config import load_rig
 from rigctl.core.record import read_events
 from rigctl.emulators.backdoor import BackdoorClient
@@ -123,9 +132,141 @@ class Daemon:
         self.log.close()
 
 
-@pytest.fixture(params=list(CASES))
+RUN_ACTIVE = ("running", "paused", "suspended")  # the daemon's states while a run is on
+
+
+def healing(case: RigCase) -> list[dict]:
+    """The backdoor requests that undo what the case's tests break: its fault and lost sensing."""
+    fault = dict(case.fault, kind="restore")
+    return [fault, dict(case.restore)]
+
+
+@pytest.fixture(scope="module",
+                params=[pytest.param(name, marks=pytest.mark.xdist_group(f"run_control-{name}"))
+                        for name in CASES])
 def case(request) -> RigCase:
+    """A rig kind's case; its tests are one xdist group, so one worker starts its bench once."""
     return CASES[request.param]
+
+
+@pytest.fixture(scope="module")
+def bench(case, tmp_path_factory):
+    """(rig file, backdoor) of the case's emulated bench, shared by the module's tests of it."""
+    folder = tmp_path_factory.mktemp("bench")
+    with EmulatedBenchProcess(case.kind, folder / "bench.toml",
+                              extra_args=case.bench_args) as rig_path:
+        with BackdoorClient(load_rig(rig_path).emulation.backdoor) as backdoor:
+            yield rig_path, backdoor
+
+
+class SharedDaemon:
+    """A `rigctl daemon` on the shared bench, and a `Rig` client of it; started again if a test
+    left it past reach (the next test then starts on a fresh one, as it did before)."""
+
+    def __init__(self, rig_path: Path, folder: Path) -> None:
+        self.rig_path, self.folder, self.starts = rig_path, folder, 0
+        self._start()
+
+    def _start(self) -> None:
+        self.starts += 1
+        self.daemon = Daemon(self.rig_path, self.folder / "runs",
+                             self.folder / f"daemon-{self.starts}.log")
+        self.rig = Rig(self.daemon.endpoints["command"])
+
+    def restart(self) -> None:
+        self.close()
+        self._start()
+
+    def close(self) -> None:
+        self.rig.close()
+        self.daemon.close()
+
+
+@pytest.fixture(scope="module", params=["daemon", "execute"])
+def owner(bench, request, tmp_path_factory):
+    """Who runs the plan on the shared bench: a daemon shared by the module's daemon tests of the
+    case, or (None) a `rigctl execute` of each test's own. pytest runs a kind's daemon tests
+    together (a parameter of module scope): the daemon is up for them only, never while an
+    `execute` test needs the rig's lock."""
+    if request.param == "execute":
+        yield None
+        return
+    shared = SharedDaemon(bench[0], tmp_path_factory.mktemp("daemon"))
+    try:
+        yield shared
+    finally:
+        shared.close()
+
+
+def heal(case: RigCase, backdoor: BackdoorClient) -> None:
+    for request in healing(case):
+        request = dict(request)
+        backdoor.request(request.pop("cmd"), **request)
+
+
+def settle_daemon(shared: SharedDaemon, case: RigCase, backdoor: BackdoorClient) -> None:
+    """The daemon idle with no run, after whatever the test did: the bench's faults restored,
+    a run still on aborted, a fault or an e-stop reset, every device confirmed safe."""
+    heal(case, backdoor)
+    rig = shared.rig
+    if rig.status()["state"] in RUN_ACTIVE:
+        rig.abort()
+    wait_for(lambda: rig.status()["run"] is None, 60, "the test's run to end")
+    if rig.status()["state"] != "idle":
+        rig.reset()
+    wait_state(rig, "idle", timeout_s=10)
+    # a device a run could not confirm safe (its link was down) is made safe by the daemon once
+    # it answers again; until then the daemon starts no run (`_require_safe`)
+    wait_for(lambda: all(d["health"] != "unsafe" for d in rig.status()["devices"]), 30,
+             "the daemon to confirm every device safe")
+
+
+def alive(pid: int) -> bool:
+    """Whether process `pid` still runs (a zombie's work is done: whoever reaps it may be late)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def settle_local(local: LocalRun, case: RigCase, backdoor: BackdoorClient) -> None:
+    """The test's `rigctl execute` gone, killed if it still runs (as each test's own bench was
+    before), and everything it had started with it: its guardian, which makes the shared bench
+    safe on seeing its owner gone, has done so and exited before the next test starts."""
+    heal(case, backdoor)
+    proc = local.proc
+    if proc is not None and proc.poll() is None:
+        below = descendants(proc.pid)  # once it is dead, its guardian is no longer below it
+        proc.kill()
+        proc.wait()
+        wait_for(lambda: not any(map(alive, below)), 30,
+                 "the killed run's guardian and children to exit")
+    local.close()
+
+
+@pytest.fixture
+def rig_on_bench(case, bench, owner, tmp_path):
+    """(case, rig file, a backdoor, the run's control: a Rig client of the shared daemon on the
+    shared bench, or a `rigctl execute` on it). After the test, the bench and its owner are as
+    the next test needs them: no run, no fault, every device safe."""
+    rig_path, backdoor = bench
+    if owner is None and case.bench_args:
+        pytest.skip("through rigctl execute once per rig kind (the simavr board: the daemon)")
+    if owner is None:
+        local = LocalRun(case, rig_path, tmp_path / "runs")
+        try:
+            yield case, rig_path, backdoor, local
+        finally:
+            settle_local(local, case, backdoor)
+    else:
+        try:
+            yield case, rig_path, backdoor, owner.rig
+        finally:
+            try:
+                settle_daemon(owner, case, backdoor)
+            except (AssertionError, DaemonUnreachable, TimeoutError):
+                owner.restart()  # past reach: the next test gets a fresh daemon
+    wait_for(lambda: case.safe(backdoor.request("truth")), 10, "every device safe after the test")
 
 
 class LocalRun:
@@ -172,31 +313,6 @@ class LocalRun:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
-
-
-@pytest.fixture(params=["daemon", "execute"])
-def rig_on_bench(case, request, tmp_path):
-    """(case, rig file, a backdoor, the run's control: a Rig client of a daemon on that bench, or
-    a `rigctl execute` on it)."""
-    if request.param == "execute" and case.bench_args:
-        pytest.skip("through rigctl execute once per rig kind (the simavr board: the daemon)")
-    with EmulatedBenchProcess(case.kind, tmp_path / "bench.toml",
-                              extra_args=case.bench_args) as rig_path:
-        backdoor = BackdoorClient(load_rig(rig_path).emulation.backdoor)
-        if request.param == "execute":
-            local = LocalRun(case, rig_path, tmp_path / "runs")
-            try:
-                yield case, rig_path, backdoor, local
-            finally:
-                local.close()
-                backdoor.close()
-            return
-        daemon = Daemon(rig_path, tmp_path / "runs", tmp_path / "daemon.log")
-        try:
-            with backdoor, Rig(daemon.endpoints["command"]) as rig:
-                yield case, rig_path, backdoor, rig
-        finally:
-            daemon.close()
 
 
 def start(rig: Rig | LocalRun, case: RigCase, backdoor) -> None:
@@ -292,8 +408,10 @@ def test_lost_sensing_suspends_the_run_and_it_resumes(rig_on_bench):
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_a_signal_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(case, sig,
+@pytest.mark.parametrize("case_name", list(CASES))
+def test_a_signal_to_rigctl_execute_aborts_with_one_line_and_a_finished_record(case_name, sig,
                                                                                tmp_path):
+    case = CASES[case_name]  # a bench of its own: the one `rigctl execute` starts
     cmd = [sys.executable, "-m", "rigctl", "execute", str(EXAMPLES / case.plan), "--runs",
            str(tmp_path / "runs"), *case.bench_args]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
