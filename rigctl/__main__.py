@@ -2,7 +2,7 @@
 
 import sys
 
-from rigctl.apps.cli.main import main
+from rigctl.apps.cli import main
 
 if __name__ == "__main__":  # not when a spawned worker process imports this module as its main
     sys.exit(main())
