@@ -58,6 +58,7 @@ from rigctl.plans.schema import (
     FieldSequencePlan,
     Segment,
     SequenceComponent,
+    rig_running,
 )
 
 log = logging.getLogger(__name__)
@@ -1053,7 +1054,7 @@ def plan_sequence(
         for a, arm in enumerate(rig.arms)
     ]
     plan = FieldSequencePlan(
-        schema=SCHEMA_ID, kind="field-sequence", rig="depm", name=name, planner=planner,
+        schema=SCHEMA_ID, kind="field-sequence", rig=rig_running("field-sequence"), name=name, planner=planner,
         epm_moment_Am2=rig.moment_Am2, tool_offset_mm=rig.arms[0].model.tool_offset_m * 1e3,
         waypoints=waypoints, k=k, limits=limits_to_plan(rig.limits), sequence=list(sequence),
         t_s=[float(t) for t in times], arms=arms, segments=segments,
@@ -1264,8 +1265,10 @@ def cli(args) -> int:
         from rigctl.core.errors import ConfigError
 
         config = load_rig(args.rig)
-        if getattr(config, "depm", None) is None:
-            raise ConfigError(f"--rig: {args.rig} has no [depm] table (rig kind {config.rig.kind!r})")
+        kind = rig_running("field-sequence")
+        if config.rig.kind != kind:
+            raise ConfigError(f"--rig: {args.rig} is a {config.rig.kind} rig; this planner plans for "
+                              f"{kind} rigs (their arms and magnets)")
         rig = rig_from_settings(config.depm)
     stats = PlanStats()
     started = time.perf_counter()

@@ -40,6 +40,7 @@ from numpy.typing import ArrayLike
 from rigctl.core.config import settings_of
 from rigctl.core.errors import EXIT_NOT_REACHED, EXIT_OK, PlanError
 from rigctl.core.jit import njit
+from rigctl.plans.schema import rig_running
 
 log = logging.getLogger(__name__)
 
@@ -957,10 +958,12 @@ def rig_max_pull(rig, physics: PairPhysics, field_mT: float) -> float:
 
 
 def default_rig():
+    """The emulated bench's rig of the kind that runs pair plans: the cube of coils."""
     from rigctl.core.config import RigInfo, default_six_coil_coils
 
-    return settings_of("six-coil")(rig=RigInfo(kind="six-coil", name="emulated six-coil bench"),
-                     coils=default_six_coil_coils())
+    kind = rig_running("pair-formation")
+    return settings_of(kind)(rig=RigInfo(kind=kind, name=f"emulated {kind} bench"),
+                             coils=default_six_coil_coils())
 
 
 def run_cli(args) -> int:
@@ -992,7 +995,7 @@ def run_cli(args) -> int:
     output = Path(args.output)
     d = physics.body_diameter_mm
     base = {
-        "schema": "rigctl.plan/1", "kind": "pair-formation", "rig": "six-coil",
+        "schema": "rigctl.plan/1", "kind": "pair-formation", "rig": rig_running("pair-formation"),
         "workspace": source.document_for(output),
         "agents": {"body_diameter_mm": d, "moment_Am2": args.moment, "viscosity_Pa_s": args.viscosity},
         "field_mT": args.field_mT, "max_pull_bl_s": round(max_pull, 6),

@@ -66,6 +66,18 @@ def _runs(plan_kind: str):
 
 
 RigName = _runs("global-moves")  # rigs that run global-moves plans
+
+
+def rig_running(plan_kind: str) -> str:
+    """The installed rig kind that runs `plan_kind` plans (a planner writes its plans for it);
+    PlanError when none or several do (then the planner must be told which)."""
+    from rigctl.core.registry import kinds
+
+    able = sorted(n for n, k in kinds().items() if plan_kind in k.plans)
+    if len(able) != 1:
+        raise PlanError(f"no single installed rig kind runs {plan_kind} plans: "
+                        f"{', '.join(able) or 'none'}")
+    return able[0]
 Contact = Literal["slide", "non-slip"]
 
 # Bounds: what a plan may hold, checked before anything is allocated from it, so that no number
