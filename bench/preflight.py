@@ -42,11 +42,9 @@ PLANS = {"six-coil": "fig4-quick.json", "coil-board": "coilboard-disk.json",
 
 def a_device_url(rig: RigConfig) -> str:
     """The URL of the rig's first actuator (a supply, the board, an arm)."""
-    if rig.coils:
-        return rig.coils[0].url
-    if rig.board is not None:
-        return rig.board.url
-    return rig.depm.arm_urls[0]
+    from rigctl.core.registry import rig_kind
+
+    return rig_kind(rig.rig.kind).devices(rig)[0].url
 
 
 def timed(cmd: list[str], repeat: int) -> tuple[float, subprocess.CompletedProcess]:

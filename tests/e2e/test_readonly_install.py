@@ -14,7 +14,6 @@ import shutil
 import subprocess
 import sys
 import sysconfig
-from importlib.util import find_spec
 from pathlib import Path
 
 import pytest
@@ -22,7 +21,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "plans" / "examples"
 # the repository's parts that make the wheel (pyproject's package-dir)
-SOURCES = ["pyproject.toml", "README.md", "rigctl", "drivers", "emulators", "plans"]
+SOURCES = ["pyproject.toml", "README.md", "LICENSE", "MANIFEST.in", "rigctl", "drivers", "emulators", "plans",
+           "firmware"]
 # runs as root (CI) or maps the user to root in a user namespace
 UNSHARE = ["unshare", "--mount", *([] if os.geteuid() == 0 else ["--map-root-user"])]
 
@@ -57,10 +57,10 @@ def install(tmp_path_factory):
             shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
         else:
             shutil.copy2(ROOT / name, src / name)
-    offline = find_spec("setuptools") and find_spec("wheel")  # else the registry's, isolated
+    # built in isolation with the build backend pyproject.toml asks for (setuptools >= 77 for the
+    # SPDX licence), from the registry
     pip = [sys.executable, "-m", "pip", "-q"]
-    subprocess.run([*pip, "wheel", "--no-deps", *(["--no-build-isolation"] if offline else []),
-                    "-w", base / "wheel", src], check=True, capture_output=True)
+    subprocess.run([*pip, "wheel", "--no-deps", "-w", base / "wheel", src], check=True, capture_output=True)
     venv = read_only / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", venv], check=True)
     subprocess.run([*pip, "--python", venv / "bin" / "python", "install", "--no-deps",
