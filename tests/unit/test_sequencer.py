@@ -81,13 +81,3 @@ def test_a_pause_to_cool_finishes_the_move_then_ramps_off_and_back_up_on_resume(
     # a pause now)
     assert take(seq, 4) == [2, 4, 4, 5]
     assert not seq.paused
-
-
-def test_a_pause_now_taken_back_before_it_took_effect_leaves_the_next_pause_a_plain_one():
-    seq = make()
-    assert take(seq, 1) == [1]
-    seq.requests.pause(immediate=True)
-    seq.requests.resume()  # before the stream thread saw the pause
-    seq.requests.pause()
-    # a plain pause: move 0 finishes (samples 2, 3) and the field holds there, no ramp to zero
-    assert take(seq, 4) == [2, 3, 3, 3]
