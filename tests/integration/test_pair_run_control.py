@@ -176,14 +176,16 @@ def test_open_loop_pause_waits_for_the_segment_end_and_resume_plays_the_rest(pla
     plan = json.loads(plan_file.read_text())
     d = plan["agents"]["body_diameter_mm"]
     program_s = sum(s["dt_s"] for s in plan["segments"]) + plan["hold_s"]
-    settings = PairRunSettings(closed_loop=False, timeout_factor=1.0, timeout_extra_s=1.0)
+    # the timeout's margin (1.5 s) is shorter than the pause (3 s) but not so short that a
+    # stream slipping on a loaded machine (CI) ends the run by itself
+    settings = PairRunSettings(closed_loop=False, timeout_factor=1.0, timeout_extra_s=1.5)
     run = Driven(plan_file, bench, tmp_path / "runs", settings=settings).start()
     run.after_cycles(80)
     run.run.pause()
     wait_for(lambda: run.run.state == RunState.PAUSED, 20, "the run to pause")
     start = run.truth()
     separations = []
-    for _ in range(20):  # 2 s: with this pause the run lasts longer than its timeout
+    for _ in range(30):  # 3 s: with this pause the run lasts longer than its timeout
         run.after_cycles(10)
         now = run.truth()
         separations.append(float(np.hypot(*(now[1] - now[0]))) / d)
