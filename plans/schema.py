@@ -49,13 +49,18 @@ log = logging.getLogger(__name__)
 SCHEMA_ID = "rigctl.plan/1"
 
 
+def _kinds_running(plan_kind: str) -> list[str]:
+    """The installed rig kinds whose `plans` include `plan_kind`, sorted (the registry's)."""
+    from rigctl.core.registry import kinds
+
+    return sorted(n for n, k in kinds().items() if plan_kind in k.plans)
+
+
 def _runs(plan_kind: str):
     """A plan's `rig`: an installed rig kind that runs `plan_kind` plans (the registry says)."""
 
     def check(rig: str) -> str:
-        from rigctl.core.registry import kinds
-
-        able = sorted(n for n, k in kinds().items() if plan_kind in k.plans)
+        able = _kinds_running(plan_kind)
         if rig not in able:
             raise PydanticCustomError("rig_kind", "a {plan_kind} plan runs on {able}, not {rig}",
                                       {"plan_kind": plan_kind, "able": " or ".join(able), "rig": repr(rig)})
@@ -71,9 +76,7 @@ RigName = _runs("global-moves")  # rigs that run global-moves plans
 def rig_running(plan_kind: str) -> str:
     """The installed rig kind that runs `plan_kind` plans (a planner writes its plans for it);
     PlanError when none or several do (then the planner must be told which)."""
-    from rigctl.core.registry import kinds
-
-    able = sorted(n for n, k in kinds().items() if plan_kind in k.plans)
+    able = _kinds_running(plan_kind)
     if len(able) != 1:
         raise PlanError(f"no single installed rig kind runs {plan_kind} plans: "
                         f"{', '.join(able) or 'none'}")
