@@ -47,6 +47,7 @@ import numpy as np
 
 from rigctl.core.config import CameraSettings, RigConfig, dump_rig
 from rigctl.core.errors import EXIT_OK, ConfigError
+from rigctl.core.priority import BENCH_NICE_ENV, favour
 from rigctl.emulators.backdoor import json_lines
 from rigctl.emulators.process import READY_PREFIX
 from rigctl.emulators.server import EmulatorServer, Endpoint
@@ -297,20 +298,9 @@ class EmulatedBench:
         return EXIT_OK
 
 
-EMULATOR_NICE_ENV = "RIGCTL_EMULATOR_NICE"
-
-
 def _take_priority() -> None:
-    """The bench's scheduling niceness from RIGCTL_EMULATOR_NICE (e.g. -5), before it starts a
-    thread (Linux keeps a niceness per thread; new threads inherit it). Real supplies, boards and
-    arms answer from processors of their own: on a computer whose cores a test suite (or anything
-    else) keeps busy, a bench at the run's own priority makes the run's 0.25 s reply watchdog
-    measure the bench's starvation instead of the link. Unset: the priority it was started with."""
-    value = os.environ.get(EMULATOR_NICE_ENV)
-    if not value:
-        return
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, int(value))
-    except (OSError, ValueError) as err:
-        print(f"warning: {EMULATOR_NICE_ENV}={value} not taken ({err}); the bench runs at the "
-              "priority it was started with", file=sys.stderr, flush=True)
+    """The bench ahead of ordinary work where the machine permits it (`rigctl.core.priority`;
+    RIGCTL_EMULATOR_NICE for another niceness), before it starts a thread. Real supplies, boards
+    and arms answer from processors of their own: a bench starved by other work makes the run's
+    0.25 s reply watchdog measure the starvation instead of the link."""
+    favour("emulated bench", BENCH_NICE_ENV)

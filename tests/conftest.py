@@ -37,14 +37,11 @@ LONGEST_FIRST = ("test_run_control", "test_bench_smoke", "test_console_six_coil"
 
 
 def pytest_configure(config) -> None:
-    import os
 
-    # The emulated benches the tests start stand for devices with processors of their own: they
-    # run ahead of the workers' own work, so two runs side by side on two cores do not trip a
-    # supply's 0.25 s reply watchdog by starving its emulator (emulators/base.py, docs/testing.md).
-    # Raising priority needs root (CI is root); elsewhere the bench says it kept its own.
-    if os.geteuid() == 0:
-        os.environ.setdefault("RIGCTL_EMULATOR_NICE", "-5")
+    # The emulated benches the tests start take a niceness of -5 and a run's stream and tracking
+    # threads -10 where the machine permits it (CI is root: emulators/base.py, rigctl.core.stream),
+    # so that two runs side by side on two cores do not trip a supply's 0.25 s reply watchdog or
+    # lose the camera by being starved by the workers' own work (docs/testing.md).
     # Compile (or load from numba's on-disk cache) the workspace geometry kernels once, before any
     # test starts an emulator or a re-planning child that would otherwise compile them mid-run.
     from rigctl.plans.workspace import warm_up

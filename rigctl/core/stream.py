@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rigctl.core.priority import favour
+
 log = logging.getLogger(__name__)
 
 SWITCH_INTERVAL_S = 2e-4  # GIL hand-over while streaming; CPython's default is 5e-3
@@ -138,9 +140,14 @@ class StreamLoop:
         self._wake.set()
 
     def run(self, cycle: Callable[[int], bool | None], max_cycles: int | None = None) -> StreamStats:
-        """Run until `cycle` returns False (or `max_cycles` cycles ran)."""
-        with _STREAMING:
-            return self._run(cycle, max_cycles)
+        """Run until `cycle` returns False (or `max_cycles` cycles ran), on the calling thread,
+        favoured over ordinary work where the machine allows it (`rigctl.core.priority`)."""
+        restore = favour("stream thread")
+        try:
+            with _STREAMING:
+                return self._run(cycle, max_cycles)
+        finally:
+            restore()
 
     def _run(self, cycle: Callable[[int], bool | None], max_cycles: int | None) -> StreamStats:
         self._errors = np.empty(max_cycles if max_cycles is not None else 4096)

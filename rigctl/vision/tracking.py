@@ -21,6 +21,7 @@ import numpy as np
 
 from rigctl.core.config import CameraSettings
 from rigctl.core.errors import ConfigError, DeviceTimeout, Disconnected, RigError
+from rigctl.core.priority import favour
 from rigctl.drivers.camera import CameraDriver
 from rigctl.vision.tracker import Tracker
 
@@ -215,6 +216,7 @@ class TrackingLoop:
         return None
 
     def _run(self) -> None:
+        favour("tracking thread")  # the closed loop waits for its frames
         driver = self._driver
         assert driver is not None
         last_t: float | None = None

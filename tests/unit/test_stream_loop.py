@@ -67,3 +67,26 @@ def test_while_a_loop_runs_the_gil_changes_hands_often_and_the_heap_is_frozen():
                for _, interval, frozen in seen), seen
     assert sys.getswitchinterval() == before
     assert gc.get_freeze_count() == 0
+
+
+def test_the_stream_thread_is_favoured_while_it_streams_where_permitted_and_given_back_after():
+    import os
+    import resource
+    import threading
+
+    seen: list[int] = []
+    before: list[int] = []
+
+    def stream() -> None:
+        tid = threading.get_native_id()
+        before.append(os.getpriority(os.PRIO_PROCESS, tid))
+        StreamLoop(1000.0).run(lambda k: seen.append(os.getpriority(os.PRIO_PROCESS, tid)) or k < 2)
+        seen.append(os.getpriority(os.PRIO_PROCESS, tid))
+
+    thread = threading.Thread(target=stream)  # its own thread: this one's niceness is untouched
+    thread.start()
+    thread.join()
+    # niceness -10 is permitted to root, or where RLIMIT_NICE's soft limit reaches 20 - (-10)
+    permitted = os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_NICE)[0] >= 30
+    during = min(before[0], -10) if permitted else before[0]
+    assert seen == [during, during, during, before[0]]

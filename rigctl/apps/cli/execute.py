@@ -84,8 +84,12 @@ def cmd_execute(args: argparse.Namespace) -> int:
         from rigctl.apps.cli.daemon import execute_remote
 
         return execute_remote(args.plan, args.connect, json_out=args.json, quiet=args.quiet)
+    from rigctl.core.priority import favour
     from rigctl.rigs.guardian import Guardian
 
+    # this process streams, tracks and re-plans: ahead of ordinary work where the machine permits
+    # it, before any thread or process (the guardian, the bench) starts and inherits it
+    favour("run")
     # the guardian first: its start overlaps the imports below; it is left last, so a SIGKILL at
     # any point from the lock to the bench's stop leaves it to make the rig safe, stop the bench
     with Guardian("rigctl execute") as guardian:
