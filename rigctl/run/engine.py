@@ -245,7 +245,7 @@ class Run(RunControl):
         started = time.monotonic()
         faults: list[dict] = []
         stats: StreamStats | None = None
-        backdoor = BackdoorClient(rig.emulation.backdoor) if rig.emulation else None
+        backdoor = BackdoorClient.of(rig.emulation) if rig.emulation else None
         ctx = RunContext(rig, record, backdoor, self._say, self.on_frame)
         actuators: Actuators | None = None
         unconfirmed: list[str] | None = None

@@ -115,7 +115,7 @@ def _show_workspace_to_emulated_camera(rig, plan) -> None:
     from rigctl.emulators.backdoor import BackdoorClient
     from rigctl.run.agents import portable_workspace
 
-    with BackdoorClient(rig.emulation.backdoor) as backdoor:
+    with BackdoorClient.of(rig.emulation) as backdoor:
         backdoor.request("floor", workspace=portable_workspace(plan))
     print(f"emulated bench: the workspace of {plan.source} laid on its floor",
           file=sys.stderr)
@@ -278,7 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("kind", choices=entry_point_names(), help="rig kind (the installed ones)")
     p.add_argument("--rig-out", default="bench.toml", type=output_file("rig file"),
                    help="where to write the rig file")
-    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to serve on (default loopback); beyond loopback the backdoor "
+                   "takes only the token written in the rig file (mode 0600)")
     _add_mismatch_flags(p)
     add_coil_error_flags(p)
     _add_bench_flags(p)
