@@ -18,6 +18,7 @@ from rigctl.apps.cli.calibrate_field import (
     add_field_flags,
     cmd_calibrate_field,
 )
+from rigctl.apps.cli.commands import top_parser
 from rigctl.apps.cli.daemon import register as register_daemon
 from rigctl.apps.cli.execute import (
     _add_mismatch_flags,
@@ -202,26 +203,9 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
     return bench_class(args.kind).emulate_cli(args)
 
 
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("rigctl")
-    except PackageNotFoundError:  # run from a checkout that was never installed
-        return "(not installed)"
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="rigctl",
-        description="Run magnetic micro-robot rigs: execute plans on real or emulated hardware, "
-        "validate and write plans, start emulated benches.",
-        epilog="Exit status: 0 success, 1 goal not reached / not solved, 2 bad input (nothing "
-        "energised), 3 device fault. Start with: rigctl execute plans/examples/fig4-two-magnets.json",
-    )
-    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
-    parser.add_argument("--version", action="version", version=f"rigctl {_version()}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    """The whole parser: every command's (`commands.summary_parser` is its top level alone)."""
+    parser, sub = top_parser()
 
     p = sub.add_parser(
         "execute", help="run a plan on a rig (the emulated bench unless --rig names one)",
