@@ -19,7 +19,8 @@ import argparse
 DESCRIPTION = ("Run magnetic micro-robot rigs: execute plans on real or emulated hardware, "
                "validate and write plans, start emulated benches.")
 EPILOG = ("Exit status: 0 success, 1 goal not reached / not solved, 2 bad input (nothing "
-          "energised), 3 device fault. Start with: rigctl execute plans/examples/fig4-two-magnets.json")
+          "energised), 3 device fault. Start with: rigctl execute "
+          "plans/examples/fig4-two-magnets.json")
 
 # each command's one line in `rigctl --help`, in the order the full parser adds them
 COMMANDS = {
