@@ -1,13 +1,14 @@
 """The `rigctl` top level without its commands' modules: the parser's own options, description
 and epilog (one definition, used by the full parser in `rigctl.apps.cli.main` too) and the list of
-commands with their one-line help, so that `rigctl --help`, `rigctl` alone and a misspelt command
-are answered in a few tens of milliseconds instead of the half second the commands' modules (numpy,
+commands with their one-line help, so that `rigctl --help`, `--version` and `rigctl` alone are
+answered in a few tens of milliseconds instead of the half second the commands' modules (numpy,
 pydantic, OpenCV, the planners) take to import.
 
-`named_command(argv)` says whether argv names a command; only when it does not does
-`rigctl.apps.cli.main` skip building the full parser, and then `summary_parser()` answers: every
-argv without a command ends in the top level's help, its version or its usage error, which need
-nothing but the names and lines below. `COMMANDS` repeats the `help=` of each command's
+`command_word(argv)` is the word argv gives as its command, if any; only when there is none does
+`rigctl.apps.cli` skip building the full parser, and then `summary_parser()` answers: an argv
+without a command ends in the top level's help, its version or its usage error, which need nothing
+but the names and lines below. Any word, even one missing here, goes to the full parser, so a
+command added without its line here still runs. `COMMANDS` repeats the `help=` of each command's
 `add_parser` in the order they are added; tests/unit/test_cli_summary.py compares the two parsers'
 help and errors, so a command added, renamed or re-worded without its line here fails there.
 """
@@ -87,13 +88,12 @@ def summary_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def named_command(argv: list[str]) -> str | None:
-    """The command argv names, if it names one (the top level's options take no value: the first
-    word that is not an option is the command)."""
+def command_word(argv: list[str]) -> str | None:
+    """The word argv gives as its command, known or not (the top level's options take no value:
+    the first word that is not an option), None if it gives none."""
     for i, word in enumerate(argv):
         if word == "--":
-            word = argv[i + 1] if i + 1 < len(argv) else ""
-        elif word.startswith("-") and word != "-":
-            continue
-        return word if word in COMMANDS else None
+            return argv[i + 1] if i + 1 < len(argv) else None
+        if not word.startswith("-") or word == "-":
+            return word
     return None
