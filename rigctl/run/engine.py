@@ -201,6 +201,10 @@ class Run(RunControl):
         record = RunRecord(self.runs_dir, getattr(program.plan, "name", None) or "plan")
         record.write_file("plan.json", dump_plan(program.plan))
         snapshot, files = rig.for_record()  # the snapshot names its own copies of the rig's files
+        if snapshot.emulation is not None and snapshot.emulation.backdoor_token is not None:
+            # the bench's secret stays in its own rig file (mode 0600), out of a record others read
+            snapshot = snapshot.model_copy(update={"emulation": snapshot.emulation.model_copy(
+                update={"backdoor_token": None})})
         for name, text in files.items():
             record.write_file(name, text)
         record.write_file("rig.toml", dump_rig(snapshot))

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import socket
 import stat
+from pathlib import Path
 
 import pytest
 
@@ -16,6 +17,7 @@ from rigctl.core.config import load_rig
 from rigctl.core.errors import DeviceError
 from rigctl.core.transport import open_transport
 from rigctl.emulators.backdoor import BackdoorClient
+from rigctl.emulators.bench import SixCoilBench
 from rigctl.emulators.depm import DepmBench
 from rigctl.emulators.process import EmulatedBenchProcess
 
@@ -78,3 +80,27 @@ def test_on_loopback_the_backdoor_needs_no_token():
     with DepmBench() as bench:
         assert bench.token is None and bench.rig.emulation.backdoor_token is None
         assert raw(bench.backdoor.url, {"cmd": "ping"}) == {"ok": True}
+
+
+def test_a_run_on_a_bench_beyond_loopback_uses_the_token_and_records_none(tmp_path):
+    """The engine's own backdoor client (placing the robots, reading ground truth) is served on a
+    tokened bench; the run record's copy of the rig file leaves the token out."""
+    from rigctl.plans.schema import parse_plan
+    from rigctl.rigs.six_coil.global_moves import execute_plan
+
+    # fig4-quick's first move cut to 10 mm: a second of rolling
+    document = json.loads((Path(__file__).resolve().parents[2] / "plans" / "examples"
+                           / "fig4-quick.json").read_text())
+    document.update(moves=[[0.0, -10.0]], expected=[[[220.0, 230.0], [100.0, 230.0]]])
+    for agent, goal in zip(document["agents"], document["expected"][0]):
+        agent["goal"] = goal
+    plan = parse_plan(document, "fig4-quick, one short move")
+    with SixCoilBench(host=beyond_loopback()) as bench:
+        summary = execute_plan(plan, bench.rig, runs_dir=tmp_path, progress_out=None,
+                               closed_loop=False)
+        token = bench.token
+    assert summary.positions_from != "unknown" and not summary.faults
+    (recorded,) = tmp_path.glob("*/rig.toml")
+    emulation = load_rig(recorded).emulation
+    assert emulation is not None and emulation.backdoor_token is None
+    assert token not in recorded.read_text()
