@@ -10,7 +10,10 @@ its backdoor commands go into `self.commands`. `self.clock` is a `SimClock`: sim
 real monotonic seconds times the speed factor, and every model of the bench steps from it.
 
 Backdoor (JSON lines over TCP at the rig file's `emulation.backdoor`; one request per line, one
-reply per line, `{"ok": true, ...}` or `{"ok": false, "error": "..."}`). Every bench answers:
+reply per line, `{"ok": true, ...}` or `{"ok": false, "error": "..."}`). A bench whose host is not
+loopback makes a token when it is built (`token`) and refuses every request without it
+(`emulators/backdoor.py`); its rig file's `[emulation] backdoor_token` carries it, and `rigctl
+emulate` writes that file mode 0600. Every bench answers:
 - `{"cmd": "ping"}`;
 - `{"cmd": "help"}`: `{"commands": [...]}`, the names in its table (an unknown command's error
   lists them too);
@@ -48,6 +51,7 @@ import numpy as np
 from rigctl.core.config import CameraSettings, RigConfig, dump_rig
 from rigctl.core.errors import EXIT_OK, ConfigError
 from rigctl.core.priority import BENCH_NICE_ENV, favour
+from rigctl.core.tokens import new_token
 from rigctl.emulators.backdoor import json_lines
 from rigctl.emulators.process import READY_PREFIX
 from rigctl.emulators.server import EmulatorServer, Endpoint
@@ -133,6 +137,8 @@ class EmulatedBench:
 
     def __init__(self, *, host: str = "127.0.0.1", speed: float = 1.0) -> None:
         self.host = host
+        # the backdoor's token: only beyond loopback (the console's rule for watching)
+        self.token: str | None = None if _loopback(host) else new_token()
         self.server = EmulatorServer()
         self.clock = SimClock(speed)
         self.rig: RigConfig | None = None
@@ -147,9 +153,13 @@ class EmulatedBench:
         self.server.start()
         try:
             self.clock = SimClock(self.clock.speed)  # simulated time starts with the bench
-            self.backdoor = self.server.serve_lines_tcp(json_lines(self.command), name="backdoor",
-                                                        host=self.host)
-            self.rig = self._serve()
+            self.backdoor = self.server.serve_lines_tcp(json_lines(self.command, token=self.token),
+                                                        name="backdoor", host=self.host)
+            rig = self._serve()
+            if self.token is not None and rig.emulation is not None:
+                rig = rig.model_copy(update={"emulation": rig.emulation.model_copy(
+                    update={"backdoor_token": self.token})})
+            self.rig = rig
             if self.tick_s is not None:
                 self.server.every(self.tick_s, self.advance)
         except BaseException:
@@ -275,9 +285,10 @@ class EmulatedBench:
         """`rigctl emulate KIND --rig-out F`: serve the bench until SIGTERM or Ctrl-C; the rig
         file (with this process's pid) written and `READY <rig file>` on stdout once it is up."""
         if not _loopback(args.host):
-            print(f"warning: serving the emulated devices and the backdoor on {args.host}: any "
-                  "host that reaches it can drive them and inject faults (the default, "
-                  "127.0.0.1, keeps them on this machine)", file=sys.stderr, flush=True)
+            print(f"warning: serving the emulated devices on {args.host}: any host that reaches "
+                  "them can drive them (the default, 127.0.0.1, keeps them on this machine); the "
+                  f"backdoor takes only the token written in {args.rig_out} (mode 0600)",
+                  file=sys.stderr, flush=True)
         _take_priority()
         bench = cls.from_args(args)
         stop = threading.Event()
@@ -288,7 +299,7 @@ class EmulatedBench:
             assert bench.rig is not None and bench.rig.emulation is not None
             rig = bench.rig.model_copy(update={"emulation": bench.rig.emulation.model_copy(
                 update={"pid": os.getpid()})})
-            rig_out.write_text(dump_rig(rig))
+            _write_rig(rig_out, dump_rig(rig), private=bench.token is not None)
             print(f"{READY_PREFIX}{rig_out.resolve()}", flush=True)
             lines = [f"emulated {bench.title} up; rig file: {rig_out}; stop with Ctrl-C",
                      *(f"  {what:<10} {url}" for what, url in bench.served(rig)),
@@ -296,6 +307,18 @@ class EmulatedBench:
             print("\n".join(lines), file=sys.stderr, flush=True)
             stop.wait()
         return EXIT_OK
+
+
+def _write_rig(path: Path, text: str, *, private: bool) -> None:
+    """Write the rig file; `private` (it holds the backdoor's token): readable by its owner only,
+    from the first byte on, a file already there included."""
+    if not private:
+        path.write_text(text)
+        return
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as out:
+        os.fchmod(fd, 0o600)  # a file that existed kept its mode through O_CREAT
+        out.write(text)
 
 
 def _take_priority() -> None:

@@ -283,7 +283,7 @@ class RigCampaign:
             rig = load_rig(bench_path)
             self.rig_path = self.folder / "rig.toml"
             self.rig_path.write_text(dump_rig(self.profile.tune(rig)))
-            self.backdoor = BackdoorClient(rig.emulation.backdoor, timeout_s=BACKDOOR_TIMEOUT_S)
+            self.backdoor = BackdoorClient.of(rig.emulation, timeout_s=BACKDOOR_TIMEOUT_S)
             self._stack.callback(lambda: self.backdoor.close())
             self.faults = campaign_faults(bench_faults(self),
                                           all_devices=self.all_devices)
@@ -340,9 +340,9 @@ class RigCampaign:
             try:
                 return self.backdoor.request(cmd, **args)
             except (DeviceTimeout, Disconnected, ValueError):  # ValueError: a torn reply line
-                url = self.backdoor.url
+                url, token = self.backdoor.url, self.backdoor.token
                 self.backdoor.close()
-                self.backdoor = BackdoorClient(url, timeout_s=BACKDOOR_TIMEOUT_S)
+                self.backdoor = BackdoorClient(url, timeout_s=BACKDOOR_TIMEOUT_S, token=token)
                 if attempt == 2:
                     raise
         raise AssertionError("unreachable")

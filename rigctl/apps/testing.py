@@ -175,7 +175,7 @@ def daemon_on(bench, runs: Path) -> Iterator[tuple[Any, Any, Path]]:
         daemon.start_thread()
         try:
             with Rig(daemon.endpoints.command, timeout_s=10.0) as rig, \
-                    BackdoorClient(bench.rig.emulation.backdoor) as backdoor:
+                    BackdoorClient.of(bench.rig.emulation) as backdoor:
                 yield rig, backdoor, runs
         finally:
             daemon.stop()

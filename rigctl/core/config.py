@@ -352,6 +352,9 @@ class Emulation(_Strict):
     """Present only in rig files written by `rigctl emulate`: where the bench's backdoor is."""
 
     backdoor: DeviceUrl = Field(description="tcp://host:port of the bench's test backdoor")
+    backdoor_token: str | None = Field(
+        default=None, description="the backdoor's token, written by a bench serving beyond "
+        "loopback (the rig file is then mode 0600); every backdoor request carries it")
     pid: int | None = None
     # How the emulated world departs from the planner's model (`rigctl emulate --slip ...`).
     slip: Annotated[float, Field(gt=0, description="distance per turn x slip (pair world: speed "

@@ -6,26 +6,33 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from rigctl.core.errors import RigError
 from rigctl.emulators.backdoor import BackdoorClient
-from rigctl.plans.schema import Plan
+from rigctl.plans.schema import FieldSequencePlan, Plan
 from rigctl.run.summary import AgentResult
+
+if TYPE_CHECKING:
+    from rigctl.run.engine import RunContext
 
 log = logging.getLogger(__name__)
 
 
-def portable_workspace(plan: Plan) -> dict:
+def portable_workspace(plan: Plan) -> dict[str, Any]:
     """The plan's workspace as JSON for another process: an image path made absolute."""
+    if isinstance(plan, FieldSequencePlan):  # the arms' plans: a field at one point, no floor
+        raise ValueError(f"a {plan.kind} plan has no workspace to lay down")
     workspace = plan.workspace.model_dump(mode="json", exclude_none=True)
     if "image" in workspace and plan.base_dir is not None:
         workspace["image"] = str((Path(plan.base_dir) / workspace["image"]).resolve())
     return workspace
 
 
-def place_agents(ctx, plan: Plan, agents: list[dict], **extra: object) -> None:
+def place_agents(ctx: RunContext, plan: Plan, agents: list[dict[str, Any]],
+                 **extra: object) -> None:
     """On an emulated bench (`ctx.backdoor`, a `RunContext`'s): put `agents` ({"position": [x, y]
     mm, "radius": mm}) in the plan's workspace and record where; nothing without a bench."""
     if ctx.backdoor is None:
@@ -41,7 +48,7 @@ def truth_of(backdoor: BackdoorClient | None) -> np.ndarray:
     return np.array(backdoor.request("truth")["agents"], dtype=float)
 
 
-def read_truth(backdoor: BackdoorClient | None) -> dict | None:
+def read_truth(backdoor: BackdoorClient | None) -> dict[str, Any] | None:
     """The bench's whole `truth` answer, None without a bench or if it failed (logged): a run
     that ends must not fail for want of it."""
     if backdoor is None:
@@ -53,7 +60,8 @@ def read_truth(backdoor: BackdoorClient | None) -> dict | None:
         return None
 
 
-def agent_results(goals_mm: np.ndarray, camera_mm: np.ndarray | None, truth: dict | None, *,
+def agent_results(goals_mm: np.ndarray, camera_mm: np.ndarray | None,
+                  truth: dict[str, Any] | None, *,
                   scale_mm: float = 1.0, unit: str = "mm") -> tuple[list[AgentResult], str]:
     """Each agent's final position and error against its goal (goals, camera: (n, 2) mm; truth:
     the bench's answer, `read_truth`; errors in `unit`, `scale_mm` mm each), and where the
@@ -64,7 +72,7 @@ def agent_results(goals_mm: np.ndarray, camera_mm: np.ndarray | None, truth: dic
     beside = truth_mm if camera_mm is not None else None
     goals = np.asarray(goals_mm, dtype=float)
 
-    def errors(p: np.ndarray | None) -> list:
+    def errors(p: np.ndarray | None) -> list[float | None]:
         return [None] * len(goals) if p is None else [
             round(float(e) / scale_mm, 4) for e in np.hypot(*(np.asarray(p) - goals).T)]
 

@@ -16,13 +16,15 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from rigctl.core.config import RigConfig, dump_rig
+from rigctl.core.config import ExposurePoint, RigConfig, dump_rig
 from rigctl.core.errors import LimitError
 from rigctl.physics.thermal import Windings, first_crossing, rest_to_pass, winding_temperatures
 
@@ -110,7 +112,7 @@ class Certificate:
     def failed(self) -> list[Check]:
         return [c for c in self.checks if not c.passed]
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         out = asdict(self)
         out["passed"] = self.passed
         return out
@@ -140,7 +142,7 @@ def certify(rig: RigConfig, plan_kind: str, plan_name: str, checks: Sequence[Che
                        list(checks))
 
 
-def summary_line(certificate: dict | None) -> str:
+def summary_line(certificate: dict[str, Any] | None) -> str:
     """One line for a report: the verdict, how many checks, the tightest one (smallest margin
     relative to its limit), the rig file's hash; for a record without one, that it has none."""
     if certificate is None:
@@ -155,10 +157,8 @@ def summary_line(certificate: dict | None) -> str:
     return line + f"; rig file sha256 {str(certificate.get('rig_hash'))[:12]}"
 
 
-def read_certificate(run_dir) -> dict | None:
+def read_certificate(run_dir: str | Path) -> dict[str, Any] | None:
     """A run record's certificate as written, or None (a record from before certificates)."""
-    from pathlib import Path
-
     path = Path(run_dir) / "certificate.json"
     return json.loads(path.read_text()) if path.is_file() else None
 
@@ -167,7 +167,8 @@ def read_certificate(run_dir) -> dict | None:
 
 
 def heating_checks(currents_A: np.ndarray, rate_hz: float, windings: Windings, *,
-                   move_ends: Sequence[int], margin: float, describe=None,
+                   move_ends: Sequence[int], margin: float,
+                   describe: Callable[[int], str] | None = None,
                    rest_key: str = "field.rest_s") -> tuple[list[Check], np.ndarray]:
     """One winding-temperature check per coil for a current program (T, n) A at `rate_hz`, its
     Joule power raised by `margin` (the closed loop's corrections); returns the checks and the
@@ -226,7 +227,7 @@ def size_checks(samples: int, max_samples: int, duration_s: float | None,
     return checks
 
 
-def exposure_checks(points: Sequence, times_s: np.ndarray, centres_m: np.ndarray,
+def exposure_checks(points: Sequence[ExposurePoint], times_s: np.ndarray, centres_m: np.ndarray,
                     moments_Am2: np.ndarray, limit_mT: float) -> list[Check]:
     """The static field of dipoles at each named point (`ExposurePoint`: name, position_mm)
     along a trajectory: centres (T, A, 3) m, moments (T, A, 3) A m^2; the peak |B| against

@@ -10,7 +10,7 @@ import threading
 import time
 from collections.abc import Callable
 from enum import Enum
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rigctl.core.errors import RigError
 from rigctl.core.record import RunRecord
@@ -42,10 +42,11 @@ class RunControl:
     finished on the stream thread. A run calls `_init_control` in its constructor, sets `record`,
     `stream_loop` and `_supplies` as it goes, and calls `_finish_estop` from its stream cycle."""
 
-    def _init_control(self, on_state: Callable[[RunState, dict], None] | None) -> None:
+    def _init_control(self, on_state: Callable[[RunState, dict[str, Any]], None] | None) -> None:
         self.on_state = on_state
         self.state = RunState.PREPARED
-        self.state_info: dict = {}  # what the last state change said (why suspended, which device)
+        # what the last state change said (why suspended, which device)
+        self.state_info: dict[str, Any] = {}
         self.record: RunRecord | None = None
         self.stream_loop: StreamLoop | None = None  # while streaming: its timing, for telemetry
         self._estop = threading.Event()
@@ -101,7 +102,7 @@ class RunControl:
                      stream_zeroed_after_request_s=round(done - asked, 6),
                      direct=direct is not None)
 
-    def _stopped_by(self, err: RigError, record: RunRecord, faults: list[dict]) -> None:
+    def _stopped_by(self, err: RigError, record: RunRecord, faults: list[dict[str, Any]]) -> None:
         """A device error ended the run: a fault (recorded, added to `faults`, state faulted),
         unless the e-stop caused it (switching on after it latched, say)."""
         if self._estop.is_set():
@@ -112,7 +113,7 @@ class RunControl:
         log.error("run stopped: %s", err)
         self._set_state(RunState.FAULTED, device=err.device, reason=str(err))
 
-    def _end_state(self, faults: list[dict], *, aborted: bool,
+    def _end_state(self, faults: list[dict[str, Any]], *, aborted: bool,
                    gave_up: RigError | None = None, abort_reason: str | None = None) -> None:
         """The final state once the supplies are safe: an e-stop, the closed loop giving up
         (`gave_up`) or an abort, each also added to `faults`; done when nothing went wrong."""

@@ -39,7 +39,7 @@ from rigctl.run.actuators import Actuators
 from rigctl.run.certificate import Certificate, Check, certify
 from rigctl.run.control import EStopped, RunControl, RunState
 from rigctl.run.interruptions import HoldLimit
-from rigctl.run.summary import RunSummary
+from rigctl.run.summary import AgentResult, RunSummary
 
 log = logging.getLogger(__name__)
 
@@ -67,13 +67,14 @@ class Outcome:
     """What the program reports once the actuators are safe: each agent's result, whether the
     goal was reached, where the positions came from, and the rig's own metrics."""
 
-    agents: list = field(default_factory=list)
+    agents: list[AgentResult] = field(default_factory=list)
     reached: bool = False
     positions_from: str = "unknown"
     tolerance_mm: float | None = None
-    metrics: dict = field(default_factory=dict)
+    metrics: dict[str, Any] = field(default_factory=dict)
     replans: int = 0  # closed loop: re-plans from the camera
-    tracking: dict | None = None  # closed loop: frames, lost frames, tracker against truth
+    # closed loop: frames, lost frames, tracker against truth
+    tracking: dict[str, Any] | None = None
     tolerance_unit: str = "mm"
     details: list[str] = field(default_factory=list)  # lines the summary shows of the metrics
     gave_up: RigError | None = None  # the closed loop gave up (a fault of the run, not a device)
@@ -93,7 +94,7 @@ class RunContext:
 
 class RigProgram(Protocol):
     plan: Any
-    info: dict  # what `load` and `status` tell of it: name, size, planned duration
+    info: dict[str, Any]  # what `load` and `status` tell of it: name, size, planned duration
     rate_hz: float
     late: str  # "slip" or "skip"
     n_moves: int
@@ -140,7 +141,7 @@ class Run(RunControl):
     def __init__(self, program: RigProgram, rig: RigConfig, connect: Callable[[RigConfig], Actuators],
                  *, runs_dir: str | Path = "runs", progress_out: TextIO | None = None,
                  on_cycle: Callable[[int, int, np.ndarray, np.ndarray], None] | None = None,
-                 on_state: Callable[[RunState, dict], None] | None = None,
+                 on_state: Callable[[RunState, dict[str, Any]], None] | None = None,
                  on_frame: Callable[[Any, Any], None] | None = None,
                  on_winding: Callable[[float, list[float], str], None] | None = None,
                  winding_start_C: Sequence[float] | None = None) -> None:
@@ -200,6 +201,10 @@ class Run(RunControl):
         record = RunRecord(self.runs_dir, getattr(program.plan, "name", None) or "plan")
         record.write_file("plan.json", dump_plan(program.plan))
         snapshot, files = rig.for_record()  # the snapshot names its own copies of the rig's files
+        if snapshot.emulation is not None and snapshot.emulation.backdoor_token is not None:
+            # the bench's secret stays in its own rig file (mode 0600), out of a record others read
+            snapshot = snapshot.model_copy(update={"emulation": snapshot.emulation.model_copy(
+                update={"backdoor_token": None})})
         for name, text in files.items():
             record.write_file(name, text)
         record.write_file("rig.toml", dump_rig(snapshot))
@@ -210,7 +215,8 @@ class Run(RunControl):
                      rig_sha256=self.certificate.rig_hash)
         return record
 
-    def _to_safe(self, actuators: Actuators, record: RunRecord, faults: list[dict]) -> list[str]:
+    def _to_safe(self, actuators: Actuators, record: RunRecord,
+                 faults: list[dict[str, Any]]) -> list[str]:
         """Ramp every actuator down (at once after an e-stop) and close it; the devices not
         confirmed safe, tried again, are returned, recorded and added to `faults`."""
         # an e-stop during this ramp cuts it short (the drivers latch at zero)
@@ -243,9 +249,9 @@ class Run(RunControl):
         program, rig = self.program, self.rig
         record = self.record = self._open_record()
         started = time.monotonic()
-        faults: list[dict] = []
+        faults: list[dict[str, Any]] = []
         stats: StreamStats | None = None
-        backdoor = BackdoorClient(rig.emulation.backdoor) if rig.emulation else None
+        backdoor = BackdoorClient.of(rig.emulation) if rig.emulation else None
         ctx = RunContext(rig, record, backdoor, self._say, self.on_frame)
         actuators: Actuators | None = None
         unconfirmed: list[str] | None = None
@@ -298,7 +304,8 @@ class Run(RunControl):
         if refused is not None:
             faults.append({"device": refused.device, "reason": str(refused), "kind": "Refused"})
         self._end_state(faults, aborted=aborted or refused is not None, gave_up=outcome.gave_up,
-                        abort_reason=self._abort_reason or (refused and f"refused: {refused}"))
+                        abort_reason=self._abort_reason or (
+                            None if refused is None else f"refused: {refused}"))
         summary = RunSummary(
             reached=outcome.reached and not faults, agents=outcome.agents, run=str(record.path),
             duration_s=time.monotonic() - started, positions_from=outcome.positions_from,
@@ -420,7 +427,7 @@ class _HeatWatch:
         self.run, self.record = run, record
         windings = actuators.windings
         self.monitor = None if windings is None else WindingMonitor(windings, run.winding_start_C)
-        if self.monitor is None:
+        if windings is None:
             return
         self.every = max(1, round(rate_hz / 10))  # ten rows a second
         self.series = record.open_series(

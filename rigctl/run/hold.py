@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict
 
 from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError, RigError
+from rigctl.run.certificate import Check
 from rigctl.run.engine import Outcome, RunContext, Step
 
 CANNOT_PAUSE = "a manual hold cannot be paused: release it"
@@ -56,7 +57,7 @@ class HoldRequest:
     None: the rest is zero, where the outputs start and where a release ramps to. `step`: the
     setpoints are whole multiples of it (the board's SyRen units); 0: any value."""
 
-    target: dict
+    target: dict[str, Any]
     setpoints: np.ndarray
     connect: Callable[[RigConfig], Any]
     rate_hz: float
@@ -81,10 +82,11 @@ def ramp(start: np.ndarray, target: np.ndarray, ramp_s: float, rate_hz: float) -
     last the target itself: what `HoldProgram` streams when no cycle is late."""
     start, target = np.asarray(start, dtype=float), np.asarray(target, dtype=float)
     n = ramp_samples(ramp_s, rate_hz)
-    return start + (target - start) * (np.arange(1, n + 1) / n)[:, None]
+    steps: np.ndarray = start + (target - start) * (np.arange(1, n + 1) / n)[:, None]
+    return steps
 
 
-def target_values(target: dict, key: str, shape: tuple[int, ...], rig_kind: str,
+def target_values(target: dict[str, Any], key: str, shape: tuple[int, ...], rig_kind: str,
                   unit: str) -> np.ndarray:
     """The request's one entry `key` as finite floats of `shape`; ConfigError saying what a hold
     on this rig takes."""
@@ -116,7 +118,7 @@ class HoldProgram:
         self.info = {"name": "hold", "target": request.target, "ramp_s": plan.ramp_s}
         self._lock = threading.Lock()
         # the next target, taken by the stream thread: (target, setpoints or None to release, ramp)
-        self._asked: tuple[dict | None, np.ndarray | None, float] | None = (
+        self._asked: tuple[dict[str, Any] | None, np.ndarray | None, float] | None = (
             request.target, request.setpoints, plan.ramp_s)
         self._aborted = False
         self._ctx: RunContext | None = None
@@ -128,7 +130,7 @@ class HoldProgram:
         self.retargets = -1  # the first target is not a retarget
 
     # -- control, from any thread ---------------------------------------------------------------
-    def retarget(self, target: dict, setpoints: Any, ramp_s: float) -> None:
+    def retarget(self, target: dict[str, Any], setpoints: Any, ramp_s: float) -> None:
         """Ramp from the setpoints of the moment to `setpoints` over `ramp_s`, then hold them."""
         with self._lock:
             self._asked = (target, np.asarray(setpoints, dtype=float), ramp_s)
@@ -156,7 +158,7 @@ class HoldProgram:
         return self._aborted
 
     # -- the run --------------------------------------------------------------------------------
-    def checks(self) -> list:
+    def checks(self) -> list[Check]:
         """None of its own: the rig's hold request checked its limits, and the run's live winding
         model watches the coils' heating while it holds."""
         return []

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from typing import Any
 
 from rigctl.core.errors import DeviceTimeout
 
@@ -44,7 +45,7 @@ class RequestedControl:
 
     requests: Requests
 
-    def connected(self, actuators) -> None:
+    def connected(self, actuators: Any) -> None:  # each rig kind's own (an arm pair, supplies)
         pass
 
     def pause(self, immediate: bool = False) -> None:

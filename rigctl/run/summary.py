@@ -18,7 +18,7 @@ class AgentResult:
     truth_error_mm: float | None = None  # closed loop on an emulator: ground truth's error too
     unit: str = "mm"
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         out = {"final": self.final, "goal": self.goal, f"error_{self.unit}": self.error_mm}
         if self.truth_error_mm is not None:
             out[f"truth_error_{self.unit}"] = self.truth_error_mm
@@ -37,13 +37,13 @@ class RunSummary:
     duration_s: float
     positions_from: str
     tolerance_mm: float | None
-    faults: list[dict] = field(default_factory=list)
-    stream: dict | None = None
+    faults: list[dict[str, Any]] = field(default_factory=list)
+    stream: dict[str, Any] | None = None
     replans: int = 0
-    tracking: dict | None = None  # closed loop: tracked vs ground truth, lost frames
+    tracking: dict[str, Any] | None = None  # closed loop: tracked vs ground truth, lost frames
     safe: bool = True  # every device confirmed its safe state at the end
     unsafe_devices: list[str] = field(default_factory=list)  # ... all but these
-    metrics: dict = field(default_factory=dict)
+    metrics: dict[str, Any] = field(default_factory=dict)
     state: str | None = None
     rig_kind: str | None = None
     plan_kind: str | None = None
@@ -51,7 +51,7 @@ class RunSummary:
     details: list[str] = field(default_factory=list)
     refused: str | None = None  # refused before anything was energised (exit 2), and why
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {
             "reached": self.reached,
             "state": self.state,
@@ -75,7 +75,7 @@ class RunSummary:
         }
 
 
-def summary_from_dict(data: dict) -> RunSummary:
+def summary_from_dict(data: dict[str, Any]) -> RunSummary:
     """The summary a record or the daemon gave as JSON (`RunSummary.as_dict`), as a RunSummary."""
     unit = next((k[len("tolerance_"):] for k in data if k.startswith("tolerance_")), "mm")
     agents = []

@@ -212,8 +212,9 @@ def test_an_emulated_bench_beyond_loopback_is_served_with_a_warning(tmp_path):
                               "0.0.0.0", "--rig-out", str(tmp_path / "b.toml")],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert bench.stderr.readline().startswith("warning: serving the emulated devices and "
-                                                  "the backdoor on 0.0.0.0")
+        warning = bench.stderr.readline()
+        assert warning.startswith("warning: serving the emulated devices on 0.0.0.0")
+        assert "the backdoor takes only the token" in warning
         assert bench.stdout.readline().startswith("READY ")
     finally:
         bench.terminate()

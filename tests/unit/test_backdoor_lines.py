@@ -27,3 +27,15 @@ def test_bad_lines_and_failing_commands_are_answered_not_raised() -> None:
     ):
         reply = json.loads(handle(line))
         assert reply["ok"] is False and reply["error"].startswith(expected), (line, reply)
+
+
+def test_with_a_token_only_a_request_carrying_it_is_run() -> None:
+    ran: list[dict] = []
+    handle = json_lines(lambda request: ran.append(request) or {}, token="s3cret-token")
+    for line in ('{"cmd": "ping"}', '{"cmd": "ping", "token": "s3cret-toke"}',
+                 '{"cmd": "ping", "token": null}', '{"cmd": "ping", "token": ["s3cret-token"]}'):
+        reply = json.loads(handle(line))
+        assert reply["ok"] is False and reply["error"].startswith("refused: "), line
+    assert ran == []
+    assert json.loads(handle('{"cmd": "ping", "token": "s3cret-token"}')) == {"ok": True}
+    assert ran == [{"cmd": "ping"}]  # the token is the backdoor's, not a command's argument

@@ -70,7 +70,7 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
         from rigctl.emulators.backdoor import BackdoorClient
 
         half = DEFAULT_GRID_HALF_MM if args.grid_mm is None else args.grid_mm
-        with BackdoorClient(rig.emulation.backdoor) as backdoor:
+        with BackdoorClient.of(rig.emulation) as backdoor:
             backdoor.request("probe", points_mm=probe_grid_mm(half).tolist())
         _say(args, f"emulated bench: probe array on a 3 x 3 x 3 grid of +-{half:g} mm")
     with RigLock(drawn, "rigctl calibrate field"):

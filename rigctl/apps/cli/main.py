@@ -18,6 +18,7 @@ from rigctl.apps.cli.calibrate_field import (
     add_field_flags,
     cmd_calibrate_field,
 )
+from rigctl.apps.cli.commands import top_parser
 from rigctl.apps.cli.daemon import register as register_daemon
 from rigctl.apps.cli.execute import (
     _add_mismatch_flags,
@@ -115,7 +116,7 @@ def _show_workspace_to_emulated_camera(rig, plan) -> None:
     from rigctl.emulators.backdoor import BackdoorClient
     from rigctl.run.agents import portable_workspace
 
-    with BackdoorClient(rig.emulation.backdoor) as backdoor:
+    with BackdoorClient.of(rig.emulation) as backdoor:
         backdoor.request("floor", workspace=portable_workspace(plan))
     print(f"emulated bench: the workspace of {plan.source} laid on its floor",
           file=sys.stderr)
@@ -202,26 +203,9 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
     return bench_class(args.kind).emulate_cli(args)
 
 
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("rigctl")
-    except PackageNotFoundError:  # run from a checkout that was never installed
-        return "(not installed)"
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="rigctl",
-        description="Run magnetic micro-robot rigs: execute plans on real or emulated hardware, "
-        "validate and write plans, start emulated benches.",
-        epilog="Exit status: 0 success, 1 goal not reached / not solved, 2 bad input (nothing "
-        "energised), 3 device fault. Start with: rigctl execute plans/examples/fig4-two-magnets.json",
-    )
-    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
-    parser.add_argument("--version", action="version", version=f"rigctl {_version()}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    """The whole parser: every command's (`commands.summary_parser` is its top level alone)."""
+    parser, sub = top_parser()
 
     p = sub.add_parser(
         "execute", help="run a plan on a rig (the emulated bench unless --rig names one)",
@@ -278,7 +262,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("kind", choices=entry_point_names(), help="rig kind (the installed ones)")
     p.add_argument("--rig-out", default="bench.toml", type=output_file("rig file"),
                    help="where to write the rig file")
-    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to serve on (default loopback); beyond loopback the backdoor "
+                   "takes only the token written in the rig file (mode 0600)")
     _add_mismatch_flags(p)
     add_coil_error_flags(p)
     _add_bench_flags(p)

@@ -28,7 +28,6 @@ import json
 import logging
 import math
 import re
-import secrets
 import ssl
 import threading
 import time
@@ -41,6 +40,7 @@ from typing import Any
 from rigctl.apps.console.scene import ArmsSketch, CameraScene
 from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError
+from rigctl.core.tokens import new_token, token_matches
 from rigctl.rigs.base import RigKind
 
 log = logging.getLogger(__name__)
@@ -158,7 +158,7 @@ class Console:
             except (OSError, ssl.SSLError) as err:
                 raise ConfigError(f"cannot use the console's TLS certificate {cert}: {err}") from None
         self.scheme = "https" if self.ssl else "http"
-        self.token = token or secrets.token_urlsafe(24)
+        self.token = token or new_token()
         self.plans_dir = Path(plans_dir) if plans_dir is not None else None
         self._curve = (server_key, client_key)
         from rigctl.core.registry import rig_kind
@@ -463,7 +463,7 @@ class Console:
             return True
         given = request.query.get("token") or request.headers.get("Authorization", "").removeprefix(
             "Bearer ")
-        return secrets.compare_digest(given.encode(), self.token.encode())
+        return token_matches(given, self.token)
 
     def _origin_allowed(self, request: Any) -> bool:
         origin = request.headers.get("Origin")
@@ -495,8 +495,7 @@ class Console:
                     token = str(json.loads(hello.data).get("token") or "")
                 except (ValueError, AttributeError):
                     token = ""
-            page.authenticated = bool(token) and secrets.compare_digest(token.encode(),
-                                                                        self.token.encode())
+            page.authenticated = token_matches(token, self.token)
             if not page.authenticated and not self.loopback:
                 await ws.send_str(json.dumps({"topic": "console.refused", "reason":
                                               "this console needs the token to watch"}))

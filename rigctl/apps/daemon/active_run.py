@@ -168,7 +168,7 @@ class RunWatch:
         starts = [list(a.start) for a in plan.agents] if expected is not None else []
         shown = -1  # the move whose expected positions are shown
         try:
-            with BackdoorClient(self.rig.emulation.backdoor, timeout_s=1.0) as backdoor:
+            with BackdoorClient.of(self.rig.emulation, timeout_s=1.0) as backdoor:
                 while not self._agents_stop.wait(1.0 / AGENTS_HZ) and self._active is active:
                     truth = backdoor.request("truth")["agents"]
                     move = active.move

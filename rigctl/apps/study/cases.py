@@ -26,10 +26,13 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rigctl.apps.study.spec import BENCH_OPTIONS, Case, options_argv
 from rigctl.core.children import end_child
+
+if TYPE_CHECKING:
+    from rigctl.core.config import Emulation
 
 EXECUTE_TIMEOUT_S = 600.0
 
@@ -220,7 +223,7 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
         if plan.kind == "global-moves":
             # a fresh bench builds its world at the first `place` (seconds on a loaded machine,
             # past the run's own 5 s backdoor timeout): built here, before the run, with time
-            with BackdoorClient(rig.emulation.backdoor, timeout_s=120.0) as backdoor:
+            with BackdoorClient.of(rig.emulation, timeout_s=120.0) as backdoor:
                 backdoor.request("place", workspace=portable_workspace(plan),
                                  agents=[{"position": a.start, "radius": a.radius}
                                          for a in plan.agents])
@@ -228,7 +231,7 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
         if options.get("speed") is not None:
             requests.append({"cmd": "speed", "factor": float(options["speed"])})
         if requests:
-            with BackdoorClient(rig.emulation.backdoor) as backdoor:
+            with BackdoorClient.of(rig.emulation) as backdoor:
                 for request in requests:
                     backdoor.request(**request)
         runs = out / "runs"
@@ -239,7 +242,7 @@ def _execute(case: Case, folder: Path, out: Path) -> tuple[str, dict, str]:
                                        env=env)
             try:
                 fault = options.get("fault")
-                injected = _inject(fault, rig.emulation.backdoor, runs, proc) if fault else None
+                injected = _inject(fault, rig.emulation, runs, proc) if fault else None
                 try:
                     stdout, _ = proc.communicate(timeout=EXECUTE_TIMEOUT_S)
                 except subprocess.TimeoutExpired:
@@ -290,7 +293,8 @@ def _override(rig, overrides: dict[str, Any]):
     return parse_rig(data, "rig")
 
 
-def _inject(fault: dict, backdoor_url: str, runs: Path, proc: subprocess.Popen) -> float | None:
+def _inject(fault: dict, emulation: Emulation, runs: Path,
+            proc: subprocess.Popen) -> float | None:
     """Wait for `fault.at_event` (default "energised") in the run record's events, then
     `after_s`, then send the fault; the seconds into the record it went in (None: the run ended
     before the event)."""
@@ -316,6 +320,6 @@ def _inject(fault: dict, backdoor_url: str, runs: Path, proc: subprocess.Popen) 
     if proc.poll() is not None:
         return None
     request = {k: v for k, v in fault.items() if k in ("n", "robot")}
-    with BackdoorClient(backdoor_url) as backdoor:
+    with BackdoorClient.of(emulation) as backdoor:
         backdoor.request("fault", device=fault["device"], kind=fault["kind"], **request)
     return round(seen_at + after_s, 3)
