@@ -14,23 +14,27 @@ from rigctl.core.errors import DeviceTimeout
 
 
 class Requests:
-    """`pause_wanted`, `immediate` (pause now) and `abort_wanted`, as the operator asked."""
+    """`pause_wanted`, `immediate` (pause now), `field_off` (pause at the end of the move with the
+    outputs ramped off: the coils cool) and `abort_wanted`, as the operator (or the winding
+    monitor) asked; a resume clears all but the abort."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self.pause_wanted = False
         self.immediate = False
+        self.field_off = False
         self.abort_wanted = False
         self.wake: Callable[[], None] = lambda: None
 
-    def pause(self, immediate: bool = False) -> None:
+    def pause(self, immediate: bool = False, field_off: bool = False) -> None:
         with self._lock:
             self.pause_wanted = True
             self.immediate = self.immediate or immediate
+            self.field_off = self.field_off or field_off
 
     def resume(self) -> None:
         with self._lock:
-            self.pause_wanted = self.immediate = False
+            self.pause_wanted = self.immediate = self.field_off = False
         self.wake()  # a hold: the next command may as well leave now
 
     def abort(self) -> None:

@@ -33,11 +33,11 @@ def test_plays_the_program_then_finishes():
 def test_pause_waits_for_the_end_of_the_move_and_holds():
     seq = make()
     assert take(seq, 1) == [1]
-    seq.request_pause()
+    seq.requests.pause()
     # samples 2 and 3 finish move 0 (it ends at index 3), then the field holds at 3
     assert take(seq, 5) == [2, 3, 3, 3, 3]
     assert seq.paused
-    seq.request_resume()
+    seq.requests.resume()
     assert take(seq, 3) == [4, 5, 6]
     assert not seq.paused
 
@@ -45,9 +45,9 @@ def test_pause_waits_for_the_end_of_the_move_and_holds():
 def test_immediate_pause_ramps_down_and_resume_ramps_back():
     seq = make(ramp_samples=2)
     assert take(seq, 5) == [1, 2, 3, 4, 5]
-    seq.request_pause(immediate=True)
+    seq.requests.pause(immediate=True)
     assert take(seq, 4) == [2.5, 0, 0, 0]
-    seq.request_resume()
+    seq.requests.resume()
     # ramp from 0 to the next program sample (6) in two samples, then carry on
     assert take(seq, 5) == [3, 6, 6, 7, 8]
 
@@ -55,7 +55,7 @@ def test_immediate_pause_ramps_down_and_resume_ramps_back():
 def test_abort_ramps_to_zero_and_ends():
     seq = make(ramp_samples=2)
     assert take(seq, 4) == [1, 2, 3, 4]
-    seq.request_abort()
+    seq.requests.abort()
     assert take(seq, 3) == [2, 0, None]
     assert seq.aborted
 
@@ -63,21 +63,31 @@ def test_abort_ramps_to_zero_and_ends():
 def test_abort_while_paused():
     seq = make(ramp_samples=4)
     take(seq, 3)
-    seq.request_pause()
+    seq.requests.pause()
     assert take(seq, 2) == [3, 3]
-    seq.request_abort()
+    seq.requests.abort()
     assert take(seq, 5) == [2.25, 1.5, 0.75, 0, None]
 
 
 def test_a_pause_to_cool_finishes_the_move_then_ramps_off_and_back_up_on_resume():
     seq = make()
     assert take(seq, 1) == [1]
-    seq.request_pause(field_off=True)  # a winding at its warning
+    seq.requests.pause(field_off=True)  # a winding at its warning
     # the move ends at index 3 (samples 2, 3), then a 2-sample ramp from 3 A to 0, then 0 held
     assert take(seq, 6) == [2, 3, 1.5, 0, 0, 0]
     assert seq.paused
-    seq.request_resume()
+    seq.requests.resume()
     # back up to the next sample (4 A) in 2 samples, then the program goes on from it (as after
     # a pause now)
     assert take(seq, 4) == [2, 4, 4, 5]
     assert not seq.paused
+
+
+def test_a_pause_now_taken_back_before_it_took_effect_leaves_the_next_pause_a_plain_one():
+    seq = make()
+    assert take(seq, 1) == [1]
+    seq.requests.pause(immediate=True)
+    seq.requests.resume()  # before the stream thread saw the pause
+    seq.requests.pause()
+    # a plain pause: move 0 finishes (samples 2, 3) and the field holds there, no ramp to zero
+    assert take(seq, 4) == [2, 3, 3, 3]

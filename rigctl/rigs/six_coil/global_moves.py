@@ -34,6 +34,7 @@ from rigctl.rigs.six_coil.supplies import CoilSupplies
 from rigctl.run.agents import agent_results, place_agents, read_truth, truth_of
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
+from rigctl.run.interruptions import RequestedControl
 from rigctl.run.summary import RunSummary
 
 log = logging.getLogger(__name__)
@@ -55,7 +56,7 @@ def prepare(plan: Plan, rig: RigConfig) -> tuple[Plan, FieldProgram, CurrentProg
     return plan, program, allocate(program, rig)
 
 
-class GlobalMovesProgram:
+class GlobalMovesProgram(RequestedControl):
     """A global-moves plan's current program (`prepare`), sequenced with pause, resume and abort,
     and with `closed_loop` the camera supervisor that judges every move and re-plans. Construction
     refuses a bad plan (PlanError, LimitError) without I/O. Pause holds the field (the magnets lie
@@ -84,20 +85,12 @@ class GlobalMovesProgram:
                 settings=supervisor_settings or SupervisorSettings(),
                 truth=(lambda: truth_of(self._backdoor)) if rig.emulation else None)
             self.sequencer = self.supervisor.sequencer
+        self.requests = self.sequencer.requests  # the stream thread's sequencer acts on them
 
-    # -- control, from any thread ---------------------------------------------------------------
-    def pause(self, immediate: bool = False) -> None:
-        self.sequencer.request_pause(immediate)
-
+    # -- control, from any thread (`RequestedControl`: pause, resume, abort) -------------------
     def pause_to_cool(self) -> None:
         """At the end of the move, the field ramped off (the magnets lie still); back on resume."""
-        self.sequencer.request_pause(field_off=True)
-
-    def resume(self) -> None:
-        self.sequencer.request_resume()
-
-    def abort(self) -> None:
-        self.sequencer.request_abort()
+        self.requests.pause(field_off=True)
 
     @property
     def aborted(self) -> bool:
@@ -123,9 +116,6 @@ class GlobalMovesProgram:
         if self.supervisor is not None:
             self.supervisor.tracking.tap(ctx.on_frame)  # the console's camera view, if any
             self.supervisor.start(ctx.record)  # the robots are found before anything is energised
-
-    def connected(self, actuators) -> None:
-        pass  # supplies start from 0 A: nothing to read
 
     def checks(self) -> list:
         """The pre-flight of the whole current program (`rigctl.rigs.six_coil.certify`)."""

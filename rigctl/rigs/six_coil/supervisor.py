@@ -115,7 +115,7 @@ class SupervisedSequencer(Sequencer):
 
     def next(self) -> tuple[np.ndarray, int, int] | None:
         with self._lock:
-            if not (self._abort_requested or self.aborted or self._queue):
+            if not (self.requests.abort_wanted or self.aborted or self._queue):
                 if self._held:
                     return self._last, self.index, -1
                 if self.index in self.gates and self.index != self._released:
@@ -400,7 +400,7 @@ class Supervisor:
     def _give_up(self, err: RigError) -> None:
         self.fault = err
         self._event("give_up", reason=str(err), kind=type(err).__name__, device=err.device)
-        self.sequencer.request_abort()
+        self.sequencer.requests.abort()
         self.sequencer.release()
 
     def _judge(self, sample: int | None) -> None:
