@@ -817,11 +817,15 @@ def _descend(
     Each step applies every approach move to the current configuration in one model call and
     keeps the one that lowers the objective most, while that helps: "distance" is the Euclidean
     distance to `goal` (with the final approach the candidates also include the translation that
-    best fits the remaining error, whole and as its x and y legs); "offset" is `offset_error`,
+    best fits the remaining error, whole and as its x and y legs, and with whole turns the legs
+    that add up to it exactly, `RrtOptions.turn_legs`); "offset" is `offset_error`,
     i.e. it uses contacts to set the robots' relative positions for a final translation.
     Returns the indices of the nodes added, in order; stops at `deadline` (perf_counter s).
     """
     moves = options.approach_moves(objective)
+    # with whole turns in any direction, a step may also be the fitted translation made of them
+    turn_legs = (options.final_approach and objective == "distance"
+                 and options.turn_mm is not None and not options.axis_only)
     state = tree.nodes[node].copy()
     score = _score(state[None], goal, objective, model)[0]
     added: list[int] = []
@@ -841,6 +845,18 @@ def _descend(
         candidates = model.apply(state[None], step_moves)  # (m, n, 2)
         scores = _score(candidates, goal, objective, model)
         choice = int(np.argmin(scores))
+        if turn_legs:  # the fitted translation as whole turns that add up to it, leg by leg
+            legs = [leg for leg in options.turn_legs(fitted)[0] if np.any(leg)]
+            ways = [state]
+            for leg in legs:
+                ways.append(model.apply(ways[-1], leg))
+            combined = _score(ways[-1][None], goal, objective, model)[0]
+            if len(legs) > 1 and combined < min(scores[choice], score - 1e-9):
+                for leg, way in zip(legs, ways[1:]):
+                    parent = int(tree.add(way[None], np.array([parent]), leg[None])[0])
+                    added.append(parent)
+                state, score = ways[-1], float(combined)
+                continue
         if not scores[choice] < score - 1e-9:
             break
         state = candidates[choice]

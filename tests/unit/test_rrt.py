@@ -17,6 +17,7 @@ from rigctl.plans.rrt import (
     RrtTree,
     check_tree_meta,
     plan_rrt,
+    polish,
     replay,
 )
 from rigctl.plans.schema import load_plan
@@ -258,6 +259,19 @@ def test_whole_turns_reach_a_translation_that_is_no_whole_number_of_turns(model)
     final = replay(model, start, result.moves)[-1]
     assert np.linalg.norm(final - GOAL) <= 0.5
     lengths = np.hypot(result.moves[:, 0], result.moves[:, 1]) / 5.0
+    np.testing.assert_allclose(lengths, np.round(lengths), atol=1e-9)
+
+
+def test_descent_to_the_goal_combines_whole_turns(model):
+    # polish's descent alone (no tree): from the goal's formation 3.2 mm off, one-turn moves
+    # along 16 directions and the fitted move rounded to whole turns stay >= 1.8 mm per robot
+    # away; two one-turn moves at +-71.4 deg from (3, 1) end on the goal
+    start = GOAL - [3.0, 1.0]
+    options = RrtOptions(robostep_mm=5.0, turn_mm=5.0, tolerance_mm=0.5)
+    moves, states, distance = polish(model, start, GOAL, np.zeros((0, 2)), options)
+    assert distance <= 0.5
+    np.testing.assert_allclose(np.linalg.norm(states[-1] - GOAL), distance, atol=1e-9)
+    lengths = np.hypot(moves[:, 0], moves[:, 1]) / 5.0
     np.testing.assert_allclose(lengths, np.round(lengths), atol=1e-9)
 
 
