@@ -14,8 +14,9 @@ Figures:
   that the time budgets do not compete): over --seeds seeds, the share solved within 2 mm and the
   median seconds to solve, with the tuned options (goal bias 0.05, formation bias 0.1, greedy
   descent, final approach), 5 s budget each. As `rigctl plan rrt` plans for a six-coil rig, every
-  move is a whole number of 5 mm magnet turns (`studies/five-mm-turns.toml`), and the seconds
-  include the replay on the exact geometry that writes the plan.
+  move is a whole number of 5 mm magnet turns (`studies/five-mm-turns.toml`; the final approach
+  makes the fitted translation of whole turns that add up to it, `RrtOptions.turn_legs`), and
+  the seconds include the replay on the exact geometry that writes the plan.
 - four_robots: seconds to grow a 340,000-node tree for four robots (seed 000 Sec. IV).
 - image_maps: time per clearance query and per model move (1 mm, robots in a free square) on two
   800 x 800 px image maps with few and with many obstacle pixels, best of five (the grid
