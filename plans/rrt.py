@@ -845,14 +845,14 @@ def _descend(
         candidates = model.apply(state[None], step_moves)  # (m, n, 2)
         scores = _score(candidates, goal, objective, model)
         choice = int(np.argmin(scores))
-        if turn_legs:  # the fitted translation as whole turns that add up to it, leg by leg
-            legs = [leg for leg in options.turn_legs(fitted)[0] if np.any(leg)]
+        turns = [leg for leg in options.turn_legs(fitted)[0] if np.any(leg)] if turn_legs else []
+        if len(turns) > 1:  # the fitted translation as whole turns that add up to it, leg by leg
             ways = [state]
-            for leg in legs:
+            for leg in turns:
                 ways.append(model.apply(ways[-1], leg))
             combined = _score(ways[-1][None], goal, objective, model)[0]
-            if len(legs) > 1 and combined < min(scores[choice], score - 1e-9):
-                for leg, way in zip(legs, ways[1:]):
+            if combined < min(scores[choice], score - 1e-9):
+                for leg, way in zip(turns, ways[1:]):
                     parent = int(tree.add(way[None], np.array([parent]), leg[None])[0])
                     added.append(parent)
                 state, score = ways[-1], float(combined)
