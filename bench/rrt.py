@@ -27,7 +27,9 @@ precise); the raster's construction time is reported for reference.
   built with -O2 from a checkout with bench/peers/swarm-robots-ompl.patch, and ours grow a
   40,000-node tree each (no goal test, same start and goal, 5 mm moves, k = 16), interleaved
   over --peer-rounds rounds (peer then ours, seeds 1, 2, ...); nodes/s of each (N / the
-  planner's own timing of its growth) and the ratio of the medians. Without --peer, or without
+  planner's own timing of its growth) and the ratio of the medians, and the same per CPU second
+  (the peer's whole run, user + system; ours the growth), which a shared machine's load moves
+  less. Without --peer, or without
   g++ and libompl-dev, `peer` says why it was skipped. The peer's robots are points (it ignores
   the radius) and each of its moves stops short of an obstacle by whole millimetres: it is the
   same workspace and moves, not the same model.
@@ -47,6 +49,7 @@ import logging
 import math
 import os
 import platform
+import resource
 import shutil
 import statistics
 import subprocess
@@ -231,17 +234,21 @@ def build_peer(checkout: Path, into: Path) -> Path:
     return program
 
 
-def run_peer(program: Path, seed: int, nodes: int) -> float:
-    """Nodes per second of one peer run growing a `nodes`-node tree (no goal test)."""
+def run_peer(program: Path, seed: int, nodes: int) -> tuple[float, float]:
+    """Nodes per second of one peer run growing a `nodes`-node tree (no goal test): by its own
+    wall-clock timing of the growth, and by the CPU seconds (user + system) of the whole run."""
     env = dict(os.environ, PEER_SEED=str(seed), PEER_MAX_NODES=str(nodes), PEER_TOLERANCE="0",
                PEER_SECONDS="3600")
+    used = resource.getrusage(resource.RUSAGE_CHILDREN)
     with tempfile.TemporaryDirectory(prefix="bench-rrt-peer-") as cwd:  # it writes its tree there
         out = subprocess.run([str(program)], input="1\n1\n2\n", env=env, cwd=cwd, check=True,
                              capture_output=True, text=True).stdout
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu_s = (after.ru_utime - used.ru_utime) + (after.ru_stime - used.ru_stime)
     for line in out.splitlines():
         if line.startswith("PEER nodes"):
             _, _, grown, _, seconds = line.split()
-            return int(grown) / float(seconds)
+            return int(grown) / float(seconds), int(grown) / cpu_s
     raise RuntimeError("the peer printed no 'PEER nodes' line")
 
 
@@ -254,12 +261,16 @@ def peer_comparison(checkout: str | None, model: GlobalInputModel, rounds: int) 
             program = build_peer(Path(checkout), Path(scratch))
         except RuntimeError as err:
             return {"skipped": str(err)}
-        peer, ours = [], []
+        peer, ours, peer_cpu, ours_cpu = [], [], [], []
         for seed in range(1, rounds + 1):
-            peer.append(run_peer(program, seed, PEER_NODES))
+            wall, cpu = run_peer(program, seed, PEER_NODES)
+            peer.append(wall)
+            peer_cpu.append(cpu)
             options = RrtOptions(robostep_mm=ROBOSTEP_MM, k=16, max_nodes=PEER_NODES,
                                  tolerance_mm=0.0, stop_when_solved=False)
+            cpu_started = time.process_time()
             result = plan_rrt(model, START, GOAL, options=options, rng=np.random.default_rng(seed))
+            ours_cpu.append(result.nodes / (time.process_time() - cpu_started))
             ours.append(result.nodes / result.seconds)
     return {
         "nodes": PEER_NODES,
@@ -267,6 +278,10 @@ def peer_comparison(checkout: str | None, model: GlobalInputModel, rounds: int) 
         "peer_nodes_per_s": [round(v) for v in peer],
         "ours_nodes_per_s": [round(v) for v in ours],
         "ratio_of_medians": round(statistics.median(ours) / statistics.median(peer), 2),
+        # per CPU second: on a loaded machine the wall-clock figures swing with the load
+        "peer_nodes_per_cpu_s": [round(v) for v in peer_cpu],
+        "ours_nodes_per_cpu_s": [round(v) for v in ours_cpu],
+        "cpu_ratio_of_medians": round(statistics.median(ours_cpu) / statistics.median(peer_cpu), 2),
     }
 
 
