@@ -14,19 +14,31 @@ Figures:
   that the time budgets do not compete): over --seeds seeds, the share solved within 2 mm and the
   median seconds to solve, with the tuned options (goal bias 0.05, formation bias 0.1, greedy
   descent, final approach), 5 s budget each. As `rigctl plan rrt` plans for a six-coil rig, every
-  move is a whole number of 5 mm magnet turns (`studies/five-mm-turns.toml`), and the seconds
-  include the replay on the exact geometry that writes the plan.
+  move is a whole number of 5 mm magnet turns (`studies/five-mm-turns.toml`; the final approach
+  makes the fitted translation of whole turns that add up to it, `RrtOptions.turn_legs`), and
+  the seconds include the replay on the exact geometry that writes the plan.
 - four_robots: seconds to grow a 340,000-node tree for four robots (seed 000 Sec. IV).
 - image_maps: time per clearance query and per model move (1 mm, robots in a free square) on two
   800 x 800 px image maps with few and with many obstacle pixels, best of five (the grid
   backend's cost must not depend on the obstacle pixels).
 Planning uses the exact geometry (the model is as fast there as on a 0.5 mm raster, and more
 precise); the raster's construction time is reported for reference.
+- peer (with --peer CHECKOUT): seed 000's published C++/OMPL planner (bench/peers/README.md),
+  built with -O2 from a checkout with bench/peers/swarm-robots-ompl.patch, and ours grow a
+  40,000-node tree each (no goal test, same start and goal, 5 mm moves, k = 16), interleaved
+  over --peer-rounds rounds (peer then ours, seeds 1, 2, ...); nodes/s of each (N / the
+  planner's own timing of its growth) and the ratio of the medians, and the same per CPU second
+  (the peer's whole run, user + system; ours the growth), which a shared machine's load moves
+  less. Without --peer, or without
+  g++ and libompl-dev, `peer` says why it was skipped. The peer's robots are points (it ignores
+  the radius) and each of its moves stops short of an obstacle by whole millimetres: it is the
+  same workspace and moves, not the same model.
 - geometry_kernel: the exact-geometry kernels are compiled with numba and cached on disk;
   `compile_s` is what compiling them costs (in a child process with an empty cache),
   `warm_up_s` what loading them cost this run. Both happen before any timing above starts.
 
 Usage: python bench/rrt.py [--quick | --smoke] [--seeds N] [--sizes 40000,200000,400000] [--four N]
+       [--peer CHECKOUT [--peer-rounds 5]]
 """
 
 from __future__ import annotations
@@ -37,11 +49,14 @@ import logging
 import math
 import os
 import platform
+import resource
+import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -175,6 +190,101 @@ def image_maps(queries: int) -> dict:
     return result
 
 
+PEER_PATCH = Path(__file__).resolve().parent / "peers" / "swarm-robots-ompl.patch"
+PEER_NODES = 40_000
+
+
+def build_peer(checkout: Path, into: Path) -> Path:
+    """Build seed 000's planner from `checkout` (its repository, holding Swarmrobots_ompl.zip, or
+    the unzipped folder) in `into` with the patch applied; returns the program's path.
+    Raises RuntimeError with the reason when it cannot be built."""
+    if not (shutil.which("g++") and shutil.which("patch") and shutil.which("pkg-config")):
+        raise RuntimeError("needs g++, patch and pkg-config")
+    archive = checkout / "Swarmrobots_ompl.zip"
+    unpacked = into / "unpacked"
+    if archive.is_file():
+        with zipfile.ZipFile(archive) as source:
+            source.extractall(unpacked)
+        root = unpacked
+    elif checkout.is_dir():
+        root = checkout
+    else:
+        raise RuntimeError(f"{checkout} is not a checkout of pjparthjoshi/Swarm-Robots-OMPL")
+    sources = sorted(root.glob("**/3 robots/src"))
+    if not sources:
+        raise RuntimeError(f"{checkout} has no '3 robots/src' folder")
+    work = into / "peer"
+    (work / "src").mkdir(parents=True)
+    for path in sources[0].iterdir():  # the program's sources only (the zip also holds .o files)
+        if path.suffix in (".cpp", ".h"):
+            shutil.copy2(path, work / "src" / path.name)
+    patched = subprocess.run(["patch", "-p1", "--quiet", "-i", str(PEER_PATCH)], cwd=work,
+                             capture_output=True, text=True)
+    if patched.returncode:
+        raise RuntimeError(f"the patch does not apply: {patched.stdout.strip()}")
+    flags = subprocess.run(["pkg-config", "--cflags", "ompl"], capture_output=True, text=True)
+    if flags.returncode:
+        raise RuntimeError("OMPL not found (apt-get install libompl-dev)")
+    program = work / "peer"
+    command = ["g++", "-O2", *flags.stdout.split(), *map(str, sorted((work / "src").glob("*.cpp"))),
+               "-o", str(program), "-lompl"]
+    built = subprocess.run(command, capture_output=True, text=True)
+    if built.returncode:
+        raise RuntimeError("the build failed: " + built.stderr.strip().splitlines()[-1])
+    return program
+
+
+def run_peer(program: Path, seed: int, nodes: int) -> tuple[float, float]:
+    """Nodes per second of one peer run growing a `nodes`-node tree (no goal test): by its own
+    wall-clock timing of the growth, and by the CPU seconds (user + system) of the whole run."""
+    env = dict(os.environ, PEER_SEED=str(seed), PEER_MAX_NODES=str(nodes), PEER_TOLERANCE="0",
+               PEER_SECONDS="3600")
+    used = resource.getrusage(resource.RUSAGE_CHILDREN)
+    with tempfile.TemporaryDirectory(prefix="bench-rrt-peer-") as cwd:  # it writes its tree there
+        out = subprocess.run([str(program)], input="1\n1\n2\n", env=env, cwd=cwd, check=True,
+                             capture_output=True, text=True).stdout
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu_s = (after.ru_utime - used.ru_utime) + (after.ru_stime - used.ru_stime)
+    for line in out.splitlines():
+        if line.startswith("PEER nodes"):
+            _, _, grown, _, seconds = line.split()
+            return int(grown) / float(seconds), int(grown) / cpu_s
+    raise RuntimeError("the peer printed no 'PEER nodes' line")
+
+
+def peer_comparison(checkout: str | None, model: GlobalInputModel, rounds: int) -> dict:
+    """Peer and ours interleaved, `rounds` times each, at PEER_NODES nodes."""
+    if checkout is None:
+        return {"skipped": "no --peer CHECKOUT given (bench/peers/README.md)"}
+    with tempfile.TemporaryDirectory(prefix="bench-rrt-build-") as scratch:
+        try:
+            program = build_peer(Path(checkout), Path(scratch))
+        except RuntimeError as err:
+            return {"skipped": str(err)}
+        peer, ours, peer_cpu, ours_cpu = [], [], [], []
+        for seed in range(1, rounds + 1):
+            wall, cpu = run_peer(program, seed, PEER_NODES)
+            peer.append(wall)
+            peer_cpu.append(cpu)
+            options = RrtOptions(robostep_mm=ROBOSTEP_MM, k=16, max_nodes=PEER_NODES,
+                                 tolerance_mm=0.0, stop_when_solved=False)
+            cpu_started = time.process_time()
+            result = plan_rrt(model, START, GOAL, options=options, rng=np.random.default_rng(seed))
+            ours_cpu.append(result.nodes / (time.process_time() - cpu_started))
+            ours.append(result.nodes / result.seconds)
+    return {
+        "nodes": PEER_NODES,
+        "rounds": rounds,
+        "peer_nodes_per_s": [round(v) for v in peer],
+        "ours_nodes_per_s": [round(v) for v in ours],
+        "ratio_of_medians": round(statistics.median(ours) / statistics.median(peer), 2),
+        # per CPU second: on a loaded machine the wall-clock figures swing with the load
+        "peer_nodes_per_cpu_s": [round(v) for v in peer_cpu],
+        "ours_nodes_per_cpu_s": [round(v) for v in ours_cpu],
+        "cpu_ratio_of_medians": round(statistics.median(ours_cpu) / statistics.median(peer_cpu), 2),
+    }
+
+
 def compile_seconds() -> float:
     """Seconds to compile the geometry kernels from scratch (a child process, empty numba cache)."""
     code = "from rigctl.plans.workspace import warm_up; print(warm_up())"
@@ -193,6 +303,9 @@ def main() -> None:
     parser.add_argument("--four", type=int, help="four-robot tree size (default 340000)")
     parser.add_argument("--nn-eps", type=float, default=0.1, help="approximate nearest node run")
     parser.add_argument("--budget", type=float, default=5.0, help="seconds per solve attempt")
+    parser.add_argument("--peer", metavar="CHECKOUT",
+                        help="a checkout of pjparthjoshi/Swarm-Robots-OMPL: build and run it")
+    parser.add_argument("--peer-rounds", type=int, default=5, help="interleaved rounds (default 5)")
     parser.add_argument("--smoke", action="store_true",
                         help="the smallest run of every stage, for the test suite: its figures "
                              "mean nothing")
@@ -223,6 +336,7 @@ def main() -> None:
         "growth_exact_nn": growth(model, sizes, 0.0, seed=1),
         f"growth_nn_eps_{args.nn_eps:g}": growth(model, sizes, args.nn_eps, seed=1),
         "paper_cpp_ompl_nodes_per_s": {"40000": 26000, "200000": 11000},
+        "peer": peer_comparison(args.peer, model, 1 if args.smoke else args.peer_rounds),
         "solve": solve_rate(seeds, args.budget),
         "four_robots": four_robots(exact, four, args.nn_eps),
         "image_maps": image_maps(1_000 if args.smoke else 200_000 if args.quick else 1_000_000),

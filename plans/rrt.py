@@ -201,6 +201,37 @@ class RrtOptions:
             moves *= scale[:, None]
         return moves
 
+    def turn_legs(self, moves: np.ndarray) -> np.ndarray:
+        """Translations moves (m, 2) mm as three whole-turn moves each, (m, 3, 2) mm, that add up
+        to them exactly (with a turn length and any direction; unused legs are (0, 0)).
+
+        A length L that is a whole number of turns t is one move. Otherwise the first leg is
+        j = max(0, ceil(L / t) - 2) turns along the translation, which leaves r = L - j t in
+        (0, 2t]; two one-turn moves at +-acos(r / 2t) from the translation's direction add up
+        to r along it. Rounding each length to whole turns instead misses by up to t / 2.
+        """
+        moves = np.asarray(moves, dtype=float).reshape(-1, 2)
+        legs = np.zeros((len(moves), 3, 2))
+        if self.turn_mm is None:
+            legs[:, 0] = moves
+            return legs
+        turn = self.turn_mm
+        length = np.hypot(moves[:, 0], moves[:, 1])
+        moving = length > _STUCK_MM
+        unit = moves / np.where(moving, length, 1.0)[:, None]
+        whole = np.abs(length / turn - np.round(length / turn)) <= 1e-9
+        first = np.where(whole, np.round(length / turn), np.maximum(np.ceil(length / turn) - 2, 0))
+        rest = np.where(whole, 0.0, length - first * turn)  # in (0, 2t] where not whole
+        half_angle = np.arccos(np.clip(rest / (2.0 * turn), -1.0, 1.0))
+        c, s = np.cos(half_angle), np.sin(half_angle)
+        pair = ~whole & moving
+        legs[moving, 0] = (first * turn)[moving, None] * unit[moving]
+        for leg, sign in ((1, 1.0), (2, -1.0)):
+            turned = np.stack([c * unit[:, 0] - sign * s * unit[:, 1],
+                               sign * s * unit[:, 0] + c * unit[:, 1]], axis=1)
+            legs[pair, leg] = turn * turned[pair]
+        return legs
+
     def legal_move(self, move: np.ndarray) -> np.ndarray | None:
         """The fitted translation `move` (2,) mm made legal for these options, or None.
 
@@ -655,27 +686,35 @@ class _GoalSearch:
         legs_x = self.options.legal_moves(fitted * [1.0, 0.0])
         legs_y = self.options.legal_moves(fitted * [0.0, 1.0])
         straight = self.options.legal_moves(fitted)
-        # candidate paths per node: [straight], [x leg, y leg], [y leg, x leg]
-        firsts = np.concatenate([straight, legs_x, legs_y])
-        seconds = np.concatenate([np.zeros_like(straight), legs_y, legs_x])
-        starts = np.concatenate([states, states, states])
-        clear = _path_clear(self.model, starts, firsts) & _path_clear(
-            self.model, starts + firsts[:, None, :], seconds
-        )
+        none = np.zeros_like(straight)
+        # candidate paths per node, three legs each: [straight], [x leg, y leg], [y leg, x leg],
+        # and with whole turns in any direction the exact sum of whole turns (`turn_legs`)
+        paths = [np.stack(legs, axis=1) for legs in
+                 ((straight, none, none), (legs_x, legs_y, none), (legs_y, legs_x, none))]
+        if self.options.turn_mm is not None and not self.options.axis_only:
+            paths.append(self.options.turn_legs(fitted))
+        legs = np.concatenate(paths)  # (variants * m, 3, 2)
+        variants_count = len(paths)
+        starts = np.concatenate([states] * variants_count)
+        clear = np.ones(len(legs), dtype=bool)
+        for leg in range(3):
+            clear &= _path_clear(self.model, starts, legs[:, leg])
+            starts = starts + legs[:, leg, None, :]
         if not clear.any():
             return np.zeros(0, dtype=np.int64)
         # the node with the best offset whose way is clear; its clear variants through the model
-        row = int(np.flatnonzero(clear.reshape(3, m).any(axis=0))[0])
+        row = int(np.flatnonzero(clear.reshape(variants_count, m).any(axis=0))[0])
         self.translated_offset = float(offsets[promising[row]])
-        variants = [v for v in range(3) if clear[v * m + row]]
-        origin = states[row]
-        middle = self.model.apply(origin, firsts[[v * m + row for v in variants]])
-        ends = self.model.apply(middle, seconds[[v * m + row for v in variants]])
+        variants = [v for v in range(variants_count) if clear[v * m + row]]
+        chosen = legs[[v * m + row for v in variants]]  # (V, 3, 2)
+        ways = [states[row][None].repeat(len(variants), axis=0)]
+        for leg in range(3):
+            ways.append(self.model.apply(ways[-1], chosen[:, leg]))
+        ends = ways[-1]
         best = int(np.argmin(((ends - self.goal) ** 2).sum(axis=(1, 2))))
-        pick = variants[best] * m + row
         parent = int(indices[row])
         added = []
-        for move, state in ((firsts[pick], middle[best]), (seconds[pick], ends[best])):
+        for move, state in zip(chosen[best], (way[best] for way in ways[1:])):
             if not np.any(move):
                 continue
             parent = int(self.tree.add(state[None], np.array([parent]), move[None])[0])
@@ -778,11 +817,15 @@ def _descend(
     Each step applies every approach move to the current configuration in one model call and
     keeps the one that lowers the objective most, while that helps: "distance" is the Euclidean
     distance to `goal` (with the final approach the candidates also include the translation that
-    best fits the remaining error, whole and as its x and y legs); "offset" is `offset_error`,
+    best fits the remaining error, whole and as its x and y legs, and with whole turns the legs
+    that add up to it exactly, `RrtOptions.turn_legs`); "offset" is `offset_error`,
     i.e. it uses contacts to set the robots' relative positions for a final translation.
     Returns the indices of the nodes added, in order; stops at `deadline` (perf_counter s).
     """
     moves = options.approach_moves(objective)
+    # with whole turns in any direction, a step may also be the fitted translation made of them
+    turn_legs = (options.final_approach and objective == "distance"
+                 and options.turn_mm is not None and not options.axis_only)
     state = tree.nodes[node].copy()
     score = _score(state[None], goal, objective, model)[0]
     added: list[int] = []
@@ -802,6 +845,18 @@ def _descend(
         candidates = model.apply(state[None], step_moves)  # (m, n, 2)
         scores = _score(candidates, goal, objective, model)
         choice = int(np.argmin(scores))
+        turns = [leg for leg in options.turn_legs(fitted)[0] if np.any(leg)] if turn_legs else []
+        if len(turns) > 1:  # the fitted translation as whole turns that add up to it, leg by leg
+            ways = [state]
+            for leg in turns:
+                ways.append(model.apply(ways[-1], leg))
+            combined = _score(ways[-1][None], goal, objective, model)[0]
+            if combined < min(scores[choice], score - 1e-9):
+                for leg, way in zip(turns, ways[1:]):
+                    parent = int(tree.add(way[None], np.array([parent]), leg[None])[0])
+                    added.append(parent)
+                state, score = ways[-1], float(combined)
+                continue
         if not scores[choice] < score - 1e-9:
             break
         state = candidates[choice]

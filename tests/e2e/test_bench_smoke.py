@@ -84,7 +84,7 @@ QUICK = {
 # whole path ran
 FIGURES = {
     "stream.py": [("rates", "100", "cycles")],
-    "rrt.py": [("growth_nn_eps_0.1",), ("solve", "runs"), ("four_robots", "nodes"),
+    "rrt.py": [("growth_nn_eps_0.1",), ("peer",), ("solve", "runs"), ("four_robots", "nodes"),
                ("image_maps", "many")],
     "tracker.py": [("tracker", "1280x1024", "8"), ("stream", "frames")],
     "closed_loop.py": [("per_run",), ("closed_loop_success_share",)],

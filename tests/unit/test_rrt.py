@@ -17,6 +17,7 @@ from rigctl.plans.rrt import (
     RrtTree,
     check_tree_meta,
     plan_rrt,
+    polish,
     replay,
 )
 from rigctl.plans.schema import load_plan
@@ -110,6 +111,19 @@ def test_legal_fitted_move():
     options = RrtOptions(robostep_mm=20.0, turn_mm=10.0, axis_only=True)
     np.testing.assert_allclose(options.legal_move(np.array([3.0, -17.0])), [0.0, -20.0])
     assert options.legal_move(np.array([1.0, 4.0])) is None  # less than half a turn
+
+
+def test_turn_legs_add_up_to_the_translation_in_whole_turns():
+    options = RrtOptions(robostep_mm=5.0, turn_mm=5.0)
+    legs = options.turn_legs(np.array([[3.0, 4.0], [0.0, 6.0], [0.0, 0.0]]))
+    # 5 mm is one turn: one move; 6 mm is two turns at +-acos(6 / 10) from +y: (-4, 3) + (4, 3)
+    np.testing.assert_allclose(legs, [[[3, 4], [0, 0], [0, 0]], [[0, 0], [-4, 3], [4, 3]],
+                                      [[0, 0], [0, 0], [0, 0]]], atol=1e-12)
+    # 23 mm: 3 turns along it (15 mm), then two one-turn moves that add up to the other 8 mm
+    legs = options.turn_legs(np.array([[23.0, 0.0]]))[0]
+    np.testing.assert_allclose(legs[0], [15.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(np.hypot(legs[1:, 0], legs[1:, 1]), [5.0, 5.0], atol=1e-12)
+    np.testing.assert_allclose(legs.sum(axis=0), [23.0, 0.0], atol=1e-12)
 
 
 # ---------------------------------------------------------------- environment 1 of seed 000
@@ -232,6 +246,33 @@ def test_axis_only_and_whole_turns(model):
     lengths = np.abs(moves).sum(axis=1) / 10.0
     np.testing.assert_allclose(lengths, np.round(lengths), atol=1e-9)
     assert lengths.min() >= 1
+
+
+def test_whole_turns_reach_a_translation_that_is_no_whole_number_of_turns(model):
+    # the robots stand in the goal's formation 3.2 mm from it: rounded to whole 5 mm turns the
+    # translation misses by 1.8 mm per robot; as 5 mm turns at +-71.4 deg from it, it is exact
+    start = GOAL - [3.0, 1.0]
+    options = RrtOptions(robostep_mm=5.0, turn_mm=5.0, max_nodes=200, tolerance_mm=0.5,
+                         goal_bias=0.05, greedy=True, final_approach=True)
+    result = plan_rrt(model, start, GOAL, options=options, rng=np.random.default_rng(0))
+    assert result.solved
+    final = replay(model, start, result.moves)[-1]
+    assert np.linalg.norm(final - GOAL) <= 0.5
+    lengths = np.hypot(result.moves[:, 0], result.moves[:, 1]) / 5.0
+    np.testing.assert_allclose(lengths, np.round(lengths), atol=1e-9)
+
+
+def test_descent_to_the_goal_combines_whole_turns(model):
+    # polish's descent alone (no tree): from the goal's formation 3.2 mm off, one-turn moves
+    # along 16 directions and the fitted move rounded to whole turns stay >= 1.8 mm per robot
+    # away; two one-turn moves at +-71.4 deg from (3, 1) end on the goal
+    start = GOAL - [3.0, 1.0]
+    options = RrtOptions(robostep_mm=5.0, turn_mm=5.0, tolerance_mm=0.5)
+    moves, states, distance = polish(model, start, GOAL, np.zeros((0, 2)), options)
+    assert distance <= 0.5
+    np.testing.assert_allclose(np.linalg.norm(states[-1] - GOAL), distance, atol=1e-9)
+    lengths = np.hypot(moves[:, 0], moves[:, 1]) / 5.0
+    np.testing.assert_allclose(lengths, np.round(lengths), atol=1e-9)
 
 
 def test_tuned_options_solve_environment_1_with_non_slip_walls(environment_1):
