@@ -2,7 +2,8 @@
 
 A run's process (the stream, the camera's tracking, the run's own re-plans, all behind one GIL)
 and an emulated bench standing for devices with processors of their own are scheduled ahead of
-ordinary work: niceness `FAVOURED_NICE` instead of the caller's. On a computer whose cores other
+ordinary work: `FAVOURED_STEP` below the niceness they were started with (-10 from a shell's 0;
+one started with `nice -n 10` comes level with ordinary work, as whoever started it meant). On a computer whose cores other
 work keeps busy (a build, a study, a test suite), a cycle is then late by a time slice rather than
 by its share of the cores, and a supply's 0.25 s reply watchdog measures the link, not the
 computer. The whole process and not one thread: a thread of ours at normal priority that the
@@ -24,27 +25,31 @@ from collections.abc import Callable
 
 log = logging.getLogger(__name__)
 
-FAVOURED_NICE = -10
+FAVOURED_STEP = -10
 RUN_NICE_ENV = "RIGCTL_STREAM_NICE"  # another niceness for a run's process and stream thread
 BENCH_NICE_ENV = "RIGCTL_EMULATOR_NICE"  # another niceness for an emulated bench
 
 
 def favour(what: str, env: str = RUN_NICE_ENV) -> Callable[[], None]:
-    """Give the calling thread (and what it starts from now on) niceness `FAVOURED_NICE`, or the
-    one `env` names (0: leave it be), if that is ahead of its own and permitted; return what gives
-    back the one it had. Never raises. A value in `env` that cannot be taken is said in one line
-    on the log (the default goes quietly: most machines do not permit it)."""
+    """Put the calling thread (and what it starts from now on) `FAVOURED_STEP` ahead of its
+    niceness, or at the niceness `env` names (0: leave it be), if that is ahead of its own and
+    permitted; return what gives back the one it had. Never raises. What it took is passed on in
+    both variables to the processes started from here on (a bench `rigctl execute` starts comes
+    level with it, not another step ahead). A value in `env` that cannot be taken is said in one
+    line on the log (the default goes quietly: most machines do not permit it)."""
     value = os.environ.get(env, "").strip()
     if value == "0":  # asked to leave it be
-        return _nothing
-    try:
-        wanted = int(value) if value else FAVOURED_NICE
-    except ValueError:
-        log.warning("%s=%s not taken (not a niceness): the %s keeps its own", env, value, what)
         return _nothing
     tid = threading.get_native_id()
     try:
         before = os.getpriority(os.PRIO_PROCESS, tid)
+        wanted = int(value) if value else max(-20, before + FAVOURED_STEP)
+    except ValueError:
+        log.warning("%s=%s not taken (not a niceness): the %s keeps its own", env, value, what)
+        return _nothing
+    except OSError:
+        return _nothing
+    try:
         if wanted >= before:  # only ever ahead of where it was
             return _nothing
         os.setpriority(os.PRIO_PROCESS, tid, wanted)
@@ -53,6 +58,8 @@ def favour(what: str, env: str = RUN_NICE_ENV) -> Callable[[], None]:
                                               env, wanted, err, what)
         return _nothing
     log.debug("the %s at niceness %d", what, wanted)
+    for name in (RUN_NICE_ENV, BENCH_NICE_ENV):  # a value someone set stays theirs
+        os.environ.setdefault(name, str(wanted))
 
     def restore() -> None:
         try:
