@@ -1,12 +1,12 @@
 """Scheduling priority for what keeps a rig's time, where the machine allows it.
 
-A run's process (the stream, the camera's tracking, the run's own re-plans, all behind one GIL)
-and an emulated bench standing for devices with processors of their own are scheduled ahead of
-ordinary work: `FAVOURED_STEP` below the niceness they were started with (-10 from a shell's 0;
-one started with `nice -n 10` comes level with ordinary work, as whoever started it meant). On a computer whose cores other
-work keeps busy (a build, a study, a test suite), a cycle is then late by a time slice rather than
-by its share of the cores, and a supply's 0.25 s reply watchdog measures the link, not the
-computer. The whole process and not one thread: a thread of ours at normal priority that the
+A run's process (the stream, the camera's tracking, the run's own re-plans, all behind one GIL) and
+an emulated bench standing for devices with processors of their own are scheduled ahead of ordinary
+work: `FAVOURED_STEP` below the niceness they were started with (-10 from a shell's 0; one started
+with `nice -n 10` comes level with ordinary work, as whoever started it meant). On a computer whose
+cores other work keeps busy (a build, a study, a test suite), a cycle is then late by a time slice
+rather than by its share of the cores, and a supply's 0.25 s reply watchdog measures the link, not
+the computer. The whole process and not one thread: a thread of ours at normal priority that the
 scheduler parks while it holds the GIL would stall a favoured stream thread just the same.
 
 Raising a priority needs root, CAP_SYS_NICE or an RLIMIT_NICE that reaches it (`LimitNICE=` in a

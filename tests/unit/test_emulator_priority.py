@@ -1,6 +1,6 @@
-"""`rigctl emulate` takes its niceness from RIGCTL_EMULATOR_NICE before it starts a thread, and
-says in one line when it cannot (a bad value, or a raise without the right to); unset, 10 steps ahead of the niceness it was started with where
-the machine permits it (rigctl.core.priority), quietly."""
+"""`rigctl emulate` takes its niceness from RIGCTL_EMULATOR_NICE before it starts a thread, and says
+in one line when it cannot (a bad value, or a raise without the right to); unset, 10 steps ahead of
+the niceness it was started with where the machine permits it (rigctl.core.priority), quietly."""
 
 import os
 import resource
