@@ -172,6 +172,9 @@ WorkingDirectory=/var/lib/rigctl
 # --realtime {realtime}, the stream thread at {realtime}, the stream process's command thread (it takes the
 # e-stop) at {realtime + 1}, the daemon's command thread and ZeroMQ I/O thread at {realtime - 1}; nothing else
 LimitRTPRIO={realtime + 1}
+# without --realtime, the stream process still runs ten steps of niceness ahead of ordinary work
+# (rigctl.core.priority): a busy computer delays a cycle by a time slice, not its share of the cores
+LimitNICE=-10
 
 # the devices the rig file names (serial adapters, cameras); every other device is closed
 DevicePolicy=closed
