@@ -150,13 +150,19 @@ class Tracker:
     def update(self, image: np.ndarray, t_s: float | None = None) -> list[TrackedRobot]:
         """Track the robots in a picture (H, W, 3) BGR or (H, W) grey taken at `t_s` (s, any clock)."""
         dt = self._advance_clock(t_s)
-        detections = self._detect_near_robots(image, dt)
+        # the floor's scale where each robot was last seen, for its window and its darkness
+        mm_per_px = self.calibration.mm_per_px(self.pixels)
+        detections = self._detect_near_robots(image, dt, mm_per_px)
         if detections is None:
             detections = self.detect(image)
+        found_mm = np.zeros((0, 2))
+        if detections:
+            found_mm = self.calibration.to_mm(np.array([d.pixel for d in detections]))
         if self.on_floor is not None and detections:
-            on = self.on_floor(self.calibration.to_mm(np.array([d.pixel for d in detections])))
+            on = np.asarray(self.on_floor(found_mm), dtype=bool)
             detections = [d for d, keep in zip(detections, on) if keep]
-        self._associate(detections, dt)
+            found_mm = found_mm[on]
+        self._associate(detections, found_mm, dt, mm_per_px)
         self.frames += 1
         return self.robots
 
@@ -189,7 +195,9 @@ class Tracker:
 
     # -- internals ------------------------------------------------------------------------------
 
-    def _detect_near_robots(self, image: np.ndarray, dt: float) -> list[Detection] | None:
+    def _detect_near_robots(
+        self, image: np.ndarray, dt: float, mm_per_px: np.ndarray
+    ) -> list[Detection] | None:
         """`detect` in windows around the robots only, when every robot was seen last frame; None
         when the whole picture must be searched instead.
 
@@ -203,7 +211,7 @@ class Tracker:
             return None
         geometry = self._frame_geometry(image.shape[:2])
         top, bottom, left, right, scale, _ = geometry
-        windows = self._windows(dt, geometry)
+        windows = self._windows(dt, geometry, mm_per_px)
         if windows is None:
             return None
         height, width = bottom - top, right - left
@@ -217,7 +225,9 @@ class Tracker:
             detections += found
         return detections
 
-    def _windows(self, dt: float, geometry: tuple) -> list[tuple[int, int, int, int]] | None:
+    def _windows(
+        self, dt: float, geometry: tuple, mm_per_px: np.ndarray
+    ) -> list[tuple[int, int, int, int]] | None:
         """Boxes (row0, row1, col0, col1) px in the crop, multiples of the coarse shrink, each
         holding one or more robots' gates (`_associate`: gate radius plus twice the distance moved
         at the robot's speed, as the prediction moves too) plus a robot's radius and two coarse
@@ -225,7 +235,7 @@ class Tracker:
         top, bottom, left, right, scale, _ = geometry
         speed_mm_s = np.hypot(*self.velocities_mm_s.T)
         reach_mm = (self.settings.gate_radii + 1.0) * self.radii_mm + 2.0 * speed_mm_s * dt
-        reach_px = reach_mm / self.calibration.mm_per_px(self.pixels) + 2 * scale
+        reach_px = reach_mm / mm_per_px + 2 * scale
         height, width = bottom - top, right - left
         boxes = []
         for (x, y), reach in zip(self.pixels - (left, top), reach_px):
@@ -269,26 +279,29 @@ class Tracker:
         )
         _, mask = cv2.threshold(small, threshold, 255, cv2.THRESH_BINARY_INV)
         count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        # plain ints from here on: a window holds a region or two, numpy per value would cost more
+        boxes = stats.tolist()
         if any(inner):
-            x, y, w, h = stats[1:, 0], stats[1:, 1], stats[1:, 2], stats[1:, 3]
-            touching = ((inner[0] & (y == 0)) | (inner[1] & (y + h == mask.shape[0]))
-                        | (inner[2] & (x == 0)) | (inner[3] & (x + w == mask.shape[1])))
-            if touching.any():
-                return [], True
+            rows_small, cols_small = mask.shape
+            for x, y, w, h, _ in boxes[1:]:
+                if ((inner[0] and y == 0) or (inner[1] and y + h == rows_small)
+                        or (inner[2] and x == 0) or (inner[3] and x + w == cols_small)):
+                    return [], True
         top, left = origin
         one_robot = math.pi * radius_px**2
         fill = self._fill if self._fill is not None else _expected_fill(radius_px)
         min_area = self.settings.min_fill * one_robot * fill / scale**2
         max_area = (self.settings.max_per_region + 0.5) * one_robot / scale**2
-        areas = stats[1:, cv2.CC_STAT_AREA]
-        keep = np.nonzero((areas >= min_area) & (areas <= max_area))[0] + 1
         detections: list[Detection] = []
-        if len(keep) == 0:
-            return detections, False
         predicted_px = self.pixels  # last known pixel positions are good seeds for splitting
+        seeds = None
         weight_of = self._weight_table(threshold, dark)
-        for label in keep:
-            x, y, w, h = stats[label, :4]
+        for label in range(1, count):
+            x, y, w, h, area = boxes[label]
+            if not min_area <= area <= max_area:
+                continue
+            if seeds is None:
+                seeds = np.round(predicted_px).astype(int).tolist()
             # full-resolution box of this region, one coarse pixel larger on every side
             r0, r1 = max((y - 1) * scale, 0), min((y + h + 1) * scale, height)
             c0, c1 = max((x - 1) * scale, 0), min((x + w + 1) * scale, width)
@@ -297,7 +310,8 @@ class Tracker:
             region = (labels[max(y - 1, 0) : y + h + 1, max(x - 1, 0) : x + w + 1] == label)
             region = cv2.dilate(region.view(np.uint8), _GROW_ONE)
             if scale > 1:
-                region = region.repeat(scale, axis=0).repeat(scale, axis=1)
+                region = cv2.resize(region, None, fx=scale, fy=scale,
+                                    interpolation=cv2.INTER_NEAREST)
             region = region[: r1 - r0, : c1 - c0]
             weight = cv2.LUT(gray[r0:r1, c0:c1], weight_of)
             weight *= region
@@ -306,7 +320,7 @@ class Tracker:
             if total <= 0:
                 continue
             robots_here = self._count_robots(
-                total / (one_robot * fill), region, (r0 + top, c0 + left), predicted_px
+                total / (one_robot * fill), region, (r0 + top, c0 + left), seeds
             )
             if robots_here == 1:
                 centre = np.array([moments["m10"] / total + (c0 + left),
@@ -330,15 +344,18 @@ class Tracker:
         return self._weights[1]
 
     def _count_robots(
-        self, darkness: float, region: np.ndarray, origin: tuple[int, int], seeds_px: np.ndarray
+        self, darkness: float, region: np.ndarray, origin: tuple[int, int],
+        seeds_px: list[list[int]],
     ) -> int:
         """How many robots make one dark region: its darkness in robots, unless the robots expected
-        inside it (their last pixel lies in the region) agree with it within 35 %; one robot's
-        darkness depends on the blur, the expectation does not."""
-        rows = np.round(seeds_px[:, 1]).astype(int) - origin[0]
-        cols = np.round(seeds_px[:, 0]).astype(int) - origin[1]
-        inside = (rows >= 0) & (rows < region.shape[0]) & (cols >= 0) & (cols < region.shape[1])
-        expected = int(np.count_nonzero(region[rows[inside], cols[inside]]))
+        inside it (their last pixel, rounded: seeds_px [[col, row], ...]) agree with it within
+        35 %; one robot's darkness depends on the blur, the expectation does not."""
+        height, width = region.shape
+        expected = 0
+        for col, row in seeds_px:
+            row, col = row - origin[0], col - origin[1]
+            if 0 <= row < height and 0 <= col < width and region[row, col]:
+                expected += 1
         if expected >= 1 and abs(darkness / expected - 1.0) < 0.35:
             count = expected
         else:
@@ -419,14 +436,16 @@ class Tracker:
                  self.threshold)
         return True
 
-    def _associate(self, detections: list[Detection], dt: float) -> None:
+    def _associate(
+        self, detections: list[Detection], found_mm: np.ndarray, dt: float, mm_per_px: np.ndarray
+    ) -> None:
+        """Match the detections (their floor points found_mm (m, 2)) to the robots; mm_per_px (n,)
+        the floor's scale at each robot's last pixel."""
         n = len(self.positions_mm)
         unseen = self.frames_unseen
         if not detections:
             self._miss(np.ones(n, dtype=bool))
             return
-        pixels = np.array([d.pixel for d in detections])
-        found_mm = self.calibration.to_mm(pixels)
         moving = unseen == 0
         predicted = self.positions_mm + np.where(moving[:, None], self.velocities_mm_s * dt, 0.0)
         speed = np.hypot(*self.velocities_mm_s.T) * moving
@@ -440,7 +459,7 @@ class Tracker:
                         _UNMATCHED)
         rows, cols = linear_sum_assignment(cost)
         matched = np.zeros(n, dtype=bool)
-        radius_px = self.radii_mm / self.calibration.mm_per_px(self.pixels)
+        radius_px = self.radii_mm / mm_per_px
         one_robot_px = math.pi * radius_px**2
         fill = self._fill if self._fill is not None else _expected_fill(float(radius_px.min()))
         for i, j in zip(rows, cols):
