@@ -252,13 +252,15 @@ class ReplanBudget:
 
 @dataclass
 class Decision:
-    """One judgement at a move end (for the record and the latency figures)."""
+    """One judgement at a move end (for the record and the latency figures): t_source, t_received
+    monotonic s its frame was taken and reached the camera driver (None: not told)."""
 
     number: int
     sample: int
     kind: str  # "continue", "replan", "done", "give_up"
     t_source: float
     error_mm: list[float] = field(default_factory=list)
+    t_received: float | None = None
 
 
 class Supervisor:
@@ -420,18 +422,21 @@ class Supervisor:
             # backdoor round trip to a busy emulator took milliseconds of the frame-to-command time
             self._truth_pool.submit(self._measure_tracking, measured).add_done_callback(
                 _log_failure)
-        self._identify(sample, measured, state.t_source)
         error = np.hypot(*(measured - expected).T)
         goal_error = np.hypot(*(measured - self.goals).T)
         number = len(self.decisions)
-        decision = Decision(number, sample, "continue", state.t_source, error.round(4).tolist())
+        decision = Decision(number, sample, "continue", state.t_source, error.round(4).tolist(),
+                            state.t_received)
         self.decisions.append(decision)
         go_on = (goal_error.max() <= self.goal_threshold_mm if last
                  else error.max() <= self.settings.threshold_mm)
-        if go_on:  # release first, write the record after: the command leaves sooner
+        if go_on:  # release first, identify and write the record after: the command leaves sooner
             decision.kind = "done" if last else "continue"
             self._landed += 1
             seq.release(number)
+        # what the move says of the robots' response: a re-plan below uses it, a go-on does not
+        # wait for it (its fit and record lines took 1-2 ms of the frame-to-command time)
+        self._identify(sample, measured, state.t_source)
         self._event("check", sample=sample, error_mm=error.round(4).tolist(),
                     goal_error_mm=goal_error.round(4).tolist(), last=last, gain=round(self.gain, 4))
         if go_on:
