@@ -17,7 +17,9 @@
 - `command`: closed-loop runs of the example plan on the emulated bench (slip 0.85, spread, noise):
   latency from the capture time of the frame a supervisor decision used to the first command
   after it leaving the stream loop, p50 / p99, for decisions to go on and for re-plans (these
-  include the RRT's time). `bench/closed_loop.py` runs 20 seeds and reports the success share.
+  include the RRT's time); `received_*` the same from the frame's arrival at the camera driver,
+  and `opencv_floor` OpenCV's cost per frame of the same camera in the same runs
+  (`bench/closed_loop.py`'s figures, which runs 20 seeds and reports the success share).
 
 Run: `.venv/bin/python bench/tracker.py [--seconds S]`.
 """
@@ -194,25 +196,23 @@ def stream_latency(seconds: float) -> dict:
 
 
 def command_latency(runs: int) -> dict:
-    """Frame capture -> corrected command through the whole closed loop (see the docstring)."""
+    """Frame -> corrected command through the whole closed loop (see the docstring)."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from closed_loop import (  # the closed-loop bench, same folder
         ROOT,
+        frame_to_command,
         one_seed,
-        percentiles_ms,
+        parser,
     )
 
+    args = parser().parse_args(["--no-open-loop"])
     mismatch = ["--slip", "0.85", "--speed-spread", "0.01", "--noise", "0.05", "--drift", "0.005"]
     plan = ROOT / "plans" / "examples" / "fig4-quick.json"
-    results = [one_seed(plan, 200 + i, mismatch) for i in range(runs)]
-    return {
-        "runs": runs,
-        "continue_ms": percentiles_ms([t for r in results for t in r["latency_s"]["continue"]]),
-        "replan_ms": percentiles_ms([t for r in results for t in r["latency_s"]["replan"]]),
-    }
+    results = [one_seed(plan, 200 + i, mismatch, args) for i in range(runs)]
+    return {"runs": runs, **frame_to_command(results)}
 
 
 def main() -> None:
