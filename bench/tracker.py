@@ -1,17 +1,25 @@
 """Tracker benchmark: prints one JSON object.
 
-- `tracker`: frames per second of `Tracker.update` alone (frames already decoded), on one core
-  (`cv2.setNumThreads(1)` and the process pinned to one CPU), at 659 x 494 and 1280 x 1024 with
-  2, 4 and 8 robots moving, with the per-frame p50 / p99 time and the tracking error against the
-  scene's ground truth (mm; the robots' radius is `radius_mm`).
-- `jpeg_decode_ms`: `cv2.imdecode` of one emulated frame (quality 85) at each resolution, one core.
+- `tracker`: frames per second of `Tracker.update` alone on raw frames (grey, 8 bit, as a
+  machine-vision camera delivers them: decode excluded), on one core (`cv2.setNumThreads(1)` and
+  the process pinned to one CPU), at 659 x 494 and 1280 x 1024 with 2, 4 and 8 robots moving, with
+  the per-frame p50 / p99 time and the tracking error against the scene's ground truth (mm; the
+  robots' radius is `radius_mm`). Next to it, from the same frames in the same run (passes
+  interleaved): `floor_fps`, OpenCV's own floor (`cv2.threshold` + `cv2.findContours` on the whole
+  picture at the tracker's threshold), and `cost_over_floor`, our mean time per frame over the
+  floor's (below 1: cheaper than OpenCV's least pass). `jpeg`: the same with each frame's JPEG
+  (quality 85) decoded to grey inside the timing, ours and the floor's.
+- `jpeg_decode_ms`: `cv2.imdecode` of one emulated frame (quality 85) to BGR at each resolution,
+  one core (what the camera driver's VideoCapture pays per frame).
 - `stream`: through the emulated MJPEG camera at 60 fps, read by the camera driver
   (VideoCapture): latency from a frame's stamped capture time to the tracker's result, p50 / p99
   (this part uses every core: the camera is another machine on a rig).
 - `command`: closed-loop runs of the example plan on the emulated bench (slip 0.85, spread, noise):
   latency from the capture time of the frame a supervisor decision used to the first command
   after it leaving the stream loop, p50 / p99, for decisions to go on and for re-plans (these
-  include the RRT's time). `bench/closed_loop.py` runs 20 seeds and reports the success share.
+  include the RRT's time); `received_*` the same from the frame's arrival at the camera driver,
+  and `opencv_floor` OpenCV's cost per frame of the same camera in the same runs
+  (`bench/closed_loop.py`'s figures, which runs 20 seeds and reports the success share).
 
 Run: `.venv/bin/python bench/tracker.py [--seconds S]`.
 """
@@ -64,7 +72,62 @@ def decoded_frames(camera: CameraModel, n: int, count: int = FRAMES
     return frames, path, jpegs
 
 
+def opencv_floor(pictures: list, threshold: float, decode: bool = False) -> list[float]:
+    """OpenCV's own cost per picture (s): `cv2.threshold` and `cv2.findContours` (external, simple
+    chains) on the whole picture (grey, (H, W) uint8), after `cv2.imdecode` to grey when `decode`
+    (the pictures are then JPEG bytes). What the least tracker built on OpenCV pays per frame."""
+    durations = []
+    for picture in pictures:
+        started = time.perf_counter()
+        if decode:
+            picture = cv2.imdecode(np.frombuffer(picture, np.uint8), cv2.IMREAD_GRAYSCALE)
+        _, mask = cv2.threshold(picture, threshold, 255, cv2.THRESH_BINARY_INV)
+        cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        durations.append(time.perf_counter() - started)
+    return durations
+
+
+def tracked(calibration, path: np.ndarray, pictures: list, decode: bool = False
+            ) -> tuple[list[float], list[np.ndarray], float]:
+    """One pass of a fresh tracker over the pictures (grey arrays, or JPEG bytes decoded to grey
+    inside the timing when `decode`): seconds per frame after the first (which sets the grey
+    levels), the error (n,) mm of each frame against `path`, and the tracker's threshold."""
+    def picture(k: int) -> np.ndarray:
+        if decode:
+            return cv2.imdecode(np.frombuffer(pictures[k], np.uint8), cv2.IMREAD_GRAYSCALE)
+        return pictures[k]
+
+    tracker = Tracker(calibration, RADIUS_MM, path[0], roi_mm=WORKSPACE.bounds)
+    tracker.update(picture(0))
+    durations, errors = [], []
+    for k in range(1, len(pictures)):
+        started = time.perf_counter()
+        robots = tracker.update(picture(k), k / 60.0)
+        durations.append(time.perf_counter() - started)
+        errors.append(np.linalg.norm(np.array([r.position_mm for r in robots]) - path[k], axis=1))
+    return durations, errors, float(tracker.threshold)
+
+
+def figures(ours: list[float], floor: list[float]) -> dict:
+    """frames/s from the mean time, p50 / p99 (ms), the floor's frames/s from the same frames and
+    our cost over the floor's (mean time per frame over the floor's: 1 costs what OpenCV alone
+    costs, below 1 is cheaper than it); `fps_p50` / `floor_fps_p50` from the median times."""
+    d, f = np.array(ours), np.array(floor)
+    return {
+        "fps": round(1.0 / float(d.mean()), 1),
+        "p50_ms": round(1e3 * float(np.percentile(d, 50)), 3),
+        "p99_ms": round(1e3 * float(np.percentile(d, 99)), 3),
+        "floor_fps": round(1.0 / float(f.mean()), 1),
+        "cost_over_floor": round(float(d.mean() / f.mean()), 3),
+        # the same from the medians: on a shared machine a few preempted frames move the means
+        "fps_p50": round(1.0 / float(np.percentile(d, 50)), 1),
+        "floor_fps_p50": round(1.0 / float(np.percentile(f, 50)), 1),
+    }
+
+
 def time_tracker(seconds: float, frames_per_pass: int = FRAMES) -> tuple[dict, dict]:
+    """Per resolution and robot count: our tracker on raw grey frames and on their JPEGs, each
+    next to OpenCV's floor on the same frames, passes interleaved so both see the same machine."""
     results: dict = {}
     decode: dict = {}
     for width, height in RESOLUTIONS:
@@ -74,25 +137,23 @@ def time_tracker(seconds: float, frames_per_pass: int = FRAMES) -> tuple[dict, d
         results[key] = {}
         for n in ROBOT_COUNTS:
             frames, path, jpegs = decoded_frames(camera, n, frames_per_pass)
-            durations, errors = [], []
+            # raw frames as a machine-vision camera delivers them (mono 8 bit), decode excluded
+            raw = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames]
+            ours, floor, ours_jpeg, floor_jpeg, errors = [], [], [], [], []
             deadline = time.perf_counter() + seconds
-            while time.perf_counter() < deadline or not durations:
-                tracker = Tracker(calibration, RADIUS_MM, path[0], roi_mm=WORKSPACE.bounds)
-                tracker.update(frames[0])  # first frame sets the grey levels
-                for k in range(1, len(frames)):
-                    started = time.perf_counter()
-                    robots = tracker.update(frames[k], k / 60.0)
-                    durations.append(time.perf_counter() - started)
-                    found = np.array([r.position_mm for r in robots])
-                    errors.append(np.linalg.norm(found - path[k], axis=1))
-            d = np.array(durations)
+            while time.perf_counter() < deadline or not ours:
+                durations, e, threshold = tracked(calibration, path, raw)
+                ours += durations
+                errors += e
+                floor += opencv_floor(raw[1:], threshold)
+                ours_jpeg += tracked(calibration, path, jpegs, decode=True)[0]
+                floor_jpeg += opencv_floor(jpegs[1:], threshold, decode=True)
             e = np.concatenate(errors)
             results[key][str(n)] = {
-                "fps": round(1.0 / float(d.mean()), 1),
-                "p50_ms": round(1e3 * float(np.percentile(d, 50)), 3),
-                "p99_ms": round(1e3 * float(np.percentile(d, 99)), 3),
+                **figures(ours, floor),
                 "mean_error_mm": round(float(e.mean()), 4),
                 "max_error_mm": round(float(e.max()), 4),
+                "jpeg": figures(ours_jpeg, floor_jpeg),
             }
         buffer = np.frombuffer(jpegs[0], np.uint8)
         started = time.perf_counter()
@@ -138,25 +199,23 @@ def stream_latency(seconds: float) -> dict:
 
 
 def command_latency(runs: int) -> dict:
-    """Frame capture -> corrected command through the whole closed loop (see the docstring)."""
+    """Frame -> corrected command through the whole closed loop (see the docstring)."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from closed_loop import (  # the closed-loop bench, same folder
         ROOT,
+        frame_to_command,
         one_seed,
-        percentiles_ms,
+        parser,
     )
 
+    args = parser().parse_args(["--no-open-loop"])
     mismatch = ["--slip", "0.85", "--speed-spread", "0.01", "--noise", "0.05", "--drift", "0.005"]
     plan = ROOT / "plans" / "examples" / "fig4-quick.json"
-    results = [one_seed(plan, 200 + i, mismatch) for i in range(runs)]
-    return {
-        "runs": runs,
-        "continue_ms": percentiles_ms([t for r in results for t in r["latency_s"]["continue"]]),
-        "replan_ms": percentiles_ms([t for r in results for t in r["latency_s"]["replan"]]),
-    }
+    results = [one_seed(plan, 200 + i, mismatch, args) for i in range(runs)]
+    return {"runs": runs, **frame_to_command(results)}
 
 
 def main() -> None:

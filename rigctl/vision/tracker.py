@@ -23,8 +23,13 @@ Confidence (0..1) is a plain heuristic: how close the detection's darkness is to
 (a half-hidden robot scores about 0.5), times 0.8 for a robot split from a touching pair, times how
 well it agrees with the prediction (exp(-d^2 / 2r^2)).
 
-Speed: one colour conversion and one resize of the workspace's part of the picture, one connected-
-components pass, and numpy on a few hundred pixels per robot (see bench/tracker.py for figures).
+Speed: while every robot was seen in the frame before, steps 1-2 run only in windows around the
+robots (each robot's gate and disc, on the coarse pass's pixel grid, so they find exactly what the
+whole picture's pass finds there; a dark region cut by a window's edge sends the frame to the whole
+picture); otherwise one colour conversion and one resize of the workspace's part of the picture.
+Then one connected-components pass, and per region one table look-up and cv2.moments on a few
+hundred pixels (bench/tracker.py: frames/s next to OpenCV's threshold + contours on the same
+frames).
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ log = logging.getLogger(__name__)
 
 _UNMATCHED = 1e9  # Hungarian cost of a pair outside the gate
 _KMEANS_ROUNDS = 8
+_GROW_ONE = np.ones((3, 3), np.uint8)  # grows a region by one pixel, diagonals included
 _MIN_CONTRAST = 30.0  # grey levels between robots and floor below which a frame is not usable
 
 
@@ -141,6 +147,7 @@ class Tracker:
         self.frames = 0
         self._last_t: float | None = None
         self._geometry: tuple | None = None  # per picture size: crop box, downscale, radius px
+        self._weights: tuple | None = None  # (levels, weight per grey level), _weight_table
         self._fill = None  # darkness of one robot relative to pi r_px^2, learned from isolated robots
 
     # -- public ---------------------------------------------------------------------------------
@@ -148,11 +155,19 @@ class Tracker:
     def update(self, image: np.ndarray, t_s: float | None = None) -> list[TrackedRobot]:
         """Track the robots in a picture (H, W, 3) BGR or (H, W) grey taken at `t_s` (s, any clock)."""
         dt = self._advance_clock(t_s)
-        detections = self.detect(image)
+        # the floor's scale where each robot was last seen, for its window and its darkness
+        mm_per_px = self.calibration.mm_per_px(self.pixels)
+        detections = self._detect_near_robots(image, dt, mm_per_px)
+        if detections is None:
+            detections = self.detect(image)
+        found_mm = np.zeros((0, 2))
+        if detections:
+            found_mm = self.calibration.to_mm(np.array([d.pixel for d in detections]))
         if self.on_floor is not None and detections:
-            on = self.on_floor(self.calibration.to_mm(np.array([d.pixel for d in detections])))
+            on = np.asarray(self.on_floor(found_mm), dtype=bool)
             detections = [d for d, keep in zip(detections, on) if keep]
-        self._associate(detections, dt)
+            found_mm = found_mm[on]
+        self._associate(detections, found_mm, dt, mm_per_px)
         self.frames += 1
         return self.robots
 
@@ -174,12 +189,93 @@ class Tracker:
 
     def detect(self, image: np.ndarray) -> list[Detection]:
         """Robot-like dark regions in `image`, touching robots split using the current predictions."""
-        top, bottom, left, right, scale, radius_px = self._frame_geometry(image.shape[:2])
-        crop = image[top:bottom, left:right]
-        gray = cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY) if crop.ndim == 3 else crop
+        geometry = self._frame_geometry(image.shape[:2])
+        top, bottom, left, right, _, radius_px = geometry
+        gray = _grey(image[top:bottom, left:right])
         if self.threshold is None or self.dark_level is None:
             if not self._estimate_levels(gray, radius_px):
                 return []
+        detections, _ = self._detect_in(gray, (top, left), geometry, (False, False, False, False))
+        return detections
+
+    # -- internals ------------------------------------------------------------------------------
+
+    def _detect_near_robots(
+        self, image: np.ndarray, dt: float, mm_per_px: np.ndarray
+    ) -> list[Detection] | None:
+        """`detect` in windows around the robots only, when every robot was seen last frame; None
+        when the whole picture must be searched instead.
+
+        A window holds a robot's gate and the robot's own disc (so every detection `_associate`
+        could match lies inside one), on the coarse pass's pixel grid, so its coarse pixels, regions
+        and centroids are exactly those of the whole picture's pass. A dark region cut by a window's
+        inner edge is the one thing that could differ (a region larger than the window, a robot
+        beyond its gate): then the frame is searched whole. A 1280 x 1024 picture's four robots are
+        about 5 % of its pixels."""
+        if self.threshold is None or self.dark_level is None or self.frames_unseen.any():
+            return None
+        geometry = self._frame_geometry(image.shape[:2])
+        top, bottom, left, right, scale, _ = geometry
+        windows = self._windows(dt, geometry, mm_per_px)
+        if windows is None:
+            return None
+        height, width = bottom - top, right - left
+        detections: list[Detection] = []
+        for r0, r1, c0, c1 in windows:
+            gray = _grey(image[top + r0 : top + r1, left + c0 : left + c1])
+            inner = (r0 > 0, r1 < height, c0 > 0, c1 < width)
+            found, clipped = self._detect_in(gray, (top + r0, left + c0), geometry, inner)
+            if clipped:
+                return None
+            detections += found
+        return detections
+
+    def _windows(
+        self, dt: float, geometry: tuple, mm_per_px: np.ndarray
+    ) -> list[tuple[int, int, int, int]] | None:
+        """Boxes (row0, row1, col0, col1) px in the crop, multiples of the coarse shrink, each
+        holding one or more robots' gates (`_associate`: gate radius plus twice the distance moved
+        at the robot's speed, as the prediction moves too) plus a robot's radius and two coarse
+        pixels; overlapping or touching boxes merged. None if a robot is outside the crop."""
+        top, bottom, left, right, scale, _ = geometry
+        speed_mm_s = np.hypot(*self.velocities_mm_s.T)
+        reach_mm = (self.settings.gate_radii + 1.0) * self.radii_mm + 2.0 * speed_mm_s * dt
+        reach_px = reach_mm / mm_per_px + 2 * scale
+        height, width = bottom - top, right - left
+        boxes = []
+        for (x, y), reach in zip(self.pixels - (left, top), reach_px):
+            box = [max(math.floor((y - reach) / scale), 0) * scale,
+                   min(math.ceil((y + reach) / scale) * scale, height),
+                   max(math.floor((x - reach) / scale), 0) * scale,
+                   min(math.ceil((x + reach) / scale) * scale, width)]
+            if box[0] >= box[1] or box[2] >= box[3]:
+                return None
+            boxes.append(box)
+        merged = True
+        while merged and len(boxes) > 1:
+            merged = False
+            for i in range(len(boxes)):
+                for j in range(i + 1, len(boxes)):
+                    a, b = boxes[i], boxes[j]
+                    if a[0] <= b[1] and b[0] <= a[1] and a[2] <= b[3] and b[2] <= a[3]:
+                        boxes[i] = [min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]),
+                                    max(a[3], b[3])]
+                        del boxes[j]
+                        merged = True
+                        break
+                if merged:
+                    break
+        return [tuple(b) for b in boxes]
+
+    def _detect_in(
+        self, gray: np.ndarray, origin: tuple[int, int], geometry: tuple,
+        inner: tuple[bool, bool, bool, bool],
+    ) -> tuple[list[Detection], bool]:
+        """The detections in `gray` (h, w), a part of the picture whose top-left pixel is `origin`
+        (row, col) in the picture, h and w multiples of the coarse shrink; and whether a dark
+        region touches one of its `inner` edges (top, bottom, left, right: edges that are not the
+        crop's own), where it may go on outside."""
+        scale, radius_px = geometry[4], geometry[5]
         threshold, dark = float(self.threshold), float(self.dark_level)  # type: ignore[arg-type]
         height, width = gray.shape
         small = (
@@ -188,60 +284,83 @@ class Tracker:
         )
         _, mask = cv2.threshold(small, threshold, 255, cv2.THRESH_BINARY_INV)
         count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        # plain ints from here on: a window holds a region or two, numpy per value would cost more
+        boxes = stats.tolist()
+        if any(inner):
+            rows_small, cols_small = mask.shape
+            for x, y, w, h, _ in boxes[1:]:
+                if ((inner[0] and y == 0) or (inner[1] and y + h == rows_small)
+                        or (inner[2] and x == 0) or (inner[3] and x + w == cols_small)):
+                    return [], True
+        top, left = origin
         one_robot = math.pi * radius_px**2
         fill = self._fill if self._fill is not None else _expected_fill(radius_px)
         min_area = self.settings.min_fill * one_robot * fill / scale**2
         max_area = (self.settings.max_per_region + 0.5) * one_robot / scale**2
-        areas = stats[1:, cv2.CC_STAT_AREA]
-        keep = np.nonzero((areas >= min_area) & (areas <= max_area))[0] + 1
         detections: list[Detection] = []
-        if len(keep) == 0:
-            return detections
         predicted_px = self.pixels  # last known pixel positions are good seeds for splitting
-        span = 1.0 / max(threshold - dark, 1.0)
-        # A coarse pixel brighter than the threshold may hold full pixels darker than it.
-        grow = np.ones((2 * scale + 1, 2 * scale + 1), np.uint8)
-        for label in keep:
-            x, y, w, h = stats[label, :4]
+        seeds = None
+        weight_of = self._weight_table(threshold, dark)
+        for label in range(1, count):
+            x, y, w, h, area = boxes[label]
+            if not min_area <= area <= max_area:
+                continue
+            if seeds is None:
+                seeds = np.round(predicted_px).astype(int).tolist()
             # full-resolution box of this region, one coarse pixel larger on every side
             r0, r1 = max((y - 1) * scale, 0), min((y + h + 1) * scale, height)
             c0, c1 = max((x - 1) * scale, 0), min((x + w + 1) * scale, width)
-            region = labels[max(y - 1, 0) : y + h + 1, max(x - 1, 0) : x + w + 1] == label
+            # A coarse pixel brighter than the threshold may hold full pixels darker than it: the
+            # region grown by one coarse pixel (the same as growing it by `scale` full pixels).
+            region = (labels[max(y - 1, 0) : y + h + 1, max(x - 1, 0) : x + w + 1] == label)
+            region = cv2.dilate(region.view(np.uint8), _GROW_ONE)
             if scale > 1:
-                region = np.repeat(np.repeat(region, scale, axis=0), scale, axis=1)
-            region = cv2.dilate(region.astype(np.uint8), grow)[: r1 - r0, : c1 - c0]
-            patch = gray[r0:r1, c0:c1].astype(np.float32)
-            weight = np.clip((threshold - patch) * span, 0.0, 1.0)
-            weight *= region[: patch.shape[0], : patch.shape[1]]
-            total = float(weight.sum())
+                region = cv2.resize(region, None, fx=scale, fy=scale,
+                                    interpolation=cv2.INTER_NEAREST)
+            region = region[: r1 - r0, : c1 - c0]
+            weight = cv2.LUT(gray[r0:r1, c0:c1], weight_of)
+            weight *= region
+            moments = cv2.moments(weight)
+            total = moments["m00"]
             if total <= 0:
                 continue
-            rows, cols = np.nonzero(weight)
-            w_values = weight[rows, cols]
-            points = np.column_stack([cols + (c0 + left), rows + (r0 + top)]).astype(np.float64)
             robots_here = self._count_robots(
-                total / (one_robot * fill), region, (r0 + top, c0 + left), predicted_px
+                total / (one_robot * fill), region, (r0 + top, c0 + left), seeds
             )
             if robots_here == 1:
-                centre = (w_values @ points) / total
+                centre = np.array([moments["m10"] / total + (c0 + left),
+                                   moments["m01"] / total + (r0 + top)])
                 detections.append(Detection(centre, total, False))
             else:
+                rows, cols = np.nonzero(weight)
+                w_values = weight[rows, cols]
+                points = np.column_stack([cols + (c0 + left), rows + (r0 + top)]).astype(np.float64)
                 for centre, part in _split(points, w_values, robots_here, predicted_px):
                     detections.append(Detection(centre, part, True))
-        return detections
+        return detections, False
 
-    # -- internals ------------------------------------------------------------------------------
+    def _weight_table(self, threshold: float, dark: float) -> np.ndarray:
+        """(256,) float32: how much a pixel of each grey level counts as robot, 0 at the threshold
+        and brighter, 1 at the robots' grey and darker (a ramp between); made once per levels."""
+        if self._weights is None or self._weights[0] != (threshold, dark):
+            span = 1.0 / max(threshold - dark, 1.0)
+            grey = np.arange(256, dtype=np.float32)
+            self._weights = ((threshold, dark), np.clip((threshold - grey) * span, 0.0, 1.0))
+        return self._weights[1]
 
     def _count_robots(
-        self, darkness: float, region: np.ndarray, origin: tuple[int, int], seeds_px: np.ndarray
+        self, darkness: float, region: np.ndarray, origin: tuple[int, int],
+        seeds_px: list[list[int]],
     ) -> int:
         """How many robots make one dark region: its darkness in robots, unless the robots expected
-        inside it (their last pixel lies in the region) agree with it within 35 %; one robot's
-        darkness depends on the blur, the expectation does not."""
-        rows = np.round(seeds_px[:, 1]).astype(int) - origin[0]
-        cols = np.round(seeds_px[:, 0]).astype(int) - origin[1]
-        inside = (rows >= 0) & (rows < region.shape[0]) & (cols >= 0) & (cols < region.shape[1])
-        expected = int(np.count_nonzero(region[rows[inside], cols[inside]]))
+        inside it (their last pixel, rounded: seeds_px [[col, row], ...]) agree with it within
+        35 %; one robot's darkness depends on the blur, the expectation does not."""
+        height, width = region.shape
+        expected = 0
+        for col, row in seeds_px:
+            row, col = row - origin[0], col - origin[1]
+            if 0 <= row < height and 0 <= col < width and region[row, col]:
+                expected += 1
         if expected >= 1 and abs(darkness / expected - 1.0) < 0.35:
             count = expected
         else:
@@ -322,14 +441,16 @@ class Tracker:
                  self.threshold)
         return True
 
-    def _associate(self, detections: list[Detection], dt: float) -> None:
+    def _associate(
+        self, detections: list[Detection], found_mm: np.ndarray, dt: float, mm_per_px: np.ndarray
+    ) -> None:
+        """Match the detections (their floor points found_mm (m, 2)) to the robots; mm_per_px (n,)
+        the floor's scale at each robot's last pixel."""
         n = len(self.positions_mm)
         unseen = self.frames_unseen
         if not detections:
             self._miss(np.ones(n, dtype=bool))
             return
-        pixels = np.array([d.pixel for d in detections])
-        found_mm = self.calibration.to_mm(pixels)
         moving = unseen == 0
         predicted = self.positions_mm + np.where(moving[:, None], self.velocities_mm_s * dt, 0.0)
         speed = np.hypot(*self.velocities_mm_s.T) * moving
@@ -343,7 +464,7 @@ class Tracker:
                         _UNMATCHED)
         rows, cols = linear_sum_assignment(cost)
         matched = np.zeros(n, dtype=bool)
-        radius_px = self.radii_mm / self.calibration.mm_per_px(self.pixels)
+        radius_px = self.radii_mm / mm_per_px
         one_robot_px = math.pi * radius_px**2
         fill = self._fill if self._fill is not None else _expected_fill(float(radius_px.min()))
         for i, j in zip(rows, cols):
@@ -382,6 +503,11 @@ class Tracker:
         self.frames_unseen[missed] += 1
         self.confidences[missed] = 0.0
         self.velocities_mm_s[missed] = 0.0
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    """A picture (h, w, 3) BGR or (h, w) grey, in grey (uint8)."""
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
 
 
 def _expected_fill(radius_px: float) -> float:

@@ -35,13 +35,15 @@ REOPEN_S = 1.0  # a camera whose driver gave up is reopened this often until tra
 class TrackedState:
     """The robots after one fresh frame. positions_mm (n, 2); lost (n,) robot not seen for
     LOST_AFTER_FRAMES frames; t_source: monotonic s the picture was taken (stamp) or received;
-    t_tracked: monotonic s the tracker finished; frame: fresh frames tracked before this one."""
+    t_tracked: monotonic s the tracker finished; frame: fresh frames tracked before this one;
+    t_received: monotonic s the camera driver had the picture (decoded), None if not told."""
 
     positions_mm: np.ndarray
     lost: np.ndarray
     t_source: float
     t_tracked: float
     frame: int
+    t_received: float | None = None
 
 
 class TrackingLoop:
@@ -256,7 +258,8 @@ class TrackingLoop:
             state = TrackedState(
                 positions_mm=np.array([r.position_mm for r in robots]),
                 lost=unseen >= LOST_AFTER_FRAMES,
-                t_source=t, t_tracked=time.monotonic(), frame=self.frames)
+                t_source=t, t_tracked=time.monotonic(), frame=self.frames,
+                t_received=frame.t_capture)
             with self._cond:
                 self.frames += 1
                 self._latest = state

@@ -153,6 +153,16 @@ def test_the_sequencer_waits_at_each_move_end_until_released():
     assert float(seq.next()[0][0]) == 4.0
 
 
+def test_a_released_decision_says_when_its_first_command_left():
+    # the supervisor waits on it before its own Python after a go-on (supervisor._judge)
+    seq = SupervisedSequencer(program(6), move_ends=[3, 6], ramp_samples=2)
+    drain(seq, 4)
+    seq.release(decision=0)
+    assert not seq.command_left.is_set()  # released, but the stream has not taken a sample yet
+    assert float(seq.next()[0][0]) == 4.0
+    assert seq.command_left.is_set() and 0 in seq.command_times
+
+
 def test_a_splice_replaces_the_rest_of_the_program():
     seq = SupervisedSequencer(program(6), move_ends=[3, 6], ramp_samples=2)
     drain(seq, 4)

@@ -192,3 +192,53 @@ def test_a_dark_rim_off_the_floor_is_not_taken_for_a_hidden_robot():
     hidden, seen = track(dish.contains)
     assert hidden.lost and not seen.lost
     np.testing.assert_allclose(seen.position_mm, put[1], atol=0.1)
+
+
+class WholePictureTracker(Tracker):
+    """The tracker that searches the whole picture every frame (the second method)."""
+
+    def _detect_near_robots(self, image, dt, mm_per_px):
+        return None
+
+
+def test_windows_around_the_robots_find_what_the_whole_picture_finds(rig):
+    # Robots touching and orbiting, one hidden then back, one crossing the picture's edge and one
+    # sweeping fast past an obstacle: the tracker's windows around the robots (taken whenever
+    # every robot was seen last frame) must give, frame by frame, the whole picture's positions.
+    camera, renderer, calibration = rig
+    a = np.array([150.0, 250.0])
+    orbit = [a + 2 * RADIUS * np.array([math.cos(t), math.sin(t)]) for t in np.linspace(0, 3, 40)]
+    edge = [np.array([2.0 + 0.6 * k, 390.0 - 0.2 * k]) for k in range(40)]
+    fast = [np.array([60.0 + 3.0 * k, 140.0]) for k in range(40)]  # 180 mm/s past the rect
+    path = np.array([[a, orbit[k], edge[k], fast[k]] for k in range(40)])
+    hidden = range(12, 16)
+    # from frame 30, a row of six dark discs no robot is (too dark for robots that touch) touches
+    # the orbiting pair from outside their window: the whole picture sees one region too dark for
+    # robots, a window would see a piece of it
+    row = a + [0.0, -2 * RADIUS] - np.arange(6)[:, None] * [0.0, 2 * RADIUS]
+
+    images = []
+    for k, positions in enumerate(path):
+        glare = np.array([[*positions[1], 1.6 * RADIUS]]) if k in hidden else np.zeros((0, 3))
+        drawn = np.vstack([positions, row]) if k >= 30 else positions
+        images.append(renderer.render(Scene(WORKSPACE, drawn, np.full(len(drawn), RADIUS), glare)))
+
+    def states(tracker):
+        for k, image in enumerate(images):
+            windowed = tracker._detect_near_robots(
+                image, 1 / 60.0, calibration.mm_per_px(tracker.pixels)) is not None
+            yield tracker.update(image, t_s=k / 60.0), windowed
+
+    ours = list(states(Tracker(calibration, RADIUS, path[0], roi_mm=WORKSPACE.bounds)))
+    whole = list(states(WholePictureTracker(calibration, RADIUS, path[0],
+                                            roi_mm=WORKSPACE.bounds)))
+    for (mine, _), (theirs, _) in zip(ours, whole):
+        np.testing.assert_allclose([r.position_mm for r in mine], [r.position_mm for r in theirs],
+                                   atol=1e-9)
+        assert [r.lost for r in mine] == [r.lost for r in theirs]
+    assert any(r.lost for r in ours[14][0]) and not any(r.lost for r in ours[20][0])
+    assert all(r.lost for r in ours[-1][0][:2])  # the pair in the too-dark region
+    # windows on every frame after one with every robot seen, but the one where the row came
+    expected = [k > 0 and k != 30 and not any(r.lost for r in whole[k - 1][0])
+                for k in range(len(path))]
+    assert [w for _, w in ours] == expected

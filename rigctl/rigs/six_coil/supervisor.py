@@ -91,6 +91,7 @@ _SHORTEST_MOVE_MM = 0.05  # re-planned moves shorter than this are left out (eac
 REPLAN_ATTEMPTS = 3  # RRT runs (other seeds, longer budgets) before a re-plan that found no move fails
 _GAIN_LIMITS = (0.5, 1.5)  # plausible range of the rolled distance per commanded distance
 _FREE_MARGIN_MM = 0.3  # a measured path this close to a wall or another robot may have touched it
+_COMMAND_WAIT_S = 0.02  # a go-on waits at most this for its command to leave (100 Hz: 2 cycles)
 LEAD_IN_VOLTAGE_SHARE = 0.9  # of a supply's compliance a lead-in may use: the winding's R rises hot
 
 
@@ -112,6 +113,7 @@ class SupervisedSequencer(Sequencer):
         self._held = False
         self._mark: int | None = None  # decision awaiting its first command
         self.command_times: dict[int, float] = {}
+        self.command_left = threading.Event()  # the released decision's first command left
 
     def next(self) -> tuple[np.ndarray, int, int] | None:
         with self._lock:
@@ -127,6 +129,7 @@ class SupervisedSequencer(Sequencer):
         if step is not None and self._mark is not None and not self.paused:
             self.command_times[self._mark] = time.monotonic()
             self._mark = None
+            self.command_left.set()
         return step
 
     def release(self, decision: int | None = None) -> None:
@@ -136,6 +139,8 @@ class SupervisedSequencer(Sequencer):
             self.waiting_at = None
             self.arrived.clear()
             self._mark = decision
+            if decision is not None:
+                self.command_left.clear()
         self.wake()
 
     def streamed(self) -> np.ndarray:
@@ -252,13 +257,15 @@ class ReplanBudget:
 
 @dataclass
 class Decision:
-    """One judgement at a move end (for the record and the latency figures)."""
+    """One judgement at a move end (for the record and the latency figures): t_source, t_received
+    monotonic s its frame was taken and reached the camera driver (None: not told)."""
 
     number: int
     sample: int
     kind: str  # "continue", "replan", "done", "give_up"
     t_source: float
     error_mm: list[float] = field(default_factory=list)
+    t_received: float | None = None
 
 
 class Supervisor:
@@ -420,18 +427,24 @@ class Supervisor:
             # backdoor round trip to a busy emulator took milliseconds of the frame-to-command time
             self._truth_pool.submit(self._measure_tracking, measured).add_done_callback(
                 _log_failure)
-        self._identify(sample, measured, state.t_source)
         error = np.hypot(*(measured - expected).T)
         goal_error = np.hypot(*(measured - self.goals).T)
         number = len(self.decisions)
-        decision = Decision(number, sample, "continue", state.t_source, error.round(4).tolist())
+        decision = Decision(number, sample, "continue", state.t_source, error.round(4).tolist(),
+                            state.t_received)
         self.decisions.append(decision)
         go_on = (goal_error.max() <= self.goal_threshold_mm if last
                  else error.max() <= self.settings.threshold_mm)
-        if go_on:  # release first, write the record after: the command leaves sooner
+        if go_on:  # release first, identify and write the record after: the command leaves sooner
             decision.kind = "done" if last else "continue"
             self._landed += 1
             seq.release(number)
+            # Python here would hold the GIL each time the stream thread comes back from a
+            # socket in the cycle that sends the command (up to a switch interval per read)
+            seq.command_left.wait(_COMMAND_WAIT_S)
+        # what the move says of the robots' response: a re-plan below uses it, a go-on does not
+        # wait for it (its fit and record lines took 1-2 ms of the frame-to-command time)
+        self._identify(sample, measured, state.t_source)
         self._event("check", sample=sample, error_mm=error.round(4).tolist(),
                     goal_error_mm=goal_error.round(4).tolist(), last=last, gain=round(self.gain, 4))
         if go_on:
