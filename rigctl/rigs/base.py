@@ -139,6 +139,9 @@ class RigKind:
     study: StudyHooks | None = None
     """What `rigctl study` needs beyond `bench` and `bench_args` (None: nothing)."""
     plan_models: Mapping[str, Callable[[], type]] = field(default_factory=dict)
+    """The document model (a pydantic class, schema `rigctl.plan/1`) of each plan kind this kind
+    brings that `rigctl.plans.schema` does not know, by plan kind: `parse_plan` validates such a
+    plan with it (a lab's plan kinds; the papers' kinds are in the schema's union)."""
     turn_mm: Callable[[RigConfig | None], float] | None = None
     """The length (mm) of one whole roll of the kind's agents, for a kind whose global moves must
     be whole rolls (rolling magnets), from its rig file (None: the kind's defaults); the planners
@@ -146,9 +149,6 @@ class RigKind:
     wall_contact: str | None = None
     """How agents meet walls in the kind's global-moves plans, for the global-input model and its
     planners: "slide" (rolling magnets) or "non-slip" (particles stick); None: it runs none."""
-    """The document model (a pydantic class, schema `rigctl.plan/1`) of each plan kind this kind
-    brings that `rigctl.plans.schema` does not know, by plan kind: `parse_plan` validates such a
-    plan with it (a lab's plan kinds; the papers' kinds are in the schema's union)."""
 
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.core.errors import PlanError
