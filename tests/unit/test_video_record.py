@@ -1,0 +1,80 @@
+"""The record's video (`rigctl.vision.video.VideoRecorder`): a camera faster than the video is
+subsampled to the video's rate and a slower one keeps every frame, a writer that cannot keep up
+makes `offer` drop and count frames instead of waiting, and what is written is a file OpenCV opens
+with each frame's time in the record's series."""
+
+import cv2
+import numpy as np
+
+from rigctl.core.record import RunRecord, read_series
+from rigctl.vision.video import VIDEO_FILE, VideoRecorder
+
+W, H = 160, 120
+
+
+def picture(k: int) -> np.ndarray:
+    """Frame k: a white disc whose x is 10 + 2k px on grey, so a frame read back says which it is."""
+    image = np.full((H, W, 3), 60, np.uint8)
+    cv2.circle(image, (10 + 2 * k, 60), 6, (255, 255, 255), -1)
+    return image
+
+
+def read_back(path) -> list[np.ndarray]:
+    capture = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, image = capture.read()
+        if not ok:
+            return frames
+        frames.append(image)
+
+
+def test_a_60_fps_camera_is_taken_at_20_fps_on_the_records_clock(tmp_path):
+    record = RunRecord(tmp_path, "video")
+    video = VideoRecorder(record, fps_max=20.0, queue_frames=64)  # room for all: no drops
+    times = 0.5 + np.arange(60) / 60.0  # one second of a 60 frames/s camera
+    queued = []
+    for k, t in enumerate(times):
+        if video.offer(picture(k), float(t), k):
+            queued.append(k)
+    video.close()
+    record.close()
+    # every third frame: 0, 3, 6, ... (the grid of 1/20 s from the first one)
+    assert queued == list(range(0, 60, 3))
+    assert video.written == 20 and video.dropped == 0 and video.skipped == 40
+    series = read_series(record.path, "video")
+    np.testing.assert_array_equal(series["frame"], np.arange(20))
+    np.testing.assert_array_equal(series["camera_frame"], queued)
+    np.testing.assert_allclose(series["t_s"], times[queued], atol=1e-6)
+    frames = read_back(record.path / VIDEO_FILE)
+    assert len(frames) == 20 and frames[0].shape == (H, W, 3)
+    for frame, k in zip(frames, queued):  # the disc where frame k had it
+        row = frame[60, :, 1].astype(int)
+        assert abs(int(np.argmax(row > 150)) - (10 + 2 * k - 6)) <= 2
+
+
+def test_a_slower_camera_keeps_every_frame(tmp_path):
+    record = RunRecord(tmp_path, "video")
+    video = VideoRecorder(record, fps_max=20.0, queue_frames=64)
+    for k in range(30):  # 12 frames/s, with a gap of a second after frame 9
+        t = k / 12.0 + (1.0 if k >= 10 else 0.0)
+        assert video.offer(picture(k), t, k)
+    video.close()
+    record.close()
+    assert video.written == 30 and video.skipped == 0
+    assert len(read_back(record.path / VIDEO_FILE)) == 30
+
+
+def test_a_writer_that_cannot_keep_up_costs_dropped_frames_not_waiting(tmp_path):
+    """1000 due frames offered at once (far faster than any encoder): the queue of 4 fills, the
+    rest are dropped and counted, and every frame is either written or counted as dropped."""
+    record = RunRecord(tmp_path, "video")
+    video = VideoRecorder(record, fps_max=20.0, queue_frames=4)
+    image = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    queued = sum(video.offer(image, k / 20.0, k) for k in range(1000))
+    video.close()
+    record.close()
+    assert video.dropped > 900
+    assert queued == video.written and video.written + video.dropped == 1000
+    assert len(read_series(record.path, "video")["t_s"]) == video.written
+    assert len(read_back(record.path / VIDEO_FILE)) == video.written
