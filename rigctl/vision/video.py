@@ -108,12 +108,18 @@ class VideoRecorder:
                 if image.ndim == 2:
                     image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
                 if writer is None:
-                    size = (image.shape[1], image.shape[0])
+                    # JPEG's 4:2:0 chroma wants even sides: FFmpeg would cut the last column of
+                    # the 659 px wide camera, so the picture is padded instead (a pixel of the
+                    # video stays the camera's pixel, for the calibration)
+                    size = (image.shape[1] + image.shape[1] % 2, image.shape[0] + image.shape[0] % 2)
                     writer = self._open(size)
                     if writer is None:
                         return
-                if (image.shape[1], image.shape[0]) != size:  # a camera reopened at another size
-                    image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+                if image.shape[1] > size[0] or image.shape[0] > size[1]:  # reopened larger
+                    image = image[:size[1], :size[0]]
+                if (image.shape[1], image.shape[0]) != size:
+                    image = cv2.copyMakeBorder(image, 0, size[1] - image.shape[0], 0,
+                                               size[0] - image.shape[1], cv2.BORDER_REPLICATE)
                 writer.write(image)
                 self._series.row((self.written, t_s, camera_frame))
                 self.written += 1
