@@ -75,6 +75,7 @@ QUICK = {
     "study.py": ["--smoke", "--workers", "1"],
     "console.py": ["--smoke"],
     "fields.py": ["--smoke"],  # with mag_manip's side venv present, its comparison runs too
+    "video.py": ["--smoke"],  # one pair (video off, on) of a three-turn closed-loop run
 }
 
 # per script, figures (key paths) only its last stages write: present and not empty means the
@@ -106,6 +107,7 @@ FIGURES = {
                    ("websocket_watchers", "runs")],
     "fields.py": [("eval", "best_us"), ("allocate_8dof", "best_us"), ("fit", "held_out_pct"),
                   ("mag_manip", "available")],
+    "video.py": [("on", "video", "MB_per_min"), ("ratio_on_off", "period_error_p99")],
 }
 
 
