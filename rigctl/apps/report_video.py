@@ -39,8 +39,16 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from PIL import Image, ImageDraw, ImageFont
 
-from rigctl.apps.report import (RUN_CLOCK, UNIT_LABELS, RunData, _agent_paths, _mark_events,
-                                _run_name, _tracked_positions, read_run)
+from rigctl.apps.report import (
+    RUN_CLOCK,
+    UNIT_LABELS,
+    RunData,
+    _agent_paths,
+    _mark_events,
+    _run_name,
+    _tracked_positions,
+    read_run,
+)
 from rigctl.core.camera_model import Calibration
 from rigctl.core.errors import ConfigError
 from rigctl.core.record import read_series, read_stream
@@ -67,6 +75,7 @@ class Rendered:
     frames: int
     fps: float
     scene: str  # "video" or "drawn"
+    why: str  # where the scene came from, in words
     t_start_s: float
     t_end_s: float
 
@@ -355,8 +364,16 @@ def render_video(run_dir: str | Path, out: str | Path | None = None, *,
     series = read_series(run_dir, VIDEO_SERIES)
     calibration = _calibration(run_dir)
     video: _VideoFrames | None = None
-    if (series is not None and len(series.get("t_s", ())) and (run_dir / VIDEO_FILE).is_file()
-            and calibration is not None):
+    has_video = (series is not None and len(series.get("t_s", ()))
+                 and (run_dir / VIDEO_FILE).is_file())
+    if not has_video:
+        why = "the workspace drawn from the plan (the record has no video)"
+    elif calibration is None:
+        why = ("the workspace drawn from the plan (the record's rig.toml has no camera "
+               "calibration to put the paths on its video)")
+    else:
+        why = "the record's video"
+    if has_video and calibration is not None:
         video = _VideoFrames(run_dir / VIDEO_FILE, np.asarray(series["t_s"], dtype=float))
         scene_map = _video_map(calibration, video.size, _floor_points(data.plan, extra))
         backdrop = None
@@ -402,7 +419,8 @@ def render_video(run_dir: str | Path, out: str | Path | None = None, *,
         writer.release()
         if video is not None:
             video.close()
-    return Rendered(out, frames_n, fps, "video" if video is not None else "drawn", t_start, t_end)
+    return Rendered(out, frames_n, fps, "video" if video is not None else "drawn", why, t_start,
+                    t_end)
 
 
 def _title(data: RunData) -> str:

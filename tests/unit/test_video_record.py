@@ -78,3 +78,42 @@ def test_a_writer_that_cannot_keep_up_costs_dropped_frames_not_waiting(tmp_path)
     assert queued == video.written and video.written + video.dropped == 1000
     assert len(read_series(record.path, "video")["t_s"]) == video.written
     assert len(read_back(record.path / VIDEO_FILE)) == video.written
+
+
+def test_report_video_of_a_record_without_video_draws_the_scene(tmp_path):
+    """A record with a plan and `tracked` events but no video (video off, an older record): the
+    MP4 is 1280x720, one frame per 1/20 s of its tracked span, and the agent drawn where the
+    tracker had it moves right as it did (its disc's pixels gone from the left, new on the right)."""
+    import json
+
+    from rigctl.apps.report_video import COLOURS, render_video
+
+    plan = {"schema": "rigctl.plan/1", "kind": "global-moves", "rig": "six-coil", "name": "slide",
+            "workspace": {"boundary": {"rect": [0.0, 0.0, 400.0, 400.0]}, "obstacles": []},
+            "agents": [{"start": [80.0, 300.0], "goal": [280.0, 300.0], "radius": 8.0},
+                       {"start": [80.0, 100.0], "goal": [80.0, 100.0], "radius": 8.0}],
+            "moves": [[200.0, 0.0]], "expected": [[[280.0, 300.0], [80.0, 100.0]]],
+            "tolerance_mm": 1.0, "min_separation_mm": 0.0}
+    record = RunRecord(tmp_path, "slide")
+    record.write_file("plan.json", json.dumps(plan))
+    times = 0.5 + np.arange(11) / 10.0  # 10 tracked events a second over 1 s
+    for k, t in enumerate(times):
+        x = 80.0 + 200.0 * (t - times[0])
+        record.event("tracked", positions_mm=[[x, 300.0], [80.0, 100.0]], lost=[False, False],
+                     frame=3 * k, t_frame_s=float(t))
+    record.close()
+    out = tmp_path / "slide.mp4"
+    rendered = render_video(record.path, out)
+    assert rendered.scene == "drawn"
+    frames = read_back(out)
+    assert len(frames) == int(np.floor(1.0 * 20)) + 1 == rendered.frames
+    assert frames[0].shape == (720, 1280, 3)
+    blue = np.array(COLOURS[0], dtype=int)
+
+    def agent_0(frame):
+        return (np.abs(frame[40:550, :720].astype(int) - blue).sum(axis=2) < 60)
+
+    first, last = agent_0(frames[0]), agent_0(frames[-1])
+    gone_x = np.flatnonzero((first & ~last).any(axis=0)).mean()
+    new_x = np.flatnonzero((last & ~first).any(axis=0)).mean()
+    assert new_x > gone_x + 50, (gone_x, new_x)

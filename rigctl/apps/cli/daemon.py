@@ -414,10 +414,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
         # --video alone: True (argparse would pass a string const through the type check)
         rendered = render_video(run, args.video if isinstance(args.video, str) else None)
         print(rendered.path)
-        scene = ("the record's video" if rendered.scene == "video"
-                 else "the workspace drawn from the plan (the record has no video)")
         print(f"{rendered.frames} frames at {rendered.fps:g} frames/s, {WIDTH}x{HEIGHT}, "
-              f"{rendered.t_start_s:.2f}-{rendered.t_end_s:.2f} s of the run; scene: {scene}")
+              f"{rendered.t_start_s:.2f}-{rendered.t_end_s:.2f} s of the run; scene: "
+              f"{rendered.why}")
         return EXIT_OK
     out = render_report(run, args.output)
     print(out)
