@@ -19,9 +19,10 @@ waits. A thread (`video-pipe`) hands each queued frame, raw, to a process of its
 than the run: the encoder shares no interpreter lock with the stream thread, and on a loaded
 machine it gets the CPU the stream and the tracker leave (a writer thread in the run's process,
 even one made nicer, left the stream's period-error p99 1.26 and 1.32 times that of runs without
-video, where two sets of runs without it differed by 1.17; `bench/video.py` at load 5-6). When that is too little the pipe fills, the thread waits on it
-(without the lock) and the queue drops frames. The child ends when the pipe closes, also when the
-run's process dies, and closes its file first.
+video, where two sets of runs without it differed by 1.17; `bench/video.py` at load 5-6). When
+that is too little the pipe fills, the thread waits on it (without the lock) and the queue drops
+frames. The child ends when the pipe closes, also when the run's process dies, and closes its
+file first.
 
 Rate: a camera faster than the video needs (the emulated one sends 60 frames/s) is subsampled on a
 grid of 1/`fps_max`: a frame is taken when its time reaches the next due time (less a quarter
