@@ -62,7 +62,7 @@ STRIP_H = 170  # px: the channels under the scene
 SCENE = (0, TITLE_H, 720, HEIGHT - STRIP_H)  # x0, y0, x1, y1 of the scene's box
 PANEL_X = 736  # the panel's left edge
 FPS = 20.0
-BACKGROUND = (255, 255, 255)  # BGR
+BACKGROUND = (255, 255, 255)  # BGR and RGB alike
 TEXT = (30, 30, 30)  # RGB, for Pillow
 FOURCC = "mp4v"
 
@@ -305,14 +305,13 @@ class Strip:
         self._x = (x0, x1, left * WIDTH, right * WIDTH)
         self._y = (int((1 - top) * STRIP_H), int((1 - bottom) * STRIP_H))
 
-    def at(self, t_s: float) -> np.ndarray:
-        image = self.image.copy()
+    def cursor(self, image: np.ndarray, t_s: float) -> None:
+        """The cursor at `t_s` into `image` (the strip's rows of a frame), in place."""
         if self._x is not None:
             x0, x1, p0, p1 = self._x
             x = p0 + (t_s - x0) / (x1 - x0) * (p1 - p0)
             cv2.line(image, (int(round(x)), self._y[0]), (int(round(x)), self._y[1]),
                      (0, 0, 0), 2, cv2.LINE_AA)  # black: red marks faults
-        return image
 
 
 # -- rendering ------------------------------------------------------------------------------------
@@ -396,24 +395,27 @@ def render_video(run_dir: str | Path, out: str | Path | None = None, *,
                              (WIDTH, HEIGHT))
     if not writer.isOpened():
         raise ConfigError(f"OpenCV cannot write {out} ({FOURCC} in MP4)")
-    title = _title(data)
+    base = np.full((HEIGHT, WIDTH, 3), BACKGROUND, np.uint8)
+    base[HEIGHT - STRIP_H:] = strip.image
+    base = panel.draw_static(base, _title(data))
+    x0 = SCENE[0] + (SCENE[2] - SCENE[0] - scene_map.size[0]) // 2
+    y0 = SCENE[1] + (SCENE[3] - SCENE[1] - scene_map.size[1]) // 2
+    frame = base.copy()
     try:
         for k in range(frames_n):
             t = t_start + k / fps
             if video is not None:
-                x0, y0, x1, y1 = scene_map.crop
-                scene = cv2.resize(video.at(t)[y0:y1, x0:x1], scene_map.size,
+                c0, r0, c1, r1 = scene_map.crop
+                scene = cv2.resize(video.at(t)[r0:r1, c0:c1], scene_map.size,
                                    interpolation=cv2.INTER_AREA)
             else:
                 scene = backdrop.copy()
             now = _draw_overlays(scene, scene_map, paths, tracked, radii, t, panel.move_at(t),
                                  drawn=video is None)
-            frame = np.full((HEIGHT, WIDTH, 3), BACKGROUND, np.uint8)
-            x0 = SCENE[0] + (SCENE[2] - SCENE[0] - scene_map.size[0]) // 2
-            y0 = SCENE[1] + (SCENE[3] - SCENE[1] - scene_map.size[1]) // 2
+            frame[HEIGHT - STRIP_H:] = base[HEIGHT - STRIP_H:]  # the strip without the cursor
             frame[y0:y0 + scene.shape[0], x0:x0 + scene.shape[1]] = scene
-            frame[HEIGHT - STRIP_H:] = strip.at(t)
-            frame = panel.draw(frame, t, now, title)
+            strip.cursor(frame[HEIGHT - STRIP_H:], t)
+            panel.draw(frame, t, now)
             writer.write(frame)
     finally:
         writer.release()
@@ -505,11 +507,39 @@ class _Panel:
         done = self.stream_move[:k]
         return int(done.max()) if len(done) else -1
 
-    def draw(self, frame: np.ndarray, t_s: float, now_mm: np.ndarray, title: str) -> np.ndarray:
+    @property
+    def dynamic_height(self) -> int:
+        """px of the part that changes: time, move, re-plans, a fault, one line per agent."""
+        return 14 + 46 + 3 * 28 + 8 + 28 * len(self.paths) + 6
+
+    def draw_static(self, frame: np.ndarray, title: str) -> np.ndarray:
+        """The title band and the legend, drawn once into the frame every frame starts from."""
         image = Image.fromarray(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
         pen = ImageDraw.Draw(image)
         pen.text((16, 9), _fit(pen, title, self.title, WIDTH - 32), font=self.title, fill=TEXT)
-        x, y = PANEL_X, TITLE_H + 14
+        x, y = PANEL_X, TITLE_H + self.dynamic_height + 4
+        pen.text((x, y), "legend", font=self.title, fill=TEXT)
+        y += 26
+        scene = "camera video" if self.has_video else "workspace drawn from the plan (no video)"
+        for line in ("dashed: planned path (start, then after each move)",
+                     "small rings: positions the plan expects",
+                     "large ring: expected after the current move",
+                     "solid line: tracked path so far",
+                     "circle: tracked position now (agent's radius)",
+                     "star: goal",
+                     f"scene: {scene}"):
+            pen.text((x, y), _fit(pen, line, self.small, WIDTH - x - 16), font=self.small,
+                     fill=TEXT)
+            y += 21
+        return cv2.cvtColor(np.asarray(image), cv2.COLOR_RGB2BGR)
+
+    def draw(self, frame: np.ndarray, t_s: float, now_mm: np.ndarray) -> None:
+        """The changing lines at `t_s` into `frame`, in place (only their box goes through
+        Pillow: a whole frame there and back cost more than the rest of the frame)."""
+        box_w, box_h = WIDTH - PANEL_X, self.dynamic_height
+        image = Image.new("RGB", (box_w, box_h), BACKGROUND)
+        pen = ImageDraw.Draw(image)
+        x, y = 0, 14
         pen.text((x, y), f"t = {t_s:.2f} s", font=self.big, fill=TEXT)
         y += 46
         move = self.move_at(t_s)
@@ -526,10 +556,9 @@ class _Panel:
         y += 28
         faults = [what for t, what in self.faults if t <= t_s]
         if faults:
-            pen.text((x, y), _fit(pen, f"FAULT: {faults[-1]}", self.body, WIDTH - x - 16),
+            pen.text((x, y), _fit(pen, f"FAULT: {faults[-1]}", self.body, box_w - 16),
                      font=self.body, fill=(200, 30, 30))
-            y += 28
-        y += 8
+        y += 28 + 8
         for i, (_, _, goal) in enumerate(self.paths):
             rgb = COLOURS[i % len(COLOURS)][::-1]
             pen.rectangle((x, y + 4, x + 14, y + 18), fill=rgb)
@@ -539,24 +568,11 @@ class _Panel:
                         f"{dist:.1f} mm from goal")
             else:
                 text = f"agent {i}: not tracked now"
-            pen.text((x + 22, y), _fit(pen, text, self.body, WIDTH - x - 40), font=self.body,
+            pen.text((x + 22, y), _fit(pen, text, self.body, box_w - 40), font=self.body,
                      fill=TEXT)
             y += 28
-        y += 10
-        pen.text((x, y), "legend", font=self.title, fill=TEXT)
-        y += 26
-        scene = "camera video" if self.has_video else "workspace drawn from the plan (no video)"
-        for line in ("dashed: planned path (start, then after each move)",
-                     "small rings: positions the plan expects",
-                     "large ring: expected after the current move",
-                     "solid line: tracked path so far",
-                     "circle: tracked position now (agent's radius)",
-                     "star: goal",
-                     f"scene: {scene}"):
-            pen.text((x, y), _fit(pen, line, self.small, WIDTH - x - 16), font=self.small,
-                     fill=TEXT)
-            y += 21
-        return cv2.cvtColor(np.asarray(image), cv2.COLOR_RGB2BGR)
+        frame[TITLE_H:TITLE_H + box_h, PANEL_X:] = cv2.cvtColor(np.asarray(image),
+                                                              cv2.COLOR_RGB2BGR)
 
 
 def _fit(pen: ImageDraw.ImageDraw, text: str, font, width_px: float) -> str:
