@@ -39,6 +39,7 @@ import queue
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 from pathlib import Path
 
@@ -81,10 +82,13 @@ class VideoRecorder:
         self._due_s = -np.inf
         self._queue: queue.Queue = queue.Queue(maxsize=max(1, queue_frames))
         self._closed = False
-        # started now, before the run streams: its imports take a few hundred ms of CPU
+        # started now, before the run streams: its imports take a few hundred ms of CPU. Its
+        # messages (FFmpeg's among them) go to a file, read if it fails: a pipe nobody reads
+        # during the run would stop it once full
+        self._stderr = tempfile.TemporaryFile()
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "rigctl.vision.video", str(self.path), repr(self.fps)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=self._stderr,
             start_new_session=True)  # a terminal's Ctrl-C is the run's; the pipe closing ends it
         self._writer = threading.Thread(target=self._pipe, name="video-pipe", daemon=True)
         self._writer.start()
@@ -123,8 +127,9 @@ class VideoRecorder:
         proc = self._proc
         try:
             while (item := self._queue.get()) is not None:
-                if self.failure is not None:
-                    continue  # the writer is gone: drain, the offers stop by themselves
+                if self.failure is not None:  # the writer is gone: drain, the offers stop
+                    self.dropped += 1
+                    continue
                 image, t_s, camera_frame = item
                 if image.ndim == 2:
                     image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
@@ -135,6 +140,7 @@ class VideoRecorder:
                 except (BrokenPipeError, OSError) as err:
                     self.failure = f"the video writer process ended ({err})"
                     log.error("video: %s; the run goes on without video", self.failure)
+                    self.dropped += 1
                     continue
                 self._series.row((self.written, t_s, camera_frame))
                 self.written += 1
@@ -147,24 +153,26 @@ class VideoRecorder:
 
     def _finish(self, proc: subprocess.Popen) -> None:
         try:  # closes the pipe: the child writes what it has, closes the file and ends
-            _, err = proc.communicate(timeout=10.0)
-        except (BrokenPipeError, OSError, ValueError):
-            _, err = b"", b""
+            proc.stdin.close()
+        except OSError:  # it had ended already (the failure is said)
+            pass
+        try:
             proc.wait(10.0)
         except subprocess.TimeoutExpired:
             end_child(proc, timeout_s=2.0)
             self.failure = self.failure or "the video writer did not finish within 10 s"
-            return
-        if proc.returncode != 0:
-            reason = err.decode(errors="replace").strip().splitlines()[-1:] or ["no message"]
-            self.failure = self.failure or f"the video writer failed: {reason[0]}"
+        if proc.returncode not in (0, None):  # its own last words say more than a broken pipe
+            self._stderr.seek(0)
+            lines = self._stderr.read().decode(errors="replace").strip().splitlines()
+            said = lines[-1] if lines else f"exit status {proc.returncode}"
+            self.failure = f"the video writer failed: {said}"
             log.error("video: %s", self.failure)
+        self._stderr.close()
 
     def counts(self) -> dict:
         """What the recorder did, for the run's events: file, rate, frames written and lost."""
         return {"file": self.path.name, "fps": self.fps, "written": self.written,
                 "dropped": self.dropped, "failure": self.failure}
-
 
 
 # -- the writer process ---------------------------------------------------------------------------

@@ -117,3 +117,19 @@ def test_report_video_of_a_record_without_video_draws_the_scene(tmp_path):
     gone_x = np.flatnonzero((first & ~last).any(axis=0)).mean()
     new_x = np.flatnonzero((last & ~first).any(axis=0)).mean()
     assert new_x > gone_x + 50, (gone_x, new_x)
+
+
+def test_a_writer_that_cannot_write_says_why_and_the_offers_go_on(tmp_path):
+    """video.avi cannot be made (a folder of that name is in the way): the recorder says why in the
+    writer's own words, and offering frames neither blocks nor raises."""
+    record = RunRecord(tmp_path, "video")
+    (record.path / VIDEO_FILE).mkdir()
+    video = VideoRecorder(record, fps_max=20.0)
+    for k in range(40):
+        video.offer(picture(k % 20), k / 20.0, k)
+    video.close()
+    record.close()
+    assert video.failure is not None and "cannot write" in video.failure, video.failure
+    # every offer answered: handed over (into the pipe's buffer before the writer ended), dropped
+    # or skipped (once the failure was known)
+    assert video.written + video.dropped + video.skipped == 40 and video.written < 40
