@@ -1,7 +1,10 @@
 """The record's video (`rigctl.vision.video.VideoRecorder`): a camera faster than the video is
 subsampled to the video's rate and a slower one keeps every frame, a writer that cannot keep up
-makes `offer` drop and count frames instead of waiting, and what is written is a file OpenCV opens
-with each frame's time in the record's series."""
+makes `offer` drop and count frames instead of waiting, what is written is a file OpenCV opens
+with each frame's time in the record's series, and a run's process killed mid-run loses none of
+the frames it handed over (the writer process closes the file when its pipe ends)."""
+
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -133,3 +136,51 @@ def test_a_writer_that_cannot_write_says_why_and_the_offers_go_on(tmp_path):
     # every offer answered: handed over (into the pipe's buffer before the writer ended), dropped
     # or skipped (once the failure was known)
     assert video.written + video.dropped + video.skipped == 40 and video.written < 40
+
+
+CRASHING_RUN = """
+import os, sys
+import numpy as np
+from rigctl.apps.testing import wait_for
+from rigctl.core.record import RunRecord
+from rigctl.vision.video import VideoRecorder
+
+record = RunRecord(sys.argv[1], "crash")
+video = VideoRecorder(record, fps_max=20.0, queue_frames=64)
+for k in range(12):
+    video.offer(np.full((120, 160, 3), 20 * k, np.uint8), k / 20.0, k)
+wait_for(lambda: video.written == 12, 30.0, "the frames handed to the writer")
+print(record.path, video._proc.pid, flush=True)
+os.kill(os.getpid(), 9)  # the run's process dies without closing anything
+"""
+
+
+def test_a_run_killed_mid_run_leaves_every_frame_it_handed_over(tmp_path):
+    """The run's process is SIGKILLed with the video open: the writer process reads to the end of
+    its pipe, closes the file and ends, and the record holds a video of all 12 frames (each its
+    own grey) and their times."""
+    import os
+    import subprocess
+    import sys
+
+    from rigctl.apps.testing import wait_for
+
+    done = subprocess.run([sys.executable, "-c", CRASHING_RUN, str(tmp_path)],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == -9, done.stderr[-2000:]
+    path, pid = done.stdout.split()
+
+    def writer_gone() -> bool:
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            return True
+        return Path(f"/proc/{pid}/status").is_file() and "zombie" in Path(
+            f"/proc/{pid}/status").read_text()
+
+    wait_for(writer_gone, 30.0, "the writer process to end")
+    frames = read_back(Path(path) / VIDEO_FILE)
+    assert len(frames) == 12
+    greys = [int(np.median(f)) for f in frames]
+    assert all(abs(g - 20 * k) <= 3 for k, g in enumerate(greys)), greys
+    np.testing.assert_allclose(read_series(path, "video")["t_s"], np.arange(12) / 20.0)
