@@ -159,6 +159,13 @@ class CameraSettings(_Strict):
     calibration: Calibration | None = Field(
         default=None, description="pixel -> mm homography (`rigctl calibrate camera`)"
     )
+    record_video: bool = Field(
+        default=True, description="write the frames the tracker reads into the run record "
+        "(`video.mp4`, each frame's time in `series/video.csv`; docs/video.md)"
+    )
+    video_fps: Annotated[float, Field(ge=15, le=120, description="the recorded video's rate: at "
+                                      "most this many of the tracked frames a second (a slower "
+                                      "camera's every frame)")] = 20.0
 
 
 class FieldSettings(_Strict):

@@ -7,7 +7,10 @@ run reads it.
 
 `record_to(record)` also writes the tracked positions into the run record (`tracked` events, at
 most `hz` a second, from a thread of its own): the stream thread must not pay for a JSON line per
-frame, and the report draws the measured paths from them on every camera rig."""
+frame, and the report draws the measured paths from them on every camera rig. When the rig's
+camera says `record_video` (the default), it also starts the record's video (`rigctl.vision.video`):
+the tracking thread offers each fresh frame to it and never waits for it; `stop` closes it and
+writes a `video` event with what it wrote and dropped."""
 
 from __future__ import annotations
 
@@ -24,6 +27,7 @@ from rigctl.core.errors import ConfigError, DeviceTimeout, Disconnected, RigErro
 from rigctl.core.priority import favour
 from rigctl.drivers.camera import CameraDriver
 from rigctl.vision.tracker import Tracker
+from rigctl.vision.video import VideoRecorder
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +79,7 @@ class TrackingLoop:
         self._record_period_s = 0.1
         self._recorder: threading.Thread | None = None
         self._tap: Callable[[np.ndarray, TrackedState], None] | None = None
+        self.video: VideoRecorder | None = None
 
     def tap(self, on_frame: Callable[[np.ndarray, TrackedState], None] | None) -> None:
         """From now on, hand every fresh frame's image (h, w[, 3] uint8) and what the tracker made
@@ -87,12 +92,16 @@ class TrackingLoop:
         events: `{"event": "tracked", "positions_mm": [[x, y], ...], "lost": [bool, ...],
         "frame": n, "t_frame_s": s}`, at most `hz` a second and only for a fresh frame;
         `t_frame_s` is when the picture was taken, on the record's clock. Before or after
-        `start`; `stop` ends it. Called again, it writes to the new record."""
+        `start`; `stop` ends it. Called again, it writes to the new record. With the camera's
+        `record_video`, the frames go into the record's video too (`VideoRecorder`)."""
         if hz <= 0:
             raise ConfigError(f"tracked events need a positive rate, got {hz:g} Hz")
+        video = VideoRecorder(record, self.camera.video_fps) if self.camera.record_video else None
         with self._cond:
             self._record = record
             self._record_period_s = 1.0 / hz
+            old, self.video = self.video, video
+        self._close_video(old)
         if self._recorder is None:
             self._recorder = threading.Thread(target=self._record_run, name="tracking-record",
                                               daemon=True)
@@ -158,6 +167,21 @@ class TrackingLoop:
             self._recorder.join(2.0)
         if self._driver is not None:
             self._driver.close()
+        with self._cond:
+            video, self.video = self.video, None
+        self._close_video(video)
+
+    def _close_video(self, video: VideoRecorder | None) -> None:
+        """Write what `video` has queued, close it, and say in its record what it wrote."""
+        if video is None:
+            return
+        video.close()
+        log.info("video: %d frames in %s, %d dropped (queue full)", video.written, video.path,
+                 video.dropped)
+        try:
+            video.record.event("video", **video.counts())
+        except Exception:  # a record closed under us: the file and its series are there
+            log.debug("video event not written", exc_info=True)
 
     def latest(self) -> TrackedState | None:
         with self._cond:
@@ -264,6 +288,9 @@ class TrackingLoop:
                 self.frames += 1
                 self._latest = state
                 self._cond.notify_all()
+                video, record = self.video, self._record
+            if video is not None:  # a time check and a put_nowait: never waits for the disk
+                video.offer(frame.image, t - record.t0, state.frame)
             if self._tap is not None:
                 self._tap(frame.image, state)
 

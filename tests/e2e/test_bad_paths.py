@@ -49,6 +49,8 @@ CASES = [
     (["execute", PLAN, "--runs", "nodir/runs", "--json"], "nodir/runs"),
     (["report", "latest", "-o", "nodir/x.png"], "nodir/x.png"),
     (["report", "latest", "-o", "somedir"], "somedir"),
+    (["report", "latest", "--video", "nodir/x.mp4"], "nodir/x.mp4"),
+    (["report", "latest", "--video", "somedir"], "somedir"),
     (["validate", "--simulate", PLAN, "-o", "nodir/x.json"], "nodir/x.json"),
     (["validate", "somedir"], "somedir"),
     (["validate", IMAGE], IMAGE),

@@ -78,6 +78,7 @@ QUICK = {
     "fields.py": ["--smoke"],  # with mag_manip's side venv present, its comparison runs too
     "busy.py": ["--smoke"],  # one open-loop run beside one hog
     "cli.py": ["--smoke"],
+    "video.py": ["--smoke"],  # one pair (video off, on) of a three-turn closed-loop run
 }
 
 # per script, figures (key paths) only its last stages write: present and not empty means the
@@ -112,6 +113,7 @@ FIGURES = {
     "busy.py": [("conditions", "favoured", "runs"), ("per_run",)],
     "cli.py": [("floor", "median_s"), ("version", "median_s"), ("help", "median_s"),
                ("command_help", "median_s")],
+    "video.py": [("on", "video", "MB_per_min"), ("ratio_on_off", "period_error_p99")],
 }
 
 

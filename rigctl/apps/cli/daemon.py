@@ -408,6 +408,16 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from rigctl.run.certificate import read_certificate
 
     run = find_run(args.run, args.runs)
+    if args.video is not None:
+        from rigctl.apps.report_video import HEIGHT, WIDTH, render_video
+
+        # --video alone: True (argparse would pass a string const through the type check)
+        rendered = render_video(run, args.video if isinstance(args.video, str) else None)
+        print(rendered.path)
+        print(f"{rendered.frames} frames at {rendered.fps:g} frames/s, {WIDTH}x{HEIGHT}, "
+              f"{rendered.t_start_s:.2f}-{rendered.t_end_s:.2f} s of the run; scene: "
+              f"{rendered.why}")
+        return EXIT_OK
     out = render_report(run, args.output)
     print(out)
     certificate = read_certificate(run)
@@ -680,4 +690,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--runs", default="runs", help="run records folder (default ./runs)")
     p.add_argument("-o", "--output", type=output_file("report"),
                    help="PNG to write (default RUN/report.png)")
+    p.add_argument("--video", nargs="?", const=True, type=output_file("video"), metavar="OUT",
+                   help="render an MP4 (1280x720) instead: the run's video with the planned, "
+                   "expected and tracked paths, goals, time, move and the channels "
+                   "(default RUN/report.mp4)")
     p.set_defaults(func=_cmd_report)
