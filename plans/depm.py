@@ -583,6 +583,10 @@ class PlanStats:
     inverse_magnetics_s: list[float] = field(default_factory=list)
     transition_cpu_s: list[float] = field(default_factory=list)
     """Process CPU time per transition: what a machine busy with other work inflates least."""
+    refused_s: list[float] = field(default_factory=list)
+    refused_cpu_s: list[float] = field(default_factory=list)
+    """Wall and CPU time (s) spent on a transition that ended in a PlanError (at most one per
+    run: the planner stops there): how long a user waits to hear that a request cannot be made."""
 
 
 def _keep_out(rig: DepmRig) -> tuple[np.ndarray, float]:
@@ -1013,20 +1017,25 @@ def plan_sequence(
     for component in sequence:
         started, started_cpu = time.perf_counter(), time.process_time()
         target = np.asarray(component.U, dtype=float) * U_TO_SI
-        if end_poses is not None:
-            q_end = _controller_end(rig, end_poses, end_joints, len(segments), q_now)
-        else:
-            positions, directions = rig.epm_poses(q_now)
-            ends = _reachable_ends(target, rig, q_now, positions, directions, component.name)
-            first_end = next(ends)
-        im_done = time.perf_counter()
-        if planner == "hybrid":
-            q, h = _best_transition(rig, q_now, U_now, itertools.chain([first_end], ends),
-                                    waypoints, k, bulge_m, component.name)
-            q_end = q[:, -1]
-        else:
-            q = np.stack([q_now, q_end], axis=1)  # (A, 2, 7)
-            h = _segment_times(q, rig)
+        try:
+            if end_poses is not None:
+                q_end = _controller_end(rig, end_poses, end_joints, len(segments), q_now)
+            else:
+                positions, directions = rig.epm_poses(q_now)
+                ends = _reachable_ends(target, rig, q_now, positions, directions, component.name)
+                first_end = next(ends)
+            im_done = time.perf_counter()
+            if planner == "hybrid":
+                q, h = _best_transition(rig, q_now, U_now, itertools.chain([first_end], ends),
+                                        waypoints, k, bulge_m, component.name)
+                q_end = q[:, -1]
+            else:
+                q = np.stack([q_now, q_end], axis=1)  # (A, 2, 7)
+                h = _segment_times(q, rig)
+        except PlanError:
+            stats.refused_s.append(time.perf_counter() - started)
+            stats.refused_cpu_s.append(time.process_time() - started_cpu)
+            raise
         stats.inverse_magnetics_s.append(im_done - started)
         stats.transition_s.append(time.perf_counter() - started)
         stats.transition_cpu_s.append(time.process_time() - started_cpu)
