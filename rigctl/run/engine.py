@@ -152,6 +152,9 @@ class Run(RunControl):
         # last run: `rigctl.apps.daemon.telemetry.WindingEstimate`)
         self.on_winding = on_winding
         self.winding_start_C = winding_start_C
+        # called on the stream thread once its loop has ended, before the devices are made safe
+        # and the summary written (a daemon's watch on the stream process stops timing it there)
+        self.on_stream_end: Callable[[], None] | None = None
         self.plan = program.plan
         self.info = program.info
         self.rig = rig
@@ -371,6 +374,8 @@ class Run(RunControl):
             raise
         finally:
             record.event("stream_stats", **loop.stats().as_dict())
+            if self.on_stream_end is not None:
+                self.on_stream_end()
 
     def _reach_again(self, group: type, unconfirmed: list[str], record: RunRecord) -> list[str]:
         """Devices `stop` could not confirm safe, of a group that holds its output unattended

@@ -132,7 +132,9 @@ def test_a_frozen_camera_suspends_the_run_with_the_field_held_and_it_resumes(tmp
             currents = backdoor.request("truth")["currents_A"]
             time.sleep(0.5)
             truth = backdoor.request("truth")
-            np.testing.assert_allclose(truth["agents"], held, atol=1e-6)
+            # 1 um in 0.5 s (a roll moves 10 mm a turn): held. The emulated world's last steps of
+            # the settling may land in this window when its thread waits for a core (30 nm seen)
+            np.testing.assert_allclose(truth["agents"], held, atol=1e-3)
             assert max(abs(c) for c in currents.values()) > 1.0
             assert run.state.value == "suspended"  # held until tracking returns
             backdoor.request("camera", kind="restore")

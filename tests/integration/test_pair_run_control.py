@@ -122,6 +122,16 @@ def test_hold_angles_cancel_both_forces_and_flip_through_repulsion():
     assert interagent_forces(2.0, mid)[0] > 0  # apart
 
 
+def without_suspensions(states: list[str]) -> list[str]:
+    """The states with each suspension taken out, and the run it returned to merged with the one
+    it left."""
+    out: list[str] = []
+    for state in states:
+        if state != "suspended" and not (out and out[-1] == state):
+            out.append(state)
+    return out
+
+
 def test_callbacks_match_the_record_and_a_pause_holds_the_pair_closed_loop(plan_file, bench,
                                                                         tmp_path):
     plan = json.loads(plan_file.read_text())
@@ -145,9 +155,11 @@ def test_callbacks_match_the_record_and_a_pause_holds_the_pair_closed_loop(plan_
     assert max(moved) <= 2 * plan["tolerance_bl"], moved
     assert min(separations) >= max(plan["r_min_bl"], r0 - 2 * plan["tolerance_bl"]), separations
     assert summary.reached and not summary.faults  # resumed from where the agents were
-    assert [s for s, _ in run.states] == [RunState.RUNNING, RunState.PAUSED, RunState.RUNNING,
-                                          RunState.DONE]
-    assert run.recorded_states() == ["running", "paused", "running", "done"]
+    # the callbacks say what the record says, state for state; and that is the run, the pause
+    # and the end (a camera frame late under a loaded machine may add a suspension and its end:
+    # the run then held the field until the camera saw again, which is not what this test is about)
+    assert [s.value for s, _ in run.states] == run.recorded_states()
+    assert without_suspensions(run.recorded_states()) == ["running", "paused", "running", "done"]
 
     stream = read_stream(summary.run)
     coils = stream["coils"]

@@ -452,6 +452,8 @@ class RemoteRun:
             self.streaming = True
             self.started.set()
             self.on_cycles(CycleBatch.from_rows(message[1]))
+        elif kind == "stream_over":  # no more cycles: the watch on them ends (`_silent_for`)
+            self._last_cycles = None
         elif kind == "state":
             _, state, info, path, t0 = message
             if self.record is None and path is not None:
@@ -714,6 +716,8 @@ class _Host:
             on_winding=lambda t, temperatures, state: self.uplink.message(
                 "winding", t, temperatures, state),
             winding_start_C=winding_start_C)
+        # the stream is over: making safe and writing the summary take their time, unwatched
+        run.on_stream_end = lambda: self.uplink.message("stream_over")
         return run
 
     def _execute(self, build: Any, *args: Any) -> None:
