@@ -161,7 +161,7 @@ class CameraSettings(_Strict):
     )
     record_video: bool = Field(
         default=True, description="write the frames the tracker reads into the run record "
-        "(`video.mp4`, each frame's time in `series/video.csv`; docs/video.md)"
+        "(`video.avi`, MJPEG, each frame's time in `series/video.csv`; docs/video.md)"
     )
     video_fps: Annotated[float, Field(ge=15, le=120, description="the recorded video's rate: at "
                                       "most this many of the tracked frames a second (a slower "
