@@ -312,7 +312,10 @@ def test_ctrl_c_to_a_local_study_and_to_the_fault_campaign_stops_all_they_starte
     cases = tmp_path / "study" / "cases"
     study = session("study", str(spec), "--workers", "2", "--out", str(cases.parent))
     keep = tmp_path / "campaign"
-    campaign = session("faults", "--rig", "coil-board", "--quick", "--keep", str(keep))
+    # each fault held 5 s: the Ctrl-C lands while its cell runs (held 1.5 s, the one quick cell
+    # was over before the signal on a loaded CI: the campaign ended 0, uninterrupted)
+    campaign = session("faults", "--rig", "coil-board", "--quick", "--hold", "5", "--keep",
+                       str(keep))
     campaign_runs = keep / "coil-board" / "runs"
     # the campaign as soon as its first run has begun (its record exists): it injects its fault
     # once the board drives, and a board it has stalled cannot confirm it is safe; interrupted

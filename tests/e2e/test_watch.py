@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -89,7 +90,9 @@ def test_watch_follows_a_local_run_through_the_rig_lock(bench, tmp_path):
         watching.send_signal(signal.SIGINT)
         out, err = watching.communicate(timeout=30)
         assert watching.returncode == 0, err
-        assert "state   running" in out and "interrupted" not in err
+        # the run's live state (a camera frame late on a loaded machine suspends it for a moment)
+        assert re.search(r"^state   (running|suspended)\b", out, re.M), out
+        assert "interrupted" not in err
     finally:
         run.terminate()
         run.wait(30)
