@@ -37,11 +37,25 @@ LONGEST_FIRST = ("test_run_control", "test_bench_smoke", "test_console_six_coil"
 
 
 def pytest_configure(config) -> None:
+    import os
 
-    # The emulated benches the tests start take a niceness of -5 and a run's stream and tracking
-    # threads -10 where the machine permits it (CI is root: emulators/base.py, rigctl.core.stream),
-    # so that two runs side by side on two cores do not trip a supply's 0.25 s reply watchdog or
-    # lose the camera by being starved by the workers' own work (docs/testing.md).
+    # What keeps real time runs ahead of what computes, where the machine permits it (CI is root;
+    # rigctl.core.priority): every process a test starts (a run, a bench, a daemon) at one niceness,
+    # FAVOURED, and the worker itself there too while it runs a module that drives devices from
+    # this process (`_real_time_first`); a quick test computes at the niceness the worker started
+    # with. Without it a driver in the worker (a board's keep-alive) waits behind the other
+    # worker's favoured run and the board's own watchdog stops its coils.
+    _PRIORITY["base"] = os.getpriority(os.PRIO_PROCESS, 0)
+    favoured = max(-20, _PRIORITY["base"] - 10)
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, favoured)  # permitted? (then given back at once)
+        os.setpriority(os.PRIO_PROCESS, 0, _PRIORITY["base"])
+    except OSError:
+        pass
+    else:
+        _PRIORITY["favoured"] = favoured
+        for name in ("RIGCTL_STREAM_NICE", "RIGCTL_EMULATOR_NICE"):
+            os.environ.setdefault(name, str(favoured))
     # Compile (or load from numba's on-disk cache) the workspace geometry kernels once, before any
     # test starts an emulator or a re-planning child that would otherwise compile them mid-run.
     from rigctl.plans.workspace import warm_up
@@ -49,6 +63,30 @@ def pytest_configure(config) -> None:
     seconds = warm_up()
     if seconds > 1.0:
         print(f"geometry kernels compiled in {seconds:.1f} s (cached for later processes)")
+
+
+_PRIORITY: dict[str, int] = {}  # "base": the worker's niceness; "favoured": where permitted
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _real_time_first(request):
+    """The worker's main thread (and the threads it starts) at the favoured niceness for a module
+    outside the quick tier, at its own for a quick one (`pytest_configure`). Module-scoped and
+    autouse: set before the module's own fixtures start a bench or a driver's threads."""
+    import os
+    import threading
+
+    favoured = _PRIORITY.get("favoured")
+    if favoured is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    tiers = tier_of(request.node)
+    wanted = _PRIORITY["base"] if tiers == ["quick"] else favoured
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), wanted)
+    except OSError:
+        pass
+    yield
 
 
 def tier_of(item: pytest.Item) -> list[str]:
