@@ -326,4 +326,4 @@ def _take_priority() -> None:
     RIGCTL_EMULATOR_NICE for another niceness), before it starts a thread. Real supplies, boards
     and arms answer from processors of their own: a bench starved by other work makes the run's
     0.25 s reply watchdog measure the starvation instead of the link."""
-    favour("emulated bench", BENCH_NICE_ENV)
+    favour("emulated bench", BENCH_NICE_ENV, pass_on=True)

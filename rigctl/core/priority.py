@@ -30,14 +30,15 @@ RUN_NICE_ENV = "RIGCTL_STREAM_NICE"  # another niceness for a run's process and 
 BENCH_NICE_ENV = "RIGCTL_EMULATOR_NICE"  # another niceness for an emulated bench
 
 
-def favour(what: str, env: str = RUN_NICE_ENV) -> Callable[[], None]:
-    """Put the calling thread (and what it starts from now on) `FAVOURED_STEP` ahead of its
-    niceness, or at the niceness `env` names (0: leave it be), if that is ahead of its own and
-    permitted; return what gives back the one it had (and the variables as they were). Never
-    raises. What it took is passed on in both variables to the processes started from here on (a
-    bench `rigctl execute` starts comes level with it, not another step ahead). A value in `env`
-    that cannot be taken is said in one line on the log (the default goes quietly: most machines
-    do not permit it)."""
+def favour(what: str, env: str = RUN_NICE_ENV, *, pass_on: bool = False) -> Callable[[], None]:
+    """Put the calling thread (and what it starts from now on) `FAVOURED_STEP` ahead of its niceness,
+    or at the niceness `env` names (0: leave it be), if that is ahead of its own and permitted;
+    return what gives back the one it had (and the variables as they were). Never raises. With
+    `pass_on` (a whole process: called before its threads start), what it took is passed on in
+    both variables to the processes started from here on (a bench `rigctl execute` starts comes
+    level with it, not another step ahead); a thread alone passes nothing on. A value in `env`
+    that cannot be taken is said in one line on the log (the default goes quietly: most
+    machines do not permit it)."""
     value = os.environ.get(env, "").strip()
     if value == "0":  # asked to leave it be
         return _nothing
@@ -59,7 +60,8 @@ def favour(what: str, env: str = RUN_NICE_ENV) -> Callable[[], None]:
                                               env, wanted, err, what)
         return _nothing
     log.debug("the %s at niceness %d", what, wanted)
-    passed_on = [name for name in (RUN_NICE_ENV, BENCH_NICE_ENV) if name not in os.environ]
+    passed_on = [name for name in (RUN_NICE_ENV, BENCH_NICE_ENV)
+                 if pass_on and name not in os.environ]
     for name in passed_on:  # a value someone set stays theirs
         os.environ[name] = str(wanted)
 

@@ -77,11 +77,17 @@ def test_the_stream_thread_is_favoured_while_it_streams_where_permitted_and_give
 
     seen: list[int] = []
     before: list[int] = []
+    passed: list[str | None] = []
 
     def stream() -> None:
         tid = threading.get_native_id()
         before.append(os.getpriority(os.PRIO_PROCESS, tid))
-        StreamLoop(1000.0).run(lambda k: seen.append(os.getpriority(os.PRIO_PROCESS, tid)) or k < 2)
+        def cycle(k: int) -> bool:
+            seen.append(os.getpriority(os.PRIO_PROCESS, tid))
+            passed.append(os.environ.get("RIGCTL_STREAM_NICE"))  # a thread passes nothing on
+            return k < 2
+
+        StreamLoop(1000.0).run(cycle)
         seen.append(os.getpriority(os.PRIO_PROCESS, tid))
 
     for name in ("RIGCTL_STREAM_NICE", "RIGCTL_EMULATOR_NICE"):  # as started from a shell, and
@@ -96,3 +102,4 @@ def test_the_stream_thread_is_favoured_while_it_streams_where_permitted_and_give
     permitted = os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_NICE)[0] >= 20 - during
     during = during if permitted else before[0]
     assert seen == [during, during, during, before[0]]
+    assert passed == [None, None, None]

@@ -89,7 +89,7 @@ def cmd_execute(args: argparse.Namespace) -> int:
 
     # this process streams, tracks and re-plans: ahead of ordinary work where the machine permits
     # it, before any thread or process (the guardian, the bench) starts and inherits it
-    restore = favour("run")  # given back at the end: `main` may be called in a longer process
+    restore = favour("run", pass_on=True)  # given back at the end: `main` may be called in a longer process
     try:
         # the guardian first: its start overlaps the imports below; it is left last, so a SIGKILL
         # at any point from the lock to the bench's stop leaves it to make the rig safe, stop the

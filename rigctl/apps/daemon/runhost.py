@@ -760,7 +760,7 @@ def host_main(down: Any, up: Any, acks: Any, realtime_priority: int | None,
               frames: bool = False) -> None:
     """The stream process's entry point (spawned by `RunHost`)."""
     sys.setswitchinterval(1e-4)  # the e-stop on the main thread gets the GIL within 0.1 ms
-    favour("stream process")  # before its threads start: they inherit it (rigctl.core.priority)
+    favour("stream process", pass_on=True)  # before its threads start: they inherit it (rigctl.core.priority)
     # the daemon decides when to stop: a SIGTERM to the service's whole cgroup or a Ctrl-C to the
     # terminal's process group must not end a run here without its ramp-down (the daemon sends
     # "exit", which ramps down; if the daemon itself dies, its pipe closes and we ramp down too)
