@@ -56,6 +56,7 @@ def pytest_configure(config) -> None:
         _PRIORITY["favoured"] = favoured
         for name in ("RIGCTL_STREAM_NICE", "RIGCTL_EMULATOR_NICE"):
             os.environ.setdefault(name, str(favoured))
+        os.environ.setdefault("RIGCTL_BASE_NICE", str(_PRIORITY["base"]))  # a re-planning child's
     # Compile (or load from numba's on-disk cache) the workspace geometry kernels once, before any
     # test starts an emulator or a re-planning child that would otherwise compile them mid-run.
     from rigctl.plans.workspace import warm_up

@@ -22,12 +22,14 @@ import logging
 import os
 import threading
 from collections.abc import Callable
+from pathlib import Path
 
 log = logging.getLogger(__name__)
 
 FAVOURED_STEP = -10
 RUN_NICE_ENV = "RIGCTL_STREAM_NICE"  # another niceness for a run's process and stream thread
 BENCH_NICE_ENV = "RIGCTL_EMULATOR_NICE"  # another niceness for an emulated bench
+BASE_NICE_ENV = "RIGCTL_BASE_NICE"  # where a favoured process started: its computing helpers' own
 
 
 def favour(what: str, env: str = RUN_NICE_ENV, *, pass_on: bool = False) -> Callable[[], None]:
@@ -51,21 +53,23 @@ def favour(what: str, env: str = RUN_NICE_ENV, *, pass_on: bool = False) -> Call
         return _nothing
     except OSError:
         return _nothing
+    group = _favour_group(wanted) if pass_on else _nothing
     try:
         if wanted >= before:  # only ever ahead of where it was
-            return _nothing
+            return group
         os.setpriority(os.PRIO_PROCESS, tid, wanted)
     except OSError as err:
         (log.warning if value else log.debug)("%s=%s not taken (%s): the %s keeps its own",
                                               env, wanted, err, what)
-        return _nothing
+        return group
     log.debug("the %s at niceness %d", what, wanted)
-    passed_on = [name for name in (RUN_NICE_ENV, BENCH_NICE_ENV)
-                 if pass_on and name not in os.environ]
+    taken = {RUN_NICE_ENV: wanted, BENCH_NICE_ENV: wanted, BASE_NICE_ENV: before}
+    passed_on = [name for name in taken if pass_on and name not in os.environ]
     for name in passed_on:  # a value someone set stays theirs
-        os.environ[name] = str(wanted)
+        os.environ[name] = str(taken[name])
 
     def restore() -> None:
+        group()
         for name in passed_on:
             os.environ.pop(name, None)
         try:
@@ -76,5 +80,49 @@ def favour(what: str, env: str = RUN_NICE_ENV, *, pass_on: bool = False) -> Call
     return restore
 
 
+AUTOGROUP = Path("/proc/self/autogroup")
+
+
+def _favour_group(wanted: int) -> Callable[[], None]:
+    """Where the kernel groups tasks by session (`CONFIG_SCHED_AUTOGROUP`, on by default on most
+    distributions), a niceness only orders the threads of one session: each session shares the
+    cores as one, at its group's niceness. A process that leads its session (a bench, a stream
+    process, a run a study or a campaign starts: each is started in one of its own) sets its
+    group's niceness too; one that shares its session (a run started from a shell) leaves it be,
+    as the group is the shell's. What gives it back is returned."""
+    try:
+        if os.getsid(0) != os.getpid():
+            return _nothing
+        before = int(AUTOGROUP.read_text().split("nice")[1])
+        if wanted >= before:
+            return _nothing
+        AUTOGROUP.write_text(str(wanted))
+    except (OSError, ValueError, IndexError):  # no autogroups, or not permitted
+        return _nothing
+
+    def restore() -> None:
+        try:
+            AUTOGROUP.write_text(str(before))
+        except OSError:
+            pass
+
+    return restore
+
+
 def _nothing() -> None:
     pass
+
+
+def step_back(what: str) -> None:
+    """A helper process that only computes for a favoured one (the run's re-plans): back to the
+    niceness that one started at (`BASE_NICE_ENV`, which `favour(pass_on=True)` passes on), so a
+    burst of planning waits behind the stream and the bench rather than beside them; left as it is
+    without the variable. Lowering a priority is always permitted; never raises."""
+    value = os.environ.get(BASE_NICE_ENV, "").strip()
+    try:
+        base, now = int(value), os.getpriority(os.PRIO_PROCESS, 0)
+        if base > now:
+            os.setpriority(os.PRIO_PROCESS, 0, base)
+            log.debug("the %s back at niceness %d", what, base)
+    except (ValueError, OSError):
+        pass

@@ -89,7 +89,8 @@ class VideoRecorder:
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "rigctl.vision.video", str(self.path), repr(self.fps)],
             stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=self._stderr,
-            start_new_session=True)  # a terminal's Ctrl-C is the run's; the pipe closing ends it
+            process_group=0)  # a terminal's Ctrl-C is the run's; the pipe closing ends it. The
+        # run's session (not one of its own): its niceness then ranks it behind the run's threads
         self._writer = threading.Thread(target=self._pipe, name="video-pipe", daemon=True)
         self._writer.start()
 

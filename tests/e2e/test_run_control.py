@@ -332,7 +332,10 @@ def wait_state(rig: Rig, *states: str, timeout_s: float = 30.0) -> dict:
         status = rig.status()
         return status["state"] in states
 
-    wait_for(reached, timeout_s, f"state {' or '.join(states)}")
+    try:
+        wait_for(reached, timeout_s, f"state {' or '.join(states)}")
+    except AssertionError as err:  # what it was instead, for the one reading the failure
+        raise AssertionError(f"{err}; last status: {status}") from None
     return status
 
 

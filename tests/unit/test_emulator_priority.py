@@ -42,3 +42,52 @@ def test_a_value_it_cannot_take_is_said_in_one_line_and_the_bench_goes_on():
     nice, err = nice_of_a_bench_thread("fast")
     assert nice == base
     assert err.count("\n") == 1 and "RIGCTL_EMULATOR_NICE=fast not taken" in err
+
+
+def test_a_re_planning_child_goes_back_to_where_its_favoured_run_started():
+    """`step_back`: the niceness RIGCTL_BASE_NICE names where that is nicer than its own (a
+    favoured run's re-planning child computes behind the stream), else left as it is."""
+    show = ("from rigctl.core.priority import step_back; import os; step_back('re-plans'); "
+            "print(os.getpriority(os.PRIO_PROCESS, 0))")
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+
+    def nice_with(value: str | None) -> int:
+        env = {k: v for k, v in os.environ.items() if k != "RIGCTL_BASE_NICE"}
+        if value is not None:
+            env["RIGCTL_BASE_NICE"] = value
+        done = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        return int(done.stdout)
+
+    assert nice_with(None) == base
+    assert nice_with(str(min(19, base + 5))) == min(19, base + 5)  # nicer: always permitted
+    assert nice_with(str(base - 1)) == base  # never ahead of where it was
+    assert nice_with("soon") == base
+
+
+def test_a_bench_that_leads_its_session_raises_its_session_s_niceness_too():
+    """Where CPU time is shared by session (autogroup), a bench in a session of its own (as
+    `rigctl execute` and the tests start one) takes its session's niceness down with its own: a
+    thread's niceness alone orders it only among its session's threads."""
+    import pytest
+
+    autogroup = "/proc/self/autogroup"
+    if not os.path.exists(autogroup):
+        pytest.skip("this kernel does not group CPU time by session (no /proc/self/autogroup)")
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    show = ("from rigctl.emulators.base import _take_priority; _take_priority(); "
+            f"print(open('{autogroup}').read().split('nice')[1].strip())")
+    env = {k: v for k, v in os.environ.items() if k != "RIGCTL_EMULATOR_NICE"}
+
+    def group_nice(**popen) -> int:
+        done = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True,
+                              text=True, timeout=60, **popen)
+        assert done.returncode == 0, done.stderr
+        return int(done.stdout)
+
+    own = group_nice(start_new_session=True)  # a session of its own: its group starts at 0
+    permitted = os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_NICE)[0] >= 20 - (base - 10)
+    assert own == (min(0, max(-20, base - 10)) if permitted else 0)  # only ever ahead
+    with open(autogroup) as mine:  # sharing the test's session: the session's own is left be
+        assert group_nice() == int(mine.read().split("nice")[1])

@@ -68,6 +68,7 @@ import numpy as np
 
 from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError, PlanError, RigError
+from rigctl.core.priority import step_back
 from rigctl.core.record import RunRecord
 from rigctl.physics.coils import actuation_matrix
 from rigctl.physics.identify import RollingIdentifier
@@ -802,12 +803,14 @@ class ReplanWorker:
     and stdout, one at a time. Started ahead so its imports are done by the first re-plan."""
 
     def __init__(self) -> None:
-        # a session of its own: a terminal's Ctrl-C is the run's to handle (an abort), not a
-        # KeyboardInterrupt here that would end the run as a re-plan fault; `close`, or its
-        # stdin closing with the run's process, ends it
+        # a process group of its own: a terminal's Ctrl-C is the run's to handle (an abort), not
+        # a KeyboardInterrupt here that would end the run as a re-plan fault; `close`, or its
+        # stdin closing with the run's process, ends it. The run's session all the same: where
+        # the kernel groups CPU time by session, its niceness then puts it behind the run
+        # (`rigctl.core.priority`), where a session of its own would take as much as the run's
         self._proc = subprocess.Popen([sys.executable, "-m", "rigctl.rigs.six_coil.supervisor"],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                      start_new_session=True)
+                                      process_group=0)
         self._lock = threading.Lock()
         self._ready = False  # the child's "ready" (imports done) has been read
 
@@ -887,4 +890,5 @@ def _answer_replans(stdin, stdout) -> None:
 
 
 if __name__ == "__main__":
+    step_back("re-planning process")  # it computes: the stream and the bench go first
     _serve_replans()
