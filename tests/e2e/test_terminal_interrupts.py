@@ -312,17 +312,20 @@ def test_ctrl_c_to_a_local_study_and_to_the_fault_campaign_stops_all_they_starte
     cases = tmp_path / "study" / "cases"
     study = session("study", str(spec), "--workers", "2", "--out", str(cases.parent))
     keep = tmp_path / "campaign"
-    # each fault held 5 s: the Ctrl-C lands while its cell runs (held 1.5 s, the one quick cell
-    # was over before the signal on a loaded CI: the campaign ended 0, uninterrupted)
-    campaign = session("faults", "--rig", "coil-board", "--quick", "--hold", "5", "--keep",
-                       str(keep))
+    # one cell that keeps its run going: a camera frozen 30 s suspends it (a stalled board, the
+    # quick cell, faulted the run 0.3 s after it drove: on a loaded CI the Ctrl-C came after)
+    campaign = session("faults", "--rig", "coil-board", "--cell", "daemon/camera:freeze/moving",
+                       "--hold", "30", "--keep", str(keep))
     campaign_runs = keep / "coil-board" / "runs"
-    # the campaign as soon as its first run has begun (its record exists): it injects its fault
-    # once the board drives, and a board it has stalled cannot confirm it is safe; interrupted
-    # before that, the campaign's own stopping is what is seen, whatever the race
+
+    def suspended() -> bool:
+        return any('"suspend"' in events.read_text()
+                   for events in campaign_runs.glob("*/events.jsonl"))
+
+    # the study as soon as its first case drives; the campaign once its run is suspended
     ctrl_c_each_once_ready({
         "study": (study, lambda: any(_energised(case / "runs")() for case in cases.glob("*"))),
-        "campaign": (campaign, lambda: any(campaign_runs.glob("*/events.jsonl")))})
+        "campaign": (campaign, suspended)})
 
     for s in (study, campaign):
         code = s.finish()

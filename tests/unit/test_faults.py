@@ -19,11 +19,13 @@ from rigctl.apps.faults import (
     matrix,
     outcome_of,
     parse_cell,
+    planned_cells,
     profiled_kinds,
     rig_profile,
     stop_latency,
 )
 from rigctl.core.record import RunRecord
+from rigctl.rigs.faults import Fault
 
 
 def state(name: str, **info) -> dict:
@@ -221,3 +223,29 @@ def test_rigctl_faults_runs_the_kinds_with_a_profile_and_refuses_one_without(mon
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "'spinner' has no fault profile" in err
     assert "starting its emulated bench" not in err
+
+
+def test_a_cell_named_wrong_is_refused_in_one_line_before_any_bench_starts(capsys):
+    from rigctl.apps.cli.main import main
+    from rigctl.core.errors import EXIT_BAD_INPUT
+
+    assert main(["faults", "--rig", "coil-board", "--cell", "daemon/board:stall/flying"]) == \
+        EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'daemon/board:stall/flying'" in err and "moving" in err
+    assert "starting its emulated bench" not in err
+
+
+def test_the_cells_named_are_the_ones_planned():
+    """`--cell` (run_campaign's `only`): exactly those, in that order, each fault the bench's."""
+    freeze, stall = Fault("camera", "freeze"), Fault("board", "stall")
+
+    class Campaign:  # the part of a RigCampaign planned_cells reads
+        faults = [freeze, stall]
+
+        def fault(self, label):
+            return next(f for f in self.faults if f.label == label)
+
+    assert planned_cells(Campaign(), quick=True, only=["daemon/camera:freeze/moving",
+                                                       "execute/board:stall/moving"]) == [
+        ("daemon", freeze, "moving"), ("execute", stall, "moving")]

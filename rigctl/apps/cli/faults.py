@@ -1,4 +1,4 @@
-"""`rigctl faults [--rig KIND] [--quick] [--json] [-o OUT]`: the fault campaign (`rigctl.apps.faults`)
+"""`rigctl faults [--rig KIND] [--quick | --cell CELL ...] [--json] [-o OUT]`: the fault campaign (`rigctl.apps.faults`)
 on the emulated benches, a matrix of what became of every run and every device. The rig kinds
 are the installed ones that have a fault profile (the registry's); `--rig` names one of them."""
 
@@ -18,6 +18,7 @@ def _cmd_faults(args: argparse.Namespace) -> int:
         as_json,
         every_cell_ok,
         matrix,
+        parse_cell,
         profiled_kinds,
         rig_profile,
         run_campaign,
@@ -27,10 +28,16 @@ def _cmd_faults(args: argparse.Namespace) -> int:
         raise ConfigError(f"--hold must be > 0 and at most 60 s, got {args.hold:g}")
     if args.rig is not None:
         rig_profile(args.rig)  # a kind not installed, or with no profile: refused in one line
+    for name in args.cell or ():
+        try:
+            parse_cell(name)
+        except ValueError as err:
+            raise ConfigError(f"--cell {err}") from None
     rigs = profiled_kinds() if args.rig is None else [args.rig]
     if not rigs:
         raise ConfigError("no installed rig kind has a fault profile")
-    print(f"fault campaign ({'quick' if args.quick else 'full'}) on the emulated "
+    scope = "chosen cells" if args.cell else "quick" if args.quick else "full"
+    print(f"fault campaign ({scope}) on the emulated "
           f"{', '.join(rigs)} bench{'es' if len(rigs) > 1 else ''}: nothing real is energised",
           file=sys.stderr, flush=True)
     keep = None
@@ -38,7 +45,7 @@ def _cmd_faults(args: argparse.Namespace) -> int:
         keep = Path(args.keep)
         keep.mkdir(parents=True, exist_ok=True)
     cells = run_campaign(rigs, quick=args.quick, progress=sys.stderr, hold_s=args.hold,
-                         all_devices=args.all_devices, folder=keep)
+                         all_devices=args.all_devices, folder=keep, only=args.cell)
     document = as_json(cells)
     if args.output is not None:
         Path(args.output).write_text(json.dumps(document, indent=2) + "\n")
@@ -65,6 +72,10 @@ def register_faults(sub: argparse._SubParsersAction) -> None:
                    help="one rig kind (default: every installed kind with a fault profile)")
     p.add_argument("--quick", action="store_true",
                    help="a small representative subset (about 2-3 minutes; what CI runs)")
+    p.add_argument("--cell", action="append", metavar="PATH/DEVICE:KIND/PHASE",
+                   help="only this cell (repeatable), as the matrix names it: PATH daemon or "
+                   "execute, PHASE one of before, moving, paused, suspended, ramping; "
+                   "e.g. daemon/board:stall/moving to run a failed cell again")
     p.add_argument("--all-devices", action="store_true",
                    help="every device, not one per class (the six supplies are one class)")
     p.add_argument("--hold", type=float, default=1.5, metavar="S",
