@@ -12,7 +12,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -111,23 +113,32 @@ def watch(endpoint: str, *, client, seconds: float | None, interval_s: float, ou
     `interval_s` on a terminal; with `seconds`, one view (text or JSON) after that long."""
     view = View(endpoint)
     tty = out.isatty() and seconds is None and not as_json
+    # Ctrl-C is how a watch ends: nothing to report, nothing stopped. Taken as a flag the loop
+    # reads within 0.1 s, not as a KeyboardInterrupt that could land inside a socket's close
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set()) \
+        if threading.current_thread() is threading.main_thread() else None
     try:
-        _follow(view, client, endpoint, seconds, interval_s, out, tty)
-    except KeyboardInterrupt:  # Ctrl-C is how a watch ends: nothing to report, nothing stopped
-        if tty:
-            return EXIT_OK
+        _follow(view, client, endpoint, seconds, interval_s, out, tty, stop)
+    except KeyboardInterrupt:  # a second Ctrl-C before the handler was in place
+        stop.set()
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    if stop.is_set() and tty:
+        return EXIT_OK
     if not tty:
         print(json.dumps(view.as_dict()) if as_json else view.render(), file=out)
     return EXIT_OK
 
 
 def _follow(view: View, client, endpoint: str, seconds: float | None, interval_s: float, out,
-            tty: bool) -> None:
+            tty: bool, stop: threading.Event) -> None:
     with client(endpoint) as rig:
         view.status = rig.status()
         with rig.telemetry() as telemetry:
             started = next_draw = time.monotonic()
-            while seconds is None or time.monotonic() - started < seconds:
+            while (seconds is None or time.monotonic() - started < seconds) and not stop.is_set():
                 msg = telemetry.receive(timeout_s=min(interval_s, 0.1))
                 if msg is not None:
                     view.fold(msg)
