@@ -2,8 +2,8 @@
 `chromium-driver`, which `.ci/run` installs; the driver is the one built for that browser)
 driven by selenium, against `rigctl daemon --console` on each rig's emulated bench.
 
-One bench and one daemon per test module (module-scoped), one browser per module; each test
-opens the pages it needs. Screenshots go to the test's tmp output (`screenshots` below); with
+One bench and one daemon per test module (module-scoped); each test opens the pages it needs, in
+browser windows of its own that are closed after it. Screenshots go to the test's tmp output (`screenshots` below); with
 RIGCTL_CONSOLE_SCREENSHOTS=FOLDER they are copied there too (how docs/console/ is made).
 """
 
@@ -20,9 +20,11 @@ CHROMIUM = Path(os.environ.get("RIGCTL_CHROMIUM", "/usr/bin/chromium"))
 CHROMEDRIVER = Path(os.environ.get("RIGCTL_CHROMEDRIVER", "/usr/bin/chromedriver"))
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def browser():
-    """A factory of headless Chromium windows: `browser(width, height)`; all closed at the end."""
+    """A factory of headless Chromium windows: `browser(width, height)`; all closed at the end of
+    the test. (Module-wide, every page a test left open went on drawing the live camera: by the
+    module's fifth test five Chromiums took a core between them and a page's socket timed out.)"""
     if not (CHROMIUM.exists() and CHROMEDRIVER.exists()):
         pytest.fail(f"the browser tests need {CHROMIUM} and {CHROMEDRIVER} (Debian's chromium "
                     "and chromium-driver: apt-get install -y chromium chromium-driver)")

@@ -186,6 +186,7 @@ def test_a_page_without_the_token_watches_but_cannot_control(rig, browser):
     wait_page(watcher, "rigctlConsole.state === 'running'", 10.0, "the watcher sees the run")
     for button in ("pause", "abort"):
         assert watcher.find_element("id", button).get_attribute("disabled")
+    wait_page(watcher, "rigctlConsole.connected", 10.0, "the watcher connected")
     click(watcher, "estop")  # enabled on every page; refused here
     wait_page(watcher, "rigctlConsole.estops.length && rigctlConsole.estops[0].ok === false",
               10.0, "the e-stop refused")

@@ -483,7 +483,10 @@ class Console:
             raise web.HTTPForbidden(text="refused: requests from another origin")
         # no permessage-deflate: compressing every frame for every page would cost the daemon's
         # process far more than the bytes it saves on a lab's network
-        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=MAX_UPLOAD_BYTES + 4096,
+        # a ping every 30 s, the page gone if its pong is not back within 15 s (aiohttp: half the
+        # period). At 10 s a busy machine lost a live page: the ping waits behind the camera
+        # frames being written to it, and 5 s were not enough (CI, a watching second page)
+        ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=MAX_UPLOAD_BYTES + 4096,
                                    compress=False)
         await ws.prepare(request)
         page = _Page(ws)
