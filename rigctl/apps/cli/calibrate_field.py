@@ -39,11 +39,12 @@ def add_field_flags(p: argparse.ArgumentParser) -> None:
                    help="emulated bench: put its probe array on a 3 x 3 x 3 grid of +-MM about the "
                    "centre (default 100); a real probe's board says where its sensors are")
     g.add_argument("--patterns-seed", type=int, default=0, metavar="N",
-                   help="seed of the mixed current patterns (default 0)")
+                   help="seed of the mixed current patterns and of the probe sensors held out of "
+                   "the MPEM fit (default 0)")
     g.add_argument("--model", choices=MODELS, default="mpem",
                    help="mpem (default): mag_manip's multipole model, written in mag_manip's format; "
                    "loops: each coil's loop with a fitted gain, offset and tilt (rigctl-loop-v1)")
-    g.add_argument("--order", type=int, choices=(1, 2, 3), default=3,
+    g.add_argument("--order", type=int, choices=(1, 2, 3), default=None,
                    help="the MPEM's order, 1 (dipoles) to 3 (default 3); --model mpem only")
     g.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 
@@ -80,8 +81,9 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
         raise ConfigError(f"{rig_path}: actuation_matrix_T_per_A overrides the coils' geometry; "
                           "remove it to calibrate the coils")
     model = getattr(args, "model", "mpem")
-    if model != "mpem" and getattr(args, "order", 3) != 3:
+    if model != "mpem" and getattr(args, "order", None) is not None:
         raise ConfigError("--order is the MPEM's; --model loops fits each coil's loop")
+    order = getattr(args, "order", None) or 3
     if args.grid_mm is not None and not args.grid_mm > 0:
         raise ConfigError(f"--grid-mm must be > 0, got {args.grid_mm:g}")
     if args.grid_mm is not None and rig.emulation is None:
@@ -104,7 +106,7 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
         _say(args, f"driving {len(patterns)} current patterns through the coils, reading the probe")
         measured = fit.measure(drawn, patterns, progress=lambda line: _say(args, "  " + line))
     if model == "mpem":
-        return _write_mpem(args, fit, rig, drawn, measured, rig_path, out, len(patterns))
+        return _write_mpem(args, fit, rig, drawn, measured, rig_path, out, len(patterns), order)
     calibration = fit.fit_calibration(drawn, measured)
     relative = os.path.relpath(out.resolve(), rig_path.resolve().parent)
     calibration = calibration.model_copy(update={"source": relative})
@@ -138,21 +140,21 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
 
 
 def _write_mpem(args: argparse.Namespace, fit, rig, drawn, measured, rig_path: Path, out: Path,
-                patterns: int) -> int:
+                patterns: int, order: int) -> int:
     """`--model mpem`: fit, judge on the held-out sensors, write mag_manip's file, name a
     calibration in the rig file (see the module docstring), report."""
     from rigctl.core.config import dump_rig
     from rigctl.physics.fields import write_mpem
 
     held = len(fit.held_out_split(len(measured.points_m), seed=args.patterns_seed)[1])
-    _say(args, f"fitting an order-{args.order} MPEM of {len(rig.coils)} coils to "
+    _say(args, f"fitting an order-{order} MPEM of {len(rig.coils)} coils to "
          f"{len(measured.points_m) - held} probe points x {patterns} patterns ({held} points "
          "held out), from the drawn loops")
-    mpem = fit.fit_mpem_calibration(drawn, measured, order=args.order, seed=args.patterns_seed)
+    mpem = fit.fit_mpem_calibration(drawn, measured, order=order, seed=args.patterns_seed)
     _say(args, f"fitted in {mpem.fit.duration_s:.1f} s ({mpem.fit.cpu_s:.1f} s CPU, "
          f"{mpem.fit.evaluations} evaluations)")
     write_mpem(mpem.model, out, comment=(
-        f"rigctl calibrate field --model mpem --order {args.order}: {rig.rig.name}, "
+        f"rigctl calibrate field --model mpem --order {order}: {rig.rig.name}, "
         f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n"
         f"{patterns} patterns, {len(measured.points_m) - held} probe points fitted, {held} held out: "
         f"{mpem.held_out_mT:.4f} mT RMS ({mpem.held_out_pct:.3f} % of the mean field) there"))
@@ -166,7 +168,7 @@ def _write_mpem(args: argparse.Namespace, fit, rig, drawn, measured, rig_path: P
         named.write_text(loops.to_yaml())
         rig_path.write_text(dump_rig(rig.model_copy(update={"field_calibration": loops})))
     result = {
-        "model": "mpem", "order": args.order, "calibration": str(out), "rig": str(rig_path),
+        "model": "mpem", "order": order, "calibration": str(out), "rig": str(rig_path),
         "named_in_rig": str(named), "coil_list": [c.name for c in rig.coils],
         "patterns": patterns, "probe_points": len(measured.points_m),
         "fitted_points": len(mpem.fitted_points), "held_out_points": len(mpem.held_points),
@@ -183,7 +185,7 @@ def _write_mpem(args: argparse.Namespace, fit, rig, drawn, measured, rig_path: P
         print(json.dumps(result))
         return EXIT_OK
     print(f"field measured in {measured.duration_s:.1f} s ({patterns} patterns, "
-          f"{len(measured.points_m)} probe points); order-{args.order} MPEM fitted in "
+          f"{len(measured.points_m)} probe points); order-{order} MPEM fitted in "
           f"{mpem.fit.duration_s:.1f} s ({mpem.fit.cpu_s:.1f} s CPU); written to {out} "
           "(mag_manip's format)")
     print(f"on the {held} probe points the fit did not see, RMS over every pattern: MPEM "
