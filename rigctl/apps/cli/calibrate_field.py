@@ -42,8 +42,8 @@ def add_field_flags(p: argparse.ArgumentParser) -> None:
                    help="seed of the mixed current patterns and of the probe sensors held out of "
                    "the MPEM fit (default 0)")
     g.add_argument("--model", choices=MODELS, default="mpem",
-                   help="mpem (default): mag_manip's multipole model, written in mag_manip's format; "
-                   "loops: each coil's loop with a fitted gain, offset and tilt (rigctl-loop-v1)")
+                   help="mpem (default): mag_manip's multipole model, written in mag_manip's "
+                   "format; loops: each coil's loop with a fitted gain, offset and tilt (rigctl-loop-v1)")
     g.add_argument("--order", type=int, choices=(1, 2, 3), default=None,
                    help="the MPEM's order, 1 (dipoles) to 3 (default 3); --model mpem only")
     g.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
@@ -84,6 +84,8 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
     if model != "mpem" and getattr(args, "order", None) is not None:
         raise ConfigError("--order is the MPEM's; --model loops fits each coil's loop")
     order = getattr(args, "order", None) or 3
+    if model == "mpem" and not hasattr(fit, "fit_mpem_calibration"):
+        raise ConfigError(f"{rig_path}: a {rig.rig.kind} rig has no MPEM fit; use --model loops")
     if args.grid_mm is not None and not args.grid_mm > 0:
         raise ConfigError(f"--grid-mm must be > 0, got {args.grid_mm:g}")
     if args.grid_mm is not None and rig.emulation is None:
@@ -156,8 +158,8 @@ def _write_mpem(args: argparse.Namespace, fit, rig, drawn, measured, rig_path: P
     write_mpem(mpem.model, out, comment=(
         f"rigctl calibrate field --model mpem --order {order}: {rig.rig.name}, "
         f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n"
-        f"{patterns} patterns, {len(measured.points_m) - held} probe points fitted, {held} held out: "
-        f"{mpem.held_out_mT:.4f} mT RMS ({mpem.held_out_pct:.3f} % of the mean field) there"))
+        f"{patterns} patterns, {len(measured.points_m) - held} probe points fitted, {held} held "
+        f"out: {mpem.held_out_mT:.4f} mT RMS ({mpem.held_out_pct:.3f} % of the mean field) there"))
     named = out
     if not _NAME_MPEM_IN_RIG:
         named = out.with_name(f"{out.stem}-loops{out.suffix}")
@@ -197,6 +199,7 @@ def _write_mpem(args: argparse.Namespace, fit, rig, drawn, measured, rig_path: P
         print(f"{rig_path} names the coils' loop fit {named} (this rigctl's rig files read no "
               "MPEM yet)")
     return EXIT_OK
+
 
 def add_coil_error_flags(p: argparse.ArgumentParser) -> None:
     """`rigctl emulate six-coil --coil-error F --coil-seed N` (`rigctl.emulators.coil_errors`)."""

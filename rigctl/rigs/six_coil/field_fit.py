@@ -18,15 +18,16 @@ geometry):
    centre offset d, two small tilt angles t of the axis a), starting from the rig file's loop.
    One-sigma uncertainties come from the Jacobian at the solution and the residual scatter.
 
-Or an MPEM (`fit_mpem_calibration`, `rigctl calibrate field --model mpem`, the default): mag_manip's
-multipole model (`rigctl.physics.fields.fit.fit_mpem`) fitted to the same samples, starting from the
-drawn loops (`start_from_loops`: one B source per coil along its axis, orders 1 to the one asked,
-moved back from the coil's centre by half its radius, away from the workspace: see
-`START_BEHIND_RADII`), the format mag_manip and the Tesla framework read. A quarter of the probe's sensors
-(seeded) are held out of that fit, every pattern's reading at them: the fit's error there, in mT
-and in % of the mean field magnitude, says how well the model knows the field between the points
-it saw, and the drawn loops' error on the same samples is the yardstick. The file written is that
-fit (its workspace the whole probe's box), so the error reported is the written model's.
+Or an MPEM (`fit_mpem_calibration`; `rigctl calibrate field --model mpem`, the default):
+mag_manip's multipole model (`rigctl.physics.fields.fit.fit_mpem`), the format mag_manip and the
+Tesla framework read, fitted to the same samples from the drawn loops (`start_from_loops`: one B
+source per coil along its axis, orders 1 to the one asked), each source moved back from the coil's
+centre by half its radius, away from the workspace (`START_BEHIND_RADII` says why). A quarter of
+the probe's sensors (seeded) are held out of that fit, every pattern's reading at them: the fit's
+error there, in mT and in % of the mean field magnitude, says how well the model knows the field
+between the points it saw, and the drawn loops' error on the same samples is the yardstick. The
+file written is that fit (its workspace the whole probe's box), so the error reported is the
+written model's.
 """
 
 from __future__ import annotations
@@ -56,14 +57,15 @@ SETTLE_TAU = 5.0  # hold this many L/R before the probe's samples count
 RAMP_S = 0.1  # each pattern change, ramped linearly
 HOLD_TIMEOUT_S = 5.0  # a pattern's samples not all in by then: a fault (the probe is too slow)
 HELD_OUT_FRACTION = 0.25
+"""Of the probe's sensors, this share (at least one) is kept out of the MPEM fit to judge it."""
 START_BEHIND_RADII = 0.5
 """The MPEM fit's start puts each coil's source this many loop radii behind the coil's centre,
 along its axis away from the workspace. A multipole about one point reproduces a loop only outside
 the sphere about that point through the winding, so about the centre it converges slowly over a
 workspace that comes close to the coil (0.25 m from a 0.2 m loop's centre on the default cube),
-and from there the fit stops in a local minimum: on the emulated cube (5 % coil errors, order 3)
-held-out 0.96 % from the centre, 0.39 % from 0.5, 0.75 or 1 radius back (the same minimum)."""
-"""Of the probe's sensors, this share (at least one) is kept out of the MPEM fit to judge it."""
+and from there the fit stops in a local minimum: on the default cube with the emulator's 5 % coil
+errors (seed 0, the probe's readings computed, 3 uT noise; order 3) held-out 0.96 % from the
+centre, 0.39 % from 0.5, 0.75 or 1 radius back (the same minimum)."""
 
 
 def drive_patterns(rig: RigConfig, *, seed: int = 0, mixed: int = MIXED_PATTERNS) -> np.ndarray:
@@ -304,7 +306,8 @@ def held_out_split(n_points: int, *, seed: int = 0) -> tuple[np.ndarray, np.ndar
     """(indices fitted, indices held out) of `n_points` probe sensors: HELD_OUT_FRACTION of them,
     at least one, chosen by `seed`, at least one left to fit; both sorted."""
     if n_points < 2:
-        raise ConfigError(f"{n_points} probe sensor cannot be split into fitted and held-out points")
+        raise ConfigError(f"{n_points} probe sensor cannot be split into fitted and held-out "
+                          "points")
     held = min(n_points - 1, max(1, round(HELD_OUT_FRACTION * n_points)))
     order = np.random.default_rng(seed).permutation(n_points)
     return np.sort(order[held:]), np.sort(order[:held])
@@ -364,6 +367,6 @@ def fit_mpem_calibration(rig: RigConfig, m: Measurements, *, order: int = 3, see
     samples = (m.points_m[held], m.currents_A, m.fields_T[:, held])
     held_mT, held_pct = held_out_error(model, *samples)
     drawn_mT, drawn_pct = held_out_error(loops, *samples)
-    return MpemCalibration(fit=result, fitted_points=m.points_m[fitted], held_points=m.points_m[held],
-                           held_out_mT=held_mT, held_out_pct=held_pct, drawn_mT=drawn_mT,
-                           drawn_pct=drawn_pct)
+    return MpemCalibration(fit=result, fitted_points=m.points_m[fitted],
+                           held_points=m.points_m[held], held_out_mT=held_mT,
+                           held_out_pct=held_pct, drawn_mT=drawn_mT, drawn_pct=drawn_pct)
