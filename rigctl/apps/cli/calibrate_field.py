@@ -161,7 +161,11 @@ def _write_mpem(args: argparse.Namespace, fit, rig, drawn, measured, rig_path: P
         f"{patterns} patterns, {len(measured.points_m) - held} probe points fitted, {held} held "
         f"out: {mpem.held_out_mT:.4f} mT RMS ({mpem.held_out_pct:.3f} % of the mean field) there"))
     named = out
-    if not _NAME_MPEM_IN_RIG:
+    if _NAME_MPEM_IN_RIG:  # a top-level key before the tables, as the rig file reads it
+        relative = os.path.relpath(out.resolve(), rig_path.resolve().parent)
+        rig_path.write_text(f"field_calibration = {json.dumps(relative)}\n"
+                            + dump_rig(rig.model_copy(update={"field_calibration": None})))
+    else:
         named = out.with_name(f"{out.stem}-loops{out.suffix}")
         _say(args, f"fitting each coil's loop too, for the rig file ({named.name})")
         loops = fit.fit_calibration(drawn, measured)
