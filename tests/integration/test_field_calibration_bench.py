@@ -39,7 +39,7 @@ def calibrated(tmp_path_factory):
             centre = np.array(backdoor.request("coil_fields", points_mm=[[0, 0, 0]])["T_per_A"][0])
         out = io.StringIO()
         with contextlib.redirect_stdout(out):
-            code = main(["calibrate", "field", "--rig", str(rig_path), "--json", "-o",
+            code = main(["calibrate", "field", "--rig", str(rig_path), "--model", "loops", "--json", "-o",
                          str(folder / "cal.yaml")])
         yield {"code": code, "result": json.loads(out.getvalue()), "drawn": drawn,
                "rig": load_rig(rig_path), "rig_path": rig_path, "truth": truth,

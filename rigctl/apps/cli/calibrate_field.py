@@ -1,7 +1,19 @@
-"""`rigctl calibrate field --rig RIG.toml`: measure a rig's field with its Hall probe, fit each coil
-(its kind's `RigKind.field_fit`: the six-coil rig's is `rigctl.rigs.six_coil.field_fit`), write the
-calibration file (mag_manip-style YAML, `rigctl.physics.field_calibration`) and name it in the rig
-file, so every later run allocates with it. A kind without "field" in its `calibrations` is refused."""
+"""`rigctl calibrate field --rig RIG.toml [--model mpem|loops] [--order 1|2|3]`: measure a rig's
+field with its Hall probe (its kind's `RigKind.field_fit`: the six-coil rig's is
+`rigctl.rigs.six_coil.field_fit`) and fit a model of it, write the calibration file and name a
+calibration in the rig file, so every later run allocates with it. A kind without "field" in its
+`calibrations` is refused.
+
+`--model mpem` (the default): mag_manip's multipole model of `--order` (default 3), fitted from the
+drawn loops, judged on probe sensors the fit did not see, written in mag_manip's own format
+(`rigctl.physics.fields.write_mpem`, Coil_List in the rig's coil order). `--model loops`: each
+coil's loop with a gain, offset and tilt, in rigctl's "rigctl-loop-v1" file.
+
+Until rig files read an MPEM as their `field_calibration` (rigctl/rigs/six_coil/settings.py reads
+"rigctl-loop-v1" only), `--model mpem` also fits the loops, writes them beside the MPEM
+(RIG-field-loops.yaml) and names that file in the rig: the rig runs calibrated today, and
+`_NAME_MPEM_IN_RIG` switches the rig file to the MPEM once it can read one.
+"""
 
 from __future__ import annotations
 
@@ -9,9 +21,15 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 from rigctl.core.errors import EXIT_OK, ConfigError
+
+MODELS = ("mpem", "loops")
+_NAME_MPEM_IN_RIG = False
+"""True once a rig's `field_calibration` may be an MPEM file (rigctl.rigs.six_coil.settings);
+until then the rig names the loop fit written beside it."""
 
 
 def add_field_flags(p: argparse.ArgumentParser) -> None:
@@ -21,7 +39,13 @@ def add_field_flags(p: argparse.ArgumentParser) -> None:
                    help="emulated bench: put its probe array on a 3 x 3 x 3 grid of +-MM about the "
                    "centre (default 100); a real probe's board says where its sensors are")
     g.add_argument("--patterns-seed", type=int, default=0, metavar="N",
-                   help="seed of the mixed current patterns (default 0)")
+                   help="seed of the mixed current patterns and of the probe sensors held out of "
+                   "the MPEM fit (default 0)")
+    g.add_argument("--model", choices=MODELS, default="mpem",
+                   help="mpem (default): mag_manip's multipole model, written in mag_manip's "
+                   "format; loops: each coil's loop with a fitted gain, offset and tilt (rigctl-loop-v1)")
+    g.add_argument("--order", type=int, choices=(1, 2, 3), default=None,
+                   help="the MPEM's order, 1 (dipoles) to 3 (default 3); --model mpem only")
     g.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 
 
@@ -56,6 +80,12 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
     if rig.actuation_matrix_T_per_A is not None:
         raise ConfigError(f"{rig_path}: actuation_matrix_T_per_A overrides the coils' geometry; "
                           "remove it to calibrate the coils")
+    model = getattr(args, "model", "mpem")
+    if model != "mpem" and getattr(args, "order", None) is not None:
+        raise ConfigError("--order is the MPEM's; --model loops fits each coil's loop")
+    order = getattr(args, "order", None) or 3
+    if model == "mpem" and not hasattr(fit, "fit_mpem_calibration"):
+        raise ConfigError(f"{rig_path}: a {rig.rig.kind} rig has no MPEM fit; use --model loops")
     if args.grid_mm is not None and not args.grid_mm > 0:
         raise ConfigError(f"--grid-mm must be > 0, got {args.grid_mm:g}")
     if args.grid_mm is not None and rig.emulation is None:
@@ -77,6 +107,8 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
         preflight(drawn)
         _say(args, f"driving {len(patterns)} current patterns through the coils, reading the probe")
         measured = fit.measure(drawn, patterns, progress=lambda line: _say(args, "  " + line))
+    if model == "mpem":
+        return _write_mpem(args, fit, rig, drawn, measured, rig_path, out, len(patterns), order)
     calibration = fit.fit_calibration(drawn, measured)
     relative = os.path.relpath(out.resolve(), rig_path.resolve().parent)
     calibration = calibration.model_copy(update={"source": relative})
@@ -86,7 +118,7 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
     rig_path.write_text(dump_rig(rig.model_copy(update={"field_calibration": calibration})))
     b0 = rig.field.b0_mT * 1e-3
     result = {
-        "calibration": str(out), "rig": str(rig_path), "patterns": len(patterns),
+        "model": "loops", "calibration": str(out), "rig": str(rig_path), "patterns": len(patterns),
         "probe_points": len(measured.points_m), "duration_s": round(measured.duration_s, 2),
         "probe_rms_error_pct_of_b0": {"drawn_coils": round(100 * before / b0, 3),
                                       "calibrated": round(100 * after / b0, 3)},
@@ -106,6 +138,70 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
     for name, c in result["coils"].items():
         offset = ", ".join(f"{v:.1f}" for v in c["offset_mm"])
         print(f"{name:6}{c['gain']:>9.4f}{offset:>24}{c['misalignment_deg']:>10.2f}")
+    return EXIT_OK
+
+
+def _write_mpem(args: argparse.Namespace, fit, rig, drawn, measured, rig_path: Path, out: Path,
+                patterns: int, order: int) -> int:
+    """`--model mpem`: fit, judge on the held-out sensors, write mag_manip's file, name a
+    calibration in the rig file (see the module docstring), report."""
+    from rigctl.core.config import dump_rig
+    from rigctl.physics.fields import write_mpem
+
+    held = len(fit.held_out_split(len(measured.points_m), seed=args.patterns_seed)[1])
+    _say(args, f"fitting an order-{order} MPEM of {len(rig.coils)} coils to "
+         f"{len(measured.points_m) - held} probe points x {patterns} patterns ({held} points "
+         "held out), from the drawn loops")
+    mpem = fit.fit_mpem_calibration(drawn, measured, order=order, seed=args.patterns_seed)
+    _say(args, f"fitted in {mpem.fit.duration_s:.1f} s ({mpem.fit.cpu_s:.1f} s CPU, "
+         f"{mpem.fit.evaluations} evaluations)")
+    write_mpem(mpem.model, out, comment=(
+        f"rigctl calibrate field --model mpem --order {order}: {rig.rig.name}, "
+        f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n"
+        f"{patterns} patterns, {len(measured.points_m) - held} probe points fitted, {held} held "
+        f"out: {mpem.held_out_mT:.4f} mT RMS ({mpem.held_out_pct:.3f} % of the mean field) there"))
+    named = out
+    if _NAME_MPEM_IN_RIG:  # a top-level key before the tables, as the rig file reads it
+        relative = os.path.relpath(out.resolve(), rig_path.resolve().parent)
+        rig_path.write_text(f"field_calibration = {json.dumps(relative)}\n"
+                            + dump_rig(rig.model_copy(update={"field_calibration": None})))
+    else:
+        named = out.with_name(f"{out.stem}-loops{out.suffix}")
+        _say(args, f"fitting each coil's loop too, for the rig file ({named.name})")
+        loops = fit.fit_calibration(drawn, measured)
+        relative = os.path.relpath(named.resolve(), rig_path.resolve().parent)
+        loops = loops.model_copy(update={"source": relative})
+        named.write_text(loops.to_yaml())
+        rig_path.write_text(dump_rig(rig.model_copy(update={"field_calibration": loops})))
+    result = {
+        "model": "mpem", "order": order, "calibration": str(out), "rig": str(rig_path),
+        "named_in_rig": str(named), "coil_list": [c.name for c in rig.coils],
+        "patterns": patterns, "probe_points": len(measured.points_m),
+        "fitted_points": len(mpem.fitted_points), "held_out_points": len(mpem.held_points),
+        "duration_s": round(measured.duration_s, 2),
+        "fit_s": round(mpem.fit.duration_s, 3), "fit_cpu_s": round(mpem.fit.cpu_s, 3),
+        "fit_evaluations": mpem.fit.evaluations,
+        "fit_rms_mT": round(mpem.fit.rms_T * 1e3, 5),
+        "held_out": {"mpem": {"rms_mT": round(mpem.held_out_mT, 5),
+                              "pct_of_mean_field": round(mpem.held_out_pct, 4)},
+                     "drawn_coils": {"rms_mT": round(mpem.drawn_mT, 5),
+                                     "pct_of_mean_field": round(mpem.drawn_pct, 4)}},
+    }
+    if args.json:
+        print(json.dumps(result))
+        return EXIT_OK
+    print(f"field measured in {measured.duration_s:.1f} s ({patterns} patterns, "
+          f"{len(measured.points_m)} probe points); order-{order} MPEM fitted in "
+          f"{mpem.fit.duration_s:.1f} s ({mpem.fit.cpu_s:.1f} s CPU); written to {out} "
+          "(mag_manip's format)")
+    print(f"on the {held} probe points the fit did not see, RMS over every pattern: MPEM "
+          f"{mpem.held_out_mT:.4f} mT ({mpem.held_out_pct:.3f} % of the mean field), drawn coils "
+          f"{mpem.drawn_mT:.4f} mT ({mpem.drawn_pct:.2f} %)")
+    if named == out:
+        print(f"named in {rig_path}")
+    else:
+        print(f"{rig_path} names the coils' loop fit {named} (this rigctl's rig files read no "
+              "MPEM yet)")
     return EXIT_OK
 
 

@@ -274,9 +274,10 @@ def build_parser() -> argparse.ArgumentParser:
                        description="camera: map the camera's pixels to workspace mm from the "
                        "workspace's corners (a plan names them) or from dark round markers at known "
                        "places, and store the calibration in the rig file. field (six-coil): drive "
-                       "current patterns, read the Hall probe, fit each coil's gain, offset and "
-                       "misalignment, write the calibration (mag_manip-style YAML; -o, default "
-                       "RIG-field.yaml) and name it in the rig file; the allocator then uses it.")
+                       "current patterns, read the Hall probe, fit mag_manip's MPEM (--model mpem, "
+                       "the default; its file: -o, default RIG-field.yaml) or each coil's loop "
+                       "(--model loops), and name a calibration in the rig file; the allocator then "
+                       "uses it.")
     p.add_argument("what", choices=["camera", "field"])
     p.add_argument("--rig", required=True, type=input_file("rig file"),
                    help="rig file with a [camera] table (camera) or a [field_probe] (field)")
