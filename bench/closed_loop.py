@@ -161,10 +161,12 @@ def opencv_floor(rig: RigConfig, threshold: float, frames: int = 30) -> list[flo
 
 
 def calibrate_field(rig_path: Path) -> None:
-    """`rigctl calibrate field --rig RIG` against the emulated bench, as a lab calibrates: the
-    rig file then names the fitted coils and the allocator uses them."""
+    """`rigctl calibrate field --rig RIG --model loops` against the emulated bench, as a lab
+    calibrates: the rig file then names the fitted coils and the allocator uses them. Loops: the
+    emulated coils are loops, which the loop fit matches best (docs/field-calibration.md), and
+    the MPEM's order-3 fit would add seconds to every run of this bench."""
     done = subprocess.run([sys.executable, "-m", "rigctl", "calibrate", "field", "--rig",
-                           str(rig_path), "--json"], check=False, capture_output=True,
+                           str(rig_path), "--model", "loops", "--json"], check=False, capture_output=True,
                           text=True, timeout=600)
     if done.returncode != 0:
         raise SystemExit(f"rigctl calibrate field failed: {done.stderr[-2000:]}")
