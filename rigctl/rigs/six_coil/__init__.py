@@ -57,13 +57,13 @@ def _hold(rig: RigConfig, target: dict):
     within its coil's limit, and the supplies' compliance R I + L dI/dt over the ramp to them."""
     import numpy as np
 
-    from rigctl.physics.coils import actuation_matrix
+    from rigctl.physics.coils import actuation_matrix, field_offset
     from rigctl.rigs.six_coil.allocate import check_current_limits, currents_for_field
     from rigctl.rigs.six_coil.supplies import CoilSupplies
     from rigctl.run.hold import HoldRequest, ramp, target_values
 
     field_mT = target_values(target, "field_mT", (3,), KIND.name, "mT")
-    currents = currents_for_field(actuation_matrix(rig), field_mT * 1e-3)
+    currents = currents_for_field(actuation_matrix(rig), field_mT * 1e-3 - field_offset(rig)[0:3])
     rate = rig.stream.rate_hz
     asked = f"{field_mT.tolist()} mT"
 

@@ -20,16 +20,18 @@ from typing import Annotated, Any
 from pydantic import BeforeValidator, Field, ValidationInfo, model_validator
 
 from rigctl.core.config import Coil, FieldProbe, FieldSettings, MagnetSettings, RigConfig
-from rigctl.physics.field_calibration import FieldCalibration, load_field_calibration
+from rigctl.physics.coils import MPEMCalibration, load_calibration
+from rigctl.physics.field_calibration import FieldCalibration
 
 
 def _calibration_file(value, info: ValidationInfo):
     """`field_calibration = "FILE.yaml"` is read, relative to the rig file (`load_rig` says where
-    it is; with no rig file, to the working directory)."""
+    it is; with no rig file, to the working directory): a mag_manip MPEM file or a
+    "rigctl-loop-v1" one (`rigctl.physics.coils.load_calibration`)."""
     if not isinstance(value, (str, Path)):
         return value
     rig_dir = (info.context or {}).get("rig_dir")
-    return load_field_calibration(str(rig_dir / value) if rig_dir is not None else value)
+    return load_calibration(str(rig_dir / value) if rig_dir is not None else value)
 
 
 class SixCoilRig(RigConfig):
@@ -43,8 +45,10 @@ class SixCoilRig(RigConfig):
         default=None,
         description="measured 3 x n_coils matrix at the workspace centre; overrides the geometry",
     )
-    field_calibration: Annotated[FieldCalibration | None, BeforeValidator(_calibration_file)] = Field(
-        default=None, description="a `rigctl calibrate field` file (YAML): the allocator's coils")
+    field_calibration: Annotated[FieldCalibration | MPEMCalibration | None,
+                                 BeforeValidator(_calibration_file)] = Field(
+        default=None, description="a field calibration file (YAML): a mag_manip MPEM file or a "
+        "`rigctl calibrate field` loop file; the allocator's field model")
     field_probe: FieldProbe | None = None
 
     @model_validator(mode="after")
@@ -54,6 +58,11 @@ class SixCoilRig(RigConfig):
         names = [c.name for c in self.coils]
         if len(set(names)) != len(names):
             raise ValueError(f"coil names must be unique, got {names}")
+        calibration = self.field_calibration
+        if isinstance(calibration, MPEMCalibration) and sorted(calibration.coil_list) != sorted(names):
+            raise ValueError(f"field_calibration {calibration.source}: its Coil_List "
+                             f"({', '.join(calibration.coil_list)}) must name the rig's coils "
+                             f"({', '.join(names)})")
         if self.actuation_matrix_T_per_A is not None:
             rows = self.actuation_matrix_T_per_A
             if len(rows) != 3 or any(len(r) != len(self.coils) for r in rows):
