@@ -145,3 +145,57 @@ def test_an_mpem_file_of_other_coils_is_refused_naming_them(tmp_path):
     (tmp_path / "rig.toml").write_text('field_calibration = "cal.yaml"\n' + dump_rig(_rig()))
     with pytest.raises(ConfigError, match="field_calibration.*Coil_List"):
         load_rig(tmp_path / "rig.toml")
+
+
+# -- N coils: the six-coil cube is one instance ---------------------------------------------------
+
+def _coils_toml(n: int, names: list[str] | None = None) -> str:
+    """`n` loops of 0.1 m radius, 0.25 m from the centre, their axes spread over a half sphere
+    (a golden spiral) and pointing at it; each fed by its own supply."""
+    names = names or [f"c{k}" for k in range(n)]
+    out = []
+    for k, name in enumerate(names):
+        z = 1.0 - (k + 0.5) / n
+        phi = k * np.pi * (3.0 - np.sqrt(5.0))
+        axis = np.array([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z])
+        centre = -250.0 * axis
+        out.append(f'[[coils]]\nname = "{name}"\nurl = "tcp://127.0.0.1:{5100 + k}"\n'
+                   f"centre_mm = {centre.tolist()}\naxis = {axis.tolist()}\nloop_radius_mm = 100.0\n"
+                   "turns = 300\nresistance_ohm = 1.0\ninductance_H = 0.01\n")
+    return "\n".join(out)
+
+
+def _n_coil_rig(tmp_path, n, names=None):
+    from rigctl.core.registry import rig_kind
+
+    (tmp_path / "rig.toml").write_text('[rig]\nkind = "six-coil"\nname = "n coils"\n\n'
+                                       + _coils_toml(n, names))
+    rig = load_rig(tmp_path / "rig.toml")
+    return rig, rig_kind("six-coil")
+
+
+@pytest.mark.parametrize("n", [3, 8])
+def test_a_rig_of_n_coils_loads_allocates_and_has_n_channels(tmp_path, n):
+    rig, kind = _n_coil_rig(tmp_path, n)
+    assert len(rig.coils) == n
+    assert [c.name for c in kind.channels(rig)] == [f"c{k}" for k in range(n)]
+    assert [d.name for d in kind.devices(rig) if d.kind == "supply"] == [f"c{k}" for k in range(n)]
+    A = actuation_matrix(rig)
+    assert A.shape == (3, n)
+    field = np.array([[2e-4, -1e-4, 5e-5], [0.0, 0.0, 3e-4]])
+    program = FieldProgram(t_s=np.arange(2) / 10.0, field_T=field, segment=np.zeros(2, int),
+                           kind=np.zeros(2, np.uint8), rate_hz=10.0)
+    currents = allocate(program, rig).currents_A
+    assert currents.shape == (2, n)
+    # the field each coil's loop makes, summed here coil by coil
+    made = sum(np.outer(currents[:, k], loop_field(np.zeros(3), np.array(c.centre_mm) * 1e-3,
+                                                   np.array(c.axis), 0.1, 300, 1.0))
+               for k, c in enumerate(rig.coils))
+    np.testing.assert_allclose(made, field, atol=1e-12)
+
+
+def test_too_few_coils_or_a_repeated_name_is_refused(tmp_path):
+    with pytest.raises(ConfigError, match="at least 3"):
+        _n_coil_rig(tmp_path, 2)
+    with pytest.raises(ConfigError, match="unique"):
+        _n_coil_rig(tmp_path, 4, ["a", "b", "c", "a"])

@@ -95,7 +95,7 @@ def _probe_supply(rig: RigConfig, device: Device, timed: bool = False) -> str:
 
 
 def _windings(rig: RigConfig):
-    """The six air-core coils, each fed a current by its supply."""
+    """The rig's coils (six on the cube, any N >= 3), each fed a current by its supply."""
     from rigctl.physics.thermal import Windings
 
     return Windings.of_coils(rig.coils)
@@ -129,7 +129,8 @@ KIND = RigKind(
     wall_contact="slide",
     turn_mm=_turn_mm,
     name="six-coil",
-    description="six air-core coils fed by Kepco BOP supplies, overhead camera",
+    description="N >= 3 electromagnets (six air-core coils on a cube by default) fed by Kepco "
+    "BOP supplies, overhead camera",
     faults=fault_profile,
     report=REPORT,
     plans={"global-moves": _global_moves, "pair-formation": _pair_formation},
