@@ -178,7 +178,8 @@ def u_actuation_matrix(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) ->
 def max_planar_gradient(rig: RigConfig, b0_T: float, *, angles: int = 360) -> float:
     """The largest g (T/m) such that an in-plane field of `b0_T` at any angle together with any
     diagonal gradient |dBx/dx|, |dBy/dy| <= g stays within every coil's current limit (box corners
-    suffice: the currents are linear in U). Raises LimitError if the field alone is too strong."""
+    suffice: the currents are linear in U); 0 for coils that cannot make those gradients with the
+    field. Raises LimitError if the field alone is too strong."""
     A8 = u_actuation_matrix(rig)
     pinv = np.linalg.pinv(A8)
     limits = np.array([c.current_limit_A for c in rig.coils])
@@ -196,7 +197,12 @@ def max_planar_gradient(rig: RigConfig, b0_T: float, *, angles: int = 360) -> fl
         for sy in (-1.0, 1.0):
             u = np.zeros(8)
             u[3], u[6] = sx, sy
-            worst = np.maximum(worst, np.abs(pinv @ u))
+            i_unit = pinv @ u
+            if np.abs(A8 @ i_unit - u).max() > 1e-6:
+                # outside the coils' span (a uniform-field triad makes no gradient): the
+                # pseudo-inverse would give currents that make none, not an unlimited gradient
+                return 0.0
+            worst = np.maximum(worst, np.abs(i_unit))
     # |I_field + g I_unit| <= |I_field| + g |I_unit|: conservative, per coil
     per_coil = np.where(worst > 0, room / np.maximum(worst, 1e-300), np.inf)
     return float(per_coil.min())

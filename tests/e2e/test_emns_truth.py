@@ -71,3 +71,23 @@ def test_a_truth_file_is_read_and_a_malformed_one_refused_naming_the_key(tmp_pat
         truth = _backdoor(rig, {"cmd": "truth"})
         np.testing.assert_allclose(truth["field_T"], probe["offset_T"][0], rtol=1e-12)
         np.testing.assert_allclose(truth["field_T"], [2e-5, 0.0, -4.5e-5], rtol=1e-9)
+
+
+def test_validate_refuses_a_pull_on_a_triad_that_makes_no_gradient_and_accepts_rolling(tmp_path):
+    from rigctl.core.config import RigInfo, dump_rig
+    from rigctl.emulators.bench import nominal_coils
+    from rigctl.physics.fields import mpem_to_yaml
+    from rigctl.physics.fields.stations import helmholtz_triad
+    from rigctl.rigs.six_coil.settings import SixCoilRig
+
+    rig = SixCoilRig(rig=RigInfo(kind="six-coil", name="triad"),
+                     coils=nominal_coils(helmholtz_triad()))
+    (tmp_path / "triad.yaml").write_text(mpem_to_yaml(helmholtz_triad(seed=2)))
+    (tmp_path / "triad.toml").write_text('field_calibration = "triad.yaml"\n' + dump_rig(rig))
+    pair = run_rigctl("validate", str(ROOT / "plans" / "examples" / "pair-formation-change.json"),
+                      "--rig", str(tmp_path / "triad.toml"), cwd=tmp_path, timeout_s=120)
+    assert pair.returncode == 2, pair.stdout + pair.stderr
+    assert "make at most 0.000 BL/s" in pair.stderr and "Traceback" not in pair.stderr
+    rolling = run_rigctl("validate", str(PLAN), "--rig", str(tmp_path / "triad.toml"),
+                         cwd=tmp_path, timeout_s=120)
+    assert rolling.returncode == 0, rolling.stdout + rolling.stderr

@@ -199,3 +199,34 @@ def test_too_few_coils_or_a_repeated_name_is_refused(tmp_path):
         _n_coil_rig(tmp_path, 2)
     with pytest.raises(ConfigError, match="unique"):
         _n_coil_rig(tmp_path, 4, ["a", "b", "c", "a"])
+
+
+# -- what a rig cannot make ---------------------------------------------------------------------
+
+def _triad_rig(tmp_path, calibrated: bool) -> SixCoilRig:
+    """The Helmholtz triad as the emulated bench draws it (a loop per pair), with its MPEM (three
+    uniform-field sources) as the field calibration if `calibrated`."""
+    from rigctl.emulators.bench import nominal_coils
+    from rigctl.physics.fields.stations import helmholtz_triad
+
+    rig = SixCoilRig(rig=RigInfo(kind="six-coil", name="triad"),
+                     coils=nominal_coils(helmholtz_triad()))
+    (tmp_path / "rig.toml").write_text(dump_rig(rig))
+    if calibrated:
+        (tmp_path / "triad.yaml").write_text(mpem_to_yaml(helmholtz_triad(seed=2)))
+        (tmp_path / "rig.toml").write_text('field_calibration = "triad.yaml"\n' + dump_rig(rig))
+    return load_rig(tmp_path / "rig.toml")
+
+
+def test_a_uniform_field_triad_makes_a_rotating_field_but_no_gradient(tmp_path):
+    from rigctl.physics.coils import max_planar_gradient
+
+    rig = _triad_rig(tmp_path, calibrated=True)
+    A = actuation_matrix(rig)
+    # each pair's uniform field per ampere, (4/5)^1.5 mu0 N / R, N = 100, R = 0.10, 0.12, 0.14 m
+    expected = 0.7155417527999327 * 4e-7 * np.pi * 100 / np.array([0.10, 0.12, 0.14])
+    np.testing.assert_allclose(np.linalg.norm(A, axis=0), expected, rtol=0.06)  # +-5 % as built
+    assert np.all(u_actuation_matrix(rig)[3:] == 0.0)
+    # the pseudo-inverse gives no current for a gradient: the rig can make none, not any
+    assert max_planar_gradient(rig, 3e-3) == 0.0
+    assert max_planar_gradient(_rig(), 3e-3) > 0.0  # the six-coil cube can
