@@ -230,3 +230,12 @@ def test_a_uniform_field_triad_makes_a_rotating_field_but_no_gradient(tmp_path):
     # the pseudo-inverse gives no current for a gradient: the rig can make none, not any
     assert max_planar_gradient(rig, 3e-3) == 0.0
     assert max_planar_gradient(_rig(), 3e-3) > 0.0  # the six-coil cube can
+
+
+def test_the_preflight_field_check_counts_the_offset(tmp_path):
+    from rigctl.rigs.six_coil.certify import current_program_checks
+
+    rig = _mpem_rig(tmp_path, _dipole_mpem(_rig(), tuple(range(6)), 4e-5))
+    checks = current_program_checks(rig, np.zeros((3, 6)), 100.0, move_ends=[2])
+    field = next(c for c in checks if c.check == "field |B| at the centre")
+    assert field.value == pytest.approx(4e-2, rel=1e-9)  # 40 uT with the supplies off, in mT
