@@ -239,3 +239,17 @@ def test_the_preflight_field_check_counts_the_offset(tmp_path):
     checks = current_program_checks(rig, np.zeros((3, 6)), 100.0, move_ends=[2])
     field = next(c for c in checks if c.check == "field |B| at the centre")
     assert field.value == pytest.approx(4e-2, rel=1e-9)  # 40 uT with the supplies off, in mT
+
+
+def test_rigctl_field_on_a_rig_file_uses_the_mpem_it_names(tmp_path, capsys):
+    import json
+
+    from rigctl.apps.cli.main import main
+
+    rig = _mpem_rig(tmp_path, _dipole_mpem(_rig(), tuple(range(6)), 4e-5))
+    assert main(["field", str(tmp_path / "rig.toml"), "--at", "0,0,0", "--currents",
+                 "1,0,0,0,0,0", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    src = rig.field_calibration.model.coil_sources[0][0]
+    want = _dipole_field(np.zeros(3), src.position_m, src.direction, 2e-6) + [4e-5, 0.0, 0.0]
+    np.testing.assert_allclose(out["field_mT"], want * 1e3, rtol=1e-9)
