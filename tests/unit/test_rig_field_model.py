@@ -253,3 +253,20 @@ def test_rigctl_field_on_a_rig_file_uses_the_mpem_it_names(tmp_path, capsys):
     src = rig.field_calibration.model.coil_sources[0][0]
     want = _dipole_field(np.zeros(3), src.position_m, src.direction, 2e-6) + [4e-5, 0.0, 0.0]
     np.testing.assert_allclose(out["field_mT"], want * 1e3, rtol=1e-9)
+
+
+@pytest.mark.parametrize("station", ["helmholtz-triad", "octomag-like", "navion-like"])
+def test_the_bench_draws_each_coil_as_a_loop_as_strong_at_the_centre(station):
+    from rigctl.emulators.bench import nominal_coils
+    from rigctl.physics.fields.stations import STATIONS
+
+    drawing = STATIONS[station]()
+    coils = nominal_coils(drawing)
+    assert [c.name for c in coils] == list(drawing.coil_names)
+    want = drawing.field_actuation(np.zeros(3))
+    for k, c in enumerate(coils):
+        got = loop_field(np.zeros(3), np.array(c.centre_mm) * 1e-3, np.array(c.axis),
+                         c.loop_radius_mm * 1e-3, c.turns, 1.0)
+        # along the drawing's field, as strong to within half a turn
+        np.testing.assert_allclose(got, want[:, k], rtol=0.5 / c.turns + 1e-9,
+                                   atol=np.linalg.norm(want[:, k]) * 0.5 / c.turns)
