@@ -270,3 +270,8 @@ def test_the_bench_draws_each_coil_as_a_loop_as_strong_at_the_centre(station):
         # along the drawing's field, as strong to within half a turn
         np.testing.assert_allclose(got, want[:, k], rtol=0.5 / c.turns + 1e-9,
                                    atol=np.linalg.norm(want[:, k]) * 0.5 / c.turns)
+
+
+def test_a_rig_file_naming_an_mpem_loads_equal_twice(tmp_path):
+    _mpem_rig(tmp_path, _dipole_mpem(_rig(), tuple(range(6)), 4e-5))
+    assert load_rig(tmp_path / "rig.toml") == load_rig(tmp_path / "rig.toml")
