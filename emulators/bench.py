@@ -37,6 +37,16 @@ The coils' field is their true field (`CoilErrors`, default 5 %, `rigctl emulate
 `[field_probe]` in the rig file, docs/hall-board.md's stream) feel it; the rig file still
 describes the coils as drawn.
 
+With a calibration as its truth (`rigctl emulate six-coil --truth FILE.yaml`, a mag_manip MPEM
+file, or `--truth NAME` of a station in `rigctl.physics.fields.stations`: helmholtz-triad,
+octomag-like, navion-like, built as `--coil-seed` says) the bench is an electromagnetic navigation
+system of that file's N coils: one Kepco supply per coil, and the world, the Hall probe and
+`coil_fields` feel the file's field, its Offset included (`coil_fields` also replies
+`"offset_T"` (n, 3)). The rig file it writes describes the coils as drawn (`nominal_coils`: one
+loop per coil, where its first source sits and along its field at the centre, as strong there
+as the drawing says; for a station the unperturbed one), so the allocator's loops disagree with
+the world (strength, direction, gradients, the Offset) until `rigctl calibrate field`.
+
 Model mismatch (`Mismatch`, set at construction, by `rigctl emulate --slip ...`, or through the
 backdoor) is applied when the robots are placed; with `field_at_robots` each robot feels the coils'
 field at its own position on the floor (the workspace's centre is the coils' centre).
@@ -52,6 +62,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rigctl.core.config import (
+    Coil,
     Emulation,
     FieldProbe,
     RigConfig,
@@ -74,7 +85,11 @@ from rigctl.emulators.kepco_bop.protocol import BopScpi
 from rigctl.emulators.server import Endpoint
 from rigctl.emulators.world.pair import PairWorld
 from rigctl.emulators.world.rolling import Mismatch, RollingMagnetWorld
+from rigctl.physics.coils import MPEMCalibration
 from rigctl.physics.field_calibration import probe_grid_mm
+from rigctl.physics.fields import MPEM, load_mpem, mpem_to_yaml
+from rigctl.physics.fields.stations import STATIONS
+from rigctl.physics.magnetics import loop_field
 from rigctl.plans.model import GlobalInputModel
 from rigctl.plans.pair import PairPhysics
 from rigctl.plans.schema import parse_workspace
@@ -102,6 +117,43 @@ def emulated_winding(coil, mismatch: float) -> dict:
     return {"winding": winding, "trip_C": coil.thermal.max_winding_C + 10.0}
 
 
+NOMINAL_LOOP_RADIUS_M = 0.05
+NOMINAL_DISTANCE_M = 0.2
+"""Where `nominal_coils` draws a coil whose sources are all A (made far away: a Helmholtz pair)."""
+
+
+def truth_model(truth: str, seed: int = 0) -> tuple[MPEM, MPEM]:
+    """(the truth, the drawing) for `--truth`: a station's name (built with `seed`, drawn without)
+    or an MPEM file (its own drawing). ConfigError naming the file's key if it is malformed."""
+    if truth in STATIONS:
+        return STATIONS[truth](seed=seed), STATIONS[truth]()
+    model = load_mpem(truth)
+    return model, model
+
+
+def nominal_coils(drawing: MPEM) -> list[Coil]:
+    """The rig file's coils for an MPEM station as drawn: per coil one loop of radius
+    `NOMINAL_LOOP_RADIUS_M`, centred on its first B source (else `NOMINAL_DISTANCE_M` back from
+    the centre), its axis along the coil's field per ampere at the centre and its turns such that
+    the loop's field there is the drawing's (to a turn). A loop is not a core's multipole: off the
+    centre, in gradients and without the Offset, it is the nominal model a calibration corrects."""
+    at_centre = drawing.field_actuation(np.zeros(3))  # (3, N) T/A
+    coils = []
+    for k, name in enumerate(drawing.coil_names):
+        b = at_centre[:, k]
+        axis = b / np.linalg.norm(b)
+        firsts = [s for s in drawing.coil_sources[k] if s.kind == "B"]
+        centre = np.asarray(firsts[0].position_m) if firsts else -NOMINAL_DISTANCE_M * axis
+        per_turn = float(np.linalg.norm(loop_field(np.zeros(3), centre, axis,
+                                                   NOMINAL_LOOP_RADIUS_M, 1, 1.0)))
+        coils.append(Coil(name=name, url=f"tcp://127.0.0.1:{5025 + k}",
+                          centre_mm=tuple((centre * 1e3).tolist()), axis=tuple(axis.tolist()),
+                          loop_radius_mm=NOMINAL_LOOP_RADIUS_M * 1e3,
+                          turns=max(1, round(float(np.linalg.norm(b)) / per_turn)),
+                          resistance_ohm=1.0, inductance_H=0.01))
+    return coils
+
+
 @dataclass
 class _Supply:
     name: str
@@ -119,13 +171,26 @@ class SixCoilBench(EmulatedBench):
     def __init__(self, template: RigConfig | None = None, *, host: str = "127.0.0.1",
                  mismatch: Mismatch | None = None, world: str = "rolling",
                  thermal_mismatch: float = 0.05,
-                 coil_errors: CoilErrors | None = None) -> None:
+                 coil_errors: CoilErrors | None = None, truth: str | None = None) -> None:
         if world not in ("rolling", "pair"):
             raise ValueError(f"unknown world {world!r}; use rolling or pair")
         super().__init__(host=host)
         # "rolling": the rolling magnets of seed 000; "pair": two interacting agents (seed 002,
         # emulators/world/pair.py), placed with {"cmd": "place", ..., "pair": {physics}}
         self.world_kind = world
+        self.coil_errors = coil_errors or CoilErrors()
+        # a calibration as the truth (`truth_model`): the supplies are its coils, the rig file
+        # draws them (`nominal_coils`); None: the loops of the template as built (`CoilErrors`)
+        self.truth: MPEM | None = None
+        self.truth_name = truth
+        if truth is not None:
+            self.truth, drawing = truth_model(truth, self.coil_errors.seed)
+            template = template or settings_of("six-coil")(
+                rig=RigInfo(kind="six-coil", name=f"emulated {self.truth.name}"),
+                coils=nominal_coils(drawing))
+            if [c.name for c in template.coils] != list(self.truth.coil_names):
+                raise ConfigError(f"--truth {truth}: its coils ({', '.join(self.truth.coil_names)})"
+                                  " are not the template's")
         self.template = template or settings_of("six-coil")(
             rig=RigInfo(kind="six-coil", name="emulated six-coil bench"),
             coils=default_six_coil_coils(),
@@ -137,11 +202,12 @@ class SixCoilBench(EmulatedBench):
         self._stepped = 0.0  # simulated time the models have been stepped to
         self._world_at = 0.0  # simulated time the world has been stepped to
         self.mismatch = mismatch or Mismatch()
-        self.coil_errors = coil_errors or CoilErrors()
         self.true_coils: list[TrueCoil] = true_coils(self.template.coils, self.coil_errors)
         self.probe: HallBoardServer | None = None
-        # per-robot field per amp (n, 3, n_coils) T/A and where it was computed (n, 2) mm
-        self._robot_maps: tuple[np.ndarray, np.ndarray] | None = None
+        # per-robot field per amp (n, 3, n_coils) T/A, where it was computed (n, 2) mm, and the
+        # Offset field there (n, 3) T
+        self._robot_maps: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._offset_T = np.zeros(3)  # the Offset field at the centre (`field_T`)
         self._floor_centre_mm = np.array([200.0, 200.0])
         self.thermal_mismatch = thermal_mismatch  # the windings' R_th, C_th off the rig file's
         self.commands.update(place=self._place_pair if world == "pair" else self._place,
@@ -157,7 +223,7 @@ class SixCoilBench(EmulatedBench):
                                  **emulated_winding(coil, self.thermal_mismatch))
             scpi = BopScpi(model, before_command=self.advance)
             endpoint = self.server.serve_lines_tcp(scpi.handle, name=coil.name, host=self.host)
-            field = self.true_coils[len(self.supplies)].field_per_amp(np.zeros(3))
+            field = self._maps(np.zeros((1, 3)))[0][0][:, len(self.supplies)]
             self.supplies.append(_Supply(coil.name, model, endpoint, np.asarray(field, dtype=float)))
             # `restore` clears the link's faults and lets the supply cool down (an over-temperature
             # is cleared; its output stays off until turned on again, as a real BOP's)
@@ -199,13 +265,15 @@ class SixCoilBench(EmulatedBench):
                 mismatch.noise_mm < 0:
             raise ConfigError("--slip must be > 0; --speed-spread, --drift and --noise >= 0")
         return cls(host=args.host, mismatch=mismatch, world=args.world or "rolling",
-                   coil_errors=errors)
+                   coil_errors=errors, truth=getattr(args, "truth", None))
 
     def served(self, rig: RigConfig) -> list[tuple[str, str]]:
         served = [(f"supply {coil.name}", str(coil.url)) for coil in rig.coils]
         if rig.field_probe is not None:
             errors = self.coil_errors
             what = f"Hall probe; coil errors {errors.size:.0%}, seed {errors.seed}"
+            if self.truth is not None:
+                what = f"Hall probe; true field: {self.truth.name} ({self.truth_name})"
             served.append(("probe", f"{rig.field_probe.url}  ({what})"))
         return served
 
@@ -239,7 +307,19 @@ class SixCoilBench(EmulatedBench):
         """The field at the workspace centre from the supplies' actual currents, (3,) in tesla."""
         if self._field_matrix is None or len(self._field_matrix) != len(self.supplies):
             self._field_matrix = np.array([s.field_per_amp_T for s in self.supplies])
-        return np.array([s.model.current_A for s in self.supplies]) @ self._field_matrix
+            self._offset_T = self._maps(np.zeros((1, 3)))[1][0]
+        return np.array([s.model.current_A for s in self.supplies]) @ self._field_matrix + \
+            self._offset_T
+
+    def _maps(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The true field per ampere of every coil (P, 3, n) T/A at `points_m` (P, 3) and the
+        current-independent Offset (P, 3) T: the truth's, or the loops as built (no offset)."""
+        points = np.asarray(points_m, dtype=float).reshape(-1, 3)
+        if self.truth is not None:
+            per_A = self.truth.field_and_gradient_per_ampere(points)
+            return per_A[:, :-1, 0:3].transpose(0, 2, 1), per_A[:, -1, 0:3]
+        maps = np.stack([c.field_per_amp(points) for c in self.true_coils], axis=-1)
+        return maps, np.zeros((len(points), 3))
 
     def _fields_at_robots(self) -> np.ndarray:
         """The field each robot feels at its own floor position, (n, 3) T (caller holds the lock)."""
@@ -248,10 +328,10 @@ class SixCoilBench(EmulatedBench):
                 np.hypot(*(positions - self._robot_maps[1]).T)) > FIELD_REFRESH_MM:
             points = np.zeros((len(positions), 3))
             points[:, :2] = (positions - self._floor_centre_mm) * 1e-3
-            maps = np.stack([c.field_per_amp(points) for c in self.true_coils], axis=-1)
-            self._robot_maps = (maps, positions.copy())
+            maps, offsets = self._maps(points)
+            self._robot_maps = (maps, positions.copy(), offsets)
         currents = np.array([s.model.current_A for s in self.supplies])
-        return self._robot_maps[0] @ currents
+        return self._robot_maps[0] @ currents + self._robot_maps[2]
 
     def _emulation_settings(self) -> Emulation:
         m = self.mismatch
@@ -356,6 +436,9 @@ class SixCoilBench(EmulatedBench):
     # -- the coils as built, and the Hall probe --------------------------------------------------
     def _true_rig(self) -> RigConfig:
         """The template with the true coils as its field calibration (the pair world's coils)."""
+        if self.truth is not None:
+            return self.template.model_copy(update={"field_calibration": MPEMCalibration(
+                text=mpem_to_yaml(self.truth), source="truth.yaml")})
         return self.template.model_copy(update={"field_calibration": as_calibration(
             self.true_coils, self.template.coils)})
 
@@ -364,11 +447,13 @@ class SixCoilBench(EmulatedBench):
         self.advance()
         with self._lock:
             currents = np.array([s.model.current_A for s in self.supplies])
-            coils = self.true_coils
-        maps = np.stack([c.field_per_amp(np.asarray(points_m, dtype=float)) for c in coils], axis=-1)
-        return maps @ currents
+            maps, offsets = self._maps(points_m)
+        return maps @ currents + offsets
 
     def _set_coil_errors(self, request: dict) -> dict:
+        if self.truth is not None:
+            raise ValueError(f"the bench's truth is {self.truth.name} ({self.truth_name}): coil "
+                             "errors apply to the loops of a bench without --truth")
         if "size" in request or "seed" in request:
             errors = CoilErrors(size=float(request.get("size", self.coil_errors.size)),
                                 seed=int(request.get("seed", self.coil_errors.seed)))
@@ -385,8 +470,11 @@ class SixCoilBench(EmulatedBench):
     def _coil_fields(self, request: dict) -> dict:
         points = np.asarray(request["points_mm"], dtype=float).reshape(-1, 3) * 1e-3
         with self._lock:
-            coils = self.true_coils
-        return {"T_per_A": np.stack([c.field_per_amp(points) for c in coils], axis=-1).tolist()}
+            maps, offsets = self._maps(points)
+        reply = {"T_per_A": maps.tolist()}
+        if self.truth is not None:
+            reply["offset_T"] = offsets.tolist()
+        return reply
 
     def _place_probe(self, request: dict) -> dict:
         points = np.asarray(request["points_mm"], dtype=float)

@@ -23,7 +23,8 @@ _RUN_FLAGS = {"--open-loop": "closed_loop", "--agnostic": "agnostic", "--time-sc
 _BENCH_FLAGS = {**dict.fromkeys(("--slip", "--speed-spread", "--drift", "--noise",
                                  "--field-at-robots"), ("mismatch",)),
                 "--seed": ("seed", "mismatch"), "--world": ("world",), "--firmware": ("firmware",),
-                "--coil-error": ("coil_errors",), "--coil-seed": ("coil_errors",)}
+                "--coil-error": ("coil_errors",), "--coil-seed": ("coil_errors",),
+                "--truth": ("truth",)}
 
 
 def refuse_foreign(flags: list[str], table: dict, target, where: str) -> None:

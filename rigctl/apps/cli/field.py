@@ -37,7 +37,8 @@ def _numbers(text: str, flag: str, count: int | None, unit: str) -> np.ndarray:
 def _model(source: str):
     """(FieldModel, per-coil current limits or None, what it is) of a rig file or a calibration
     file."""
-    from rigctl.physics.fields import LoopModel, load_field_model
+    from rigctl.physics.coils import field_model
+    from rigctl.physics.fields import load_field_model
 
     path = Path(source)
     if not path.is_file():
@@ -51,7 +52,7 @@ def _model(source: str):
         if not coils:
             raise ConfigError(f"field: {source} is a {rig.rig.kind} rig: it has no coils whose "
                               "field rigctl models")
-        return (LoopModel.from_rig(rig), np.array([c.current_limit_A for c in coils]),
+        return (field_model(rig), np.array([c.current_limit_A for c in coils]),
                 f"rig {rig.rig.name!r}")
     return load_field_model(path), None, f"calibration {path.name}"
 

@@ -65,6 +65,10 @@ def _add_bench_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--firmware", choices=["python", "simavr"], default=None,
                    help="coil-board: emulate the board's firmware in Python (default) or run the "
                    "real AVR firmware in simavr")
+    g.add_argument("--truth", metavar="FILE.yaml|NAME", default=None,
+                   help="six-coil: the world's true field is this mag_manip MPEM calibration file "
+                   "(or a station: helmholtz-triad, octomag-like, navion-like, built as "
+                   "--coil-seed says); one supply per coil of it, the rig file draws the coils")
 
 
 def _cmd_calibrate_camera(args: argparse.Namespace) -> int:

@@ -194,6 +194,11 @@ class Daemon(RequestServer, Commands, RunWatch, RunStates):
         self.held: dict | None = None  # the manual hold's target
         self.last_run: dict | None = None
         self._actuation = self._actuation_matrix()
+        self._field_offset = None
+        if self._actuation is not None:  # the field plot shows B = A I + an MPEM's Offset field
+            from rigctl.physics.coils import field_offset
+
+            self._field_offset = field_offset(self.rig)[0:3]
         self._handlers: dict[Command, Callable[[Any], Any]] = {
             Command.PING: self._cmd_ping, Command.STATUS: self._cmd_status,
             Command.LOAD: self._cmd_load, Command.EXECUTE: self._cmd_execute,
@@ -230,7 +235,8 @@ class Daemon(RequestServer, Commands, RunWatch, RunStates):
             router.bind(command)
             self.publisher = TelemetryPublisher(
                 self.context, telemetry, events, channels=self.channels,
-                actuation_matrix_T_per_A=self._actuation, currents_hz=self.currents_hz,
+                actuation_matrix_T_per_A=self._actuation,
+                field_offset_T=self._field_offset, currents_hz=self.currents_hz,
                 secure=secure, clock_origin=self.t0, windings=self.windings)
         except zmq.ZMQError as err:
             router.close(linger=0)

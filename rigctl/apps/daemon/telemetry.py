@@ -166,6 +166,7 @@ class TelemetryPublisher:
         *,
         channels: list[Channel],
         actuation_matrix_T_per_A: np.ndarray | None = None,
+        field_offset_T: np.ndarray | None = None,
         currents_hz: float = 0.0,
         field_hz: float = 100.0,
         stream_hz: float = 10.0,
@@ -180,6 +181,8 @@ class TelemetryPublisher:
         self.channel_names = [c.name for c in channels]
         self.channel_units = [c.unit for c in channels]
         self.actuation = actuation_matrix_T_per_A
+        # an MPEM rig's current-independent Offset field at the centre (T): B = A I + offset
+        self.field_offset = np.zeros(3) if field_offset_T is None else np.asarray(field_offset_T)
         self.currents_period = 1.0 / currents_hz if currents_hz > 0 else 0.0
         self.field_period = 1.0 / field_hz if field_hz > 0 else 0.0
         self.stream_period = 1.0 / stream_hz if stream_hz > 0 else 0.0
@@ -362,8 +365,10 @@ class TelemetryPublisher:
             self._last_sent["field"] = t_last
             self._send("field", FieldMsg(
                 seq=self._next_seq(Topic.FIELD), t=t_last,
-                commanded_mT=(self.actuation @ commanded * 1e3).round(6).tolist(),
-                measured_mT=(self.actuation @ measured * 1e3).round(6).tolist()))
+                commanded_mT=((self.actuation @ commanded + self.field_offset) * 1e3
+                              ).round(6).tolist(),
+                measured_mT=((self.actuation @ measured + self.field_offset) * 1e3
+                             ).round(6).tolist()))
         if t_last - self._last_sent["stream"] >= self.stream_period:
             self._last_sent["stream"] = t_last
             recent = np.asarray(self._errors) * 1e6

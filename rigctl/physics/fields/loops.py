@@ -3,7 +3,7 @@
 
 It is the model of the six-coil rig file (`coil_loops`: the rig's loops, or the loops a
 "rigctl-loop-v1" field calibration fitted) and of those calibration files on their own. The
-gradient is the central difference of the exact field with the step `coils.GRADIENT_STEP_MM`,
+gradient is the central difference of the exact field with the step `GRADIENT_STEP_MM`,
 as the six-coil allocator computes it (truncation about 3e-8 relative at the cube's distances).
 A loop model has no current-independent offset.
 """
@@ -15,13 +15,27 @@ from collections.abc import Sequence
 import numpy as np
 
 from rigctl.core.config import RigConfig
-from rigctl.physics.coils import GRADIENT_STEP_MM, coil_loops
 from rigctl.physics.field_calibration import FieldCalibration, fitted_loops
 from rigctl.physics.fields.model import FieldModel
 from rigctl.physics.magnetics import loop_field
 
 Loop = tuple[np.ndarray, np.ndarray, float, int, float]
 """(centre m, unit axis, radius m, turns, gain) of one coil."""
+
+GRADIENT_STEP_MM = 0.05
+"""Central-difference step: truncation ~ (step / distance to the winding)^2 / 6, about 3e-8
+relative for the cube's coils; round-off ~1e-10 relative."""
+
+
+def coil_loops(rig: RigConfig) -> list[Loop]:
+    """(centre m, unit axis, radius m, turns, gain) of each coil, in `rig.coils` order: the fitted
+    loops of the rig's `field_calibration` if it is a "rigctl-loop-v1" file, else the rig file's
+    (gain 1; also for a rig whose calibration is an MPEM: these are the coils as drawn)."""
+    calibration = getattr(rig, "field_calibration", None)
+    if isinstance(calibration, FieldCalibration):
+        return fitted_loops(calibration, [c.name for c in rig.coils])
+    return [(np.asarray(c.centre_mm, dtype=float) * 1e-3, np.asarray(c.axis, dtype=float),
+             c.loop_radius_mm * 1e-3, c.turns, 1.0) for c in rig.coils]
 
 
 class LoopModel(FieldModel):

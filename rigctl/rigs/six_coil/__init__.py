@@ -57,13 +57,13 @@ def _hold(rig: RigConfig, target: dict):
     within its coil's limit, and the supplies' compliance R I + L dI/dt over the ramp to them."""
     import numpy as np
 
-    from rigctl.physics.coils import actuation_matrix
+    from rigctl.physics.coils import actuation_matrix, field_offset
     from rigctl.rigs.six_coil.allocate import check_current_limits, currents_for_field
     from rigctl.rigs.six_coil.supplies import CoilSupplies
     from rigctl.run.hold import HoldRequest, ramp, target_values
 
     field_mT = target_values(target, "field_mT", (3,), KIND.name, "mT")
-    currents = currents_for_field(actuation_matrix(rig), field_mT * 1e-3)
+    currents = currents_for_field(actuation_matrix(rig), field_mT * 1e-3 - field_offset(rig)[0:3])
     rate = rig.stream.rate_hz
     asked = f"{field_mT.tolist()} mT"
 
@@ -95,7 +95,7 @@ def _probe_supply(rig: RigConfig, device: Device, timed: bool = False) -> str:
 
 
 def _windings(rig: RigConfig):
-    """The six air-core coils, each fed a current by its supply."""
+    """The rig's coils (six on the cube, any N >= 3), each fed a current by its supply."""
     from rigctl.physics.thermal import Windings
 
     return Windings.of_coils(rig.coils)
@@ -129,7 +129,8 @@ KIND = RigKind(
     wall_contact="slide",
     turn_mm=_turn_mm,
     name="six-coil",
-    description="six air-core coils fed by Kepco BOP supplies, overhead camera",
+    description="N >= 3 electromagnets (six air-core coils on a cube by default) fed by Kepco "
+    "BOP supplies, overhead camera",
     faults=fault_profile,
     report=REPORT,
     plans={"global-moves": _global_moves, "pair-formation": _pair_formation},

@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike
 
 from rigctl.core.config import RigConfig
 from rigctl.core.errors import LimitError, PlanError
-from rigctl.physics.coils import actuation_matrix
+from rigctl.physics.coils import actuation_matrix, field_offset
 from rigctl.physics.magnetics import U_COMPONENTS
 from rigctl.rigs.six_coil.realize import FieldProgram
 
@@ -157,11 +157,14 @@ def allocate(program: FieldProgram, rig: RigConfig, *,
         k = int(np.flatnonzero(~np.isfinite(field).all(axis=1))[0])
         raise PlanError(f"{program.describe_sample(k)}: field sample {k} is not finite")
     A = actuation_matrix(rig)
-    currents = currents_for_field(A, field)
+    # an MPEM rig's Offset field is there with the supplies off: the coils make the rest
+    # (as `rigctl.physics.fields.allocate` does); a loop rig's offset is 0
+    coils_make = field - field_offset(rig)[0:3]
+    currents = currents_for_field(A, coils_make)
     names = [c.name for c in rig.coils]
 
     scale = float(np.max(np.linalg.norm(field, axis=1), initial=0.0))
-    residual = np.linalg.norm(currents @ A.T - field, axis=1)
+    residual = np.linalg.norm(currents @ A.T - coils_make, axis=1)
     if residual.size and residual.max() > FIELD_RESIDUAL * scale:
         k = int(np.argmax(residual))
         raise LimitError(

@@ -11,7 +11,7 @@ import numpy as np
 
 from rigctl.core.config import RigConfig
 from rigctl.core.transport import parse_url
-from rigctl.physics.coils import actuation_matrix, u_actuation_matrix
+from rigctl.physics.coils import actuation_matrix, field_offset, u_actuation_matrix
 from rigctl.physics.magnetics import U_COMPONENTS
 from rigctl.physics.thermal import Windings
 from rigctl.plans.schema import MAX_DURATION_S, MAX_PROGRAM_SAMPLES
@@ -68,11 +68,12 @@ def current_program_checks(rig: RigConfig, currents_A: np.ndarray, rate_hz: floa
                               volts[:, j].max(initial=0.0), coil.compliance_V, "V",
                               f"R at the winding's hottest, {hot[j]:.3g} ohm"
                               + (f" ({describe(kv)})" if describe and len(volts) else "")))
-    field = currents_A @ actuation_matrix(rig).T
+    offset = field_offset(rig)  # an MPEM rig's Offset field (T, T/m); 0 for loops
+    field = currents_A @ actuation_matrix(rig).T + offset[0:3]
     checks.append(ceiling("field |B| at the centre", "workspace", 1e3 * np.linalg.norm(
         field, axis=1).max(initial=0.0), rig.preflight.max_field_mT, "mT"))
     if rig.actuation_matrix_T_per_A is None:  # a measured matrix has no gradients
-        terms = np.abs(currents_A @ u_actuation_matrix(rig)[3:].T) * 1e3
+        terms = np.abs(currents_A @ u_actuation_matrix(rig)[3:].T + offset[3:]) * 1e3
         t = int(np.argmax(terms.max(axis=0, initial=0.0))) if len(terms) else 0
         checks.append(ceiling("gradient at the centre", f"workspace ({U_COMPONENTS[3 + t]})",
                               terms.max(initial=0.0), rig.preflight.max_gradient_mT_per_m, "mT/m"))

@@ -2,7 +2,8 @@
 the kind's `settings`).
 
 `[field]` how moves become a rotating field (seed 000 eq. 1-2), `[magnets]` the rolling magnets,
-`[[coils]]` the six air-core coils and the supplies that feed them, an optional measured
+`[[coils]]` the electromagnets (three or more: the six-coil cube is one instance, an OctoMag-like
+station of eight or a Navion-like one of three others) and the supplies that feed them, an optional measured
 `actuation_matrix_T_per_A` or a `rigctl calibrate field` file (`field_calibration`), and the Hall
 probe that calibration reads (`[field_probe]`). The tables' models are `rigctl.core.config`'s (the
 emulated bench and the planners, below the rig layer, build them too); the checks of the whole,
@@ -20,21 +21,27 @@ from typing import Annotated, Any
 from pydantic import BeforeValidator, Field, ValidationInfo, model_validator
 
 from rigctl.core.config import Coil, FieldProbe, FieldSettings, MagnetSettings, RigConfig
-from rigctl.physics.field_calibration import FieldCalibration, load_field_calibration
+from rigctl.physics.coils import MPEMCalibration, load_calibration
+from rigctl.physics.field_calibration import FieldCalibration
+
+MIN_COILS = 3
+"""Fewer coils cannot make a field in every direction at the centre."""
 
 
 def _calibration_file(value, info: ValidationInfo):
     """`field_calibration = "FILE.yaml"` is read, relative to the rig file (`load_rig` says where
-    it is; with no rig file, to the working directory)."""
+    it is; with no rig file, to the working directory): a mag_manip MPEM file or a
+    "rigctl-loop-v1" one (`rigctl.physics.coils.load_calibration`)."""
     if not isinstance(value, (str, Path)):
         return value
     rig_dir = (info.context or {}).get("rig_dir")
-    return load_field_calibration(str(rig_dir / value) if rig_dir is not None else value)
+    return load_calibration(str(rig_dir / value) if rig_dir is not None else value)
 
 
 class SixCoilRig(RigConfig):
-    """A six-coil rig file: every rig's tables and the coils', checked together (six coils with
-    distinct names; a measured matrix of 3 rows, one column per coil)."""
+    """An electromagnet rig file: every rig's tables and the coils', checked together (N >= 3
+    coils with distinct names, the N of every per-coil thing: supplies, channels, currents; a
+    measured matrix of 3 rows, one column per coil; an MPEM calibration naming these coils)."""
 
     field: FieldSettings = FieldSettings()
     magnets: MagnetSettings = MagnetSettings()
@@ -43,17 +50,25 @@ class SixCoilRig(RigConfig):
         default=None,
         description="measured 3 x n_coils matrix at the workspace centre; overrides the geometry",
     )
-    field_calibration: Annotated[FieldCalibration | None, BeforeValidator(_calibration_file)] = Field(
-        default=None, description="a `rigctl calibrate field` file (YAML): the allocator's coils")
+    field_calibration: Annotated[FieldCalibration | MPEMCalibration | None,
+                                 BeforeValidator(_calibration_file)] = Field(
+        default=None, description="a field calibration file (YAML): a mag_manip MPEM file or a "
+        "`rigctl calibrate field` loop file; the allocator's field model")
     field_probe: FieldProbe | None = None
 
     @model_validator(mode="after")
-    def _six_coils(self) -> SixCoilRig:
-        if len(self.coils) != 6:
-            raise ValueError(f"a six-coil rig needs 6 [[coils]] entries, found {len(self.coils)}")
+    def _n_coils(self) -> SixCoilRig:
+        if len(self.coils) < MIN_COILS:
+            raise ValueError(f"an electromagnet rig needs at least {MIN_COILS} [[coils]] entries "
+                             f"(three independent field directions), found {len(self.coils)}")
         names = [c.name for c in self.coils]
         if len(set(names)) != len(names):
             raise ValueError(f"coil names must be unique, got {names}")
+        calibration = self.field_calibration
+        if isinstance(calibration, MPEMCalibration) and sorted(calibration.coil_list) != sorted(names):
+            raise ValueError(f"field_calibration {calibration.source}: its Coil_List "
+                             f"({', '.join(calibration.coil_list)}) must name the rig's coils "
+                             f"({', '.join(names)})")
         if self.actuation_matrix_T_per_A is not None:
             rows = self.actuation_matrix_T_per_A
             if len(rows) != 3 or any(len(r) != len(self.coils) for r in rows):

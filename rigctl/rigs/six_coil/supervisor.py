@@ -70,7 +70,7 @@ from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError, PlanError, RigError
 from rigctl.core.priority import step_back
 from rigctl.core.record import RunRecord
-from rigctl.physics.coils import actuation_matrix
+from rigctl.physics.coils import actuation_matrix, field_offset
 from rigctl.physics.identify import RollingIdentifier
 from rigctl.plans.checks import plan_model
 from rigctl.plans.correction import correct_by_contact
@@ -718,11 +718,11 @@ def certified_replan(moves_mm: np.ndarray, rig: RigConfig, streamed_A: np.ndarra
     a limit; nothing is spliced then."""
     n = len(rig.coils)
     held = streamed_A[-1] if len(streamed_A) else np.zeros(n)
-    A = actuation_matrix(rig)
+    A, offset_T = actuation_matrix(rig), field_offset(rig)[0:3]  # an MPEM's Offset; 0 for loops
     fractional = rig.model_copy(update={"field": rig.field.model_copy(
         update={"whole_turns": False})})
-    program = realize_global_moves(moves_mm, fractional, start_field_T=A @ held)
-    lead = lead_in(held, currents_for_field(A, program.field_T[0]), rig)
+    program = realize_global_moves(moves_mm, fractional, start_field_T=A @ held + offset_T)
+    lead = lead_in(held, currents_for_field(A, program.field_T[0] - offset_T), rig)
     currents = allocate(program, rig, start_A=lead[-1] if len(lead) else held)
     m, rate = len(lead), program.rate_hz
     joined = CurrentProgram(

@@ -1,6 +1,6 @@
 """The six-coil rig's supplies as one group: connect, stream a cycle, watch health, stop safely.
 
-A stream cycle writes every supply's setpoint first and then reads every reply, so the six round
+A stream cycle writes every supply's setpoint first and then reads every reply, so the N round
 trips overlap instead of adding up. Health is checked between cycles, one supply at a time in
 turn, by draining its SCPI error queue: that is how a trip the supply reports on its own (an
 over-temperature) surfaces within about a second even though the replies keep coming. Stopping
@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 
 
 def supply_channels(rig: RigConfig) -> list[Channel]:
-    """One current channel per supply, in A, within its limit: the six-coil rig's channels."""
+    """One current channel per supply, in A, within its limit: the coil rig's N channels."""
     return [Channel(c.name, "A", -c.current_limit_A, c.current_limit_A, "supplies") for c in rig.coils]
 
 
