@@ -86,10 +86,19 @@ def test_the_fit_knows_the_true_coils_far_better_than_the_drawing(calibrated):
 
 def test_the_rig_names_a_calibration_it_loads_with(calibrated):
     result = calibrated["result"]
+    from rigctl.physics.coils import field_model
+    from rigctl.physics.fields import MPEM
+
     rig = load_rig(calibrated["rig_path"])  # loads: what it names is a file this rigctl reads
     assert rig.field_calibration is not None
-    assert Path(rig.field_calibration.source).name == Path(result["named_in_rig"]).name
-    assert Path(result["named_in_rig"]).is_file()
+    assert Path(rig.field_calibration.source).name == Path(result["calibration"]).name
+    assert result["named_in_rig"] == result["calibration"]
+    # and the rig's field is that file's: the same field per ampere at points off the centre
+    model, written = field_model(rig), load_mpem(result["calibration"])
+    assert isinstance(model, MPEM)
+    points = np.array([[0.0, 0.0, 0.0], [0.02, -0.01, 0.03], [-0.04, 0.05, 0.0]])
+    np.testing.assert_allclose(model.actuation(points), written.actuation(points),
+                               rtol=1e-12, atol=1e-15)
 
 
 def test_mag_manip_evaluates_the_written_file_to_the_same_numbers(calibrated):

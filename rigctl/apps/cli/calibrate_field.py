@@ -9,10 +9,8 @@ drawn loops, judged on probe sensors the fit did not see, written in mag_manip's
 (`rigctl.physics.fields.write_mpem`, Coil_List in the rig's coil order). `--model loops`: each
 coil's loop with a gain, offset and tilt, in rigctl's "rigctl-loop-v1" file.
 
-Until rig files read an MPEM as their `field_calibration` (rigctl/rigs/six_coil/settings.py reads
-"rigctl-loop-v1" only), `--model mpem` also fits the loops, writes them beside the MPEM
-(RIG-field-loops.yaml) and names that file in the rig: the rig runs calibrated today, and
-`_NAME_MPEM_IN_RIG` switches the rig file to the MPEM once it can read one.
+`--model mpem` names the MPEM file in the rig (`field_calibration`), which every later run's field
+model then is (`rigctl.physics.coils.field_model`).
 """
 
 from __future__ import annotations
@@ -27,9 +25,6 @@ from pathlib import Path
 from rigctl.core.errors import EXIT_OK, ConfigError
 
 MODELS = ("mpem", "loops")
-_NAME_MPEM_IN_RIG = False
-"""True once a rig's `field_calibration` may be an MPEM file (rigctl.rigs.six_coil.settings);
-until then the rig names the loop fit written beside it."""
 
 
 def add_field_flags(p: argparse.ArgumentParser) -> None:
@@ -160,19 +155,12 @@ def _write_mpem(args: argparse.Namespace, fit, rig, drawn, measured, rig_path: P
         f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n"
         f"{patterns} patterns, {len(measured.points_m) - held} probe points fitted, {held} held "
         f"out: {mpem.held_out_mT:.4f} mT RMS ({mpem.held_out_pct:.3f} % of the mean field) there"))
+    from rigctl.physics.coils import MPEMCalibration
+
     named = out
-    if _NAME_MPEM_IN_RIG:  # a top-level key before the tables, as the rig file reads it
-        relative = os.path.relpath(out.resolve(), rig_path.resolve().parent)
-        rig_path.write_text(f"field_calibration = {json.dumps(relative)}\n"
-                            + dump_rig(rig.model_copy(update={"field_calibration": None})))
-    else:
-        named = out.with_name(f"{out.stem}-loops{out.suffix}")
-        _say(args, f"fitting each coil's loop too, for the rig file ({named.name})")
-        loops = fit.fit_calibration(drawn, measured)
-        relative = os.path.relpath(named.resolve(), rig_path.resolve().parent)
-        loops = loops.model_copy(update={"source": relative})
-        named.write_text(loops.to_yaml())
-        rig_path.write_text(dump_rig(rig.model_copy(update={"field_calibration": loops})))
+    relative = os.path.relpath(out.resolve(), rig_path.resolve().parent)
+    calibration = MPEMCalibration(text=out.read_text(), source=relative)
+    rig_path.write_text(dump_rig(rig.model_copy(update={"field_calibration": calibration})))
     result = {
         "model": "mpem", "order": order, "calibration": str(out), "rig": str(rig_path),
         "named_in_rig": str(named), "coil_list": [c.name for c in rig.coils],
@@ -197,11 +185,7 @@ def _write_mpem(args: argparse.Namespace, fit, rig, drawn, measured, rig_path: P
     print(f"on the {held} probe points the fit did not see, RMS over every pattern: MPEM "
           f"{mpem.held_out_mT:.4f} mT ({mpem.held_out_pct:.3f} % of the mean field), drawn coils "
           f"{mpem.drawn_mT:.4f} mT ({mpem.drawn_pct:.2f} %)")
-    if named == out:
-        print(f"named in {rig_path}")
-    else:
-        print(f"{rig_path} names the coils' loop fit {named} (this rigctl's rig files read no "
-              "MPEM yet)")
+    print(f"named in {rig_path}: every run allocates with it")
     return EXIT_OK
 
 
