@@ -103,3 +103,20 @@ def test_the_held_out_sensors_are_a_seeded_quarter_and_the_start_sits_behind_eac
         # half a radius further from the workspace centre than the coil, on its axis line
         assert np.linalg.norm(source.position_m) == pytest.approx(np.linalg.norm(centre)
                                                                    + 0.5 * radius)
+
+
+def test_the_patterns_current_is_the_one_asked_within_the_coils_limit():
+    """`calibrate field --current A`: each coil alone at +-A and the mixes within it (an iron-core
+    station saturates the probe at the default, half the smallest limit); above the limit refused."""
+    from rigctl.core.errors import ConfigError
+    from rigctl.rigs.six_coil.field_fit import drive_patterns
+
+    rig = _rig()
+    limit = min(c.current_limit_A for c in rig.coils)
+    assert np.abs(drive_patterns(rig)).max() == pytest.approx(0.5 * limit)
+    asked = drive_patterns(rig, current_A=1.25)
+    assert np.abs(asked).max() == pytest.approx(1.25)
+    singles = asked[1:1 + 2 * len(rig.coils)]  # each coil alone at +I then -I
+    assert sorted(np.abs(singles).sum(axis=1)) == pytest.approx([1.25] * 2 * len(rig.coils))
+    with pytest.raises(ConfigError, match="--current"):
+        drive_patterns(rig, current_A=limit * 1.01)

@@ -33,6 +33,9 @@ def add_field_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--grid-mm", type=float, default=None, metavar="MM",
                    help="emulated bench: put its probe array on a 3 x 3 x 3 grid of +-MM about the "
                    "centre (default 100); a real probe's board says where its sensors are")
+    g.add_argument("--current", type=float, default=None, metavar="A",
+                   help="the patterns' current (default: half the smallest coil limit); lower it "
+                   "when a probe sensor saturates (iron-core stations)")
     g.add_argument("--patterns-seed", type=int, default=0, metavar="N",
                    help="seed of the mixed current patterns and of the probe sensors held out of "
                    "the MPEM fit (default 0)")
@@ -90,7 +93,7 @@ def cmd_calibrate_field(args: argparse.Namespace) -> int:
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise ConfigError(f"-o {out}: the field calibration is a YAML file (.yaml)")
     drawn = rig.model_copy(update={"field_calibration": None})
-    patterns = fit.drive_patterns(drawn, seed=args.patterns_seed)
+    patterns = fit.drive_patterns(drawn, seed=args.patterns_seed, current_A=args.current)
     if rig.emulation is not None:
         from rigctl.emulators.backdoor import BackdoorClient
 

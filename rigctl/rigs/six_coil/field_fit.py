@@ -68,11 +68,19 @@ errors (seed 0, the probe's readings computed, 3 uT noise; order 3) held-out 0.9
 centre, 0.39 % from 0.5, 0.75 or 1 radius back (the same minimum)."""
 
 
-def drive_patterns(rig: RigConfig, *, seed: int = 0, mixed: int = MIXED_PATTERNS) -> np.ndarray:
+def drive_patterns(rig: RigConfig, *, seed: int = 0, mixed: int = MIXED_PATTERNS,
+                   current_A: float | None = None) -> np.ndarray:
     """The current patterns (P, n) A: zero, each coil alone at +-I0, then `mixed` seeded mixes
-    (every coil uniform in +-I0); the zero pattern ends the list too, so the rig ends at rest."""
+    (every coil uniform in +-I0); the zero pattern ends the list too, so the rig ends at rest.
+    I0 is `current_A` (a station whose field at the probe would saturate it at the default: its
+    cores make far more field per ampere than air loops), else `PATTERN_FRACTION` of the
+    smallest coil limit; never more than that limit (ConfigError)."""
     n = len(rig.coils)
-    i0 = PATTERN_FRACTION * min(c.current_limit_A for c in rig.coils)
+    limit = min(c.current_limit_A for c in rig.coils)
+    if current_A is not None and not 0 < current_A <= limit:
+        raise ConfigError(f"--current must be > 0 and at most the smallest coil limit, "
+                          f"{limit:g} A; got {current_A:g}")
+    i0 = PATTERN_FRACTION * limit if current_A is None else current_A
     single = np.concatenate([np.eye(n), -np.eye(n)])[np.argsort(np.tile(np.arange(n), 2),
                                                                  kind="stable")] * i0
     mixes = np.random.default_rng(seed).uniform(-i0, i0, size=(mixed, n))
@@ -165,7 +173,8 @@ def measure(rig: RigConfig, patterns: np.ndarray, *,
                         continue
                     if sample.saturated.any():
                         raise DeviceError("a probe sensor saturated: lower the calibration "
-                                          "current", device="field probe")
+                                          "current (rigctl calibrate field --current A)",
+                                          device="field probe")
                     sums[p] += sample.field_T
                     counts[p] += 1
                 if time.monotonic() >= settled_at:
