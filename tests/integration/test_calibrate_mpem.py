@@ -8,7 +8,6 @@ visited; the rig file names a calibration the rig loads with."""
 import contextlib
 import io
 import json
-import os
 import subprocess
 from pathlib import Path
 
@@ -20,17 +19,9 @@ from rigctl.core.config import dump_rig, load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 from rigctl.physics.fields import LoopModel, load_mpem
+from tests.integration.test_fields_mag_manip import side_python  # one way to find mag_manip
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def side_python() -> str | None:
-    """A Python with mag_manip 3.0.0, found as tests/integration/test_fields_mag_manip.py does."""
-    for candidate in (os.environ.get("RIGCTL_MAG_MANIP_PYTHON"),
-                      str(ROOT / ".venv-mag-manip" / "bin" / "python")):
-        if candidate and Path(candidate).exists():
-            return candidate
-    return None
 
 
 @pytest.fixture(scope="module")
