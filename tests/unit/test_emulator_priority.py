@@ -77,17 +77,27 @@ def test_a_bench_that_leads_its_session_raises_its_session_s_niceness_too():
         pytest.skip("this kernel does not group CPU time by session (no /proc/self/autogroup)")
     base = os.getpriority(os.PRIO_PROCESS, 0)
     show = ("from rigctl.emulators.base import _take_priority; _take_priority(); "
-            f"print(open('{autogroup}').read().split('nice')[1].strip())")
+            f"print(open('{autogroup}').read().strip())")
     env = {k: v for k, v in os.environ.items() if k != "RIGCTL_EMULATOR_NICE"}
 
-    def group_nice(**popen) -> int:
+    def group_nice(**popen) -> int | None:
+        """The group's niceness as the child saw it after taking its priority; None where its
+        session is the kernel's default group (the file is empty: it has no niceness of its own,
+        as where a CI runner's session was never made by setsid)."""
         done = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True,
                               text=True, timeout=60, **popen)
         assert done.returncode == 0, done.stderr
-        return int(done.stdout)
+        return _group_nice(done.stdout)
 
     own = group_nice(start_new_session=True)  # a session of its own: its group starts at 0
+    if own is None:
+        pytest.skip("this kernel gave a new session no CPU group of its own (empty autogroup file)")
     permitted = os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_NICE)[0] >= 20 - (base - 10)
     assert own == (min(0, max(-20, base - 10)) if permitted else 0)  # only ever ahead
     with open(autogroup) as mine:  # sharing the test's session: the session's own is left be
-        assert group_nice() == int(mine.read().split("nice")[1])
+        assert group_nice() == _group_nice(mine.read())
+
+
+def _group_nice(text: str) -> int | None:
+    """`/autogroup-ID nice N` read as N; None for the empty file of the default group."""
+    return int(text.split("nice")[1]) if text.strip() else None
