@@ -101,3 +101,32 @@ def test_a_bench_that_leads_its_session_raises_its_session_s_niceness_too():
 def _group_nice(text: str) -> int | None:
     """`/autogroup-ID nice N` read as N; None for the empty file of the default group."""
     return int(text.split("nice")[1]) if text.strip() else None
+
+
+def test_a_group_niceness_the_kernel_defers_is_tried_again_a_tenth_later(monkeypatch):
+    """Without CAP_SYS_ADMIN the kernel takes one group niceness per tenth of a second,
+    machine-wide, and says EAGAIN to the rest: a run and its bench starting together both get
+    theirs, and a kernel that keeps saying so is given up on with the error."""
+    import pytest
+
+    from rigctl.core import priority
+
+    class Deferring:
+        def __init__(self, refusals: int) -> None:
+            self.refusals, self.written = refusals, []
+
+        def write_text(self, text: str) -> None:
+            if self.refusals:
+                self.refusals -= 1
+                raise BlockingIOError(11, "Resource temporarily unavailable")
+            self.written.append(text)
+
+    twice = Deferring(2)
+    monkeypatch.setattr(priority, "AUTOGROUP", twice)
+    priority._write_group(-10)
+    assert twice.written == ["-10"]
+    always = Deferring(10)
+    monkeypatch.setattr(priority, "AUTOGROUP", always)
+    with pytest.raises(BlockingIOError):
+        priority._write_group(-10)
+    assert always.refusals == 7 and not always.written
