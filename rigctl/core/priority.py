@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import os
+import resource
 import threading
 import time
 from collections.abc import Callable
@@ -82,6 +83,50 @@ def favour(what: str, env: str = RUN_NICE_ENV, *, pass_on: bool = False) -> Call
 
 
 AUTOGROUP = Path("/proc/self/autogroup")
+AUTOGROUP_ENABLED = Path("/proc/sys/kernel/sched_autogroup_enabled")
+
+
+def computer_notes() -> list[str]:
+    """What the computer permits a run that `rigctl doctor` says (one line each): whether a run can
+    be put ahead of ordinary work, and whether CPU time is shared by session, so that a
+    `rigctl execute` typed in a terminal gets the cores turn about with every other session."""
+    notes = []
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    wanted = max(-20, base + FAVOURED_STEP)
+    soft = resource.getrlimit(resource.RLIMIT_NICE)[0]
+    if _may_take(wanted):
+        notes.append(f"priority: a run is put at niceness {wanted}, ahead of ordinary work")
+    else:
+        notes.append(f"priority: a run keeps niceness {base}, level with ordinary work (RLIMIT_NICE "
+                     f"{soft} allows {20 - soft}; `LimitNICE=-10` in a unit or a `nice` line in "
+                     "/etc/security/limits.conf puts it ahead: docs/safety.md)")
+    try:
+        grouped = AUTOGROUP_ENABLED.read_text().strip() == "1"
+    except OSError:
+        grouped = False
+    if grouped:
+        notes.append("scheduling: CPU time is shared by session (autogroup): a `rigctl execute` "
+                     "typed in a terminal gets the cores turn about with other sessions; "
+                     "`setsid -w rigctl execute ...` or the daemon gives a run a session of its own")
+    return notes
+
+
+def _may_take(nice: int) -> bool:
+    """Whether this process may take niceness `nice`: tried by a thread of its own (Linux keeps a
+    niceness per thread), which ends with it; root, CAP_SYS_NICE and RLIMIT_NICE all count."""
+    taken = []
+
+    def trial() -> None:
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+            taken.append(True)
+        except OSError:
+            pass
+
+    thread = threading.Thread(target=trial, name="priority-trial")
+    thread.start()
+    thread.join()
+    return bool(taken)
 
 
 def _favour_group(wanted: int) -> Callable[[], None]:

@@ -130,3 +130,20 @@ def test_a_group_niceness_the_kernel_defers_is_tried_again_a_tenth_later(monkeyp
     with pytest.raises(BlockingIOError):
         priority._write_group(-10)
     assert always.refusals == 7 and not always.written
+
+
+def test_the_doctor_says_whether_a_run_can_be_put_ahead_and_whether_time_is_shared_by_session():
+    """`rigctl doctor`'s computer lines agree with what a process started here may do (it tries
+    `os.nice`) and with the kernel's autogroup switch."""
+    from rigctl.core.priority import computer_notes
+
+    notes = computer_notes()
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    tried = subprocess.run([sys.executable, "-c", f"import os; os.nice({max(-20, base - 10) - base})"],
+                           capture_output=True, timeout=60)
+    assert ("ahead of ordinary work" in notes[0]) == (tried.returncode == 0)
+    try:
+        grouped = open("/proc/sys/kernel/sched_autogroup_enabled").read().strip() == "1"
+    except OSError:
+        grouped = False
+    assert any(note.startswith("scheduling: CPU time is shared by session") for note in notes) == grouped

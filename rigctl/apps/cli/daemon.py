@@ -266,13 +266,15 @@ def _cmd_estop(args: argparse.Namespace) -> int:
 
 def _cmd_doctor(args: argparse.Namespace) -> int:
     from rigctl.core.config import load_rig
+    from rigctl.core.priority import computer_notes
     from rigctl.rigs.doctor import probe_rig
 
     rig = load_rig(args.rig)
     results = probe_rig(rig, timed=True)
     healthy = all(p.ok for p in results)
+    computer = computer_notes()
     if args.json:
-        print(json.dumps({"rig": rig.rig.kind, "ok": healthy,
+        print(json.dumps({"rig": rig.rig.kind, "ok": healthy, "computer": computer,
                           "devices": [p.as_dict() for p in results]}))
         return EXIT_OK if healthy else EXIT_FAULT
     print(f"{rig.rig.name} ({rig.rig.kind}): nothing is energised by this check")
@@ -282,6 +284,8 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
               f"{p.detail}")
     print("every device answered" if healthy else
           "NOT READY: " + ", ".join(p.device for p in results if not p.ok))
+    for note in computer:
+        print(f"  {note}")
     return EXIT_OK if healthy else EXIT_FAULT
 
 
