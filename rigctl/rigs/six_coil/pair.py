@@ -171,6 +171,11 @@ def prepare_pair(plan: PairFormationPlan, rig: RigConfig, settings: PairRunSetti
     check(plan)
     physics = physics_of(plan)
     rig_pull = rig_max_pull(rig, physics, plan.field_mT)
+    if rig_pull == 0.0 and plan.max_pull_bl_s > 0.0:
+        raise LimitError(f"the plan pulls up to {plan.max_pull_bl_s:.3f} BL/s but this rig's coils "
+                         "make no field gradient at the workspace centre (a uniform-field rig, such "
+                         "as a Helmholtz triad, cannot pull): a pair-formation plan needs a rig "
+                         "whose coils make gradients")
     if plan.max_pull_bl_s > rig_pull * (1 + 1e-6):
         raise LimitError(f"the plan pulls up to {plan.max_pull_bl_s:.3f} BL/s but this rig's coils "
                          f"make at most {rig_pull:.3f} BL/s with a {plan.field_mT:g} mT field; "
