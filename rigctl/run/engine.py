@@ -46,6 +46,10 @@ log = logging.getLogger(__name__)
 REACH_AGAIN_S = 0.5  # a device not confirmed safe after the run: reached again this often
 
 
+INTERRUPTED_AGAIN = ("interrupted again while the run stopped: it went on to safe and recorded its "
+                     "end (rigctl estop cuts a ramp short)")
+
+
 @dataclass
 class Step:
     """One cycle's command: setpoints (n_channels,), the program sample it belongs to, and the
@@ -191,8 +195,7 @@ class Run(RunControl):
         with ExitStack() as winding_down:
             summary = self._execute(winding_down)
         if take_interrupt() is not None:
-            self._say("interrupted again while the run stopped: it went on to safe and recorded "
-                      "its end (rigctl estop cuts a ramp short)")
+            self._say(INTERRUPTED_AGAIN)
         return summary
 
     def _open_record(self) -> RunRecord:

@@ -11,7 +11,7 @@ import inspect
 import sys
 from typing import TYPE_CHECKING
 
-from rigctl.core.errors import ConfigError, abort_on_sigterm
+from rigctl.core.errors import ConfigError, abort_on_sigterm, shielded_from_interrupts, take_interrupt
 
 if TYPE_CHECKING:
     from rigctl.rigs.guardian import Guardian
@@ -109,6 +109,7 @@ def _execute_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
     from rigctl.rigs import rig_kind
     from rigctl.rigs.doctor import preflight
     from rigctl.rigs.owner import RigLock
+    from rigctl.run.engine import INTERRUPTED_AGAIN
     from rigctl.run.summary import exit_code, print_summary
 
     plan = load_plan(args.plan)
@@ -144,15 +145,21 @@ def _execute_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
             build(plan, kind.bench_rig(), runs_dir=args.runs, **options)
         where_it_runs = bench_for_run(kind.name, extra_args=bench, progress_out=out, world=world)
     abort_on_sigterm()  # SIGTERM ends a run as Ctrl-C does: an abort, recorded and summarised
-    with where_it_runs as rig, RigLock(rig, "rigctl execute") as lock:  # one owner: a second is refused
-        # a bench started here is this process's to stop: its rig file names its pid
-        guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
-        preflight(rig)  # every device answers and is made safe, or exit 2 naming it
-        if run is None:
-            run = build_on(rig)
-        guardian.wait_armed()  # nothing is energised unguarded
-        with LocalControl(run) as control:
-            lock.name_control(control.endpoint)  # where `rigctl estop --rig` and the rest find it
-            summary = run.execute()
-    print_summary(summary, args.json)
+    with contextlib.ExitStack() as after_run:
+        with where_it_runs as rig, RigLock(rig, "rigctl execute") as lock:  # one owner
+            # a bench started here is this process's to stop: its rig file names its pid
+            guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
+            preflight(rig)  # every device answers and is made safe, or exit 2 naming it
+            if run is None:
+                run = build_on(rig)
+            guardian.wait_armed()  # nothing is energised unguarded
+            with LocalControl(run) as control:
+                lock.name_control(control.endpoint)  # where `rigctl estop --rig` and the rest find it
+                summary = run.execute()
+                # from here to the summary (the bench stopped, the lock let go), a Ctrl-C is noted,
+                # not raised: raised, it would lose the summary and say nothing was running
+                after_run.enter_context(shielded_from_interrupts())
+        print_summary(summary, args.json)
+    if take_interrupt() is not None:
+        print(f"  {INTERRUPTED_AGAIN}", file=sys.stderr, flush=True)
     return exit_code(summary)
