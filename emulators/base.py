@@ -289,7 +289,14 @@ class EmulatedBench:
                   "them can drive them (the default, 127.0.0.1, keeps them on this machine); the "
                   f"backdoor takes only the token written in {args.rig_out} (mode 0600)",
                   file=sys.stderr, flush=True)
-        _take_priority()
+        give_back = _take_priority()
+        try:
+            return cls._serve_until_stopped(args)
+        finally:
+            give_back()  # a terminal's session it shared is no longer ahead of the others
+
+    @classmethod
+    def _serve_until_stopped(cls, args: argparse.Namespace) -> int:
         bench = cls.from_args(args)
         stop = threading.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -321,9 +328,9 @@ def _write_rig(path: Path, text: str, *, private: bool) -> None:
         out.write(text)
 
 
-def _take_priority() -> None:
+def _take_priority() -> Callable[[], None]:
     """The bench ahead of ordinary work where the machine permits it (`rigctl.core.priority`;
-    RIGCTL_EMULATOR_NICE for another niceness), before it starts a thread. Real supplies, boards
-    and arms answer from processors of their own: a bench starved by other work makes the run's
-    0.25 s reply watchdog measure the starvation instead of the link."""
-    favour("emulated bench", BENCH_NICE_ENV, pass_on=True)
+    RIGCTL_EMULATOR_NICE for another niceness), before it starts a thread; what gives it back.
+    Real supplies, boards and arms answer from processors of their own: a bench starved by other
+    work makes the run's 0.25 s reply watchdog measure the starvation instead of the link."""
+    return favour("emulated bench", BENCH_NICE_ENV, pass_on=True)

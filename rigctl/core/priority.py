@@ -94,7 +94,8 @@ def computer_notes() -> list[str]:
     base = os.getpriority(os.PRIO_PROCESS, 0)
     wanted = max(-20, base + FAVOURED_STEP)
     soft = resource.getrlimit(resource.RLIMIT_NICE)[0]
-    if _may_take(wanted):
+    ahead = _may_take(wanted)
+    if ahead:
         notes.append(f"priority: a run is put at niceness {wanted}, ahead of ordinary work")
     else:
         notes.append(f"priority: a run keeps niceness {base}, level with ordinary work (RLIMIT_NICE "
@@ -104,10 +105,13 @@ def computer_notes() -> list[str]:
         grouped = AUTOGROUP_ENABLED.read_text().strip() == "1"
     except OSError:
         grouped = False
-    if grouped:
-        notes.append("scheduling: CPU time is shared by session (autogroup): a `rigctl execute` "
-                     "typed in a terminal gets the cores turn about with other sessions; "
-                     "`setsid -w rigctl execute ...` or the daemon gives a run a session of its own")
+    if grouped and ahead:
+        notes.append("scheduling: CPU time is shared by session (autogroup): a run puts its "
+                     "session ahead too (a terminal's, with the terminal's other jobs, while the "
+                     "run lasts)")
+    elif grouped:
+        notes.append("scheduling: CPU time is shared by session (autogroup): a run gets the cores "
+                     "turn about with every other busy session")
     return notes
 
 
@@ -132,13 +136,14 @@ def _may_take(nice: int) -> bool:
 def _favour_group(wanted: int) -> Callable[[], None]:
     """Where the kernel groups tasks by session (`CONFIG_SCHED_AUTOGROUP`, on by default on most
     distributions), a niceness only orders the threads of one session: each session shares the
-    cores as one, at its group's niceness. A process that leads its session (a bench, a stream
-    process, a run a study or a campaign starts: each is started in one of its own) sets its
-    group's niceness too; one that shares its session (a run started from a shell) leaves it be,
-    as the group is the shell's. What gives it back is returned."""
+    cores as one, at its group's niceness. So a favoured process sets its session's group's
+    niceness too: a bench, a stream process, a run a study or a campaign starts (each leads a
+    session of its own), and a `rigctl execute` or `rigctl emulate` typed in a terminal (its
+    session is the terminal's: the terminal's other jobs come along for the run). Measured with
+    other sessions busy: two of three runs lost to a supply's watchdog without it, none with it.
+    What gives it back is returned; it gives back only what it set (another process of the
+    session may have changed it since)."""
     try:
-        if os.getsid(0) != os.getpid():
-            return _nothing
         before = int(AUTOGROUP.read_text().split("nice")[1])  # the default group's file is empty
         if wanted >= before:
             return _nothing
@@ -148,8 +153,9 @@ def _favour_group(wanted: int) -> Callable[[], None]:
 
     def restore() -> None:
         try:
-            _write_group(before)
-        except OSError:
+            if int(AUTOGROUP.read_text().split("nice")[1]) == wanted:
+                _write_group(before)
+        except (OSError, ValueError, IndexError):
             pass
 
     return restore

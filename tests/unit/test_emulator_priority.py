@@ -7,9 +7,10 @@ import resource
 import subprocess
 import sys
 
-SHOW = ("from rigctl.emulators.base import _take_priority; import os, threading; _take_priority(); "
+SHOW = ("from rigctl.emulators.base import _take_priority; import os, threading; "
+        "give_back = _take_priority(); "
         "t = threading.Thread(target=lambda: print(os.getpriority(os.PRIO_PROCESS, 0))); "
-        "t.start(); t.join()")
+        "t.start(); t.join(); give_back()")  # the test's session's CPU group as it was
 
 
 def nice_of_a_bench_thread(value: str | None) -> tuple[int, str]:
@@ -66,36 +67,48 @@ def test_a_re_planning_child_goes_back_to_where_its_favoured_run_started():
     assert nice_with("soon") == base
 
 
-def test_a_bench_that_leads_its_session_raises_its_session_s_niceness_too():
-    """Where CPU time is shared by session (autogroup), a bench in a session of its own (as
-    `rigctl execute` and the tests start one) takes its session's niceness down with its own: a
-    thread's niceness alone orders it only among its session's threads."""
+def test_a_bench_raises_its_session_s_niceness_too_and_gives_back_a_shared_one():
+    """Where CPU time is shared by session (autogroup), a bench takes its session's niceness down
+    with its own: a thread's niceness alone orders it only among its session's threads. In a
+    session of its own (as `rigctl execute` and the tests start one) it starts at 0; sharing one
+    (typed in a terminal) it takes the terminal's ahead while it serves and gives it back after."""
     import pytest
 
     autogroup = "/proc/self/autogroup"
     if not os.path.exists(autogroup):
         pytest.skip("this kernel does not group CPU time by session (no /proc/self/autogroup)")
     base = os.getpriority(os.PRIO_PROCESS, 0)
-    show = ("from rigctl.emulators.base import _take_priority; _take_priority(); "
-            f"print(open('{autogroup}').read().strip())")
+    show = ("from rigctl.emulators.base import _take_priority; give_back = _take_priority(); "
+            f"during = open('{autogroup}').read().strip(); give_back(); "
+            f"print(during, '|', open('{autogroup}').read().strip())")
     env = {k: v for k, v in os.environ.items() if k != "RIGCTL_EMULATOR_NICE"}
 
-    def group_nice(**popen) -> int | None:
-        """The group's niceness as the child saw it after taking its priority; None where its
-        session is the kernel's default group (the file is empty: it has no niceness of its own,
-        as where a CI runner's session was never made by setsid)."""
+    def group_nice(**popen) -> tuple[int | None, int | None]:
+        """The group's niceness as the child saw it after taking its priority and after giving it
+        back; None where its session is the kernel's default group (the file is empty: it has
+        no niceness of its own, as where a CI runner's session was never made by setsid)."""
         done = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True,
                               text=True, timeout=60, **popen)
         assert done.returncode == 0, done.stderr
-        return _group_nice(done.stdout)
+        during, after = done.stdout.split("|")
+        return _group_nice(during), _group_nice(after)
 
-    own = group_nice(start_new_session=True)  # a session of its own: its group starts at 0
+    permitted = os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_NICE)[0] >= 20 - (base - 10)
+    own, _ = group_nice(start_new_session=True)  # a session of its own: its group starts at 0
     if own is None:
         pytest.skip("this kernel gave a new session no CPU group of its own (empty autogroup file)")
-    permitted = os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_NICE)[0] >= 20 - (base - 10)
     assert own == (min(0, max(-20, base - 10)) if permitted else 0)  # only ever ahead
-    with open(autogroup) as mine:  # sharing the test's session: the session's own is left be
-        assert group_nice() == _group_nice(mine.read())
+    with open(autogroup) as mine:
+        shared = _group_nice(mine.read())
+    if shared is None:  # the default group has no niceness to take: left be
+        assert group_nice() == (None, None)
+    else:
+        wanted = max(-20, base - 10)
+        during, after = group_nice()
+        assert during == (min(shared, wanted) if permitted else shared)
+        assert after == shared
+        with open(autogroup) as mine:
+            assert _group_nice(mine.read()) == shared  # this session's own, as it was
 
 
 def _group_nice(text: str) -> int | None:
