@@ -128,6 +128,9 @@ class Commands:
             self._require(*ACTIVE, doing="pause")
             if self._active.kind == "hold":
                 raise Refusal(ErrorCode.WRONG_STATE, f'{CANNOT_PAUSE} (hold {{"release": true}})')
+            if self._active.kind == "teleop":
+                raise Refusal(ErrorCode.WRONG_STATE, 'a teleoperation session cannot be paused: '
+                              'let go of the input, or end it (teleop {"end": true})')
             self._active.job.pause(args.immediate)
         return {"state": self.state.value, "pending": "pause now" if args.immediate
                 else "pause at the end of the current move"}

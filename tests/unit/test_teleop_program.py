@@ -1,0 +1,180 @@
+"""Steering by hand, the program stepped by hand on a clock of the test's: the dead-man (an input
+counts for 200 ms of the stream's clock, then the rig's stop input), letting go, the rolling
+field's heading and speed against the field written out here (seed 000's rolling field, B = b0
+(cos a d - sin a z)), the board's pull in whole units, inputs clipped to their ranges, the
+pre-flight of any input, and a rig kind without teleoperation."""
+
+import math
+
+import numpy as np
+import pytest
+
+from rigctl.core.config import CoilBoardSettings, RigInfo, StreamSettings
+from rigctl.core.errors import ConfigError, PlanError
+from rigctl.physics.coils import actuation_matrix
+from rigctl.plans.pair import default_rig
+from rigctl.rigs import rig_kind
+from rigctl.rigs.coil_board.settings import CoilBoardRig
+from rigctl.run.engine import RunContext
+from rigctl.run.teleop import SILENCE_S, TeleopPlan, TeleopProgram
+
+
+class Record:
+    """What the program writes: events and the rows of its one series."""
+
+    t0 = 0.0
+
+    def __init__(self) -> None:
+        self.events: list[tuple[str, dict]] = []
+        self.rows: list[list[float]] = []
+        self.columns: list[str] = []
+
+    def event(self, name: str, **fields) -> None:
+        self.events.append((name, fields))
+
+    def open_series(self, name, columns, units):
+        self.columns = columns
+        return self
+
+    def row(self, values) -> None:
+        self.rows.append(list(values))
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+SIX = default_rig()
+BOARD = CoilBoardRig(rig=RigInfo(kind="coil-board", name="unit"),
+                     board=CoilBoardSettings(url="/dev/null", rate_hz=100.0),
+                     stream=StreamSettings(rate_hz=100.0))
+
+
+def session(rig, mode=None):
+    clock = Clock()
+    drive = rig_kind(rig.rig.kind).teleop(rig, mode)
+    prog = TeleopProgram(TeleopPlan(rig=rig.rig.kind, mode=mode), rig, drive, clock=clock)
+    record = Record()
+    prog.start(RunContext(rig, record, None, lambda text: None))
+    return prog, drive, clock, record
+
+
+def run_for(prog, clock, seconds, k0=0):
+    """Cycles at the program's rate for `seconds` of the clock: their setpoints (n, channels)."""
+    out = []
+    for k in range(k0, k0 + round(seconds * prog.rate_hz)):
+        clock.t += 1.0 / prog.rate_hz
+        step = prog.next(k, None)
+        out.append(None if step is None else step.setpoints)
+    return out
+
+
+def test_rolling_makes_the_rolling_field_at_the_speed_asked():
+    prog, drive, clock, _ = session(SIX)
+    rate, fs = prog.rate_hz, SIX.field
+    b0 = fs.b0_mT * 1e-3
+    A = actuation_matrix(SIX)
+    n_up = math.ceil(fs.ramp_s * rate - 1e-9)
+    heading = fs.initial_heading_deg
+    cycles = []
+    for k in range(n_up + 40):  # the input renewed every cycle: never silent
+        prog.steer([heading, 0.5])
+        clock.t += 1.0 / rate
+        cycles.append(prog.next(k, None).setpoints)
+    # up to full field along the heading first (no roll below it), then rolling at half speed:
+    # a = 2 pi (0.5 f_roll) t about z x d
+    d = np.array([math.cos(math.radians(heading)), math.sin(math.radians(heading)), 0.0])
+    for j, currents in enumerate(cycles[n_up - 1:]):  # the last cycle of the ramp: a = 0
+        a = 2 * math.pi * 0.5 * fs.rolling_turns_per_s * j / rate
+        wanted = b0 * (math.cos(a) * d - math.sin(a) * np.array([0.0, 0.0, 1.0]))
+        np.testing.assert_allclose(A @ currents, wanted, atol=1e-9)
+    assert np.linalg.norm(A @ cycles[n_up - 2]) < b0  # still ramping
+
+
+def test_silence_for_200_ms_stops_the_input_and_the_currents_reach_zero():
+    prog, drive, clock, record = session(SIX)
+    prog.steer([0.0, 1.0])
+    sent = clock.t
+    out = run_for(prog, clock, 1.0)
+    live = [k for k, s in enumerate(out) if np.any(s)]
+    # driven while the input is fresh, then down to exactly 0 A within STOP_S (0.1 s) more
+    silent_from = int(SILENCE_S * prog.rate_hz)
+    assert np.any(out[silent_from - 1])
+    zero_at = (live[-1] + 1) / prog.rate_hz
+    assert SILENCE_S < zero_at <= SILENCE_S + 0.1 + 1.5 / prog.rate_hz
+    assert all(not np.any(s) for s in out[live[-1] + 1:])
+    assert [name for name, _ in record.events] == ["teleop_silence"]
+    # the series: the input live, then not live (nan input), each with the stream's time
+    assert [r[1] for r in record.rows] == [1.0, 0.0]
+    assert record.rows[0][2:] == [0.0, 1.0] and all(math.isnan(v) for v in record.rows[1][2:])
+    assert record.rows[1][0] - sent > SILENCE_S
+    assert prog.finish(None).metrics["silence_stops"] == 1
+
+
+def test_letting_go_stops_at_once_and_a_new_input_rolls_on():
+    prog, drive, clock, record = session(SIX)
+    prog.steer([0.0, 1.0])
+    run_for(prog, clock, 0.1)
+    prog.steer(None)
+    out = run_for(prog, clock, 0.15, k0=10)
+    assert not np.any(out[-1]) and np.any(out[0])
+    assert [name for name, _ in record.events] == []  # let go is not the dead-man
+    prog.steer([90.0, 1.0])
+    assert np.any(run_for(prog, clock, 0.05, k0=30)[-1])
+
+
+def test_end_brings_the_rig_to_rest_then_ends_done():
+    prog, drive, clock, _ = session(SIX)
+    prog.steer([0.0, 1.0])
+    run_for(prog, clock, 0.1)
+    prog.end()
+    out = run_for(prog, clock, 0.2, k0=10)
+    assert out[-1] is None
+    assert prog.finish(None).reached is True
+
+
+def test_the_board_pulls_in_whole_units_and_stops_in_the_cycle_the_input_goes_silent():
+    prog, drive, clock, _ = session(BOARD)
+    m = BOARD.board.max_command
+    prog.steer([45.0, 0.5])  # +x and +y, half the limit each
+    out = run_for(prog, clock, 0.3)
+    assert out[0].tolist() == [round(0.5 * m), 0, round(0.5 * m), 0]
+    prog.steer([180.0 + math.degrees(math.atan(0.5)), 1.0])  # -x full, -y half
+    sent = clock.t
+    assert run_for(prog, clock, 0.01, k0=30)[0].tolist() == [0, m, 0, round(0.5 * m)]
+    out = run_for(prog, clock, 0.3, k0=31)
+    first_zero = next(k for k, s in enumerate(out) if not np.any(s))
+    # every coil at 0 in the first cycle more than 200 ms after the input, and from then on
+    zero_after = sent + 0.01 + (first_zero + 1) / prog.rate_hz - sent
+    assert SILENCE_S < zero_after <= SILENCE_S + 1.0 / prog.rate_hz + 1e-9
+    assert all(not np.any(s) for s in out[first_zero:])
+
+
+def test_inputs_are_clipped_to_their_ranges_and_bad_ones_refused():
+    drive = rig_kind("six-coil").teleop(SIX, None)
+    values, clipped = drive.clip({"heading_deg": 30.0, "speed": 3.0})
+    assert values.tolist() == [30.0, 1.0] and clipped == ["speed"]
+    with pytest.raises(ConfigError, match="heading_deg, speed"):
+        drive.clip({"speed": 1.0})
+    with pytest.raises(ConfigError, match="finite"):
+        drive.clip({"heading_deg": float("nan"), "speed": 1.0})
+    with pytest.raises(ConfigError, match="rolling, not 'jog'"):
+        rig_kind("six-coil").teleop(SIX, "jog")
+
+
+def test_the_preflight_holds_for_any_input_and_refuses_a_rig_too_weak_for_it():
+    checks = rig_kind("six-coil").teleop(SIX, None).checks()
+    assert checks and all(c.passed for c in checks)
+    weak = SIX.model_copy(update={"coils": [c.model_copy(update={"current_limit_A": 0.01})
+                                            for c in SIX.coils]})
+    refused = [c for c in rig_kind("six-coil").teleop(weak, None).checks() if not c.passed]
+    assert refused and refused[0].check == "current"
+
+
+def test_a_rig_kind_without_teleoperation_says_so_in_one_line():
+    with pytest.raises(PlanError, match="this rig kind has no teleoperation"):
+        rig_kind("depm").builder("teleop")(TeleopPlan(rig="depm"), None)
