@@ -27,7 +27,7 @@ from rigctl.physics.coils import actuation_matrix, field_offset
 from rigctl.run.certificate import Check, ceiling
 from rigctl.run.teleop import InputComponent, TeleopDrive
 
-STOP_S = 0.1
+STOP_S = 0.05
 """How long the field takes from full to zero when the input stops (s)."""
 
 _Z = np.array([0.0, 0.0, 1.0])
