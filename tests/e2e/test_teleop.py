@@ -17,8 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from rigctl.apps.client import Rig, CommandRefused
-from rigctl.apps.testing import wait_for
+from rigctl.apps.client import CommandRefused, Rig
 from rigctl.core.config import load_rig
 from rigctl.core.record import read_events, read_series
 from rigctl.emulators.backdoor import BackdoorClient
