@@ -8,6 +8,7 @@ the reply says so); the coil board's drive stops on silence too."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -18,11 +19,13 @@ from pathlib import Path
 import pytest
 
 from rigctl.apps.client import CommandRefused, Rig
+from rigctl.apps.testing import wait_for
 from rigctl.core.config import load_rig
 from rigctl.core.record import read_events, read_series
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
 
+EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 SILENCE_S = 0.2  # the issue's dead-man: the input stops when silent this long
 STOP_S = 0.25  # the issue's figure: at zero within this of the stop
 
@@ -162,3 +165,55 @@ def test_the_coil_boards_drive_stops_when_the_client_falls_silent(tmp_path):
                 rig.wait_state("idle", timeout_s=30.0)
         finally:
             daemon.close()
+
+
+def test_a_session_saved_as_a_plan_replays_it_on_the_bench(six_coil, tmp_path):
+    """Two magnets steered +x then +y, the session saved (`rigctl teleop-save`) and the plan
+    executed on the same bench from the same starts: they end where the session left them, to
+    within half a whole turn per move (the plan's moves are whole turns) and 0.5 mm of slack."""
+    rig, backdoor, runs = six_coil
+    example = json.loads((EXAMPLES / "fig4-two-magnets.json").read_text())
+    starts = [a["start"] for a in example["agents"]]
+    backdoor.request("place", workspace=example["workspace"],
+                     agents=[{"position": p, "radius": 8.0} for p in starts])
+    rig.teleop()
+    try:
+        for heading in (0.0, 90.0):
+            steer_until(rig, lambda: moved(backdoor, starts) > 0, heading_deg=heading, speed=1.0)
+            for _ in range(12):  # about 0.6 s more of rolling at the rig's speed
+                rig.steer(heading_deg=heading, speed=1.0)
+                time.sleep(0.05)
+            rig.steer()  # let go
+            wait_for(lambda: max(map(abs, six_coil_currents(backdoor))) < 0.05, 5.0, "at rest")
+            starts = truth_agents(backdoor)
+    finally:
+        rig.end_teleop()
+    rig.wait_state("idle", timeout_s=30.0)
+    session_end = truth_agents(backdoor)
+
+    plan_path = tmp_path / "replay.json"
+    saved = subprocess.run(
+        [sys.executable, "-m", "rigctl", "teleop-save", "latest", "--runs", str(runs), "-o",
+         str(plan_path), "--workspace", str(EXAMPLES / "fig4-two-magnets.json"), "--radius", "8"],
+        capture_output=True, text=True, timeout=120)
+    assert saved.returncode == 0, saved.stderr
+    plan = json.loads(plan_path.read_text())
+    assert plan["kind"] == "global-moves" and len(plan["moves"]) == 2
+    assert plan["moves"][0][0] > 0 and plan["moves"][1][1] > 0  # +x, then +y
+
+    rig.execute(rig.load(plan))
+    rig.wait_state("running", "idle", timeout_s=30.0)
+    rig.wait_state("idle", timeout_s=60.0)
+    replay_end = truth_agents(backdoor)
+    turn_mm = 2 * math.pi * load_rig(runs.parent / "bench.toml").magnets.radius_mm
+    gap = max(math.dist(a, b) for a, b in zip(session_end, replay_end))
+    print(f"replay ends {gap:.3f} mm from the session (half a turn: {turn_mm / 2:.3f} mm)")
+    assert gap <= len(plan["moves"]) * turn_mm / 2 + 0.5
+
+
+def truth_agents(backdoor) -> list[list[float]]:
+    return backdoor.request("truth")["agents"]
+
+
+def moved(backdoor, starts) -> float:
+    return max(math.dist(a, b) for a, b in zip(truth_agents(backdoor), starts))

@@ -62,6 +62,34 @@ class BoardDrive(TeleopDrive):
     def at_rest(self) -> bool:
         return not self._last.any()
 
+    def moves_mm(self, inputs: dict, events: list[dict]) -> tuple[np.ndarray, list[str]]:
+        """The session's moves (m, 2) mm: for each run of inputs at one heading, the particles'
+        mean displacement between the positions tracked just before it began and just after
+        it ended (the record's `agents` events); with what the plan differs in."""
+        tracked = [(e["t"], np.asarray(e["tracked"], dtype=float)) for e in events
+                   if e["event"] == "agents" and e.get("tracked")]
+        if not tracked:
+            return np.zeros((0, 2)), []
+        times = np.array([t for t, _ in tracked])
+        t, live = inputs["t_s"], inputs["live"] == 1.0
+        moves, i = [], 0
+        while i < len(t):
+            if not live[i]:
+                i += 1
+                continue
+            j = i
+            while j + 1 < len(t) and live[j + 1] and inputs["heading_deg"][j + 1] == \
+                    inputs["heading_deg"][i]:
+                j += 1
+            end = t[j + 1] if j + 1 < len(t) else t[j]
+            before = tracked[max(0, int(np.searchsorted(times, t[i])) - 1)][1]
+            after = tracked[min(len(tracked) - 1, int(np.searchsorted(times, end)))][1]
+            moves.append((after - before).mean(axis=0))
+            i = j + 1
+        return np.array(moves).reshape(-1, 2), [
+            "each move is the particles' mean tracked displacement while one heading was held; "
+            "the plan's run pulls along it until the camera sees them there"]
+
     def checks(self) -> list[Check]:
         """The largest drive any input asks of a coil, against the board's limit (the windings'
         heating is watched live, as in every run)."""

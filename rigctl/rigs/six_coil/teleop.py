@@ -5,7 +5,10 @@ of the rig's `field.rolling_turns_per_s`, negative rolls back). The field is the
 `rigctl.rigs.six_coil.realize` made live: with d = (cos h, sin h, 0) the heading the field stands
 in now, B = b0 m (cos(alpha) d - sin(alpha) z), alpha advancing at 2 pi speed f_roll (a cylinder
 rolled by alpha about z x d moves R alpha along d). Changing the heading turns d about z at no
-more than `field.steering_deg_per_s` (seed 000 eq. 2: the magnets turn with it), the short way.
+more than `field.steering_deg_per_s` (seed 000 eq. 2: the magnets turn with it), the short way,
+and the field rolls only once d stands at the heading asked: steering, then rolling, as a plan's
+move is realized, so that a session is a sequence of straight moves that a global-moves plan
+can replay (`moves_mm`).
 
 The magnitude m ramps up to 1 over `field.ramp_s` when an input comes, and rolling waits for the
 full field; with no input (let go, or the dead-man) m ramps to 0 over `STOP_S` and the currents
@@ -87,7 +90,7 @@ class RollingDrive(TeleopDrive):
             turn = (heading - self.heading + math.pi) % (2.0 * math.pi) - math.pi
             most = self.steer_rad_per_s * self.dt
             self.heading += max(-most, min(most, turn))
-            if self.m >= 1.0:
+            if self.m >= 1.0 and abs(turn) <= most:  # steered: roll
                 self.alpha += speed * self.roll_rad_per_s * self.dt
             self.m = self.m + self.up_per_cycle
             self.m = 1.0 if self.m > 1.0 - 1e-9 else self.m
@@ -100,6 +103,47 @@ class RollingDrive(TeleopDrive):
 
     def at_rest(self) -> bool:
         return self._rest
+
+    def moves_mm(self, inputs: dict, events: list[dict]) -> tuple[np.ndarray, list[str]]:
+        """The session's moves (m, 2) mm, from its inputs as the stream took them (the record's
+        `teleop` series) stepped through this drive anew: each run of inputs at one heading is
+        one move, the magnets' roll R alpha along it; whole turns where the rig's field says so
+        (`field.whole_turns`). With what the plan differs in, one line each."""
+        rate, radius = self.rate_hz, self.rig.magnets.radius_mm
+        t, live = inputs["t_s"], inputs["live"] == 1.0
+        moves: list[np.ndarray] = []
+        last_key = None
+        for i in range(len(t)):
+            cycles = (round((t[i + 1] - t[i]) * rate) if i + 1 < len(t)
+                      else round(STOP_S * rate) + 1)
+            values = np.array([inputs["heading_deg"][i], inputs["speed"][i]]) if live[i] else None
+            key = None if values is None else float(values[0])
+            for _ in range(cycles):
+                alpha = self.alpha
+                self.step(values)
+                rolled = self.alpha - alpha
+                if rolled:
+                    step = radius * rolled * np.array([math.cos(self.heading),
+                                                       math.sin(self.heading)])
+                    if key != last_key or not moves:
+                        moves.append(np.zeros(2))
+                        last_key = key
+                    moves[-1] += step
+            if values is None:
+                last_key = None
+        out = np.array(moves).reshape(-1, 2)
+        notes = ["the plan steers before each move and holds the field after it "
+                 "(field.hold_s), as a plan's moves are realized; the session rolled at the "
+                 "operator's speed"]
+        if self.rig.field.whole_turns and len(out):
+            turn = 2.0 * math.pi * radius
+            lengths = np.linalg.norm(out, axis=1)
+            turns = np.round(lengths / turn)
+            notes.append(f"each move rounded to whole turns of {turn:.3f} mm (field.whole_turns): "
+                         f"at most {np.abs(turns * turn - lengths).max():.3f} mm off")
+            out = out / np.maximum(lengths, 1e-300)[:, None] * (turns * turn)[:, None]
+            out = out[turns > 0]
+        return out, notes
 
     def checks(self) -> list[Check]:
         """Every coil's current at b0 in any direction, and its supply's voltage at the fastest
