@@ -90,6 +90,12 @@ class TeleopDrive:
         """The pre-flight of any input within the components' ranges on this rig."""
         raise NotImplementedError
 
+    def moves_mm(self, inputs: dict[str, Any], events: list[dict]) -> tuple[np.ndarray, list[str]]:
+        """The moves (m, 2) mm of a global-moves plan that replays a session from its record (the
+        `teleop` series as `read_series` gives it, the events), and what the plan differs in,
+        one line each (`rigctl.apps.teleop_save`). ConfigError where the mode has none."""
+        raise ConfigError(f"teleop-save: a {self.mode} session cannot be written as a plan")
+
     # -- shared -------------------------------------------------------------------------------
     def clip(self, values: dict[str, Any]) -> tuple[np.ndarray, list[str]]:
         """An input {component: value} as an array in the components' order, each clipped to its

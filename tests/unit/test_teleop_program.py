@@ -162,7 +162,7 @@ def test_inputs_are_clipped_to_their_ranges_and_bad_ones_refused():
         drive.clip({"speed": 1.0})
     with pytest.raises(ConfigError, match="finite"):
         drive.clip({"heading_deg": float("nan"), "speed": 1.0})
-    with pytest.raises(ConfigError, match="rolling, not 'jog'"):
+    with pytest.raises(ConfigError, match="rolling or pair, not 'jog'"):
         rig_kind("six-coil").teleop(SIX, "jog")
 
 
@@ -178,3 +178,23 @@ def test_the_preflight_holds_for_any_input_and_refuses_a_rig_too_weak_for_it():
 def test_a_rig_kind_without_teleoperation_says_so_in_one_line():
     with pytest.raises(PlanError, match="this rig kind has no teleoperation"):
         rig_kind("depm").builder("teleop")(TeleopPlan(rig="depm"), None)
+
+
+def test_pair_mode_makes_the_field_at_the_angle_and_the_pull_along_it():
+    from rigctl.physics.coils import max_planar_gradient, u_actuation_matrix
+
+    prog, drive, clock, _ = session(SIX, "pair")
+    b0 = SIX.field.b0_mT * 1e-3
+    g = max_planar_gradient(SIX, b0)
+    A8 = u_actuation_matrix(SIX)
+    heading = SIX.field.initial_heading_deg  # no turn to wait for
+    for k in range(40):  # the pull slews to 0.5 within STOP_S (5 cycles at 100 Hz)
+        prog.steer([heading, 0.5])
+        clock.t += 1.0 / prog.rate_hz
+        currents = prog.next(k, None).setpoints
+    psi = math.radians(heading)
+    wanted = np.array([b0 * math.cos(psi), b0 * math.sin(psi), 0.0, 0.5 * g, 0.0, 0.0, 0.5 * g, 0.0])
+    np.testing.assert_allclose(A8 @ currents, wanted, atol=1e-9)
+    assert all(c.passed for c in drive.checks())
+    out = run_for(prog, clock, 0.5, k0=40)  # silent: U to zero
+    assert not np.any(out[-1])

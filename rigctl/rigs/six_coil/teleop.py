@@ -167,10 +167,104 @@ class RollingDrive(TeleopDrive):
         return out
 
 
+class PairDrive(TeleopDrive):
+    """Field angle and pull, the controls of pair formation (seed 002, `rigctl.rigs.six_coil.pair`):
+    an in-plane field of b0 at the angle asked (turned at no more than `field.steering_deg_per_s`)
+    and the diagonal gradients dBx/dx = dBy/dy = p g, g the largest this rig's coils make with
+    that field at any angle (`max_planar_gradient`), so that a dipole aligned with the field is
+    pulled along it by |m| p g. The pull slews at most full scale in STOP_S; with no input the
+    whole U (field and gradient) ramps to zero over STOP_S, the currents ending at zero."""
+
+    mode = "pair"
+    late = "slip"
+    components = (
+        InputComponent("field_angle_deg", "deg", -360.0, 360.0, "the in-plane field's angle, "
+                       "from +x"),
+        InputComponent("pull", "1", -1.0, 1.0, "the pull along the field, a fraction of the "
+                       "largest gradient the coils make with it"),
+    )
+
+    def __init__(self, rig: RigConfig) -> None:
+        from rigctl.core.errors import ConfigError
+        from rigctl.physics.coils import max_planar_gradient, u_actuation_matrix
+        from rigctl.rigs.six_coil.supplies import CoilSupplies
+
+        self.rig = rig
+        self.connect = CoilSupplies.connect
+        self.rate_hz = rig.stream.rate_hz
+        self.dt = 1.0 / self.rate_hz
+        self.b0_T = rig.field.b0_mT * 1e-3
+        self.g_T_m = max_planar_gradient(rig, self.b0_T)
+        if self.g_T_m <= 0:
+            raise ConfigError("teleop: this rig's coils make no gradient with the field: no pull "
+                              "to steer (mode rolling)")
+        self.pinv8 = np.linalg.pinv(u_actuation_matrix(rig))  # (n, 8)
+        self.steer_rad_per_s = math.radians(rig.field.steering_deg_per_s)
+        self.per_cycle = self.dt / STOP_S
+        self.angle = math.radians(rig.field.initial_heading_deg)
+        self.pull = 0.0
+        self.m = 0.0
+        self._rest = True
+
+    def u(self) -> np.ndarray:
+        """The 8-vector U now (T, T/m)."""
+        u = np.zeros(8)
+        u[0], u[1] = self.b0_T * math.cos(self.angle), self.b0_T * math.sin(self.angle)
+        u[3] = u[6] = self.pull * self.g_T_m
+        return self.m * u
+
+    def step(self, values: np.ndarray | None) -> np.ndarray:
+        if values is None:
+            self.m = self.m - self.per_cycle
+            self.m = 0.0 if self.m < 1e-9 else self.m
+        else:
+            turn = (math.radians(values[0]) - self.angle + math.pi) % (2.0 * math.pi) - math.pi
+            most = self.steer_rad_per_s * self.dt
+            self.angle += max(-most, min(most, turn))
+            self.pull += max(-self.per_cycle, min(self.per_cycle, float(values[1]) - self.pull))
+            self.m = self.m + self.per_cycle
+            self.m = 1.0 if self.m > 1.0 - 1e-9 else self.m
+        self._rest = self.m == 0.0
+        return np.zeros(self.pinv8.shape[0]) if self._rest else self.pinv8 @ self.u()
+
+    def at_rest(self) -> bool:
+        return self._rest
+
+    def checks(self) -> list[Check]:
+        """Every coil's current for the field at any angle with the pull at either end, and its
+        supply's voltage at the fastest U can change (the field turning and ramping, the pull
+        slewing, all at once)."""
+        psi = np.linspace(0.0, 2.0 * math.pi, 360, endpoint=False)
+        us = []
+        for p in (-1.0, 1.0):
+            u = np.zeros((len(psi), 8))
+            u[:, 0], u[:, 1] = self.b0_T * np.cos(psi), self.b0_T * np.sin(psi)
+            u[:, 3] = u[:, 6] = p * self.g_T_m
+            us.append(u)
+        currents = np.abs(np.vstack(us) @ self.pinv8.T).max(axis=0)
+        du = np.zeros(8)  # |dU/dt| bound per component
+        du[0] = du[1] = self.b0_T * (self.steer_rad_per_s + 1.0 / STOP_S)
+        du[3] = du[6] = self.g_T_m * 2.0 / STOP_S
+        didt = np.abs(self.pinv8) @ du
+        out: list[Check] = []
+        for j, coil in enumerate(self.rig.coils):
+            out.append(ceiling("current", f"coil {coil.name}", currents[j], coil.current_limit_A,
+                               "A", "the field at any angle with the full pull (teleoperation)"))
+            out.append(ceiling("voltage", f"coil {coil.name}",
+                               coil.resistance_ohm * currents[j] + coil.inductance_H * didt[j],
+                               coil.compliance_V, "V", "R I + L dI/dt at the fastest any input "
+                               "can change U"))
+        return out
+
+
+
 def teleop_drive(rig: RigConfig, mode: str | None) -> TeleopDrive:
-    """The six-coil rig's teleoperation: "rolling" (global moves' rolling field, the default)."""
+    """The six-coil rig's teleoperation: "rolling" (global moves' rolling field, the default) or
+    "pair" (pair formation's field angle and pull)."""
     from rigctl.core.errors import ConfigError
 
     if mode in (None, "rolling"):
         return RollingDrive(rig)
-    raise ConfigError(f"teleop: a six-coil rig steers in mode rolling, not {mode!r}")
+    if mode == "pair":
+        return PairDrive(rig)
+    raise ConfigError(f"teleop: a six-coil rig steers in mode rolling or pair, not {mode!r}")
