@@ -76,6 +76,10 @@ class TeleopDrive:
     rate_hz: float
     late: str
     connect: Callable[[RigConfig], Any]
+    blocked: str | None = None  # the limit the input is stopped at now (the arms' constraints)
+
+    def connected(self, actuators: Any) -> None:
+        """The actuators are open, outputs off: where the session starts (the arms' joints)."""
 
     def step(self, values: np.ndarray | None) -> np.ndarray:
         """The next cycle's setpoints (n_channels,) for the input `values` (components,),
@@ -146,6 +150,7 @@ class TeleopProgram:
         # the stream thread's
         self._seen = -1
         self._live = False
+        self._blocked: str | None = None
         self.inputs = 0
         self.deadman_stops = 0
 
@@ -194,7 +199,7 @@ class TeleopProgram:
             {"t_s": "s", "live": "1", **{c.name: c.unit for c in self.drive.components}})
 
     def connected(self, actuators: Any) -> None:
-        pass
+        self.drive.connected(actuators)
 
     def next(self, k: int, measured: np.ndarray | None) -> Step | None:
         now = self.clock()
@@ -215,6 +220,10 @@ class TeleopProgram:
             row = values if fresh else np.full(len(self.drive.components), np.nan)
             self._series.row([now - self._ctx.record.t0, 1.0 if fresh else 0.0, *row])
         setpoints = self.drive.step(values if fresh else None)
+        if self.drive.blocked != self._blocked:  # a limit the input is stopped at, or no more
+            self._blocked = self.drive.blocked
+            assert self._ctx is not None
+            self._ctx.record.event("teleop_limit", constraint=self._blocked)
         if ending and self.drive.at_rest():
             return None
         stage = "steering" if fresh else ("ending" if ending else "idle")

@@ -176,8 +176,11 @@ def test_the_preflight_holds_for_any_input_and_refuses_a_rig_too_weak_for_it():
 
 
 def test_a_rig_kind_without_teleoperation_says_so_in_one_line():
+    import dataclasses
+
+    lab_kind = dataclasses.replace(rig_kind("coil-board"), name="lab", teleop=None)
     with pytest.raises(PlanError, match="this rig kind has no teleoperation"):
-        rig_kind("depm").builder("teleop")(TeleopPlan(rig="depm"), None)
+        lab_kind.builder("teleop")(TeleopPlan(rig="lab"), BOARD)
 
 
 def test_pair_mode_makes_the_field_at_the_angle_and_the_pull_along_it():
@@ -198,3 +201,59 @@ def test_pair_mode_makes_the_field_at_the_angle_and_the_pull_along_it():
     assert all(c.passed for c in drive.checks())
     out = run_for(prog, clock, 0.5, k0=40)  # silent: U to zero
     assert not np.any(out[-1])
+
+
+def depm_jog():
+    """The depm bench rig's jog drive, from a pose of the example plan (a safe one), the one
+    whose joints are farthest from their ranges' ends (0.31 rad)."""
+    import json
+    from pathlib import Path
+
+    rig = rig_kind("depm").bench_rig()
+    drive = rig_kind("depm").teleop(rig, None)
+    plan = json.loads((Path(__file__).resolve().parents[2] / "plans" / "examples"
+                       / "depm-plan.json").read_text())
+    drive.start_at(np.array([arm["joints_rad"][183] for arm in plan["arms"]]))
+    return drive
+
+
+def test_the_arms_jog_both_magnets_along_the_input_keeping_their_moments():
+    from rigctl.plans.depm_safety import violations
+    from rigctl.rigs.depm.teleop import JOG_MM_S
+
+    drive = depm_jog()
+    q0 = drive.q.copy()
+    before = [arm.epm_pose(q0[a]) for a, arm in enumerate(drive.arms)]
+    poses = [drive.step(np.array([0.0, 0.0, 1.0])).reshape(2, 7) for _ in range(50)]  # 1 s
+    q = poses[-1]
+    for a, arm in enumerate(drive.arms):
+        p, m = arm.epm_pose(q[a])
+        moved_mm = (p - before[a][0]) * 1e3
+        # up by the jog speed for 1 s, less what the acceleration cap takes at the start
+        assert JOG_MM_S * 0.9 < moved_mm[2] <= JOG_MM_S * 1.0001, moved_mm
+        assert np.abs(moved_mm[:2]).max() < 0.5 and np.abs(m - before[a][1]).max() < 1e-3
+    qdot = np.diff(np.stack([q0, *poses]), axis=0) * drive.rate_hz
+    assert (np.abs(qdot) <= drive.speed * (1 + 1e-9)).all()
+    assert not violations(np.zeros(1), q[:, None, :], None, drive.arms, drive.limits)
+    # no input: the joints hold where they are
+    np.testing.assert_array_equal(drive.step(None), q.ravel())
+
+
+def test_a_jog_into_a_constraint_stops_at_it_and_never_sends_a_pose_that_breaks_it():
+    from rigctl.plans.depm_safety import violations
+
+    drive = depm_jog()
+    centre = np.array(drive.limits.centre_m)
+    towards = centre - drive.arms[0].epm_pose(drive.q[0])[0]
+    towards /= np.linalg.norm(towards)
+    sent = []
+    while drive.blocked is None and len(sent) < 2000:  # 40 s at 20 mm/s: far enough to meet one
+        sent.append(drive.step(towards).reshape(2, 7))
+    assert drive.blocked is not None
+    held = drive.q.copy()
+    for _ in range(10):  # pushing on: it stays where it stopped
+        sent.append(drive.step(towards).reshape(2, 7))
+    np.testing.assert_array_equal(sent[-1], held)
+    print(f"stopped after {len(sent) - 10} cycles at: {drive.blocked}")
+    q = np.stack(sent, axis=1)  # (2, T, 7)
+    assert not violations(np.zeros(q.shape[1]), q, None, drive.arms, drive.limits)

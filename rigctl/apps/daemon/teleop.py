@@ -55,7 +55,7 @@ class TeleopCommands:
             if self.state != S.IDLE or self._active is not None or self._stop.is_set():
                 raise Refusal(ErrorCode.WRONG_STATE, f"state changed to {self.state.value}")
             self._activate(active, "execute")
-        if self.rig.emulated:  # the emulator's truth, recorded as the session goes
+        if self.rig.emulated and self.kind.scene == "camera":  # the agents' truth, as it goes
             threading.Thread(target=self._sample_agents, args=(active,), name="daemon-agents",
                              daemon=True).start()
         if not job.started.wait(TELEOP_START_TIMEOUT_S):
