@@ -217,3 +217,33 @@ def truth_agents(backdoor) -> list[list[float]]:
 
 def moved(backdoor, starts) -> float:
     return max(math.dist(a, b) for a, b in zip(truth_agents(backdoor), starts))
+
+
+def test_the_arms_jog_and_hold_still_when_the_client_falls_silent(tmp_path):
+    """The dual-EPM bench: a jog up moves the arms (their joints, from the emulated servers'
+    truth), and once the client is silent they stand still (every joint speed at rest) within
+    the dead-man's 200 ms and the issue's 250 ms."""
+    with EmulatedBenchProcess("depm", tmp_path / "bench.toml") as rig_path:
+        daemon = DaemonProcess(rig_path, tmp_path / "runs", tmp_path / "daemon.log")
+        try:
+            with Rig(daemon.endpoints["command"], timeout_s=30.0) as rig, \
+                    BackdoorClient(load_rig(rig_path).emulation.backdoor) as backdoor:
+                def arms() -> dict:
+                    return backdoor.request("truth")["arms"]
+
+                def moving(state: dict) -> bool:
+                    return any(max(map(abs, arm["qd"])) > 1e-3 for arm in state.values())
+
+                before = {name: arm["q"] for name, arm in arms().items()}
+                assert set(rig.teleop()["inputs"]) == {"vx", "vy", "vz"}
+                sent = steer_until(rig, lambda: moving(arms()), vx=0.0, vy=0.0, vz=1.0)
+                elapsed = time_to_zero(arms, sent, lambda state: not moving(state))
+                print(f"depm: every joint at rest {elapsed:.3f} s after the last input")
+                assert elapsed <= SILENCE_S + STOP_S
+                after = arms()
+                assert any(max(abs(a - b) for a, b in zip(after[name]["q"], q)) > 1e-3
+                           for name, q in before.items())
+                rig.end_teleop()
+                rig.wait_state("idle", timeout_s=30.0)
+        finally:
+            daemon.close()
