@@ -220,9 +220,10 @@ def moved(backdoor, starts) -> float:
 
 
 def test_the_arms_jog_and_hold_still_when_the_client_falls_silent(tmp_path):
-    """The dual-EPM bench: a jog up moves the arms (their joints, from the emulated servers'
-    truth), and once the client is silent they stand still (every joint speed at rest) within
-    the dead-man's 200 ms and the issue's 250 ms."""
+    """The dual-EPM bench: a jog along x moves the arms (their joints, from the emulated
+    servers' truth; they start straight up, where a jog up is out of reach), and once the client
+    is silent they stand still (every joint speed at rest) within the dead-man's 200 ms and the
+    issue's 250 ms."""
     with EmulatedBenchProcess("depm", tmp_path / "bench.toml") as rig_path:
         daemon = DaemonProcess(rig_path, tmp_path / "runs", tmp_path / "daemon.log")
         try:
@@ -236,7 +237,7 @@ def test_the_arms_jog_and_hold_still_when_the_client_falls_silent(tmp_path):
 
                 before = {name: arm["q"] for name, arm in arms().items()}
                 assert set(rig.teleop()["inputs"]) == {"vx", "vy", "vz"}
-                sent = steer_until(rig, lambda: moving(arms()), vx=0.0, vy=0.0, vz=1.0)
+                sent = steer_until(rig, lambda: moving(arms()), vx=1.0, vy=0.0, vz=0.0)
                 elapsed = time_to_zero(arms, sent, lambda state: not moving(state))
                 print(f"depm: every joint at rest {elapsed:.3f} s after the last input")
                 assert elapsed <= SILENCE_S + STOP_S
