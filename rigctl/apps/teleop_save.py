@@ -49,13 +49,13 @@ def teleop_plan(run_dir: str | Path, *, workspace: dict | None = None,
     if inputs is None or not len(inputs["t_s"]):
         raise ConfigError(f"{run_dir}: the session has no inputs to replay")
     events = read_events(run_dir)
+    drive = rig_kind(rig.rig.kind).teleop(rig, session.mode)
+    moves, notes = drive.moves_mm(inputs, events)  # first: a mode with no plan says so
     tracked = [np.asarray(e["tracked"], dtype=float) for e in events
                if e["event"] == "agents" and e.get("tracked")]
     if not tracked:
         raise ConfigError(f"{run_dir}: no tracked positions in the record (a plan starts from its "
                           "agents: steer on the emulated bench, or with the agents tracked)")
-    drive = rig_kind(rig.rig.kind).teleop(rig, session.mode)
-    moves, notes = drive.moves_mm(inputs, events)
     start, end = tracked[0], tracked[-1]
     radius = float(radius_mm if radius_mm is not None else
                    getattr(getattr(rig, "magnets", None), "radius_mm", 1.0))
