@@ -16,13 +16,11 @@ import threading
 from typing import Any
 
 from rigctl.apps.daemon.active_run import ActiveRun
+from rigctl.apps.daemon.commands import HOLD_START_TIMEOUT_S, _start_error
 from rigctl.apps.daemon.messages import ErrorCode
 from rigctl.apps.daemon.states import Refusal, S
-from rigctl.core import errors
-from rigctl.core.errors import ConfigError, RigError
+from rigctl.core.errors import ConfigError
 from rigctl.run.teleop import NO_TELEOP, TeleopPlan
-
-TELEOP_START_TIMEOUT_S = 30.0  # `teleop` waits this long for the session to stream
 
 
 class TeleopCommands:
@@ -58,11 +56,11 @@ class TeleopCommands:
         if self.rig.emulated and self.kind.scene == "camera":  # the agents' truth, as it goes
             threading.Thread(target=self._sample_agents, args=(active,), name="daemon-agents",
                              daemon=True).start()
-        if not job.started.wait(TELEOP_START_TIMEOUT_S):
+        if not job.started.wait(HOLD_START_TIMEOUT_S):
             job.estop()  # still connecting: it must not switch on after teleop has failed
         if not job.streaming:
-            active.thread.join(TELEOP_START_TIMEOUT_S)
-            raise job.error or _start_error(job.result)
+            active.thread.join(HOLD_START_TIMEOUT_S)
+            raise job.error or _start_error(job.result, "teleoperation session")
         for name in self.devices:
             self._device(name, "ok", "teleoperation")
         return {"state": self.state.value, **drive.describe(), "silence_s": job.info["silence_s"]}
@@ -84,16 +82,3 @@ class TeleopCommands:
         names = [c.name for c in active.drive.components]
         return {"input": dict(zip(names, values.tolist())), "clipped": clipped}
 
-
-def _start_error(summary: Any) -> RigError:
-    """Why a session that never streamed ended, from its summary's first fault."""
-    if summary is not None and summary.refused:
-        return errors.LimitError(summary.refused)
-    fault = summary.faults[0] if summary is not None and summary.faults else None
-    if fault is None:
-        return RigError(f"the teleoperation session did not start within "
-                        f"{TELEOP_START_TIMEOUT_S:g} s")
-    error_class = getattr(errors, fault["kind"], None)
-    if not (isinstance(error_class, type) and issubclass(error_class, RigError)):
-        error_class = RigError
-    return error_class(fault["reason"])
