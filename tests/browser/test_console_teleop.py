@@ -92,3 +92,20 @@ def test_a_page_gone_silent_with_the_key_held_is_stopped_by_the_daemon(rig, brow
               key=lambda p: p.stat().st_mtime)
     silences = [e for e in read_events(run) if e["event"] == "teleop_silence"]
     assert len(silences) == 1 and silences[0]["silent_s"] <= SILENT_TO_STOP_S
+
+
+def test_the_page_losing_its_focus_lets_go_at_once(rig, browser):
+    daemon, backdoor = rig
+    driver = open_console(browser, daemon)
+    start_steering(driver)
+    try:
+        ActionChains(driver).key_down(Keys.ARROW_UP).perform()
+        wait_for(lambda: energised(backdoor), 30.0, "the coils driven while the key is held")
+        blurred = time.monotonic()
+        js(driver, "window.dispatchEvent(new Event('blur'))")  # the key is still down
+        wait_for(lambda: safe(backdoor), 5.0, "the currents at zero")
+        assert time.monotonic() - blurred <= KEY_UP_TO_ZERO_S
+        assert js(driver, "rigctlTeleop.released") == 1 and js(driver, "rigctlTeleop.held.size") == 0
+    finally:
+        ActionChains(driver).key_up(Keys.ARROW_UP).perform()
+        end_steering(driver, daemon)
