@@ -257,3 +257,15 @@ def test_a_jog_into_a_constraint_stops_at_it_and_never_sends_a_pose_that_breaks_
     print(f"stopped after {len(sent) - 10} cycles at: {drive.blocked}")
     q = np.stack(sent, axis=1)  # (2, T, 7)
     assert not violations(np.zeros(q.shape[1]), q, None, drive.arms, drive.limits)
+
+
+def test_a_windings_warning_stops_the_input_and_ignores_it_from_then_on():
+    prog, drive, clock, _ = session(SIX)
+    prog.steer([0.0, 1.0])
+    assert np.any(run_for(prog, clock, 0.15)[-1])
+    prog.pause_to_cool()  # what the engine's heat watch calls at a winding's warning
+    for k in range(15, 40):  # the operator keeps steering: nothing is driven any more
+        prog.steer([0.0, 1.0])
+        clock.t += 1.0 / prog.rate_hz
+        setpoints = prog.next(k, None).setpoints
+    assert not np.any(setpoints)
