@@ -269,3 +269,22 @@ def test_a_windings_warning_stops_the_input_and_ignores_it_from_then_on():
         clock.t += 1.0 / prog.rate_hz
         setpoints = prog.next(k, None).setpoints
     assert not np.any(setpoints)
+
+
+def test_a_board_session_is_replayed_as_the_particles_mean_displacement_per_heading_held():
+    drive = rig_kind("coil-board").teleop(BOARD, None)
+    nan = float("nan")
+    # held +x from 1.0 s (renewed at 1.05), let go at 2.0; held +y from 3.0, let go at 3.5
+    inputs = {"t_s": np.array([1.0, 1.05, 2.0, 3.0, 3.5]),
+              "live": np.array([1.0, 1.0, 0.0, 1.0, 0.0]),
+              "heading_deg": np.array([0.0, 0.0, nan, 90.0, nan]),
+              "drive": np.array([0.5, 0.5, nan, 0.5, nan])}
+
+    def at(t, a, b):
+        return {"t": t, "event": "agents", "tracked": [a, b]}
+
+    events = [at(0.9, [0, 0], [5, 5]), at(2.1, [4, 0], [7, 5]),  # +x: 4 and 2 mm
+              at(2.9, [4, 0], [7, 5]), at(3.6, [4, 3], [7, 5])]  # +y: 3 mm, and 0 (on a wall)
+    moves, notes = drive.moves_mm(inputs, events)
+    np.testing.assert_allclose(moves, [[3.0, 0.0], [0.0, 1.5]])
+    assert notes
