@@ -220,6 +220,21 @@ class Rig:
     def set_field(self, field_mT: Iterable[float], ramp_s: float = 0.1) -> dict:
         return self.request("set_field", field_mT=[float(b) for b in field_mT], ramp_s=ramp_s)
 
+    def teleop(self, mode: str | None = None) -> dict:
+        """Start steering by hand (docs/teleoperation.md): the rig's inputs, their units and
+        ranges. Then `steer` every ~50 ms while the input is held; `end_teleop` (or `abort`)."""
+        return self.request("teleop", **({} if mode is None else {"mode": mode}))
+
+    def steer(self, **values: float) -> dict:
+        """The operator's input now (`heading_deg=.., speed=..` rolling, `heading_deg=..,
+        drive=..` on the coil board); none: let go. It counts for 200 ms in the daemon's stream
+        (the dead-man): send it again while the input is held."""
+        return self.request("steer", input={k: float(v) for k, v in values.items()} or None)
+
+    def end_teleop(self) -> dict:
+        """Let go, bring the rig to its rest and end the session."""
+        return self.request("teleop", end=True)
+
     def runs(self, limit: int = 20) -> list[dict]:
         return self.request("runs", limit=limit)
 

@@ -150,11 +150,18 @@ class RigKind:
     """How agents meet walls in the kind's global-moves plans, for the global-input model and its
     planners: "slide" (rolling magnets) or "non-slip" (particles stick); None: it runs none."""
 
+    teleop: Callable[[RigConfig, str | None], Any] | None = None
+    """teleop(rig, mode) -> a `rigctl.run.teleop.TeleopDrive`: how an operator's live input
+    (steering by hand) becomes setpoints on this kind, in the mode named (None: its first);
+    ConfigError for a mode it has not. None: the kind has no teleoperation."""
+
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.core.errors import PlanError
 
         if plan_kind == "hold":
             return self._hold_run
+        if plan_kind == "teleop":
+            return self._teleop_run
         try:
             return self.plans[plan_kind]
         except KeyError:
@@ -169,6 +176,18 @@ class RigKind:
 
         request = self.hold(rig, plan.target)
         return Run(HoldProgram(plan, rig, request), rig, request.connect, **options)
+
+    def _teleop_run(self, plan, rig: RigConfig, **options):
+        """The engine's run of a teleoperation session (`rigctl.run.teleop.TeleopPlan`) on this
+        rig: PlanError for a kind without teleoperation, the certificate of any input here."""
+        from rigctl.core.errors import PlanError
+        from rigctl.run.engine import Run
+        from rigctl.run.teleop import NO_TELEOP, TeleopProgram
+
+        if self.teleop is None:
+            raise PlanError(f"teleop: {NO_TELEOP} ({self.name})")
+        drive = self.teleop(rig, plan.mode)
+        return Run(TeleopProgram(plan, rig, drive), rig, drive.connect, **options)
 
 
 def camera_devices(rig: RigConfig) -> list[Device]:

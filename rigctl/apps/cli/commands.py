@@ -51,6 +51,7 @@ COMMANDS = {
     "service": "install the daemon as a systemd service (unit and system user)",
     "field": "the field (mT) and gradient an electromagnet rig makes at a point, or the currents "
              "for a wanted field",
+    "teleop-save": "write a teleoperation session out as a plan that replays it",
 }
 
 

@@ -52,7 +52,8 @@ ARMS_HZ = 10.0  # the dual-EPM sketch from the measured joints at most this ofte
 PAGE_QUEUE = 256  # messages queued per page (a few MB of frames at most); a slower page loses its oldest
 HELLO_TIMEOUT_S = 5.0
 MAX_UPLOAD_BYTES = 4 * 1024 * 1024  # the daemon's own request bound
-CONTROL_COMMANDS = {"load", "load_file", "execute", "pause", "resume", "abort", "reset", "estop"}
+CONTROL_COMMANDS = {"load", "load_file", "execute", "pause", "resume", "abort", "reset", "estop",
+                    "teleop", "steer"}
 WATCH_COMMANDS = {"runs", "run", "plans"}
 LOOPBACK_NAMES = {"localhost", "127.0.0.1", "::1"}
 _RUN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,254}$")
@@ -174,7 +175,7 @@ class Console:
         self._failure: BaseException | None = None
         self._stopping: asyncio.Event | None = None
         self._pools = {name: ThreadPoolExecutor(1, thread_name_prefix=f"console-{name}")
-                       for name in ("estop", "status", "control")}
+                       for name in ("estop", "status", "control", "steer")}
         self._clients: dict[str, Any] = {}
         self._plans: dict[str, dict] = {}  # plan_id -> document, for plans loaded here
         self._scene_for: str | None = None
@@ -263,7 +264,10 @@ class Console:
             server_key, client_key = self._curve
             # the e-stop: short and retried once; the status poll: never retried (the next poll
             # is the retry, and a daemon that stopped must not hold the console's shutdown)
-            timeout_s, retries = {"estop": (0.5, 1), "status": (2.0, 0)}.get(name, (5.0, 2))
+            # steering (teleop.js, every 50 ms): never behind a `load`, never retried (an input
+            # sent again late would drive the rig again after it was let go)
+            timeout_s, retries = {"estop": (0.5, 1), "status": (2.0, 0),
+                                  "steer": (0.5, 0)}.get(name, (5.0, 2))
             client = self._clients[name] = Rig(self.command_endpoint, timeout_s=timeout_s,
                                                retries=retries, server_key=server_key,
                                                client_key=client_key)
@@ -598,6 +602,10 @@ class Console:
             while len(self._plans) > 32:
                 self._plans.pop(next(iter(self._plans)))
             return result
+        if cmd == "steer":
+            return await self._request("steer", "steer", **args)
+        if cmd == "teleop":  # answered once the session streams
+            return await self._request("control", "teleop", timeout_s=30.0, **args)
         return await self._request("control", cmd, **args)
 
 

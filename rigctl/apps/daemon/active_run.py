@@ -31,7 +31,7 @@ REZERO_S = 0.5  # how often a device not confirmed safe is tried again
 class ActiveRun:
     """The run (a plan's or a manual hold) on the run thread, and what the stream thread last did."""
 
-    kind: str  # "plan" or "hold"
+    kind: str  # "plan", "hold" or "teleop"
     job: Any
     plan_id: str | None
     info: dict
@@ -43,6 +43,7 @@ class ActiveRun:
     commanded: np.ndarray | None = None  # the latest setpoints the stream reported
     setpoints: np.ndarray | None = None  # a hold's: the target it ramps to and holds
     released: bool = False  # a hold's release was asked for
+    drive: Any = None  # a teleoperation session's `TeleopDrive` (its inputs clipped here)
 
 
 

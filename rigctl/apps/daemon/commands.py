@@ -128,6 +128,9 @@ class Commands:
             self._require(*ACTIVE, doing="pause")
             if self._active.kind == "hold":
                 raise Refusal(ErrorCode.WRONG_STATE, f'{CANNOT_PAUSE} (hold {{"release": true}})')
+            if self._active.kind == "teleop":
+                raise Refusal(ErrorCode.WRONG_STATE, 'a teleoperation session cannot be paused: '
+                              'let go of the input, or end it (teleop {"end": true})')
             self._active.job.pause(args.immediate)
         return {"state": self.state.value, "pending": "pause now" if args.immediate
                 else "pause at the end of the current move"}
@@ -259,14 +262,15 @@ class Commands:
         return describe_run(self.runs_dir / args.run)
 
 
-def _start_error(summary: Any) -> RigError:
-    """Why a hold that never streamed ended, from its summary's first fault (as the error class
-    the stream process named, so a limit is answered as a limit)."""
+def _start_error(summary: Any, what: str = "manual hold") -> RigError:
+    """Why a hold (or a teleoperation session: `what`) that never streamed ended, from its
+    summary's first fault (as the error class the stream process named, so a limit is answered
+    as a limit)."""
     if summary is not None and summary.refused:  # a limit where the actuators stand (the arms)
         return errors.LimitError(summary.refused)
     fault = summary.faults[0] if summary is not None and summary.faults else None
     if fault is None:
-        return RigError(f"the manual hold did not start within {HOLD_START_TIMEOUT_S:g} s")
+        return RigError(f"the {what} did not start within {HOLD_START_TIMEOUT_S:g} s")
     error_class = getattr(errors, fault["kind"], None)
     if not (isinstance(error_class, type) and issubclass(error_class, RigError)):
         error_class = RigError

@@ -79,6 +79,8 @@ class Command(str, Enum):
     SET_FIELD = "set_field"
     RUNS = "runs"
     RUN = "run"
+    TELEOP = "teleop"
+    STEER = "steer"
 
 
 class ErrorCode(str, Enum):
@@ -287,6 +289,18 @@ class RunArgs(_Args):
     run: str = Field(max_length=255, description="a run id from `runs` (the record directory's name)")
 
 
+class TeleopArgs(_Args):
+    mode: str | None = Field(default=None, max_length=40, description="the kind of input: "
+                             "rolling (six-coil), drive (coil board); none: the rig's first")
+    end: bool = Field(default=False, description="let go, bring the rig to rest, end the session")
+
+
+class SteerArgs(_Args):
+    input: dict[str, float] | None = Field(
+        default=None, description='the operator\'s input now ({"heading_deg": .., "speed": ..} '
+        'rolling, {"heading_deg": .., "drive": ..} drive); none: let go. Counts for 200 ms')
+
+
 COMMAND_ARGS: dict[Command, type[_Message]] = {
     Command.PING: NoArgs,
     Command.STATUS: NoArgs,
@@ -301,6 +315,8 @@ COMMAND_ARGS: dict[Command, type[_Message]] = {
     Command.SET_FIELD: SetFieldArgs,
     Command.RUNS: RunsArgs,
     Command.RUN: RunArgs,
+    Command.TELEOP: TeleopArgs,
+    Command.STEER: SteerArgs,
 }
 
 

@@ -301,7 +301,7 @@ class RequestServer:
 
         if cmd is Command.LOAD:
             self._start_load(answer, deliver, request_id)
-        elif cmd in (Command.RUNS, Command.RUN, Command.HOLD, Command.SET_FIELD):
+        elif cmd in (Command.RUNS, Command.RUN, Command.HOLD, Command.SET_FIELD, Command.TELEOP):
             def work() -> None:
                 reply = answer()
                 self._deliveries.append(lambda: deliver(reply))  # deque.append is thread-safe

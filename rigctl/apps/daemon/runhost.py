@@ -20,6 +20,7 @@ Messages are pickled tuples over one-way pipes (`multiprocessing.connection.Conn
     daemon -> host   ("run", plan, rig, runs_dir, winding_start_C)   ("pause", immediate)
                      ("resume",)  ("abort",)  ("estop", asked_at)  ("event", name, fields)
                      ("retarget", target, setpoints, ramp_s)  ("release", ramp_s)  (a hold's)
+                     ("steer", input or None)  ("end",)  (a teleoperation session's)
                      ("exit",)
     host -> daemon   ("ready", pid)   ("cycles", rows): (n, 4 + 2 k) rows of `CycleBatch.row`,
                       t on `time.monotonic()`
@@ -396,6 +397,14 @@ class RemoteRun:
         """A manual hold: ramp to the rig's rest, then end."""
         self._control("release", ramp_s)
 
+    def steer(self, values: list[float] | None) -> None:
+        """A teleoperation session's input (`rigctl.run.teleop.TeleopProgram.steer`)."""
+        self._control("steer", values)
+
+    def end(self) -> None:
+        """A teleoperation session: let go, to rest, then end."""
+        self._control("end")
+
     def pause(self, immediate: bool = False) -> None:
         self._control("pause", immediate)
 
@@ -749,7 +758,7 @@ class _Host:
                 self.run = None
 
 
-PROGRAM_CALLS = {"retarget", "release"}  # a manual hold's, made on its program
+PROGRAM_CALLS = {"retarget", "release", "steer", "end"}  # a hold's, a teleoperation's: on its program
 
 
 def _apply(run: Any, name: str, args: tuple) -> Any:

@@ -65,6 +65,7 @@ from rigctl.apps.daemon.runhost import realtime_permitted
 from rigctl.apps.daemon.sdnotify import SystemdNotifier
 from rigctl.apps.daemon.states import RunStates
 from rigctl.apps.daemon.telemetry import TelemetryPublisher, WindingEstimate
+from rigctl.apps.daemon.teleop import TeleopCommands
 from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError
 from rigctl.physics.thermal import Windings
@@ -100,7 +101,7 @@ class _TelemetryLogHandler(logging.Handler):
             self.handleError(record)
 
 
-class Daemon(RequestServer, Commands, RunWatch, RunStates):
+class Daemon(RequestServer, Commands, TeleopCommands, RunWatch, RunStates):
     """Bind with `start()`, serve with `serve_forever()` (or `start_thread()`), stop with `stop()`.
 
     Endpoints are ZeroMQ endpoints (`tcp://127.0.0.1:0` picks a free port; `endpoints` tells which).
@@ -207,6 +208,7 @@ class Daemon(RequestServer, Commands, RunWatch, RunStates):
             Command.RESET: self._cmd_reset, Command.HOLD: self._cmd_hold,
             Command.SET_FIELD: self._cmd_set_field,
             Command.RUNS: self._cmd_runs, Command.RUN: self._cmd_run,
+            Command.TELEOP: self._cmd_teleop, Command.STEER: self._cmd_steer,
         }
 
     # -- life cycle -----------------------------------------------------------------------------

@@ -90,6 +90,12 @@ def _hold(rig: RigConfig, target: dict):
                        "slip", lambda start, ramp_s: None, step=1.0)
 
 
+def _teleop(rig: RigConfig, mode: str | None):
+    from rigctl.rigs.coil_board.teleop import teleop_drive
+
+    return teleop_drive(rig, mode)
+
+
 def _settings() -> type[RigConfig]:
     from rigctl.rigs.coil_board.settings import CoilBoardRig
 
@@ -123,6 +129,7 @@ def _template() -> str:
     return (files("rigctl.rigs.coil_board") / "template.toml").read_text()
 
 KIND = RigKind(
+    teleop=_teleop,
     wall_contact="non-slip",
     name="coil-board",
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",

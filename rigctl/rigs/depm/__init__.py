@@ -124,6 +124,12 @@ def _hold(rig: RigConfig, target: dict):
                        pose_now=lambda arms_open: arms_open.joint_positions())
 
 
+def _teleop(rig: RigConfig, mode: str | None):
+    from rigctl.rigs.depm.teleop import teleop_drive
+
+    return teleop_drive(rig, mode)
+
+
 def _settings() -> type[RigConfig]:
     from rigctl.rigs.depm.settings import DepmRig
 
@@ -155,6 +161,7 @@ def _template() -> str:
     return (files("rigctl.rigs.depm") / "template.toml").read_text()
 
 KIND = RigKind(
+    teleop=_teleop,
     name="depm",
     description="two KUKA LBR iiwa arms carrying permanent magnets, a three-sensor Hall board",
     faults=fault_profile,

@@ -81,6 +81,12 @@ def _hold(rig: RigConfig, target: dict):
                        "slip", check_ramp)
 
 
+def _teleop(rig: RigConfig, mode: str | None):
+    from rigctl.rigs.six_coil.teleop import teleop_drive
+
+    return teleop_drive(rig, mode)
+
+
 def _settings() -> type[RigConfig]:
     from rigctl.rigs.six_coil.settings import SixCoilRig
 
@@ -126,6 +132,7 @@ def _turn_mm(rig: RigConfig | None) -> float:
 
 
 KIND = RigKind(
+    teleop=_teleop,
     wall_contact="slide",
     turn_mm=_turn_mm,
     name="six-coil",
