@@ -51,6 +51,7 @@ COMMANDS = {
     "service": "install the daemon as a systemd service (unit and system user)",
     "field": "the field (mT) and gradient an electromagnet rig makes at a point, or the currents "
              "for a wanted field",
+    "view": "open a run record in the browser: video, overlays, channels, events",
 }
 
 
