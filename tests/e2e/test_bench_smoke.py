@@ -79,6 +79,7 @@ QUICK = {
     "busy.py": ["--smoke"],  # one open-loop run beside one hog
     "cli.py": ["--smoke"],
     "video.py": ["--smoke"],  # one pair (video off, on) of a three-turn closed-loop run
+    "viewer.py": ["--smoke"],  # a 20 s and a 5 s synthetic record, 3 seeks in each
 }
 
 # per script, figures (key paths) only its last stages write: present and not empty means the
@@ -114,6 +115,7 @@ FIGURES = {
     "cli.py": [("floor", "median_s"), ("version", "median_s"), ("help", "median_s"),
                ("command_help", "median_s")],
     "video.py": [("on", "video", "MB_per_min"), ("ratio_on_off", "period_error_p99")],
+    "viewer.py": [("long", "seek_ms", "max"), ("floor", "open_s"), ("ratio_long_floor", "open")],
 }
 
 

@@ -23,7 +23,7 @@ CSP = ("default-src 'self'; img-src 'self' blob: data:; media-src 'self'; connec
 
 async def serve(run_dir: Path, host: str, port: int, opened) -> None:
     """Serve the viewer for the records beside `run_dir` until SIGINT/SIGTERM; `opened(url)` is
-    called once it serves."""
+    called once it serves, with the record read."""
     from aiohttp import web
 
     from rigctl.apps.console.records import STATIC, add_record_routes
@@ -38,7 +38,7 @@ async def serve(run_dir: Path, host: str, port: int, opened) -> None:
         response.headers["X-Content-Type-Options"] = "nosniff"
 
     app = web.Application()
-    add_record_routes(app, run_dir.parent, loopback_name)
+    records = add_record_routes(app, run_dir.parent, loopback_name)
     app.router.add_static("/static/", STATIC, show_index=False)
     app.on_response_prepare.append(headers)
     runner = web.AppRunner(app, access_log=None, handle_signals=False)
@@ -55,6 +55,10 @@ async def serve(run_dir: Path, host: str, port: int, opened) -> None:
             raise ConfigError(f"cannot serve the viewer on {host}:{port}: {err.strerror or err}"
                               ) from None
         bound = site._server.sockets[0].getsockname()[1] if site._server is not None else port
+        try:  # read now (and the readers' imports, ~1 s), not when the page first asks
+            await loop.run_in_executor(None, records.document, run_dir)
+        except Exception as err:  # the page says it too, when it asks
+            print(f"warning: {run_dir.name} cannot be read ({err})", file=sys.stderr)
         shown = f"[{host}]" if ":" in host else host
         opened(f"http://{shown}:{bound}/viewer?run={run_dir.name}")
         await stop.wait()

@@ -178,10 +178,33 @@ def _arms(run_dir: Path, data, rig) -> dict | None:
             "epm_radius_mm": sketch.epm_radius_mm}
 
 
+def _plots(traces: list) -> list[dict]:
+    """One plot per channel group and unit: each channel's measured series (what the device
+    reported), decimated, with its limits."""
+    from rigctl.apps.report import UNIT_LABELS
+
+    groups: dict[tuple[str, str], list] = {}
+    for trace in traces:
+        groups.setdefault((trace.channel.group or "", trace.channel.unit), []).append(trace)
+    plots = []
+    for (group, unit), members in groups.items():
+        channels = []
+        for trace in members:
+            t, y = decimate(np.asarray(trace.t, dtype=float),
+                            np.asarray(trace.measured, dtype=float))
+            c = trace.channel
+            channels.append({"name": c.name, "unit": c.unit, "low": c.low, "high": c.high,
+                             "measured": {"t": _numbers(t, 4), "y": _numbers(y)}})
+        label = UNIT_LABELS.get(unit, unit)
+        plots.append({"title": f"{group}: {label}" if group else label, "unit": unit,
+                      "y_label": label, "channels": channels})
+    return plots
+
+
 def record_document(run_dir: str | Path) -> dict:
     """The record at `run_dir` as the viewer draws it (see the module's docstring); times are s
     since the run started (the record's clock), positions mm, scene geometry px or mm."""
-    from rigctl.apps.report import UNIT_LABELS, _agent_paths, read_run
+    from rigctl.apps.report import _agent_paths, read_run
     from rigctl.apps.report_video import _calibration, _radii_mm, _tracked
     from rigctl.core.record import read_series, read_stream
     from rigctl.vision.video import VIDEO_SERIES
@@ -191,24 +214,7 @@ def record_document(run_dir: str | Path) -> dict:
     plan = data.plan
     rig = _record_rig(run_dir)
 
-    groups: dict[tuple[str, str], list] = {}
-    for trace in data.traces:
-        groups.setdefault((trace.channel.group or "", trace.channel.unit), []).append(trace)
-    plots = []
-    for (group, unit), traces in groups.items():
-        channels = []
-        for trace in traces:
-            t = np.asarray(trace.t, dtype=float)
-            tm, ym = decimate(t, np.asarray(trace.measured, dtype=float))
-            tc, yc = decimate(t, np.asarray(trace.commanded, dtype=float))
-            c = trace.channel
-            channels.append({"name": c.name, "unit": c.unit, "low": c.low, "high": c.high,
-                             "measured": {"t": _numbers(tm, 4), "y": _numbers(ym)},
-                             "commanded": {"t": _numbers(tc, 4), "y": _numbers(yc)}})
-        label = UNIT_LABELS.get(unit, unit)
-        plots.append({"title": f"{group}: {label}" if group else label, "unit": unit,
-                      "y_label": label, "channels": channels})
-
+    plots = _plots(data.traces)
     stream = read_stream(run_dir)
     moves = []
     if stream is not None and len(stream.get("t_s", ())):
@@ -234,6 +240,7 @@ def record_document(run_dir: str | Path) -> dict:
     arms = _arms(run_dir, data, rig)
 
     workspace = plan.get("workspace") or {}
+    to_scene = None
     if arms is not None:
         scene = {"kind": "arms", "why": "the arms from their recorded joints (no camera)"}
     elif video is not None and calibration is not None:
@@ -241,9 +248,13 @@ def record_document(run_dir: str | Path) -> dict:
         scene = {"kind": "camera", "why": "the record's video", **camera.of_plan(plan),
                  "resolution": calibration.resolution}
         to_scene = camera.to_px
+    elif video is not None:  # the pictures, but nothing to put the plan's mm on them with
+        scene = {"kind": "camera", "why": "the record's video (its rig.toml has no camera "
+                 "calibration: no overlays)", "boundary": [], "obstacles": [], "paths": [],
+                 "goals": [], "radii_px": [], "resolution": None}
+        to_scene = None
     else:
-        why = ("the record has no video" if video is None else
-               "the record's rig.toml has no camera calibration to put the paths on its video")
+        why = "the record has no video"
         scene = {"kind": "drawn", "why": f"drawn from the plan and the tracked positions ({why})",
                  "boundary": [], "obstacles": [], "paths": plan_paths_mm(plan) or [],
                  "goals": [a["goal"][:2] for a in plan.get("agents") or []
@@ -263,7 +274,7 @@ def record_document(run_dir: str | Path) -> dict:
         t_tr, p_tr = tracked
         agents = {"t": _numbers(t_tr, 4), "mm": _numbers(p_tr.reshape(len(t_tr), -1), 3),
                   "n": int(p_tr.shape[1]), "radii_mm": _numbers(radii, 3)}
-        if scene["kind"] in ("camera", "drawn"):
+        if to_scene is not None and scene["kind"] in ("camera", "drawn"):
             flat = p_tr.reshape(-1, 2)
             scene_points = np.full_like(flat, np.nan)
             ok = np.isfinite(flat).all(axis=1)
