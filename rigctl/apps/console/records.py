@@ -94,33 +94,30 @@ def read_frame(path: str | Path, offset: int, size: int) -> bytes:
 
 def decimate(t: np.ndarray, y: np.ndarray, max_points: int = MAX_PLOT_POINTS
              ) -> tuple[np.ndarray, np.ndarray]:
-    """At most `max_points` of the series (t, y): each of max_points/2 equal time buckets gives
-    its lowest and its highest sample, in time order, so a plot of the whole run keeps every
-    peak a full plot would show. Shorter series come back as they are."""
+    """At most `max_points` of the series (t, y), t sorted: each of max_points/2 equal time
+    buckets gives its lowest and its highest sample (NaN only where a bucket has nothing else),
+    in time order, so a plot of the whole run keeps every peak a full plot would show. Shorter
+    series come back as they are."""
     n = len(t)
     if n <= max_points:
         return t, y
     buckets = max_points // 2
-    edges = np.searchsorted(t, np.linspace(t[0], t[-1], buckets + 1)[1:-1])
-    keep = []
-    for chunk in np.split(np.arange(n), edges):
-        if not len(chunk):
-            continue
-        values = y[chunk]
-        finite = np.isfinite(values)
-        if not finite.any():
-            keep.append(chunk[0])
-            continue
-        low = chunk[np.nanargmin(np.where(finite, values, np.nan))]
-        high = chunk[np.nanargmax(np.where(finite, values, np.nan))]
-        keep.extend(sorted({low, high}))
-    index = np.asarray(keep)
-    return t[index], y[index]
+    span = max(float(t[-1] - t[0]), 1e-12)
+    bucket = np.minimum(((t - t[0]) / span * buckets).astype(np.int64), buckets - 1)
+    order = np.lexsort((y, bucket))  # by bucket, then by value, NaN last
+    starts = np.flatnonzero(np.diff(bucket[order], prepend=-1))
+    finite = np.add.reduceat(np.isfinite(y[order]).astype(np.int64), starts)
+    low = order[starts]
+    high = order[starts + np.maximum(finite, 1) - 1]
+    keep = np.unique(np.concatenate([low, high]))  # indices, so in time order
+    return t[keep], y[keep]
 
 
 def _numbers(values: Any, digits: int = 5) -> list:
     """A JSON-ready list with NaN as null, rounded to `digits` decimals (small documents)."""
     array = np.round(np.asarray(values, dtype=float), digits)
+    if np.isfinite(array).all():
+        return array.tolist()
     return [None if not np.isfinite(v) else v for v in array.tolist()] if array.ndim == 1 else \
         [_numbers(row, digits) for row in array]
 
@@ -210,12 +207,12 @@ def record_document(run_dir: str | Path) -> dict:
     from rigctl.vision.video import VIDEO_SERIES
 
     run_dir = Path(run_dir)
-    data = read_run(run_dir)
+    stream = read_stream(run_dir)  # once: a 10-minute record has 120 Parquet parts
+    data = read_run(run_dir, stream)
     plan = data.plan
     rig = _record_rig(run_dir)
 
     plots = _plots(data.traces)
-    stream = read_stream(run_dir)
     moves = []
     if stream is not None and len(stream.get("t_s", ())):
         move = np.asarray(stream["move"], dtype=int)

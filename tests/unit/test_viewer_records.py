@@ -1,0 +1,105 @@
+"""What the run viewer's server reads (rigctl.apps.console.records): each frame of a record's
+Motion-JPEG AVI found by walking its chunks (OpenCV's decode of the file is the reference, also
+of a file a crash cut off), channels decimated without losing a peak, and a crashed record's
+stream read whole once the journal's rows the Parquet parts hold are passed over unparsed."""
+
+from __future__ import annotations
+
+import io
+import struct
+
+import cv2
+import numpy as np
+
+from rigctl.apps.console.records import avi_frames, decimate, read_frame
+from rigctl.core.channels import Channel
+from rigctl.core.record import RunRecord, read_stream
+from rigctl.vision.video import HEADER, write_video
+
+LEVELS = [10, 60, 110, 160, 210, 250, 30]
+
+
+def written_avi(path, levels=LEVELS, size=(48, 36)) -> None:
+    """An AVI as the record's writer makes it (`write_video`, OpenCV's FFmpeg, MJPG), frame k a
+    solid grey of levels[k] with its index as a white square's column."""
+    w, h = size
+    pipe = io.BytesIO()
+    for k, level in enumerate(levels):
+        image = np.full((h, w, 3), level, np.uint8)
+        image[2:6, 4 * k + 2:4 * k + 6] = 255
+        pipe.write(struct.pack(HEADER, h, w) + image.tobytes())
+    pipe.seek(0)
+    assert write_video(str(path), 15.0, pipe) == len(levels)
+
+
+def opencv_frames(path) -> list[np.ndarray]:
+    capture = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, image = capture.read()
+        if not ok:
+            capture.release()
+            return frames
+        frames.append(image)
+
+
+def test_every_frame_of_the_avi_is_found_by_its_index(tmp_path):
+    path = tmp_path / "video.avi"
+    written_avi(path)
+    found = avi_frames(path)
+    reference = opencv_frames(path)
+    assert len(found) == len(reference) == len(LEVELS)
+    for k, (offset, size) in enumerate(found):
+        jpeg = read_frame(path, offset, size)
+        assert jpeg[:2] == b"\xff\xd8"  # a whole JPEG, as the browser gets it
+        image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        assert np.abs(image.astype(int) - reference[k]).mean() < 1.0, k
+        assert abs(float(np.median(image)) - LEVELS[k]) <= 3, k
+
+
+def test_a_file_cut_off_by_a_crash_gives_its_whole_frames(tmp_path):
+    path = tmp_path / "video.avi"
+    written_avi(path)
+    offset, size = avi_frames(path)[4]
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(path.read_bytes()[:offset + size // 2])  # the writer killed in frame 4
+    found = avi_frames(cut)
+    assert len(found) == 4
+    for k, (o, s) in enumerate(found):
+        image = cv2.imdecode(np.frombuffer(read_frame(cut, o, s), np.uint8), cv2.IMREAD_GRAYSCALE)
+        assert abs(float(np.median(image)) - LEVELS[k]) <= 3, k
+
+
+def test_decimation_keeps_every_peak_and_the_time_order():
+    t = np.arange(100_000) * 0.01  # 1000 s at 100 Hz
+    y = np.sin(t)
+    y[12_345] = 50.0  # one sample's spike
+    y[77_777] = -40.0
+    y[50_000:50_500] = np.nan  # a gap in the measurement
+    td, yd = decimate(t, y, 1600)
+    assert len(td) <= 1600 and (np.diff(td) > 0).all()
+    assert np.nanmax(yd) == 50.0 and np.nanmin(yd) == -40.0
+    # each kept sample is a sample of the series
+    index = np.round(td / 0.01).astype(int)
+    np.testing.assert_array_equal(yd, y[index])
+    # the sine's extremes (+-1) are in every stretch of the run a plot pixel covers
+    assert np.isclose(np.nanmax(yd[(td > 300) & (td < 310)]), 1.0, atol=1e-3)
+    short_t, short_y = t[:100], y[:100]
+    assert decimate(short_t, short_y, 1600)[0] is short_t
+
+
+def test_a_crashed_record_s_stream_is_read_whole(tmp_path):
+    record = RunRecord(tmp_path, "crash")
+    record.open_stream([Channel("x+", "A")], rate_hz=100.0)  # parts of 500 rows
+    n = 1234
+    for k in range(n):
+        record.stream_row(k, 0, [0.001 * k], [0.002 * k])
+    record.close()
+    # a crash before the last part was written: its 234 rows are only in the journal
+    (record.path / "stream" / "part-00002.parquet").unlink()
+    assert len(list((record.path / "stream").glob("part-*.parquet"))) == 2
+    stream = read_stream(record.path)
+    assert stream["source"] == "parquet+journal"
+    np.testing.assert_array_equal(stream["sample"], np.arange(n))
+    np.testing.assert_allclose(stream["cmd_x+_A"], 0.001 * np.arange(n), atol=1e-5)
+    np.testing.assert_allclose(stream["meas_x+_A"], 0.002 * np.arange(n), atol=1e-5)
