@@ -297,7 +297,8 @@ def record_document(run_dir: str | Path) -> dict:
             "rig_name": rig.rig.name if rig is not None else None,
             "finished": data.summary is not None, "reached": summary.get("reached"),
             "t_start_s": round(t_start, 4), "t_end_s": round(t_end, 4),
-            "plots": plots, "moves": moves, "n_moves": len(plan.get("moves") or []),
+            "plots": plots, "moves": moves, "n_moves": len(plan.get("moves") or []) or
+            1 + max((m for _, m in moves), default=-1),
             "events": json.loads(json.dumps(events, default=str)), "video": video,
             "scene": scene, "agents": agents, "arms": arms}
 

@@ -73,11 +73,14 @@ function setUp(d) {
   V.scene = d.scene.kind;
   const video = d.video && d.scene.kind === "camera";
   $("stage").classList.toggle("over-video", video);
+  $("stage").classList.toggle("wide", d.scene.kind !== "camera");
+  if (d.scene.kind !== "camera") { const c = $("scene"); c.width = 760; c.height = d.scene.kind === "arms" ? 380 : 420; }
+  $("agents").hidden = !d.agents;
   $("frame").hidden = !video;
   $("scene-title").textContent = { camera: "Camera (the recorded video)", drawn: "Scene (drawn: no video)", arms: "Arms (top and side views)" }[d.scene.kind];
   $("legend").textContent = d.scene.kind === "arms"
-    ? "grey: arm links (joint origins); red: EPMs; dashed: keep-out sphere. " + d.scene.why
-    : "dashed: planned path; x: goal; ring: expected after the current move; line: tracked path so far; disc: tracked now. Scene: " + d.scene.why;
+    ? `grey: arm links (joint origins); red: EPMs; dashed: keep-out sphere. Scene: ${d.scene.why}.`
+    : `dashed: planned path; x: goal; ring: expected after the current move; line: tracked path so far; disc: tracked now. Scene: ${d.scene.why}.`;
   if (d.scene.kind === "camera" && d.scene.resolution) {
     const c = $("scene"); [c.width, c.height] = d.scene.resolution;
   }
