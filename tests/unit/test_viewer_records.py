@@ -6,10 +6,13 @@ stream read whole once the journal's rows the Parquet parts hold are passed over
 from __future__ import annotations
 
 import io
+import json
 import struct
+import time
 
 import cv2
 import numpy as np
+import pytest
 
 from rigctl.apps.console.records import avi_frames, decimate, read_frame
 from rigctl.core.channels import Channel
@@ -103,3 +106,45 @@ def test_a_crashed_record_s_stream_is_read_whole(tmp_path):
     np.testing.assert_array_equal(stream["sample"], np.arange(n))
     np.testing.assert_allclose(stream["cmd_x+_A"], 0.001 * np.arange(n), atol=1e-5)
     np.testing.assert_allclose(stream["meas_x+_A"], 0.002 * np.arange(n), atol=1e-5)
+
+
+def test_a_dual_epm_record_shows_its_arms_at_the_recorded_joints(tmp_path):
+    """The arms from the recorded joints: turning the left arm's first joint (its axis is the
+    vertical through its base, the rig file's base having no rotation) by 0.5 rad turns every
+    point of that arm about that vertical by 0.5 rad and moves none of the right arm's."""
+    from rigctl.apps.cli.init import template
+    from rigctl.apps.console.records import record_document
+    from rigctl.core.config import load_rig
+    from rigctl.rigs.depm.actuators import arm_channels
+
+    (tmp_path / "rig.toml").write_text(template("depm"))
+    rig = load_rig(tmp_path / "rig.toml")
+    record = RunRecord(tmp_path / "runs", "arms")
+    record.write_file("rig.toml", template("depm"))
+    record.write_file("plan.json", json.dumps({"name": "arms", "rig": "depm"}))
+    channels = arm_channels(rig)
+    record.open_stream(channels, rate_hz=100.0)
+    q = np.zeros(len(channels))
+    q[[3, 10]] = 1.0  # both elbows bent: the far points are off the first joint's axis
+    for k in range(200):
+        q[0] = 0.0 if k < 100 else 0.5
+        record.t0 = time.monotonic() - 0.01 * k  # row k at 0.01 k s on the record's clock
+        record.stream_row(k, 0, q, q)
+    record.finish({"rig": "depm", "reached": True})
+    document = record_document(record.path)
+    assert document["scene"]["kind"] == "arms" and document["video"] is None
+    arms = document["arms"]
+    assert arms["t"][0] == 0.0 and arms["t"][-1] == pytest.approx(1.99, abs=1e-3)
+    before, after = arms["frames"][0], arms["frames"][-1]
+    assert [a["name"] for a in before] == ["left", "right"]
+    base = np.array([-800.0, 0.0, -500.0])
+    left0, left1 = (np.asarray(f[0]["points_mm"]) for f in (before, after))
+    assert left0.shape == (9, 3)
+    np.testing.assert_allclose(left0[0], base, atol=0.1)
+    c, s = np.cos(0.5), np.sin(0.5)
+    turned = (left0[:, :2] - base[:2]) @ np.array([[c, s], [-s, c]]) + base[:2]
+    np.testing.assert_allclose(left1[:, :2], turned, atol=0.2)  # points rounded to 0.1 mm
+    np.testing.assert_allclose(left1[:, 2], left0[:, 2], atol=0.1)
+    assert np.linalg.norm(left1[8, :2] - left0[8, :2]) > 100  # the EPM went round, visibly
+    np.testing.assert_allclose(after[1]["points_mm"], before[1]["points_mm"], atol=0.1)
+    np.testing.assert_allclose(before[1]["points_mm"][0], [800.0, 0.0, -500.0], atol=0.1)
