@@ -97,8 +97,10 @@ def test_the_printed_url_serves_the_page_and_the_record(run, served):
     status, headers, part = get(f"{base}/records/{run.name}/video", {"Range": "bytes=100-299"})
     assert status == 206 and part == whole[100:300]
     assert headers["Content-Range"] == f"bytes 100-299/{len(whole)}"
-    # another site's name for this address (DNS rebinding) reads nothing
-    assert get(url, {"Host": "rebind.example:80"})[0] == 403
+    # another site's name for this address (DNS rebinding) reads nothing of the record
+    for path in ("records", f"records/{run.name}/data.json", f"records/{run.name}/frames/0.jpg",
+                 f"records/{run.name}/video"):
+        assert get(f"{base}/{path}", {"Host": "rebind.example:80"})[0] == 403, path
 
 
 def test_ctrl_c_ends_it_cleanly(served):

@@ -18,7 +18,9 @@ a seek is one small request, however long the run. The file itself is served who
 Range support (`/records/RUN/video`: aiohttp's `FileResponse`) for a player or a download.
 
 Who may read: the mounting server's `allowed(request)` (the console: loopback host names and, off
-loopback, the token). A run is named by its folder's name under the runs folder, never a path.
+loopback, the token, which the page sends as `Authorization: Bearer`); the page itself holds no
+data and is served to anyone, as the console's. A run is named by its folder's name under the
+runs folder, never a path.
 """
 
 from __future__ import annotations
@@ -398,7 +400,8 @@ class _Routes:
     async def page(self, request):
         from aiohttp import web
 
-        self._guard(request)
+        # the page holds no data (as the console's own page): off loopback it comes without the
+        # token, which it then sends with every request for the record (Authorization: Bearer)
         return web.FileResponse(STATIC / "viewer.html")
 
     async def listing(self, request):

@@ -389,7 +389,8 @@ async function refreshRuns() {
     const summary = document.createElement("a"); summary.href = "#"; summary.textContent = "summary";
     summary.onclick = async (e) => { e.preventDefault(); const s = await request("run", { run: run.id }); $("run-summary").textContent = s.ok ? JSON.stringify(s.result.summary, null, 1) : s.error.message; };
     const view = document.createElement("a");  // the run viewer (records.py, viewer.js)
-    view.href = `/viewer?run=${encodeURIComponent(run.id)}`; view.target = "_blank"; view.textContent = "view";
+    const token = sessionStorage.getItem("rigctl-token");  // the new tab keeps no sessionStorage
+    view.href = `/viewer?run=${encodeURIComponent(run.id)}${token ? `#token=${token}` : ""}`; view.target = "_blank"; view.textContent = "view";
     links.append(view, " ", report, " ", summary);
   }
 }

@@ -19,6 +19,20 @@ const V = window.rigctlViewer = {
   scene: null, wantedFrame: null, shownFrame: null, agentsMm: null, move: null, plots: [],
 };
 
+// a console beyond loopback wants its token (docs/console.md): from the link's #token=, kept for
+// this tab only, sent with every request for the record (never in a URL the server sees)
+(function takeToken() {
+  const fromHash = new URLSearchParams(location.hash.slice(1)).get("token");
+  if (fromHash) {
+    sessionStorage.setItem("rigctl-token", fromHash);
+    history.replaceState(null, "", location.pathname + location.search);
+  }
+})();
+function api(path) {
+  const token = sessionStorage.getItem("rigctl-token");
+  return fetch(path, token ? { headers: { Authorization: `Bearer ${token}` } } : {});
+}
+
 // -- helpers --------------------------------------------------------------------------------------
 function nearestIndex(times, t) {
   // the index of the time in the sorted `times` nearest `t` (the earlier one on a tie)
@@ -39,7 +53,7 @@ function message(text) { const m = $("message"); m.hidden = !text; m.textContent
 // -- loading ---------------------------------------------------------------------------------------
 async function listRecords() {
   let runs;
-  try { const r = await fetch("/records"); if (!r.ok) return; runs = await r.json(); } catch { return; }
+  try { const r = await api("/records"); if (!r.ok) return; runs = await r.json(); } catch { return; }
   const choice = $("run-choice");
   for (const run of runs) {
     const o = document.createElement("option");
@@ -55,7 +69,7 @@ async function load() {
   listRecords();
   if (!V.run) { message("no record chosen: pick one above (or open /viewer?run=RUN_ID)"); V.error = "no run"; return; }
   let r;
-  try { r = await fetch(`/records/${encodeURIComponent(V.run)}/data.json`); } catch (err) { V.error = String(err); message(`cannot reach the viewer: ${err}`); return; }
+  try { r = await api(`/records/${encodeURIComponent(V.run)}/data.json`); } catch (err) { V.error = String(err); message(`cannot reach the viewer: ${err}`); return; }
   if (!r.ok) { V.error = await r.text(); message(V.error); return; }
   V.data = await r.json();
   setUp(V.data);
@@ -215,7 +229,7 @@ async function showFrame(k) {
   try {
     while (V.shownFrame !== V.wantedFrame) {
       const want = V.wantedFrame, img = $("frame");
-      const r = await fetch(`/records/${encodeURIComponent(V.run)}/frames/${want}.jpg`);
+      const r = await api(`/records/${encodeURIComponent(V.run)}/frames/${want}.jpg`);
       if (!r.ok) { $("frame-info").textContent = `frame ${want}: ${r.status}`; break; }
       const url = URL.createObjectURL(await r.blob());
       const old = img.src;
@@ -318,9 +332,11 @@ function scaleBar(ctx, canvas) {
 
 function overlays(ctx, map, drawn) {
   const s = V.data.scene, a = V.data.agents;
+  // canvas px per screen px: lines and labels keep their size on screen however the picture is scaled
+  const u = Math.max(1, ctx.canvas.width / Math.max(1, ctx.canvas.clientWidth));
   const line = (pts, close) => { ctx.beginPath(); pts.forEach((p, i) => { const [x, y] = map(p); i ? ctx.lineTo(x, y) : ctx.moveTo(x, y); }); if (close) ctx.closePath(); };
   const ink = drawn ? "#39414d" : "rgba(255,255,255,.85)";
-  ctx.lineWidth = 2; ctx.setLineDash([]);
+  ctx.lineWidth = 2 * u; ctx.setLineDash([]);
   if (s.boundary.length) { ctx.strokeStyle = ink; line(s.boundary, true); ctx.stroke(); }
   ctx.fillStyle = drawn ? "#c8cbd0" : "rgba(160,160,170,.35)"; ctx.strokeStyle = drawn ? "#5b6675" : "rgba(200,200,210,.8)";
   for (const o of s.obstacles) { line(o, true); ctx.fill(); ctx.stroke(); }
@@ -330,15 +346,15 @@ function overlays(ctx, map, drawn) {
   };
   s.paths.forEach((path, i) => {
     const colour = AGENT_COLORS[i % AGENT_COLORS.length];
-    ctx.strokeStyle = colour; ctx.lineWidth = 2; ctx.setLineDash([6, 5]); line(path); ctx.stroke(); ctx.setLineDash([]);
+    ctx.strokeStyle = colour; ctx.lineWidth = 2 * u; ctx.setLineDash([6 * u, 5 * u]); line(path); ctx.stroke(); ctx.setLineDash([]);
     if (V.move >= 0 && V.move + 1 < path.length) {  // where the plan expects it after this move
       const [x, y] = map(path[V.move + 1]);
-      ctx.beginPath(); ctx.arc(x, y, radius(i) + 4, 0, 2 * Math.PI); ctx.stroke();
+      ctx.beginPath(); ctx.arc(x, y, radius(i) + 4 * u, 0, 2 * Math.PI); ctx.stroke();
     }
   });
   s.goals.forEach((g, i) => {
-    const [x, y] = map(g), r = 7;
-    ctx.strokeStyle = AGENT_COLORS[i % AGENT_COLORS.length]; ctx.lineWidth = 3;
+    const [x, y] = map(g), r = 7 * u;
+    ctx.strokeStyle = AGENT_COLORS[i % AGENT_COLORS.length]; ctx.lineWidth = 3 * u;
     ctx.beginPath(); ctx.moveTo(x - r, y - r); ctx.lineTo(x + r, y + r); ctx.moveTo(x + r, y - r); ctx.lineTo(x - r, y + r); ctx.stroke();
   });
   if (!a || !a.scene || V.trackedUpTo == null || V.trackedUpTo < 0 || !V.agentsScene) return;
@@ -348,14 +364,14 @@ function overlays(ctx, map, drawn) {
     for (let k = 0; k <= V.trackedUpTo; k++) if (a.scene[k][2 * i] != null) trail.push([a.scene[k][2 * i], a.scene[k][2 * i + 1]]);
     const [nx, ny] = V.agentsScene[i];
     if (isFinite(nx)) trail.push([nx, ny]);
-    ctx.strokeStyle = colour; ctx.lineWidth = 2;
+    ctx.strokeStyle = colour; ctx.lineWidth = 2 * u;
     if (trail.length > 1) { line(trail); ctx.stroke(); }
     if (!isFinite(nx)) continue;
     const [x, y] = map([nx, ny]);
     ctx.globalAlpha = drawn ? 0.9 : 0.55; ctx.fillStyle = colour;
     ctx.beginPath(); ctx.arc(x, y, radius(i), 0, 2 * Math.PI); ctx.fill(); ctx.globalAlpha = 1;
     ctx.strokeStyle = drawn ? "#1b1d21" : colour; ctx.stroke();
-    ctx.fillStyle = drawn ? "#1b1d21" : "#fff"; ctx.font = "bold 14px system-ui, sans-serif"; ctx.textAlign = "left"; ctx.textBaseline = "alphabetic";
+    ctx.fillStyle = drawn ? "#1b1d21" : "#fff"; ctx.font = `bold ${Math.round(14 * u)}px system-ui, sans-serif`; ctx.textAlign = "left"; ctx.textBaseline = "alphabetic";
     ctx.fillText(`#${i}`, x + radius(i) + 3, y - radius(i));
   }
 }
