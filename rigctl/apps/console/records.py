@@ -30,6 +30,7 @@ import json
 import logging
 import re
 import struct
+import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
@@ -206,7 +207,7 @@ def record_document(run_dir: str | Path) -> dict:
     from rigctl.apps.report import _agent_paths, read_run
     from rigctl.apps.report_video import _calibration, _radii_mm, _tracked
     from rigctl.core.record import read_series, read_stream
-    from rigctl.vision.video import VIDEO_SERIES
+    from rigctl.vision.video import VIDEO_FILE, VIDEO_SERIES
 
     run_dir = Path(run_dir)
     stream = read_stream(run_dir)  # once: a 10-minute record has 120 Parquet parts
@@ -226,15 +227,14 @@ def record_document(run_dir: str | Path) -> dict:
     n_agents = len(paths) if paths else (tracked[1].shape[1] if tracked is not None else 0)
     radii = _radii_mm(plan, n_agents) if n_agents else np.empty(0)
 
-    video_file = next((run_dir / name for name in VIDEO_FILES if (run_dir / name).is_file()), None)
+    video_file = run_dir / VIDEO_FILE  # the recorder's (an MP4 beside it is served, not shown)
     series = read_series(run_dir, VIDEO_SERIES)
     video = None
-    if video_file is not None and series is not None and len(series.get("t_s", ())):
+    if video_file.is_file() and series is not None and len(series.get("t_s", ())):
         frames_t = np.asarray(series["t_s"], dtype=float)
-        count = len(avi_frames(video_file)) if video_file.suffix == ".avi" else len(frames_t)
-        count = min(count, len(frames_t))  # a crash: the table or the file may be the longer
-        video = {"file": video_file.name, "frames": count, "t_s": _numbers(frames_t[:count], 6),
-                 "by_frame": video_file.suffix == ".avi"}
+        # a crash: the file or the table may be the longer; frames beyond either are not shown
+        count = min(len(avi_frames(video_file)), len(frames_t))
+        video = {"file": video_file.name, "frames": count, "t_s": _numbers(frames_t[:count], 6)}
     calibration = _calibration(run_dir)
     arms = _arms(run_dir, data, rig)
 
@@ -308,10 +308,12 @@ def record_document(run_dir: str | Path) -> dict:
 # -- the routes ---------------------------------------------------------------------------------
 
 class Records:
-    """The records under `runs_dir`, read on demand and kept while their files do not change."""
+    """The records under `runs_dir`, read on demand and kept while their files do not change
+    (the handlers' executor threads share the caches: a lock around each look-up and store)."""
 
     def __init__(self, runs_dir: str | Path) -> None:
         self.runs_dir = Path(runs_dir)
+        self._lock = threading.Lock()
         self._documents: OrderedDict[str, tuple[tuple, bytes]] = OrderedDict()
         self._frames: OrderedDict[str, tuple[tuple, list[tuple[int, int]]]] = OrderedDict()
 
@@ -328,14 +330,16 @@ class Records:
                      for p in sorted(run_dir.iterdir()) if p.is_file())
 
     def _cached(self, cache: OrderedDict, key: str, stamp: tuple, make: Callable[[], Any]) -> Any:
-        hit = cache.get(key)
-        if hit is not None and hit[0] == stamp:
-            cache.move_to_end(key)
-            return hit[1]
-        value = make()
-        cache[key] = (stamp, value)
-        while len(cache) > CACHED_RECORDS:
-            cache.popitem(last=False)
+        with self._lock:
+            hit = cache.get(key)
+            if hit is not None and hit[0] == stamp:
+                cache.move_to_end(key)
+                return hit[1]
+        value = make()  # outside the lock: two pages asking at once read it twice, harmlessly
+        with self._lock:
+            cache[key] = (stamp, value)
+            while len(cache) > CACHED_RECORDS:
+                cache.popitem(last=False)
         return value
 
     def document(self, run_dir: Path) -> bytes:
