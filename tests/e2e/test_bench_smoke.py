@@ -32,6 +32,8 @@ test made until now:
     runs, 10 to 12 during coilboard.py's and console.py's first "after" runs; the two-core machine
     shared with four other engineers' test runs. The CPU figures include the scripts' children.)
     cli.py --smoke (added later: one start of each command timed): 0.9 s wall, 1.1 s CPU.
+    viewer.py --smoke (added later: a 20 s and a 5 s synthetic record, each served by `rigctl
+    view` and opened with 3 seeks in one headless Chromium): 18.3 s wall, 8.3 s CPU.
     What is left is mostly real-time closed-loop runs on emulated benches, which no size shortens:
     pair.py's three formation-change runs (~15-21 s each), the one of closed_loop.py, of the study
     campaign and of coilboard.py's delivery, and console.py's two Chromium starts.
