@@ -148,3 +148,16 @@ def test_a_dual_epm_record_shows_its_arms_at_the_recorded_joints(tmp_path):
     assert np.linalg.norm(left1[8, :2] - left0[8, :2]) > 100  # the EPM went round, visibly
     np.testing.assert_allclose(after[1]["points_mm"], before[1]["points_mm"], atol=0.1)
     np.testing.assert_allclose(before[1]["points_mm"][0], [800.0, 0.0, -500.0], atol=0.1)
+
+
+def test_a_nan_in_an_event_reaches_the_page_as_null(tmp_path):
+    """A browser's JSON.parse refuses NaN: an event's NaN field is null in the document."""
+    from rigctl.apps.console.records import Records
+
+    record = RunRecord(tmp_path, "nan")
+    record.event("stream_stats", late_share=float("nan"), p99_s=float("inf"), cycles=3)
+    record.finish({"reached": None})
+    body = Records(tmp_path).document(record.path).decode()
+    assert "NaN" not in body and "Infinity" not in body
+    event = next(e for e in json.loads(body)["events"] if e["event"] == "stream_stats")
+    assert event["late_share"] is None and event["p99_s"] is None and event["cycles"] == 3

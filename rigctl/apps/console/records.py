@@ -125,6 +125,22 @@ def _numbers(values: Any, digits: int = 5) -> list:
         [_numbers(row, digits) for row in array]
 
 
+def _json_safe(value: Any) -> Any:
+    """`value` with NaN and infinities as None (a browser's JSON.parse refuses NaN), anything
+    JSON has no type for as its text."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if value is None or isinstance(value, (str, int, bool)):
+        return value
+    if hasattr(value, "tolist"):
+        return _json_safe(value.tolist())
+    return str(value)
+
+
 class _RecordedCamera(CameraScene):
     """The console's camera scene with the record's calibration instead of a live rig's."""
 
@@ -301,8 +317,17 @@ def record_document(run_dir: str | Path) -> dict:
             "t_start_s": round(t_start, 4), "t_end_s": round(t_end, 4),
             "plots": plots, "moves": moves, "n_moves": len(plan.get("moves") or []) or
             1 + max((m for _, m in moves), default=-1),
-            "events": json.loads(json.dumps(events, default=str)), "video": video,
+            "events": _json_safe(events), "video": video,
             "scene": scene, "agents": agents, "arms": arms}
+
+
+def _document_json(document: dict) -> bytes:
+    """Compact JSON; the series are NaN-free already (`_numbers`), and a NaN anywhere else (an
+    event's field) costs one pass over the whole (0.15 s for 10 minutes) rather than the page."""
+    try:
+        return json.dumps(document, separators=(",", ":"), allow_nan=False).encode()
+    except ValueError:
+        return json.dumps(_json_safe(document), separators=(",", ":"), allow_nan=False).encode()
 
 
 # -- the routes ---------------------------------------------------------------------------------
@@ -344,8 +369,7 @@ class Records:
 
     def document(self, run_dir: Path) -> bytes:
         return self._cached(self._documents, run_dir.name, self._stamp(run_dir),
-                            lambda: json.dumps(record_document(run_dir),
-                                               separators=(",", ":")).encode())
+                            lambda: _document_json(record_document(run_dir)))
 
     def frames(self, run_dir: Path, video: Path) -> list[tuple[int, int]]:
         stat = video.stat()
