@@ -161,3 +161,20 @@ def test_a_nan_in_an_event_reaches_the_page_as_null(tmp_path):
     assert "NaN" not in body and "Infinity" not in body
     event = next(e for e in json.loads(body)["events"] if e["event"] == "stream_stats")
     assert event["late_share"] is None and event["p99_s"] is None and event["cycles"] == 3
+
+
+def test_a_file_whose_writer_was_killed_before_it_wrote_its_sizes(tmp_path):
+    """A writer killed mid-run has not gone back to write its lists' sizes (left 0) nor the
+    index: every frame is still found, once."""
+    path = tmp_path / "video.avi"
+    written_avi(path)
+    data = bytearray(path.read_bytes())
+    data[4:8] = b"\0\0\0\0"  # RIFF 'AVI ' size
+    movi = data.find(b"movi")
+    data[movi - 4:movi] = b"\0\0\0\0"  # LIST 'movi' size
+    index = data.find(b"idx1")
+    killed = tmp_path / "killed.avi"
+    killed.write_bytes(bytes(data[:index]))  # no index either
+    found = avi_frames(killed)
+    assert found == avi_frames(path)
+    assert len(found) == len(LEVELS)

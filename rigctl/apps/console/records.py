@@ -47,7 +47,7 @@ MAX_PLOT_POINTS = 1600  # per channel: a min and a max for each of 800 buckets (
 ARMS_SAMPLES = 1200  # arm poses over the whole record (a seek between two shows the nearer)
 MAX_EVENTS = 3000  # events listed (the high-rate ones, `tracked` and `agents`, are positions)
 CACHED_RECORDS = 4
-VIDEO_FILES = ("video.avi", "video.mp4")
+VIDEO_FILES = ("video.avi", "video.mp4")  # served at /records/ID/video; shown: video.avi
 _RUN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,254}$")
 _POSITION_EVENTS = {"tracked", "agents"}
 
@@ -70,18 +70,19 @@ def avi_frames(path: str | Path) -> list[tuple[int, int]]:
                 head = f.read(12)
                 tag, size = head[:4], struct.unpack("<I", head[4:8])[0]
                 body = at + 8
-                if tag in (b"RIFF", b"LIST") and len(head) == 12:
-                    if head[8:12] in (b"AVI ", b"AVIX", b"movi", b"rec "):
-                        # a crash leaves a list's size as written at its start (0, or short)
-                        walk(body + 4, min(body + size, end) if size >= 4 else end)
+                if tag in (b"RIFF", b"LIST") and len(head) == 12 and \
+                        head[8:12] in (b"AVI ", b"AVIX", b"movi", b"rec "):
+                    # a writer killed mid-run leaves a list's size as it wrote it at the
+                    # start (0): such a list runs to the end of the file
+                    list_end = body + size if 4 <= size and body + size <= end else end
+                    walk(body + 4, list_end)
+                    if list_end == end:
+                        return
                 elif tag[2:] in (b"dc", b"db") and tag[:2].isdigit():
                     if body + size > end:
                         return  # cut off by a crash
                     frames.append((body, size))
-                if size == 0 and tag not in (b"RIFF", b"LIST"):
-                    at = body  # an empty chunk (a dropped frame in some writers)
-                else:
-                    at = body + size + (size & 1)  # chunks are padded to an even size
+                at = body + size + (size & 1)  # chunks are padded to an even size
 
         walk(0, end)
     return frames
