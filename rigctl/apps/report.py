@@ -136,13 +136,14 @@ def _read_json(path: Path) -> Any:
         return None
 
 
-def read_run(run_dir: str | Path) -> RunData:
-    """Everything the report draws from the record at `run_dir`."""
+def read_run(run_dir: str | Path, stream: dict | None = None) -> RunData:
+    """Everything the report draws from the record at `run_dir` (its `read_stream` if the caller
+    has read it already)."""
     run_dir = Path(run_dir)
     data = RunData(run_dir, _read_json(run_dir / "plan.json") or {}, read_events(run_dir),
                    _read_json(run_dir / "summary.json"))
     data.to_plan, data.to_run, data.time_scale = _plan_clock(data.events)
-    stream = read_stream(run_dir)
+    stream = read_stream(run_dir) if stream is None else stream
     if stream is not None and len(stream.get("t_s", ())):
         data.traces = _stream_traces(stream, data)
         error = stream.get("period_error_s")

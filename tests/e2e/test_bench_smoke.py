@@ -32,6 +32,8 @@ test made until now:
     runs, 10 to 12 during coilboard.py's and console.py's first "after" runs; the two-core machine
     shared with four other engineers' test runs. The CPU figures include the scripts' children.)
     cli.py --smoke (added later: one start of each command timed): 0.9 s wall, 1.1 s CPU.
+    viewer.py --smoke (added later: a 20 s and a 5 s synthetic record, each served by `rigctl
+    view` and opened with 3 seeks in one headless Chromium): 18.3 s wall, 8.3 s CPU.
     What is left is mostly real-time closed-loop runs on emulated benches, which no size shortens:
     pair.py's three formation-change runs (~15-21 s each), the one of closed_loop.py, of the study
     campaign and of coilboard.py's delivery, and console.py's two Chromium starts.
@@ -79,6 +81,7 @@ QUICK = {
     "busy.py": ["--smoke"],  # one open-loop run beside one hog
     "cli.py": ["--smoke"],
     "video.py": ["--smoke"],  # one pair (video off, on) of a three-turn closed-loop run
+    "viewer.py": ["--smoke"],  # a 20 s and a 5 s synthetic record, 3 seeks in each
 }
 
 # per script, figures (key paths) only its last stages write: present and not empty means the
@@ -114,6 +117,7 @@ FIGURES = {
     "cli.py": [("floor", "median_s"), ("version", "median_s"), ("help", "median_s"),
                ("command_help", "median_s")],
     "video.py": [("on", "video", "MB_per_min"), ("ratio_on_off", "period_error_p99")],
+    "viewer.py": [("long", "seek_ms", "max"), ("floor", "open_s"), ("ratio_long_floor", "open")],
 }
 
 

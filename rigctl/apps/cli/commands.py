@@ -52,6 +52,7 @@ COMMANDS = {
     "field": "the field (mT) and gradient an electromagnet rig makes at a point, or the currents "
              "for a wanted field",
     "teleop-save": "write a teleoperation session out as a plan that replays it",
+    "view": "open a run record in the browser: video, overlays, channels, events",
 }
 
 

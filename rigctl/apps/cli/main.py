@@ -39,6 +39,7 @@ from rigctl.apps.cli.plan import points_mm
 from rigctl.apps.cli.plan import register as register_planners
 from rigctl.apps.cli.service import register_service
 from rigctl.apps.cli.teleop import register_teleop
+from rigctl.apps.cli.view import register_view
 from rigctl.apps.study.cli import register as register_study
 from rigctl.core.config import load_rig
 from rigctl.core.errors import (
@@ -306,6 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     register_service(sub)
     register_field(sub)
     register_teleop(sub)
+    register_view(sub)
     return parser
 
 

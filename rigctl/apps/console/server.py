@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rigctl.apps.console.records import add_record_routes
 from rigctl.apps.console.scene import ArmsSketch, CameraScene
 from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError
@@ -232,6 +233,8 @@ class Console:
         app.router.add_get("/ws", self._websocket)
         app.router.add_get("/runs/{run}/report.png", self._report)
         app.router.add_static("/static/", STATIC, show_index=False)
+        add_record_routes(app, self.runs_dir,  # the run viewer: /viewer?run=ID, /records/...
+                          lambda r: self._host_allowed(r) and self._may_watch(r))
         app.on_response_prepare.append(self._headers)
         runner = web.AppRunner(app, access_log=None, handle_signals=False)
         await runner.setup()

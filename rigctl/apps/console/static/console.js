@@ -388,7 +388,10 @@ async function refreshRuns() {
     report.href = `/runs/${encodeURIComponent(run.id)}/report.png`; report.target = "_blank"; report.textContent = "report";
     const summary = document.createElement("a"); summary.href = "#"; summary.textContent = "summary";
     summary.onclick = async (e) => { e.preventDefault(); const s = await request("run", { run: run.id }); $("run-summary").textContent = s.ok ? JSON.stringify(s.result.summary, null, 1) : s.error.message; };
-    links.append(report, " ", summary);
+    const view = document.createElement("a");  // the run viewer (records.py, viewer.js)
+    const token = sessionStorage.getItem("rigctl-token");  // the new tab keeps no sessionStorage
+    view.href = `/viewer?run=${encodeURIComponent(run.id)}${token ? `#token=${token}` : ""}`; view.target = "_blank"; view.textContent = "view";
+    links.append(view, " ", report, " ", summary);
   }
 }
 

@@ -1,18 +1,22 @@
 // Time-series plots on a <canvas>, in plain JavaScript (the page must work offline: no library
 // from a CDN). A TimePlot keeps the last `windowS` seconds of each series and draws them against
 // labelled axes (the unit on y, seconds ago on x), with the channels' limits as dashed lines.
+// With `range: [t0, t1]` (the run viewer) it draws that fixed span instead, times as they are.
 "use strict";
 
 const PALETTE = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b",
                  "#e377c2", "#7f7f7f", "#bcbd22", "#393b79", "#637939", "#8c6d31", "#843c39"];
 
 class TimePlot {
-  constructor(canvas, { yLabel, windowS = 20, maxPoints = 4000 } = {}) {
+  constructor(canvas, { yLabel, windowS = 20, maxPoints = 4000, range = null, xLabel = null } = {}) {
     this.canvas = canvas;
     this.ctx = canvas.getContext("2d");
     this.yLabel = yLabel || "";
     this.windowS = windowS;
     this.maxPoints = maxPoints;
+    this.range = range;      // [t0, t1] s: a fixed span (else the last windowS seconds)
+    this.xLabel = xLabel;
+    this.box = null;         // the plot area and time span as last drawn (for a cursor)
     this.series = new Map(); // name -> {t: [], y: [], color, dashed}
     this.limits = [];        // [{y, label}]
     this.dirty = true;
@@ -39,7 +43,8 @@ class TimePlot {
     let tMax = -Infinity;
     for (const s of this.series.values()) if (s.t.length) tMax = Math.max(tMax, s.t[s.t.length - 1]);
     if (!isFinite(tMax)) tMax = 0;
-    const tMin = tMax - this.windowS;
+    const tMin = this.range ? this.range[0] : tMax - this.windowS;
+    const span = this.range ? Math.max(1e-9, this.range[1] - this.range[0]) : this.windowS;
     let yMin = Infinity, yMax = -Infinity;
     for (const s of this.series.values()) {
       for (let i = 0; i < s.t.length; i++) if (s.t[i] >= tMin && isFinite(s.y[i])) { yMin = Math.min(yMin, s.y[i]); yMax = Math.max(yMax, s.y[i]); }
@@ -48,7 +53,8 @@ class TimePlot {
     if (!isFinite(yMin)) { yMin = -1; yMax = 1; }
     if (yMax - yMin < 1e-9) { yMin -= 1; yMax += 1; }
     const pad = 0.06 * (yMax - yMin); yMin -= pad; yMax += pad;
-    const x = (t) => left + (W - left - right) * (t - tMin) / this.windowS;
+    const x = (t) => left + (W - left - right) * (t - tMin) / span;
+    this.box = { left, right: W - right, top, bottom: H - bottom, tMin, span };
     const y = (v) => top + (H - top - bottom) * (1 - (v - yMin) / (yMax - yMin));
     // axes, ticks, labels
     ctx.strokeStyle = "#9aa1ab"; ctx.lineWidth = 1; ctx.fillStyle = "#39414d";
@@ -60,10 +66,11 @@ class TimePlot {
       ctx.strokeStyle = "#eceef1"; ctx.beginPath(); ctx.moveTo(left + 1, y(v)); ctx.lineTo(W - right, y(v)); ctx.stroke();
     }
     ctx.textAlign = "center"; ctx.textBaseline = "top";
-    for (let s = 0; s <= this.windowS; s += Math.max(1, Math.round(this.windowS / 5))) {
+    if (this.range) for (const v of niceTicks(tMin, tMin + span, 8)) ctx.fillText(formatTick(v), x(v), H - bottom + 4);
+    else for (let s = 0; s <= this.windowS; s += Math.max(1, Math.round(this.windowS / 5))) {
       ctx.fillText(`-${this.windowS - s}`, x(tMin + s), H - bottom + 4);
     }
-    ctx.fillText("time (s, 0 = now)", left + (W - left - right) / 2, H - 16);
+    ctx.fillText(this.xLabel || "time (s, 0 = now)", left + (W - left - right) / 2, H - 16);
     ctx.save(); ctx.translate(14, top + (H - top - bottom) / 2); ctx.rotate(-Math.PI / 2);
     ctx.textBaseline = "middle"; ctx.fillText(this.yLabel, 0, 0); ctx.restore();
     // limits
