@@ -150,6 +150,13 @@ class RigKind:
     """How agents meet walls in the kind's global-moves plans, for the global-input model and its
     planners: "slide" (rolling magnets) or "non-slip" (particles stick); None: it runs none."""
 
+    plan_goals: Callable[[RigConfig, Any], Any] | None = None
+    """plan_goals(rig, problem) -> GoalPlan: a plan from where the agents are to goals an
+    operator clicked (`rigctl.plans.goals`: a `GoalProblem` in, a `GoalPlan` out, a plan document
+    or one line saying why not), with the kind's own planner, within the problem's time budget;
+    the daemon's `plan_goals` runs it in a process of its own. None: the kind cannot plan to a
+    clicked goal."""
+
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.core.errors import PlanError
 

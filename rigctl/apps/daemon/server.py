@@ -50,6 +50,7 @@ import zmq
 from rigctl.apps.daemon.active_run import ActiveRun, RunWatch, _abort_quietly
 from rigctl.apps.daemon.admission import REQUEST_RATE_HZ, Admission
 from rigctl.apps.daemon.commands import Commands, _LoadedPlan
+from rigctl.apps.daemon.goals import GoalPlanning
 from rigctl.apps.daemon.keys import CurveServer
 from rigctl.apps.daemon.messages import (
     HARD_MAX_MESSAGE_BYTES,
@@ -193,6 +194,7 @@ class Daemon(RequestServer, Commands, RunWatch, RunStates):
                                  "detail": ""} for d in self.kind.devices(rig)}
         self.held: dict | None = None  # the manual hold's target
         self.last_run: dict | None = None
+        self.goals = GoalPlanning(self)  # plan_goals, and where the last run left the agents
         self._actuation = self._actuation_matrix()
         self._field_offset = None
         if self._actuation is not None:  # the field plot shows B = A I + an MPEM's Offset field
@@ -207,6 +209,7 @@ class Daemon(RequestServer, Commands, RunWatch, RunStates):
             Command.RESET: self._cmd_reset, Command.HOLD: self._cmd_hold,
             Command.SET_FIELD: self._cmd_set_field,
             Command.RUNS: self._cmd_runs, Command.RUN: self._cmd_run,
+            Command.PLAN_GOALS: self.goals.command,
         }
 
     # -- life cycle -----------------------------------------------------------------------------
@@ -298,6 +301,7 @@ class Daemon(RequestServer, Commands, RunWatch, RunStates):
         if self._log_handler is not None:
             logging.getLogger("rigctl").removeHandler(self._log_handler)
         self.factory.close()
+        self.goals.planner.close()
         if self.publisher is not None:
             self.publisher.stop()
         if self._router is not None:

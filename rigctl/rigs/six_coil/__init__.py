@@ -125,7 +125,17 @@ def _turn_mm(rig: RigConfig | None) -> float:
     return 2.0 * math.pi * (getattr(rig, "magnets", None) or MagnetSettings()).radius_mm
 
 
+def _plan_goals(rig: RigConfig, problem):
+    """Clicked goals for rolling magnets: the global-input RRT (seed 000), moves of whole turns."""
+    from dataclasses import replace
+
+    from rigctl.plans.goals import plan_rrt_goals
+
+    return plan_rrt_goals(replace(problem, turn_mm=_turn_mm(rig)), "slide")
+
+
 KIND = RigKind(
+    plan_goals=_plan_goals,
     wall_contact="slide",
     turn_mm=_turn_mm,
     name="six-coil",
