@@ -60,17 +60,18 @@ class Tracked:
     min_separation_mm: float
     tolerance_mm: float
 
-    def as_dict(self, calibration: Any = None) -> dict:
-        out = {"positions_mm": self.positions_mm, "source": self.source, "run": self.run,
-               "radii_mm": self.radii_mm}
-        if calibration is not None:
-            out["positions_px"] = _px(calibration, self.positions_mm)
-        return out
+    positions_px: list[list[float]] | None = None  # in the camera's pixels (a calibration's)
+
+    def as_dict(self) -> dict:
+        """What `status` says of it (`tracked`): where the agents are, mm and px, and whence."""
+        return {"positions_mm": self.positions_mm, "positions_px": self.positions_px,
+                "radii_mm": self.radii_mm, "source": self.source, "run": self.run}
 
 
-def tracked_after(plan: Any, summary: Any) -> Tracked | None:
-    """What a finished run says of where its agents are: None for a plan without agents on a
-    floor (the arms' field sequences, a pair formation) or a summary without every position."""
+def tracked_after(plan: Any, summary: Any, calibration: Any = None) -> Tracked | None:
+    """What a finished run says of where its agents are (in px too with the camera's
+    `calibration`): None for a plan without agents on a floor (the arms' field sequences, a pair
+    formation) or a summary without every position."""
     if getattr(plan, "kind", None) != "global-moves" or summary is None:
         return None
     finals = [a.final for a in summary.agents]
@@ -78,10 +79,11 @@ def tracked_after(plan: Any, summary: Any) -> Tracked | None:
         return None
     from rigctl.run.agents import portable_workspace
 
-    return Tracked([[float(v) for v in f[:2]] for f in finals], summary.positions_from,
-                   summary.run, plan.rig, portable_workspace(plan),
-                   [float(a.radius) for a in plan.agents], float(plan.min_separation_mm),
-                   float(plan.tolerance_mm))
+    positions = [[float(v) for v in f[:2]] for f in finals]
+    return Tracked(positions, summary.positions_from, summary.run, plan.rig,
+                   portable_workspace(plan), [float(a.radius) for a in plan.agents],
+                   float(plan.min_separation_mm), float(plan.tolerance_mm),
+                   None if calibration is None else _px(calibration, positions))
 
 
 def _px(calibration: Any, points_mm: Any) -> list[list[float]]:
@@ -170,12 +172,19 @@ class GoalPlanning:
     def saw_run(self, job: Any, summary: Any) -> None:
         """A run ended (the run thread): where it left the agents is the latest tracking."""
         try:
-            tracked = tracked_after(getattr(job, "plan", None), summary)
+            camera = self.daemon.rig.camera
+            tracked = tracked_after(getattr(job, "plan", None), summary,
+                                    camera.calibration if camera is not None else None)
         except Exception:  # never let this fail a run's end
             log.exception("could not keep where the run left the agents")
             return
         if tracked is not None:
             self.tracked = tracked
+
+    def status(self) -> dict | None:
+        """`status`'s `tracked`: where the daemon last saw the agents (None: nowhere yet)."""
+        tracked = self.tracked
+        return None if tracked is None else tracked.as_dict()
 
     def answer_on_thread(self, answer: Callable[[], Reply], deliver: Callable[[Reply], None],
                          request_id: Any) -> None:
