@@ -134,16 +134,20 @@ class PlannerProcess:
                                             daemon=True)
             self._process.start()
             child.close()
-        self._conn.send((rig, problem))
-        if not self._conn.poll(deadline_s):
+        conn = self._conn  # close() (a missed deadline, the daemon's shutdown) drops it
+        try:
+            conn.send((rig, problem))
+            answered = conn.poll(deadline_s)
+            if answered:
+                kind, value = conn.recv()
+        except (EOFError, OSError):
+            self.close()
+            raise Refusal(ErrorCode.INTERNAL, "plan_goals: the planning process died or the "
+                          "daemon is stopping: nothing was loaded") from None
+        if not answered:
             self.close()
             raise Refusal(ErrorCode.DEADLINE, f"plan_goals: no answer within {deadline_s:g} s "
                           "(the budget and the planner's start): nothing was loaded")
-        try:
-            kind, value = self._conn.recv()
-        except (EOFError, OSError):
-            self.close()
-            raise Refusal(ErrorCode.INTERNAL, "plan_goals: the planning process died") from None
         if kind == "refused":
             raise PlanError(value)
         if kind == "error":
