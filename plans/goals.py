@@ -92,8 +92,8 @@ def _outside_boundary(document: dict, point: np.ndarray) -> bool:
     boundary = document.get("boundary")
     if not isinstance(boundary, dict):
         return False  # an image workspace: walls and obstacles are one mask
-    from rigctl.plans.workspace import Workspace
     from rigctl.plans.schema import parse_workspace
+    from rigctl.plans.workspace import Workspace
 
     bare = Workspace.from_spec(parse_workspace({"boundary": boundary}, "boundary"))
     return bool(bare.clearance(point[None])[0] < 0)

@@ -159,8 +159,11 @@
     if (!G.planId) return;
     execute.disabled = true;
     const reply = await C.request("execute", { plan_id: G.planId });
-    if (reply.ok) say(`executing plan ${G.planId}`);
-    else { say(`execute refused: ${reply.error.code}: ${reply.error.message}`, true); execute.disabled = false; }
+    if (reply.ok) {  // the run's scene draws its plan from here on; the next goals start afresh
+      say(`executing plan ${G.planId}`);
+      G.goals.clear(); G.selected = null; G.plan = null; G.planId = null;
+      draw();
+    } else { say(`execute refused: ${reply.error.code}: ${reply.error.message}`, true); execute.disabled = false; }
   });
   clear.addEventListener("click", () => {
     G.goals.clear(); G.selected = null; G.plan = null; G.planId = null; G.reason = null;
