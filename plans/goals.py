@@ -159,16 +159,23 @@ def plan_rrt_goals(problem: GoalProblem, contact: str) -> GoalPlan:
     model = GlobalInputModel(workspace, radii, contact, min_separation_mm=problem.min_separation_mm)
     if float(np.linalg.norm(starts - goals)) <= problem.tolerance_mm:
         return GoalPlan(reason="every agent is at its goal already (within the tolerance)")
-    result = plan_rrt(model, starts, goals, options=options,
-                      rng=np.random.default_rng(problem.seed), time_budget_s=problem.budget_s)
-    moves, states, distance = polish(model, starts, goals, result.moves, options)
+    # the straight way first (the RRT's final-approach descent from the starts, deterministic):
+    # a clicked goal in open floor is usually a translation, which an operator expects drawn as
+    # one; the tree only when that does not reach the goals
+    moves, states, distance = polish(model, starts, goals, np.empty((0, 2)), options)
+    nodes = 0
+    if distance > problem.tolerance_mm:
+        result = plan_rrt(model, starts, goals, options=options,
+                          rng=np.random.default_rng(problem.seed), time_budget_s=problem.budget_s)
+        moves, states, distance = polish(model, starts, goals, result.moves, options)
+        nodes = result.nodes
     seconds = time.perf_counter() - started
     if distance > problem.tolerance_mm or not len(moves):
         return _not_found("global-input RRT", problem, distance, seconds)
-    name = (f"clicked goals: rrt seed {problem.seed}, {len(moves)} moves, {distance:.3f} mm "
-            "from the goals")
+    how = f"rrt seed {problem.seed}" if nodes else "direct"
+    name = f"clicked goals: {how}, {len(moves)} moves, {distance:.3f} mm from the goals"
     return GoalPlan(plan=_document(problem, goals, moves, states, name), distance_mm=distance,
-                    seconds=seconds, extra={"nodes": result.nodes})
+                    seconds=seconds, extra={"nodes": nodes})
 
 
 def plan_wall_contact_goals(problem: GoalProblem) -> GoalPlan:
