@@ -6,8 +6,9 @@ ordinary plan document that `load` checks and `execute` runs.
 crosses to the planning process); `GoalPlan` is the answer, a plan document or one line saying
 why there is none: a goal outside the workspace, in an obstacle, too close to a wall or to another
 agent's goal, or no path found within the time budget. `plan_rrt_goals` (the global-input RRT of
-seed 000, rolling magnets or any kind with global moves) and `plan_wall_contact_goals` (seed 004's
-two particles on non-slip walls) are the planners the kinds plug in.
+seed 000, rolling magnets or any kind with global moves), `plan_wall_contact_goals` (seed 004's
+two particles on non-slip walls) and `plan_pair_goals` (seed 002's two interacting agents: the
+formation the two clicked goals make) are the planners the kinds plug in.
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ class GoalProblem:
     seed: int = 0
     budget_s: float = DEFAULT_BUDGET_S
     turn_mm: float | None = None  # moves are whole turns of this (rolling magnets); None: any
+    plan_kind: str = "global-moves"  # the kind of plan the agents were last run with
+    template: dict[str, Any] | None = None  # that plan's document (a pair's physics and bounds)
 
 
 @dataclass(frozen=True)
@@ -212,3 +215,63 @@ def plan_wall_contact_goals(problem: GoalProblem) -> GoalPlan:
     name = f"clicked goals: wall contact, {len(result.moves)} moves"
     return GoalPlan(plan=_document(problem, chosen, result.moves, result.states, name),
                     distance_mm=float(result.error), seconds=seconds)
+
+
+def plan_pair_goals(problem: GoalProblem) -> GoalPlan:
+    """Seed 002's pair planner (`rigctl plan pair`): from the formation the two agents make now to
+    the one their goals make (centroid, separation, heading), with the physics, bounds, field and
+    hold of the pair-formation plan they last ran (`problem.template`). The tolerance is in mm
+    here and the plan's in body lengths."""
+    import math
+
+    from rigctl.plans.pair import (
+        PairPlannerOptions,
+        check,
+        plan_pair,
+        problem_of,
+        simulate,
+        state_from_positions,
+        state_to_doc,
+        wrap_angle,
+    )
+    from rigctl.plans.schema import dump_plan, parse_plan
+
+    started = time.perf_counter()
+    template = problem.template
+    if template is None or len(problem.starts_mm) != 2:
+        return GoalPlan(reason="the pair planner plans two agents from a pair-formation plan's "
+                        "physics: run one first")
+    workspace = _workspace(problem)
+    why = check_goals(problem, workspace)
+    if why is not None:
+        return GoalPlan(reason=why)
+    d = float(template["agents"]["body_diameter_mm"])
+    start = state_from_positions(np.asarray(problem.starts_mm, dtype=float) / d)
+    goal = state_from_positions(np.asarray(problem.goals_mm, dtype=float) / d)
+    tolerance_bl = problem.tolerance_mm / d
+    base = {key: value for key, value in template.items()
+            if key not in ("segments", "expected", "name", "start", "goal", "tolerance_bl")}
+    base.update(workspace=problem.workspace, start=state_to_doc(start, d),
+                goal=state_to_doc(goal, d), segments=[], tolerance_bl=tolerance_bl,
+                name="clicked goals: pair formation")
+    try:
+        skeleton = parse_plan(base, "the clicked goals' plan")
+        options = PairPlannerOptions.fast(time_s=problem.budget_s,
+                                          goal_tol=min(PairPlannerOptions.goal_tol, tolerance_bl))
+        path = plan_pair(problem_of(skeleton), start, goal, options, seed=problem.seed)
+    except PlanError as err:
+        return GoalPlan(reason=str(err))
+    seconds = time.perf_counter() - started
+    if not path.solved:
+        return _not_found("pair planner", problem, path.goal_distance * d, seconds)
+    base["segments"] = [
+        {"psi_deg": float(math.degrees(wrap_angle(u[0]))), "f_x": float(u[1]), "f_y": float(u[2]),
+         "dt_s": float(dt)} for u, dt in zip(path.controls, path.dts)]
+    base["name"] = (f"clicked goals: pair formation, {len(path.dts)} segments, "
+                    f"{float(path.dts.sum()):.1f} s")
+    plan = simulate(parse_plan(base, "the clicked goals' plan"))
+    check(plan)
+    import json
+
+    return GoalPlan(plan=json.loads(dump_plan(plan)), distance_mm=path.goal_distance * d,
+                    seconds=seconds)

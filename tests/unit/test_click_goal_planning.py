@@ -134,3 +134,46 @@ def test_a_kind_without_the_hook_and_a_daemon_that_saw_no_run_say_so():
 def test_a_goal_is_given_in_mm_or_px_not_both():
     with pytest.raises(ValueError, match='either "mm" or "px"'):
         PlanGoalsArgs(goals=[{"agent": 0, "mm": [1.0, 2.0], "px": [3.0, 4.0]}])
+
+
+def test_two_agents_last_run_as_a_pair_are_planned_as_a_formation_by_the_pair_planner():
+    from rigctl.apps.daemon.goals import planned_paths_mm, tracked_after
+    from rigctl.plans.pair import agent_positions, state_of
+    from rigctl.plans.schema import load_plan
+    from rigctl.run.summary import AgentResult
+
+    source = EXAMPLES / "pair-formation-change.json"
+    pair = load_plan(source)
+    d = pair.agents.body_diameter_mm
+    # where the last pair run left them (its summary), and the formation its goal makes
+    here = (agent_positions(state_of(pair.start, d)) * d).tolist()
+    there = (agent_positions(state_of(pair.goal, d)) * d).tolist()
+    summary = SimpleNamespace(agents=[AgentResult(p, p, 0.0) for p in here],
+                              positions_from="camera (closed loop)", run="runs/x")
+    tracked = tracked_after(pair, summary)
+    assert tracked.plan_kind == "pair-formation" and tracked.radii_mm == [d / 2, d / 2]
+    assert tracked.tolerance_mm == pytest.approx(pair.tolerance_bl * d)
+    problem = GoalProblem(rig="six-coil", workspace=tracked.workspace, starts_mm=here,
+                          goals_mm=there, radii_mm=tracked.radii_mm,
+                          tolerance_mm=tracked.tolerance_mm, budget_s=10.0,
+                          plan_kind=tracked.plan_kind, template=tracked.template)
+    answer = rig_kind("six-coil").plan_goals(None, problem)
+    assert answer.reason is None, answer.reason
+    plan = parse_plan(answer.plan, "clicked")
+    assert plan.kind == "pair-formation" and plan.segments
+    paths = planned_paths_mm(answer.plan, here)
+    for agent in range(2):
+        assert paths[agent][0] == here[agent]
+        # the model's end, each agent within the plan's tolerance of its clicked goal
+        assert math.dist(paths[agent][-1], there[agent]) <= plan.tolerance_bl * d
+    # a goal in the pillar of that workspace (a disk at (10, 11) mm, radius 1.5): the reason
+    inside = plan_pair_goals_reason(problem, [[10.0, 11.0], there[1]])
+    assert inside == "goal of agent #0 (10.0, 11.0) mm is in an obstacle"
+
+
+def plan_pair_goals_reason(problem: GoalProblem, goals) -> str:
+    from dataclasses import replace
+
+    from rigctl.plans.goals import plan_pair_goals
+
+    return plan_pair_goals(replace(problem, goals_mm=goals)).reason

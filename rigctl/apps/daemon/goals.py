@@ -4,7 +4,8 @@ other, so the ordinary `execute` runs it and its run record keeps it.
 
 Where the agents are: the daemon's latest tracking, which is where its last plan run left them
 (the run's summary: the camera's last look in closed loop, else the emulator's ground truth), with
-that plan's workspace, radii and separation (`Tracked`). An agent the request gives no goal keeps
+that plan's workspace, radii and separation (`Tracked`); after a pair formation, the two agents
+and that plan's physics, which the pair planner plans with. An agent the request gives no goal keeps
 its place as its goal (one input moves every agent: it must come back there).
 
 Planning is CPU work of seconds: it runs in a process of its own (`PlannerProcess`, spawned at the
@@ -61,6 +62,8 @@ class Tracked:
     tolerance_mm: float
 
     positions_px: list[list[float]] | None = None  # in the camera's pixels (a calibration's)
+    plan_kind: str = "global-moves"
+    template: dict | None = None  # a pair formation's plan document: its physics and bounds
 
     def as_dict(self) -> dict:
         """What `status` says of it (`tracked`): where the agents are, mm and px, and whence."""
@@ -70,20 +73,47 @@ class Tracked:
 
 def tracked_after(plan: Any, summary: Any, calibration: Any = None) -> Tracked | None:
     """What a finished run says of where its agents are (in px too with the camera's
-    `calibration`): None for a plan without agents on a floor (the arms' field sequences, a pair
-    formation) or a summary without every position."""
-    if getattr(plan, "kind", None) != "global-moves" or summary is None:
+    `calibration`): None for a plan without agents on a floor (the arms' field sequences) or a
+    summary without every position."""
+    kind = getattr(plan, "kind", None)
+    if kind not in ("global-moves", "pair-formation") or summary is None:
         return None
     finals = [a.final for a in summary.agents]
-    if len(finals) != len(plan.agents) or any(f is None for f in finals):
+    count = 2 if kind == "pair-formation" else len(plan.agents)
+    if len(finals) != count or any(f is None for f in finals):
         return None
     from rigctl.run.agents import portable_workspace
 
     positions = [[float(v) for v in f[:2]] for f in finals]
+    px = None if calibration is None else _px(calibration, positions)
+    if kind == "pair-formation":  # positions in mm; the plan's lengths in body diameters
+        import json
+
+        from rigctl.plans.schema import dump_plan
+
+        d = float(plan.agents.body_diameter_mm)
+        return Tracked(positions, summary.positions_from, summary.run, plan.rig,
+                       portable_workspace(plan), [d / 2, d / 2], 0.0, float(plan.tolerance_bl) * d,
+                       px, kind, json.loads(dump_plan(plan)))
     return Tracked(positions, summary.positions_from, summary.run, plan.rig,
                    portable_workspace(plan), [float(a.radius) for a in plan.agents],
-                   float(plan.min_separation_mm), float(plan.tolerance_mm),
-                   None if calibration is None else _px(calibration, positions))
+                   float(plan.min_separation_mm), float(plan.tolerance_mm), px)
+
+
+def planned_paths_mm(plan: dict, starts_mm: list) -> list[list[list[float]]]:
+    """Each agent's planned path (mm): its start, then where the plan expects it after every move
+    (a pair formation: after every segment, from the formation's centroid, separation and
+    heading)."""
+    if plan["kind"] == "pair-formation":
+        from rigctl.plans.pair import agent_positions
+
+        d = float(plan["agents"]["body_diameter_mm"])
+        states = [[s["x_mm"] / d, s["y_mm"] / d, s["r_bl"], np.radians(s["phi_deg"])]
+                  for s in plan["expected"]]
+        each = [(agent_positions(q) * d).round(4).tolist() for q in states]
+    else:
+        each = plan["expected"]
+    return [[list(start)] + [state[i] for state in each] for i, start in enumerate(starts_mm)]
 
 
 def _px(calibration: Any, points_mm: Any) -> list[list[float]]:
@@ -244,7 +274,8 @@ class GoalPlanning:
             rig=tracked.rig, workspace=tracked.workspace, starts_mm=tracked.positions_mm,
             goals_mm=goals, radii_mm=tracked.radii_mm,
             tolerance_mm=args.tolerance_mm if args.tolerance_mm is not None else tracked.tolerance_mm,
-            min_separation_mm=tracked.min_separation_mm, seed=args.seed, budget_s=args.budget_s)
+            min_separation_mm=tracked.min_separation_mm, seed=args.seed, budget_s=args.budget_s,
+            plan_kind=tracked.plan_kind, template=tracked.template)
         started = time.monotonic()
         try:
             result = self.planner.plan(daemon.rig, problem, args.budget_s + START_GRACE_S)
@@ -253,8 +284,7 @@ class GoalPlanning:
         if result.plan is None:
             raise Refusal(ErrorCode.UNREACHABLE, f"plan_goals: {result.reason}")
         loaded = daemon._cmd_load(LoadArgs(plan=result.plan))  # checked as any plan: kept loaded
-        paths = [[start] + [state[i] for state in result.plan["expected"]]
-                 for i, start in enumerate(tracked.positions_mm)]
+        paths = planned_paths_mm(result.plan, tracked.positions_mm)
         log.info("plan_goals: plan %s, %d moves, %.3f mm from the goals, %.2f s",
                  loaded["plan_id"], len(result.plan["moves"]), result.distance_mm,
                  time.monotonic() - started)

@@ -126,11 +126,14 @@ def _turn_mm(rig: RigConfig | None) -> float:
 
 
 def _plan_goals(rig: RigConfig, problem):
-    """Clicked goals for rolling magnets: the global-input RRT (seed 000), moves of whole turns."""
+    """Clicked goals for rolling magnets: the global-input RRT (seed 000), moves of whole turns;
+    for two agents last run as a pair formation, the pair planner (seed 002)."""
     from dataclasses import replace
 
-    from rigctl.plans.goals import plan_rrt_goals
+    from rigctl.plans.goals import plan_pair_goals, plan_rrt_goals
 
+    if problem.plan_kind == "pair-formation":
+        return plan_pair_goals(problem)
     return plan_rrt_goals(replace(problem, turn_mm=_turn_mm(rig)), "slide")
 
 
