@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from rigctl.apps.client import CommandRefused, Rig
-from rigctl.apps.testing import wait_for
+from rigctl.apps.testing import plan_pair, wait_for
 from rigctl.core.config import dump_rig, load_rig
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
@@ -126,3 +126,34 @@ def test_an_unreachable_goal_says_why_and_loads_nothing(bench_and_daemon, goal, 
     assert refused.value.code == "unreachable"
     assert reason in refused.value.reason and "goal of agent #0" in refused.value.reason
     assert rig.status()["plans"] == plans
+
+
+def test_after_a_pair_formation_the_clicked_goals_are_a_formation_the_pair_planner_reaches(
+        tmp_path):
+    """The six-coil bench's pair world: a short formation change, then both agents clicked a
+    millimetre further on (the same formation moved): planned by the pair planner with the first
+    plan's physics, executed in closed loop, reached by the bench's ground truth."""
+    first = json.loads(plan_pair(tmp_path, goal="9.5,7.5,2.6,60", hold_s=0.5).read_text())
+    with EmulatedBenchProcess("six-coil", tmp_path / "bench.toml",
+                              extra_args=["--world", "pair"]) as rig_path:
+        daemon = DaemonProcess(rig_path, tmp_path / "runs", tmp_path / "daemon.log")
+        try:
+            with Rig(daemon.endpoints["command"], timeout_s=30.0) as rig, \
+                    BackdoorClient(load_rig(rig_path).emulation.backdoor) as backdoor:
+                status = run_to_end(rig, rig.load(first))
+                assert status["last_run"]["reached"], status["last_run"]
+                here = status["tracked"]["positions_mm"]
+                goals = {i: [x + 1.0, y] for i, (x, y) in enumerate(here)}
+                planned = rig.plan_goals(goals, budget_s=10.0)
+                plan = planned["plan"]
+                assert plan["kind"] == "pair-formation" and plan["segments"]
+                assert plan["agents"] == first["agents"] and plan["r_min_bl"] == first["r_min_bl"]
+                status = run_to_end(rig, planned["plan_id"])
+                assert status["last_run"]["plan_id"] == planned["plan_id"]
+                assert status["last_run"]["reached"], status["last_run"]
+                tolerance_mm = plan["tolerance_bl"] * plan["agents"]["body_diameter_mm"]
+                truth = backdoor.request("truth")["agents"]
+                for i, real in enumerate(truth):
+                    assert math.dist(real, goals[i]) <= tolerance_mm, (truth, goals)
+        finally:
+            daemon.close()

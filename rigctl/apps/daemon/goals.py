@@ -285,9 +285,8 @@ class GoalPlanning:
             raise Refusal(ErrorCode.UNREACHABLE, f"plan_goals: {result.reason}")
         loaded = daemon._cmd_load(LoadArgs(plan=result.plan))  # checked as any plan: kept loaded
         paths = planned_paths_mm(result.plan, tracked.positions_mm)
-        log.info("plan_goals: plan %s, %d moves, %.3f mm from the goals, %.2f s",
-                 loaded["plan_id"], len(result.plan["moves"]), result.distance_mm,
-                 time.monotonic() - started)
+        log.info("plan_goals: plan %s (%s), %.3f mm from the goals, %.2f s", loaded["plan_id"],
+                 result.plan["name"], result.distance_mm, time.monotonic() - started)
         reply = {**loaded, "plan": result.plan, "starts_mm": tracked.positions_mm,
                  "goals_mm": goals, "paths_mm": paths, "distance_mm": result.distance_mm,
                  "planner_s": round(result.seconds, 3), "tracked": tracked.as_dict()}

@@ -146,7 +146,8 @@
     if (reply.ok) {
       const r = reply.result;
       G.plan = r; G.planId = r.plan_id; G.reason = null;
-      say(`planned: ${r.plan.moves.length} moves, ${r.distance_mm.toFixed(2)} mm from the goals (plan ${r.plan_id})`);
+      const steps = r.plan.moves ? `${r.plan.moves.length} moves` : `${r.plan.segments.length} segments`;
+      say(`planned: ${steps}, ${r.distance_mm.toFixed(2)} mm from the goals (plan ${r.plan_id})`);
       execute.disabled = !C.authenticated;
     } else {
       G.plan = null; G.planId = null; G.reason = reply.error.message;
