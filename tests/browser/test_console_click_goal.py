@@ -3,7 +3,8 @@
 saw the magnets; a click on each magnet and on its goal (real pointer clicks on the camera view)
 gets a plan whose paths are drawn (an SVG the test reads), "execute goals" runs it, and the run
 ends reached, with every magnet within the plan's tolerance of its clicked goal by the bench's
-ground truth. A click into an obstacle shows the daemon's reason and draws no path. Where the
+ground truth; a goal clicked in the wrong place is dragged to the right one first. A click into
+an obstacle shows the daemon's reason and draws no path. Where the
 goals are on the floor is computed here from the rig's calibration, not read from the page."""
 
 from __future__ import annotations
@@ -36,17 +37,32 @@ def run_first_plan(daemon) -> None:
                  "the run ended and the daemon kept where it left the magnets")
 
 
-def click_camera_px(driver, point_px) -> None:
-    """A real pointer click where the camera's pixel `point_px` is drawn on the page (the overlay
-    fits the camera's picture into its box as the canvas does: contain, centred)."""
-    svg = driver.find_element("id", "goals-overlay")
+def offset_of(driver, point_px) -> tuple[int, int]:
+    """Where the camera's pixel `point_px` is drawn, from the overlay's centre in CSS px (the
+    overlay fits the camera's picture into its box as the canvas does: contain, centred)."""
     box = js(driver, "(() => { const r = document.getElementById('goals-overlay')"
                      ".getBoundingClientRect(); return [r.width, r.height]; })()")
     width, height = js(driver, "rigctlConsole.hello.rig.camera.resolution")
     scale = min(box[0] / width, box[1] / height)
-    dx = (point_px[0] - width / 2) * scale
-    dy = (point_px[1] - height / 2) * scale
-    ActionChains(driver).move_to_element_with_offset(svg, round(dx), round(dy)).click().perform()
+    return round((point_px[0] - width / 2) * scale), round((point_px[1] - height / 2) * scale)
+
+
+def click_camera_px(driver, point_px) -> None:
+    """A real pointer click where the camera's pixel `point_px` is drawn on the page."""
+    svg = driver.find_element("id", "goals-overlay")
+    ActionChains(driver).move_to_element_with_offset(svg, *offset_of(driver, point_px)).click() \
+        .perform()
+
+
+def drag_camera_px(driver, from_px, to_px) -> None:
+    """Press at `from_px`, move to `to_px` in a few steps, release (camera pixels)."""
+    svg = driver.find_element("id", "goals-overlay")
+    start, end = offset_of(driver, from_px), offset_of(driver, to_px)
+    chain = ActionChains(driver).move_to_element_with_offset(svg, *start).click_and_hold()
+    for k in (1, 2, 3):
+        chain.move_to_element_with_offset(svg, round(start[0] + k * (end[0] - start[0]) / 3),
+                                          round(start[1] + k * (end[1] - start[1]) / 3))
+    chain.release().perform()
 
 
 def test_click_agents_and_goals_see_the_paths_execute_and_reach(rig, browser, screenshots):
@@ -58,12 +74,18 @@ def test_click_agents_and_goals_see_the_paths_execute_and_reach(rig, browser, sc
     # two turns up for both magnets, from where the first run's plan left them
     goals_mm = [[x, y + 20.0] for x, y in first_plan()["expected"][-1]]
     goals_px = calibration.to_px(np.array(goals_mm))
-    for agent, goal in enumerate(goals_px):
+    # agent #1's goal first clicked 40 px off, then dragged to where it belongs
+    off = [goals_px[0], goals_px[1] + np.array([-40.0, 0.0])]
+    for agent, goal in enumerate(off):
         click_camera_px(driver, tracked["positions_px"][agent])
         wait_page(driver, f"rigctlGoals.selected === {agent}", 5.0, f"agent #{agent} picked")
         click_camera_px(driver, goal)
-    plan = wait_page(driver, "rigctlGoals.plan && rigctlGoals.plan.plan.agents.length === 2 && "
-                     "rigctlGoals.goals.size === 2 && rigctlGoals.plan", 60.0, "a plan to both goals")
+    wait_page(driver, "rigctlGoals.goals.size === 2", 5.0, "both goals clicked")
+    drag_camera_px(driver, off[1], goals_px[1])
+    u, v = goals_px[1]
+    plan = wait_page(driver, "rigctlGoals.plan && rigctlGoals.goals.size === 2 && Math.hypot("
+                     f"rigctlGoals.plan.goals_px[1][0] - {u}, rigctlGoals.plan.goals_px[1][1] - {v})"
+                     " < 3 && rigctlGoals.plan", 60.0, "a plan to both goals, the dragged one's too")
     # the clicked goals, as the daemon read them: where they were clicked, to a pixel's worth
     mm_per_px = float(np.max(calibration.mm_per_px(goals_px)))
     for agent, goal in enumerate(goals_mm):

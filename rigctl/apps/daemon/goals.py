@@ -269,6 +269,9 @@ class GoalPlanning:
                 goal_mm = calibration.to_mm(np.asarray([goal.px], dtype=float))[0]
             else:
                 goal_mm = goal.mm
+            if not np.all(np.isfinite(goal_mm)):  # a pixel far beyond the picture's horizon
+                raise Refusal(ErrorCode.UNREACHABLE, f"plan_goals: the goal of agent "
+                              f"#{goal.agent} at {goal.px} px is not on the floor")
             goals[goal.agent] = [round(float(v), 4) for v in goal_mm]
         problem = GoalProblem(
             rig=tracked.rig, workspace=tracked.workspace, starts_mm=tracked.positions_mm,
