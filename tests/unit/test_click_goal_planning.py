@@ -177,3 +177,16 @@ def plan_pair_goals_reason(problem: GoalProblem, goals) -> str:
     from rigctl.plans.goals import plan_pair_goals
 
     return plan_pair_goals(replace(problem, goals_mm=goals)).reason
+
+
+def test_a_goal_for_an_agent_not_tracked_or_in_px_without_a_calibration_is_a_bad_argument():
+    from rigctl.apps.daemon.goals import Tracked
+
+    planning = GoalPlanning(daemon_of("six-coil"))
+    planning.tracked = Tracked(STARTS, "camera (closed loop)", "runs/x", "six-coil",
+                               FIG4["workspace"], [8.0, 8.0], 0.0, 1.0)
+    for goal, says in (({"agent": 2, "mm": [220.0, 250.0]}, "no agent #2 (the daemon tracks 2"),
+                       ({"agent": 0, "px": [10.0, 10.0]}, "needs the rig's camera calibration")):
+        with pytest.raises(Refusal) as refused:
+            planning.command(PlanGoalsArgs(goals=[goal]))
+        assert refused.value.code is ErrorCode.BAD_ARGS and says in str(refused.value)
