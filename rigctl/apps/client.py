@@ -238,6 +238,21 @@ class Rig:
     def runs(self, limit: int = 20) -> list[dict]:
         return self.request("runs", limit=limit)
 
+    def plan_goals(self, goals: dict[int, Iterable[float]], *, px: bool = False, seed: int = 0,
+                   budget_s: float = 5.0, tolerance_mm: float | None = None) -> dict:
+        """Plan the agents from where the daemon last tracked them to `goals` (agent index ->
+        (x, y) in mm, or in camera pixels with `px`; an agent left out keeps its place) and load
+        the plan (docs/click-a-goal.md): its `plan_id` for `execute`, the plan, its paths.
+        CommandRefused `unreachable` says why there is none. Waits for the planner: the budget
+        and its start."""
+        unit = "px" if px else "mm"
+        args: dict[str, Any] = {"goals": [{"agent": int(i), unit: [float(v) for v in g]}
+                                          for i, g in goals.items()],
+                                "seed": seed, "budget_s": budget_s}
+        if tolerance_mm is not None:
+            args["tolerance_mm"] = tolerance_mm
+        return self.request("plan_goals", timeout_s=max(self.timeout_s, budget_s + 35.0), **args)
+
     def run(self, run_id: str) -> dict:
         return self.request("run", run=run_id)
 

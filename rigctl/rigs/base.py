@@ -154,6 +154,12 @@ class RigKind:
     """teleop(rig, mode) -> a `rigctl.run.teleop.TeleopDrive`: how an operator's live input
     (steering by hand) becomes setpoints on this kind, in the mode named (None: its first);
     ConfigError for a mode it has not. None: the kind has no teleoperation."""
+    plan_goals: Callable[[RigConfig, Any], Any] | None = None
+    """plan_goals(rig, problem) -> GoalPlan: a plan from where the agents are to goals an
+    operator clicked (`rigctl.plans.goals`: a `GoalProblem` in, a `GoalPlan` out, a plan document
+    or one line saying why not), with the kind's own planner, within the problem's time budget;
+    the daemon's `plan_goals` runs it in a process of its own. None: the kind cannot plan to a
+    clicked goal."""
 
     def builder(self, plan_kind: str) -> RunBuilder:
         from rigctl.core.errors import PlanError

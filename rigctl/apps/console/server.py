@@ -54,7 +54,7 @@ PAGE_QUEUE = 256  # messages queued per page (a few MB of frames at most); a slo
 HELLO_TIMEOUT_S = 5.0
 MAX_UPLOAD_BYTES = 4 * 1024 * 1024  # the daemon's own request bound
 CONTROL_COMMANDS = {"load", "load_file", "execute", "pause", "resume", "abort", "reset", "estop",
-                    "teleop", "steer"}
+                    "teleop", "steer", "plan_goals"}
 WATCH_COMMANDS = {"runs", "run", "plans"}
 LOOPBACK_NAMES = {"localhost", "127.0.0.1", "::1"}
 _RUN_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,254}$")
@@ -609,6 +609,11 @@ class Console:
             return await self._request("steer", "steer", **args)
         if cmd == "teleop":  # answered once the session streams
             return await self._request("control", "teleop", timeout_s=30.0, **args)
+        if cmd == "plan_goals":  # waits for the planner (docs/click-a-goal.md); its plan drawn
+            result = await self._request("control", cmd, timeout_s=float(
+                args.get("budget_s", 5.0)) + 35.0, **args)  # like a loaded one's when it runs
+            self._plans[result["plan_id"]] = result["plan"]
+            return result
         return await self._request("control", cmd, **args)
 
 

@@ -71,6 +71,7 @@ class RunWatch:
                 if active.kind == "hold":
                     self.held = None
                 if summary is not None:
+                    self.goals.saw_run(active.job, summary)  # where plan_goals starts from
                     self.last_run = {"id": active.run_id, "plan_id": active.plan_id,
                                      **{k: v for k, v in summary.as_dict().items()
                                         if k in ("reached", "faults", "duration_s", "run")}}

@@ -67,6 +67,7 @@ class Commands:
                 "last_fault": self.last_fault,
                 "hold": self.held,
                 "manual_field_mT": (self.held or {}).get("field_mT"),  # set_field's, six-coil
+                "tracked": self.goals.status(),  # where plan_goals starts from (goals.py)
                 "uptime_s": round(time.monotonic() - self.t0, 3),
             }
 

@@ -81,6 +81,7 @@ class Command(str, Enum):
     RUN = "run"
     TELEOP = "teleop"
     STEER = "steer"
+    PLAN_GOALS = "plan_goals"
 
 
 class ErrorCode(str, Enum):
@@ -101,6 +102,7 @@ class ErrorCode(str, Enum):
     DEADLINE = "deadline"  # `load` took longer than LOAD_DEADLINE_S: the plan is not loaded
     INTERNAL = "internal"  # a bug: logged with its traceback on the daemon's side
     FORBIDDEN = "forbidden"  # the connection's CURVE key was removed from the allow-list
+    UNREACHABLE = "unreachable"  # plan_goals: no plan to those goals (the message says why)
 
 
 class DaemonState(str, Enum):
@@ -299,6 +301,30 @@ class SteerArgs(_Args):
     input: dict[str, float] | None = Field(
         default=None, description='the operator\'s input now ({"heading_deg": .., "speed": ..} '
         'rolling, {"heading_deg": .., "drive": ..} drive); none: let go. Counts for 200 ms')
+class GoalArg(_Args):
+    """One agent's goal: in the workspace's mm, or in the camera's pixels (the rig's calibration
+    maps them to the floor)."""
+
+    agent: Annotated[int, Field(ge=0, le=63)]
+    mm: Annotated[list[float], Field(min_length=2, max_length=2)] | None = None
+    px: Annotated[list[float], Field(min_length=2, max_length=2)] | None = None
+
+    @model_validator(mode="after")
+    def _one_of(self) -> GoalArg:
+        if (self.mm is None) == (self.px is None):
+            raise ValueError('give the goal as either "mm" or "px"')
+        return self
+
+
+class PlanGoalsArgs(_Args):
+    """`plan_goals` (docs/click-a-goal.md): the agents from where the daemon last tracked them to
+    these goals (an agent left out keeps its place), planned by the rig kind's planner; the plan
+    is loaded, for `execute`."""
+
+    goals: Annotated[list[GoalArg], Field(min_length=1, max_length=64)]
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
+    budget_s: Annotated[float, Field(gt=0, le=60, description="the planner's time budget")] = 5.0
+    tolerance_mm: Annotated[float, Field(gt=0, le=100)] | None = None
 
 
 COMMAND_ARGS: dict[Command, type[_Message]] = {
@@ -317,6 +343,7 @@ COMMAND_ARGS: dict[Command, type[_Message]] = {
     Command.RUN: RunArgs,
     Command.TELEOP: TeleopArgs,
     Command.STEER: SteerArgs,
+    Command.PLAN_GOALS: PlanGoalsArgs,
 }
 
 

@@ -301,6 +301,8 @@ class RequestServer:
 
         if cmd is Command.LOAD:
             self._start_load(answer, deliver, request_id)
+        elif cmd is Command.PLAN_GOALS:  # seconds of planning: a thread of its own (goals.py)
+            self.goals.answer_on_thread(answer, deliver, request_id)
         elif cmd in (Command.RUNS, Command.RUN, Command.HOLD, Command.SET_FIELD, Command.TELEOP):
             def work() -> None:
                 reply = answer()

@@ -50,6 +50,7 @@ import zmq
 from rigctl.apps.daemon.active_run import ActiveRun, RunWatch, _abort_quietly
 from rigctl.apps.daemon.admission import REQUEST_RATE_HZ, Admission
 from rigctl.apps.daemon.commands import Commands, _LoadedPlan
+from rigctl.apps.daemon.goals import GoalPlanning
 from rigctl.apps.daemon.keys import CurveServer
 from rigctl.apps.daemon.messages import (
     HARD_MAX_MESSAGE_BYTES,
@@ -194,6 +195,7 @@ class Daemon(RequestServer, Commands, TeleopCommands, RunWatch, RunStates):
                                  "detail": ""} for d in self.kind.devices(rig)}
         self.held: dict | None = None  # the manual hold's target
         self.last_run: dict | None = None
+        self.goals = GoalPlanning(self)  # plan_goals, and where the last run left the agents
         self._actuation = self._actuation_matrix()
         self._field_offset = None
         if self._actuation is not None:  # the field plot shows B = A I + an MPEM's Offset field
@@ -209,6 +211,7 @@ class Daemon(RequestServer, Commands, TeleopCommands, RunWatch, RunStates):
             Command.SET_FIELD: self._cmd_set_field,
             Command.RUNS: self._cmd_runs, Command.RUN: self._cmd_run,
             Command.TELEOP: self._cmd_teleop, Command.STEER: self._cmd_steer,
+            Command.PLAN_GOALS: self.goals.command,
         }
 
     # -- life cycle -----------------------------------------------------------------------------
@@ -300,6 +303,7 @@ class Daemon(RequestServer, Commands, TeleopCommands, RunWatch, RunStates):
         if self._log_handler is not None:
             logging.getLogger("rigctl").removeHandler(self._log_handler)
         self.factory.close()
+        self.goals.planner.close()
         if self.publisher is not None:
             self.publisher.stop()
         if self._router is not None:

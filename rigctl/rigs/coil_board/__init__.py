@@ -128,8 +128,20 @@ def _template() -> str:
 
     return (files("rigctl.rigs.coil_board") / "template.toml").read_text()
 
+def _plan_goals(rig: RigConfig, problem):
+    """Clicked goals for two particles: seed 004's wall-contact planner; the global-input RRT on
+    non-slip walls for a workspace it does not plan in (obstacles, not two particles)."""
+    from rigctl.plans.goals import plan_rrt_goals, plan_wall_contact_goals
+
+    document = problem.workspace
+    if len(problem.starts_mm) == 2 and "boundary" in document and not document.get("obstacles"):
+        return plan_wall_contact_goals(problem)
+    return plan_rrt_goals(problem, "non-slip")
+
+
 KIND = RigKind(
     teleop=_teleop,
+    plan_goals=_plan_goals,
     wall_contact="non-slip",
     name="coil-board",
     description="an Arduino driving four SyRen motor drivers on iron-core coils, overhead camera",

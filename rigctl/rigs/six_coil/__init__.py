@@ -131,8 +131,21 @@ def _turn_mm(rig: RigConfig | None) -> float:
     return 2.0 * math.pi * (getattr(rig, "magnets", None) or MagnetSettings()).radius_mm
 
 
+def _plan_goals(rig: RigConfig, problem):
+    """Clicked goals for rolling magnets: the global-input RRT (seed 000), moves of whole turns;
+    for two agents last run as a pair formation, the pair planner (seed 002)."""
+    from dataclasses import replace
+
+    from rigctl.plans.goals import plan_pair_goals, plan_rrt_goals
+
+    if problem.plan_kind == "pair-formation":
+        return plan_pair_goals(problem)
+    return plan_rrt_goals(replace(problem, turn_mm=_turn_mm(rig)), "slide")
+
+
 KIND = RigKind(
     teleop=_teleop,
+    plan_goals=_plan_goals,
     wall_contact="slide",
     turn_mm=_turn_mm,
     name="six-coil",
