@@ -79,7 +79,7 @@ from rigctl.emulators.coil_errors import (
     as_calibration,
     true_coils,
 )
-from rigctl.emulators.hall.board import HallBoardServer
+from rigctl.emulators.hall.board import HallBoardServer, SensorSpec
 from rigctl.emulators.kepco_bop.model import BopCoilModel
 from rigctl.emulators.kepco_bop.protocol import BopScpi
 from rigctl.emulators.server import Endpoint
@@ -171,9 +171,15 @@ class SixCoilBench(EmulatedBench):
     def __init__(self, template: RigConfig | None = None, *, host: str = "127.0.0.1",
                  mismatch: Mismatch | None = None, world: str = "rolling",
                  thermal_mismatch: float = 0.05,
-                 coil_errors: CoilErrors | None = None, truth: str | None = None) -> None:
+                 coil_errors: CoilErrors | None = None, truth: str | None = None,
+                 probe_noise_mT: float | None = None) -> None:
         if world not in ("rolling", "pair"):
             raise ValueError(f"unknown world {world!r}; use rolling or pair")
+        if probe_noise_mT is not None and not 0.0 <= probe_noise_mT < 50.0:
+            raise ConfigError(f"--probe-noise {probe_noise_mT:g}: an RMS noise in mT, 0 to 50")
+        # the Hall probe's sensors (an MLX90395's noise unless asked for another, in mT RMS)
+        self.probe_spec = SensorSpec() if probe_noise_mT is None else \
+            SensorSpec(noise_T=probe_noise_mT * 1e-3)
         super().__init__(host=host)
         # "rolling": the rolling magnets of seed 000; "pair": two interacting agents (seed 002,
         # emulators/world/pair.py), placed with {"cmd": "place", ..., "pair": {physics}}
@@ -237,7 +243,7 @@ class SixCoilBench(EmulatedBench):
         probe = self.probe = HallBoardServer(
             self.server, field_at=self._probe_field, now=self.clock.now,
             offsets_mm=probe_grid_mm(), rate_hz=PROBE_RATE_HZ, seed=self.coil_errors.seed + 1,
-            host=self.host, name="field probe")
+            spec=self.probe_spec, host=self.host, name="field probe")
         self.add_device("probe", probe.endpoint, skip=lambda r: probe.skip(int(r.get("n", 1))))
         return self.template.model_copy(
             update={"coils": coils, "camera": camera, "emulation": self._emulation_settings(),
@@ -265,7 +271,8 @@ class SixCoilBench(EmulatedBench):
                 mismatch.noise_mm < 0:
             raise ConfigError("--slip must be > 0; --speed-spread, --drift and --noise >= 0")
         return cls(host=args.host, mismatch=mismatch, world=args.world or "rolling",
-                   coil_errors=errors, truth=getattr(args, "truth", None))
+                   coil_errors=errors, truth=getattr(args, "truth", None),
+                   probe_noise_mT=getattr(args, "probe_noise", None))
 
     def served(self, rig: RigConfig) -> list[tuple[str, str]]:
         served = [(f"supply {coil.name}", str(coil.url)) for coil in rig.coils]
@@ -274,6 +281,7 @@ class SixCoilBench(EmulatedBench):
             what = f"Hall probe; coil errors {errors.size:.0%}, seed {errors.seed}"
             if self.truth is not None:
                 what = f"Hall probe; true field: {self.truth.name} ({self.truth_name})"
+            what += f"; noise {self.probe_spec.noise_T * 1e3:g} mT RMS"
             served.append(("probe", f"{rig.field_probe.url}  ({what})"))
         return served
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
 import time
@@ -24,34 +23,11 @@ from rigctl.core.config import load_rig
 from rigctl.core.record import read_events, read_series
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.emulators.process import EmulatedBenchProcess
+from tests.e2e.test_daemon_cli import DaemonProcess  # one way to start a daemon in its own process
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "plans" / "examples"
 SILENCE_S = 0.2  # the dead-man: the input stops when silent this long
 STOP_S = 0.25  # the figure: at zero within this of the stop
-
-
-class DaemonProcess:
-    def __init__(self, rig_path: Path, runs: Path, log_path: Path) -> None:
-        self.runs = runs
-        self.log = open(log_path, "w")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "rigctl", "daemon", "--rig", str(rig_path), "--runs",
-             str(runs), "--command", "tcp://127.0.0.1:0", "--telemetry", "tcp://127.0.0.1:0",
-             "--events", "tcp://127.0.0.1:0"],
-            stdout=subprocess.PIPE, stderr=self.log, text=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        for line in self.proc.stdout:  # readiness: the READY line
-            if line.startswith("READY "):
-                self.endpoints = dict(f.split("=", 1) for f in line[6:].split())
-                return
-        raise AssertionError(f"daemon did not start: {log_path.read_text()[-3000:]}")
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-        self.proc.stdout.close()
-        self.log.close()
 
 
 @pytest.fixture(scope="module")

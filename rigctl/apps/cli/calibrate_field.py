@@ -199,3 +199,5 @@ def add_coil_error_flags(p: argparse.ArgumentParser) -> None:
                    help="each coil's gain off by up to F, centre by up to F x its radius, axis by "
                    "up to F rad (default 0.05; 0: the coils are exactly as the rig file says)")
     g.add_argument("--coil-seed", type=int, metavar="N", help="seed of the coil errors (default 0)")
+    g.add_argument("--probe-noise", type=float, metavar="MT",
+                   help="the Hall probe's noise, RMS per axis in mT (default 0.003, an MLX90395's)")

@@ -24,7 +24,7 @@ _BENCH_FLAGS = {**dict.fromkeys(("--slip", "--speed-spread", "--drift", "--noise
                                  "--field-at-robots"), ("mismatch",)),
                 "--seed": ("seed", "mismatch"), "--world": ("world",), "--firmware": ("firmware",),
                 "--coil-error": ("coil_errors",), "--coil-seed": ("coil_errors",),
-                "--truth": ("truth",)}
+                "--truth": ("truth",), "--probe-noise": ("probe_noise_mT",)}
 
 
 def refuse_foreign(flags: list[str], table: dict, target, where: str) -> None:
