@@ -129,3 +129,23 @@ def test_out_of_range_numbers_are_a_protocol_error():
     board = HallBoard(ScriptedTransport([(None, HELLO), (None, bad)]))
     with pytest.raises(ProtocolError, match="hall board: bad sample line"):
         board.read()
+
+
+def test_rigctl_emulate_s_probe_noise_sets_the_bench_s_sensors_and_refuses_a_bad_value():
+    """`rigctl emulate six-coil --probe-noise MT`: the Hall probe's RMS noise per axis (mT) is the
+    sensors' (20,000 readings of no field spread by it); a negative one is refused in one line."""
+    import pytest
+
+    from rigctl.apps.cli.main import build_parser
+    from rigctl.core.errors import ConfigError
+    from rigctl.emulators.bench import SixCoilBench
+
+    args = build_parser().parse_args(["emulate", "six-coil", "--probe-noise", "0.05"])
+    spec = SixCoilBench.from_args(args).probe_spec
+    counts, _ = HallSensorModel(spec, seed=1).measure(np.zeros((20000, 3)))
+    assert np.std(counts * spec.lsb_T) == pytest.approx(5e-5, rel=0.02)
+    assert SixCoilBench.from_args(build_parser().parse_args(["emulate", "six-coil"])).probe_spec \
+        == SensorSpec()  # an MLX90395's own
+    with pytest.raises(ConfigError, match="--probe-noise"):
+        SixCoilBench.from_args(build_parser().parse_args(["emulate", "six-coil", "--probe-noise",
+                                                          "-1"]))
