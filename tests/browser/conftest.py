@@ -40,8 +40,13 @@ def browser():
                     "--disable-gpu", f"--window-size={width},{height}", "--hide-scrollbars"):
             options.add_argument(arg)
         driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
-        # the window's inner size is what the page must fit (headless has no browser chrome)
+        # the page's viewport is what it must fit: new headless Chromium keeps room for a browser
+        # frame it does not draw (a 1280 x 720 window showed a 1280 x 577 page), so the window
+        # is grown by what the viewport lacks
         driver.set_window_size(width, height)
+        inner = driver.execute_script("return [window.innerWidth, window.innerHeight];")
+        if inner != [width, height]:
+            driver.set_window_size(2 * width - inner[0], 2 * height - inner[1])
         drivers.append(driver)
         return driver
 
@@ -61,8 +66,9 @@ def screenshots(tmp_path_factory) -> Callable[[object, str], Path]:
         path = folder / f"{name}.png"
         size = driver.get_window_size()
         if full_page:
-            height = driver.execute_script("return document.documentElement.scrollHeight;")
-            driver.set_window_size(size["width"], height + 20)
+            height, inner = driver.execute_script(
+                "return [document.documentElement.scrollHeight, window.innerHeight];")
+            driver.set_window_size(size["width"], height + 20 + size["height"] - inner)
             driver.execute_script("return new Promise(r => requestAnimationFrame(() => r()));")
         driver.save_screenshot(str(path))
         if full_page:
