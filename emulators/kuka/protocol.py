@@ -196,7 +196,7 @@ class KstServer:
         if line.startswith("blue"):
             flange.blue_led = line.startswith("blueOn")
             return [ACK]
-        for pin in sorted(flange.outputs, key=lambda p: -len(str(p))):  # pin11 before pin1
+        for pin in flange.outputs:  # "pin1on" is no prefix of "pin11on": any order will do
             for state, on in (("on", True), ("off", False)):
                 if line.startswith(f"pin{pin}{state}"):
                     flange.outputs[pin] = on
@@ -204,7 +204,7 @@ class KstServer:
         raise ValueError("no such media flange output")
 
     def _flange_input(self, session: Session, line: str) -> list[str]:
-        for pin in sorted(self.media_flange.inputs, key=lambda p: -len(str(p))):
+        for pin in self.media_flange.inputs:
             if line.startswith(f"getPin{pin}"):
                 # MediaFlangeFunctions' stopCharacter is "\n" + (char)10: an empty line follows
                 return ["1" if self.media_flange.inputs[pin] else "0", ""]
