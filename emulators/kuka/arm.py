@@ -10,7 +10,9 @@ The servo watchdog's timeout is in real seconds (it guards the link, whatever th
 
 Backdoor (tests, `emulators/depm.py`): `endpoint.drop_link()` / `restore()` (connection loss),
 `stall(joint)` / `unstall()`, `place(q)` (put the joints somewhere, what an operator does by hand
-with the pendant), and `truth()`. Call them through `server.call` or from the loop thread.
+with the pendant), `set_flange_input(pin, high)` (what is wired to the media flange's X3 inputs),
+and `truth()` (joints, mode, and the media flange's LED and pins). Call them through
+`server.call` or from the loop thread.
 """
 
 from __future__ import annotations
@@ -94,12 +96,20 @@ class EmulatedArm:
         self.advance()
         self.model.unstall()
 
+    def set_flange_input(self, pin: int, high: bool) -> None:
+        inputs = self.kst.media_flange.inputs
+        if pin not in inputs:
+            raise ValueError(f"{self.name}: the media flange has no input pin {pin} "
+                             f"(inputs: {sorted(inputs)})")
+        inputs[pin] = bool(high)
+
     def truth(self) -> dict:
         self.advance()
         m = self.model
         return {"q": m.q.tolist(), "qd": m.qd.tolist(), "mode": m.mode,
                 "watchdog_tripped": m.watchdog_tripped, "stalled": sorted(m.stalled),
-                "connections": self.endpoint.connection_count}
+                "connections": self.endpoint.connection_count,
+                "media_flange": self.kst.media_flange.truth()}
 
     def close(self) -> None:
         self.endpoint.close()
