@@ -13,6 +13,7 @@ from rigctl.apps.testing import run_rigctl
 from rigctl.core.config import (
     CoilBoardSettings,
     CoilThermal,
+    Emulation,
     ExposurePoint,
     RigConfig,
     RigInfo,
@@ -121,12 +122,28 @@ def test_the_field_of_a_dipole_at_an_exposure_point_on_its_axis():
     assert not check.passed and check.margin < 0
 
 
+EMULATED = Emulation(backdoor="tcp://127.0.0.1:1")
+"""A dEPM rig file as `rigctl emulate depm` writes it: real arms are refused (the next test)."""
+
+
+def test_a_field_sequence_on_real_arms_is_refused_until_the_arm_model_is_corrected():
+    """rigctl's LBR iiwa chain turns A4 the opposite way from KUKA's (docs/depm.md): on real arms
+    the magnets would not be where the plan and its checks put them. Refused in one line."""
+    from rigctl.core.errors import ConfigError
+    from rigctl.emulators.depm import default_settings
+    from rigctl.rigs.depm.run import FieldSequenceProgram
+
+    plan = load_plan(EXAMPLES / "depm-plan.json")
+    with pytest.raises(ConfigError, match="refused on real arms: .* A4"):
+        FieldSequenceProgram(plan, DepmRig(rig=RigInfo(kind="depm"), depm=default_settings()))
+
+
 def test_the_depm_example_plan_is_certified_and_a_tighter_exposure_limit_refuses_it():
     from rigctl.emulators.depm import default_settings
     from rigctl.rigs.depm.run import FieldSequenceProgram
 
     plan = load_plan(EXAMPLES / "depm-plan.json")
-    rig = DepmRig(rig=RigInfo(kind="depm"), depm=default_settings())
+    rig = DepmRig(rig=RigInfo(kind="depm"), depm=default_settings(), emulation=EMULATED)
     checks = FieldSequenceProgram(plan, rig).checks()
     assert all(c.passed for c in checks)
     kinds = {c.check for c in checks}
@@ -168,8 +185,8 @@ def test_each_arm_s_link_is_checked_against_the_servo_period():
     from rigctl.rigs.depm.run import FieldSequenceProgram
 
     plan = load_plan(EXAMPLES / "depm-plan.json")
-    rig = DepmRig(rig=RigInfo(kind="depm"), depm=default_settings(),
-                    preflight=PreflightSettings(kst_round_trip_ms=6.0))
+    rig = DepmRig(rig=RigInfo(kind="depm"), depm=default_settings(), emulation=EMULATED,
+                  preflight=PreflightSettings(kst_round_trip_ms=6.0))
     links = [c for c in FieldSequenceProgram(plan, rig).checks() if c.check == "link time per cycle"]
     assert [c.subject for c in links] == ["arm left (KST servo target and answer)",
                                           "arm right (KST servo target and answer)"]

@@ -123,6 +123,14 @@ def check_plan_against_rig(plan, rig: RigConfig, arms: list[ArmKinematics]) -> N
                           f"{d.tool_offset_mm}: re-plan for this rig")
 
 
+REAL_ARMS_REFUSED = (
+    "refused on real arms: rigctl's LBR iiwa model (rigctl.physics.kinematics) turns joint A4 the "
+    "opposite way from KUKA's own chain, so the magnets would not be where the plan and its safety "
+    "checks put them (docs/depm.md, 'Before a real arm'); emulated benches are not affected")
+"""Until the arm model is corrected and checked against a real robot's `Eef_pos`: found by the
+audit of the KST server (docs/kuka-sunrise.md), which computes `Eef_pos` with KUKA's chain."""
+
+
 def stream_rates(servo_rate_hz: float, time_scale: float) -> tuple[float, float]:
     """(targets per plan second, cycles per real second). A faster-than-real emulated bench gets
     the same number of targets per real second, at most MAX_REAL_RATE_HZ: the robot interpolates
@@ -205,6 +213,8 @@ class FieldSequenceProgram(RequestedControl):
             raise ConfigError("--time-scale must be positive")
         if time_scale != 1.0 and not rig.emulated:
             raise ConfigError("--time-scale is for emulated benches only; a real rig runs at 1")
+        if not rig.emulated:
+            raise ConfigError(REAL_ARMS_REFUSED)
         d = rig.depm
         depm_rig = rig_from_settings(d)
         self.arms, self.limits = depm_rig.arms, depm_rig.limits

@@ -43,9 +43,12 @@ class JogDrive(TeleopDrive):
         from rigctl.plans.depm import rig_from_settings
         from rigctl.rigs.depm.actuators import ArmPair
         from rigctl.rigs.depm.motion import caps
+        from rigctl.rigs.depm.run import REAL_ARMS_REFUSED
 
         if rig.depm is None:
             raise ConfigError("a depm rig needs a [depm] table (arms, Hall board)")
+        if not rig.emulated:  # a jog's direction and its checks come from the arm model
+            raise ConfigError(REAL_ARMS_REFUSED)
         depm = rig_from_settings(rig.depm)
         self.arms, self.limits = depm.arms, depm.limits
         self.speed, self.accel = caps(self.arms, self.limits)  # (A, 7) rad/s, rad/s^2
