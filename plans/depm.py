@@ -27,6 +27,7 @@ time. Figures and the reading of the paper: docs/depm.md.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import logging
@@ -41,14 +42,16 @@ from numpy.typing import ArrayLike
 from scipy.interpolate import PchipInterpolator
 
 from rigctl.core.errors import PlanError
+from rigctl.core.jit import njit
 from rigctl.physics.kinematics import (
     DEFAULT_BASES,
     LBR_IIWA_14_R820,
     ArmKinematics,
     ArmModel,
     base_transform,
+    cholesky_solve,
 )
-from rigctl.physics.magnetics import actuation_matrix, cylinder_moment, field_vector
+from rigctl.physics.magnetics import MU0, actuation_matrix, cylinder_moment, field_vector
 from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
 from rigctl.plans.schema import (
     SCHEMA_ID,
@@ -309,49 +312,6 @@ def _im_seeds(rig: DepmRig) -> list[np.ndarray]:
     return seeds
 
 
-@dataclass(frozen=True)
-class _Fit:
-    x: np.ndarray
-    cost: float
-
-
-def levenberg_marquardt(
-    fun, jac, x0: np.ndarray, *, max_iterations: int = 200, tolerance: float = 1e-12,
-) -> _Fit:
-    """Minimise |fun(x)|^2 by Levenberg-Marquardt (Marquardt's diagonal scaling).
-
-    Our own rather than scipy's MINPACK: its results can differ in the last bits with the memory
-    layout of the Jacobian, and from a far start that picks a different solution from run to run.
-    Stops when a step improves the cost by less than `tolerance` relative or moves x by < 1e-13.
-    """
-    x = np.asarray(x0, dtype=float).copy()
-    r = fun(x)
-    cost = float(r @ r)
-    damping = 1e-3
-    floor = 1e-12 * np.eye(len(x))
-    for _ in range(max_iterations):
-        J = jac(x)
-        normal = J.T @ J
-        gradient = J.T @ r
-        scale = np.diag(np.diag(normal)) + floor
-        while True:
-            step = np.linalg.solve(normal + damping * scale, -gradient)
-            trial = x + step
-            r_trial = fun(trial)
-            cost_trial = float(r_trial @ r_trial)
-            if cost_trial < cost:
-                break
-            damping *= 4.0
-            if damping > 1e12:
-                return _Fit(x, cost)
-        improvement = cost - cost_trial
-        x, r, cost = trial, r_trial, cost_trial
-        damping = max(damping / 3.0, 1e-12)
-        if improvement <= tolerance * cost or np.max(np.abs(step)) < 1e-13 or cost < 1e-30:
-            break
-    return _Fit(x, cost)
-
-
 def moments_for(U_target: np.ndarray, positions: np.ndarray, rig: DepmRig,
                 previous: np.ndarray | None = None, refine: bool = True) -> np.ndarray:
     """Unit moment directions (A, 3) at fixed EPM positions (A, 3) for a desired U (8,) in SI.
@@ -373,49 +333,252 @@ def moments_for(U_target: np.ndarray, positions: np.ndarray, rig: DepmRig,
     directions = np.round(directions, 9)  # LAPACK's last bits must not steer what follows
     if not refine:
         return directions
-    pull = 0.3  # turning a magnet right round costs like 0.6 mT of error: the path does not flip
-    count = len(positions)
+    pull = 0.3 if previous is not None else 0.0  # turning a magnet right round costs like
+    # 0.6 mT of error: the path does not flip (without `previous` its rows are zeros)
     target = U_target * weights
-
-    def parts(x):
-        dirs = x.reshape(count, 3)
-        norms = _norm3(dirs)
-        unit = dirs / norms[:, None]
-        # d unit / d dirs = (I - u u^T) / |dirs|, per magnet
-        d_unit = (np.eye(3)[None] - unit[:, :, None] * unit[:, None, :]) / norms[:, None, None]
-        return norms, unit, d_unit
-
-    def residual(x):
-        norms, unit, _ = parts(x)
-        res = [_matvec(Aw, (unit * rig.moment_Am2).reshape(-1)) - target, norms - 1.0]
-        if previous is not None:
-            res.append(pull * (unit - previous).reshape(-1))
-        return np.concatenate(res)
-
-    def jacobian(x):
-        norms, unit, d_unit = parts(x)
-        blocks = np.zeros((3 * count, 3 * count))
-        for a in range(count):
-            blocks[3 * a: 3 * a + 3, 3 * a: 3 * a + 3] = d_unit[a]
-        rows = [rig.moment_Am2 * Aw @ blocks]
-        norm_rows = np.zeros((count, 3 * count))
-        for a in range(count):
-            norm_rows[a, 3 * a: 3 * a + 3] = unit[a]
-        rows.append(norm_rows)
-        if previous is not None:
-            rows.append(pull * blocks)
-        return np.vstack(rows)
-
+    toward = np.zeros_like(directions) if previous is None else np.asarray(previous, dtype=float)
+    args = (np.ascontiguousarray(Aw), target, float(rig.moment_Am2), toward.reshape(-1), pull)
     start = directions
     if previous is not None:
         # Refine from whichever is better already: the pseudo-inverse directions or the previous
         # waypoint's (the latter keeps the path from flipping when the two are close in cost).
-        from_pinv, from_previous = residual(directions.reshape(-1)), residual(previous.reshape(-1))
-        if from_previous @ from_previous <= from_pinv @ from_pinv:
+        if _direction_cost(*args, toward.reshape(-1)) <= _direction_cost(*args,
+                                                                        directions.reshape(-1)):
             start = previous
-    fit = levenberg_marquardt(residual, jacobian, start.reshape(-1), max_iterations=60,
-                              tolerance=1e-8)
-    return np.round(_unit_rows(fit.x.reshape(-1, 3)), 12)  # run-to-run identical (see above)
+    x = _direction_fit(*args, np.array(start, dtype=float).reshape(-1), 60, 1e-8)
+    return np.round(_unit_rows(x.reshape(-1, 3)), 12)  # run-to-run identical (see above)
+
+
+# The refinement of `moments_for`, compiled (the planner solves it at every waypoint of every
+# alternative path). Unknowns x (3A,): each magnet's direction, unnormalised; residuals: the
+# weighted U error Aw (|m| x / |x|) - target (8), |x_a| - 1 per magnet, and pull (x_a / |x_a| -
+# previous_a) per magnet (zeros when pull is 0).
+
+
+@njit(error_model="numpy")
+def _direction_residuals(Aw, target, moment, previous, pull, x, r, jac):  # pragma: no cover
+    """Residuals into r (8 + 4A,) and, with `jac` of 8 + 4A rows, their Jacobian (8 + 4A, 3A)."""
+    n = x.shape[0]
+    count = n // 3
+    unit = np.empty(n)
+    d_unit = np.empty((3, 3))
+    for a in range(count):
+        o = 3 * a
+        norm = np.sqrt(x[o] * x[o] + x[o + 1] * x[o + 1] + x[o + 2] * x[o + 2])
+        for i in range(3):
+            unit[o + i] = x[o + i] / norm
+        r[8 + a] = norm - 1.0
+        for i in range(3):
+            r[8 + count + o + i] = pull * (unit[o + i] - previous[o + i])
+        if jac.shape[0] == 0:
+            continue
+        for i in range(3):  # d unit_i / d x_j = (delta_ij - u_i u_j) / |x|
+            for j in range(3):
+                d_unit[i, j] = ((1.0 if i == j else 0.0) - unit[o + i] * unit[o + j]) / norm
+        for j in range(3):
+            jac[8 + a, o + j] = unit[o + j]
+            for i in range(3):
+                jac[8 + count + o + i, o + j] = pull * d_unit[i, j]
+            for k in range(8):
+                total = 0.0
+                for i in range(3):
+                    total += Aw[k, o + i] * d_unit[i, j]
+                jac[k, o + j] = moment * total
+    for k in range(8):
+        total = 0.0
+        for j in range(n):
+            total += Aw[k, j] * (unit[j] * moment)
+        r[k] = total - target[k]
+
+
+@njit(error_model="numpy")
+def _direction_cost(Aw, target, moment, previous, pull, x):  # pragma: no cover - compiled
+    """|residuals|^2 of directions x (3A,)."""
+    r = np.empty(8 + 4 * (x.shape[0] // 3))
+    _direction_residuals(Aw, target, moment, previous, pull, x, r, np.empty((0, 0)))
+    return np.sum(r * r)
+
+
+@njit(error_model="numpy")
+def _normal_equations(jac, r, normal, gradient):  # pragma: no cover - compiled
+    """J^T J into normal (n, n) and J^T r into gradient (n,) for J (m, n), r (m,)."""
+    rows, n = jac.shape
+    for i in range(n):
+        total = 0.0
+        for k in range(rows):
+            total += jac[k, i] * r[k]
+        gradient[i] = total
+        for j in range(i + 1):
+            total = 0.0
+            for k in range(rows):
+                total += jac[k, i] * jac[k, j]
+            normal[i, j] = normal[j, i] = total
+
+
+@njit(error_model="numpy")
+def _damped_step(normal, gradient, damping):  # pragma: no cover - compiled
+    """The Levenberg-Marquardt step with Marquardt's scaling: (N + damping (diag N + 1e-12)) s =
+    -g."""
+    system = normal.copy()
+    for i in range(gradient.shape[0]):
+        system[i, i] += damping * (normal[i, i] + 1e-12)
+    return cholesky_solve(system, -gradient)
+
+
+@njit(error_model="numpy")
+def _direction_fit(Aw, target, moment, previous, pull, x0, max_iterations,
+                   tolerance):  # pragma: no cover - compiled
+    """Levenberg-Marquardt (Marquardt's diagonal scaling) from x0 (3A,): the fitted x (3A,).
+
+    Our own rather than scipy's MINPACK: its results can differ in the last bits with the memory
+    layout of the Jacobian, and from a far start that picks a different solution from run to run.
+    Stops when a step improves the cost by less than `tolerance` relative or moves x by < 1e-13.
+    """
+    n = x0.shape[0]
+    rows = 8 + 4 * (n // 3)
+    empty = np.empty((0, 0))
+    x = x0.copy()
+    r, r_trial = np.empty(rows), np.empty(rows)
+    jac = np.zeros((rows, n))
+    normal, gradient = np.empty((n, n)), np.empty(n)
+    _direction_residuals(Aw, target, moment, previous, pull, x, r, empty)
+    cost = np.sum(r * r)
+    damping = 1e-3
+    for _ in range(max_iterations):
+        _direction_residuals(Aw, target, moment, previous, pull, x, r, jac)
+        _normal_equations(jac, r, normal, gradient)
+        while True:
+            step = _damped_step(normal, gradient, damping)
+            trial = x + step
+            _direction_residuals(Aw, target, moment, previous, pull, trial, r_trial, empty)
+            cost_trial = np.sum(r_trial * r_trial)
+            if cost_trial < cost:
+                break
+            damping *= 4.0
+            if damping > 1e12:
+                return x
+        improvement = cost - cost_trial
+        x, cost = trial, cost_trial
+        damping = max(damping / 3.0, 1e-12)
+        if improvement <= tolerance * cost or np.max(np.abs(step)) < 1e-13 or cost < 1e-30:
+            break
+    return x
+
+
+# Inverse magnetics, compiled: unknowns x (6A,) = the EPM centres (A, 3) then their moment
+# directions, unnormalised (A, 3); residuals (8 + 4A + A(A-1)/2,): the weighted U error, the
+# one-sided penalties of `_pose_penalties` (in its order) times PENALTY_WEIGHT, |direction| - 1.
+
+PENALTY_WEIGHT = 1e3  # 1 mm of constraint violation weighs like 1 mT of field error
+FD_STEP = 1e-7  # forward-difference step of the Jacobian (m; unitless for directions)
+
+
+@njit(error_model="numpy")
+def _dipoles_U(centre, positions, moments, U):  # pragma: no cover - compiled
+    """U (8,) in T and T/m at `centre` (3,) of dipoles (A, 3) with moments (A, 3): the sums of
+    `rigctl.physics.magnetics._dipole_kernel`, term by term, magnets added in order."""
+    c = MU0 / (4.0 * np.pi)
+    U[:] = 0.0
+    for a in range(positions.shape[0]):
+        x, y, z = centre[0] - positions[a, 0], centre[1] - positions[a, 1], centre[2] - positions[a, 2]
+        mx, my, mz = moments[a, 0], moments[a, 1], moments[a, 2]
+        r2 = x * x + y * y + z * z
+        inv_r2 = 1.0 / r2 if r2 > 0 else np.nan
+        inv_r = np.sqrt(inv_r2)
+        inv_r3 = inv_r * inv_r2
+        inv_r5 = inv_r3 * inv_r2
+        m_dot = mx * x + my * y + mz * z
+        rel, mom = (x, y, z), (mx, my, mz)
+        for i in range(3):
+            U[i] += c * (3.0 * m_dot * rel[i] * inv_r5 - mom[i] * inv_r3)
+        g = 3.0 * c * inv_r5
+        for k in range(5):  # the terms of GRADIENT_TERMS: (0, 0), (0, 1), (0, 2), (1, 1), (1, 2)
+            i, j = (0, 0, 0, 1, 1)[k], (0, 1, 2, 1, 2)[k]
+            value = rel[i] * mom[j] + mom[i] * rel[j] - 5.0 * m_dot * rel[i] * rel[j] * inv_r2
+            if i == j:
+                value = value + m_dot
+            U[3 + k] += g * value
+
+
+@njit(error_model="numpy")
+def _pose_residuals(centre, target, weights, moment, sides, keep_out_m, reach_m, side_margin_m,
+                    min_gap_m, x, r):  # pragma: no cover - compiled
+    """The residuals of inverse magnetics at x (6A,) into r."""
+    count = sides.shape[0]
+    positions = x[: 3 * count].reshape((count, 3))
+    dirs = x[3 * count:].reshape((count, 3))
+    moments = np.empty((count, 3))
+    penalties = 8
+    norms_at = 8 + 3 * count + count * (count - 1) // 2
+    for a in range(count):
+        norm = np.sqrt(dirs[a, 0] * dirs[a, 0] + dirs[a, 1] * dirs[a, 1] + dirs[a, 2] * dirs[a, 2])
+        for k in range(3):
+            moments[a, k] = dirs[a, k] / norm * moment
+        r[norms_at + a] = norm - 1.0
+        rx, ry, rz = (positions[a, 0] - centre[0], positions[a, 1] - centre[1],
+                      positions[a, 2] - centre[2])
+        distance = np.sqrt(rx * rx + ry * ry + rz * rz)
+        along = rx * sides[a, 0] + ry * sides[a, 1] + rz * sides[a, 2]
+        r[penalties + a] = PENALTY_WEIGHT * max(0.0, keep_out_m - distance)
+        r[penalties + count + a] = PENALTY_WEIGHT * max(0.0, distance - reach_m)
+        r[penalties + 2 * count + a] = PENALTY_WEIGHT * max(0.0, side_margin_m - along)
+    pair = penalties + 3 * count
+    for a in range(count):
+        for b in range(a + 1, count):
+            dx, dy, dz = (positions[a, 0] - positions[b, 0], positions[a, 1] - positions[b, 1],
+                          positions[a, 2] - positions[b, 2])
+            gap = np.sqrt(dx * dx + dy * dy + dz * dz)
+            r[pair] = PENALTY_WEIGHT * max(0.0, min_gap_m - gap)
+            pair += 1
+    U = np.empty(8)
+    _dipoles_U(centre, positions, moments, U)
+    for k in range(8):
+        r[k] = (U[k] - target[k]) * weights[k]
+
+
+@njit(error_model="numpy")
+def _pose_fit(centre, target, weights, moment, sides, keep_out_m, reach_m, side_margin_m,
+              min_gap_m, x0, max_iterations, tolerance):  # pragma: no cover - compiled
+    """Levenberg-Marquardt (Marquardt's diagonal scaling) of inverse magnetics from x0 (6A,), on
+    a forward-difference Jacobian: the fitted x. Stops when a step improves the cost by less than
+    `tolerance` relative or moves x by < 1e-13 (the loop of `_direction_fit`)."""
+    n = x0.shape[0]
+    count = sides.shape[0]
+    rows = 8 + 4 * count + count * (count - 1) // 2
+    x = x0.copy()
+    r, r_trial, r_step = np.empty(rows), np.empty(rows), np.empty(rows)
+    jac = np.empty((rows, n))
+    normal, gradient = np.empty((n, n)), np.empty(n)
+    problem = (centre, target, weights, moment, sides, keep_out_m, reach_m, side_margin_m,
+               min_gap_m)
+    _pose_residuals(*problem, x, r)
+    cost = np.sum(r * r)
+    damping = 1e-3
+    for _ in range(max_iterations):
+        for j in range(n):
+            shifted = x.copy()
+            shifted[j] = x[j] + FD_STEP
+            _pose_residuals(*problem, shifted, r_step)
+            for i in range(rows):
+                jac[i, j] = (r_step[i] - r[i]) / FD_STEP
+        _normal_equations(jac, r, normal, gradient)
+        while True:
+            step = _damped_step(normal, gradient, damping)
+            trial = x + step
+            _pose_residuals(*problem, trial, r_trial)
+            cost_trial = np.sum(r_trial * r_trial)
+            if cost_trial < cost:
+                break
+            damping *= 4.0
+            if damping > 1e12:
+                return x
+        improvement = cost - cost_trial
+        x, cost = trial, cost_trial
+        r, r_trial = r_trial, r
+        damping = max(damping / 3.0, 1e-12)
+        if improvement <= tolerance * cost or np.max(np.abs(step)) < 1e-13 or cost < 1e-30:
+            break
+    return x
 
 
 def inverse_magnetics(U_target: ArrayLike, rig: DepmRig, **options) -> list[EpmPoses]:
@@ -439,38 +602,18 @@ def inverse_magnetics_solutions(
     Unknowns: each EPM's centre and moment direction (|m| fixed to `rig.moment_Am2`); residuals:
     the weighted U error plus one-sided penalties that keep every EPM outside the keep-out sphere
     (with its radius and a margin), within reach (<= MAX_DISTANCE_M), on its own arm's side, and
-    the EPMs apart. Solved by Levenberg-Marquardt (`levenberg_marquardt`) from the current poses and
+    the EPMs apart. Solved by Levenberg-Marquardt (`_pose_fit`) from the current poses and
     from structured starting poses, directions from eq. 21. Yields every distinct solution that
     meets all constraints and makes U within `tolerance` (relative to the largest requested entry
     of its kind), the current poses' neighbourhood first; the caller takes the first the arms
     reach, so later starts are only tried when needed.
     """
     target = np.asarray(U_target, dtype=float)
-    weights = 1.0 / U_SCALE_SI
     count = len(rig.arms)
-    penalty_weight = 1e3  # 1 mm of constraint violation weighs like 1 mT of field error
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        """Residual vectors for parameter rows x (B, 6A) -> (B, R), all in one numpy pass."""
-        positions = x[:, : 3 * count].reshape(-1, count, 3)
-        dirs = x[:, 3 * count:].reshape(-1, count, 3)
-        norms = _norm3(dirs)
-        moments = dirs / norms[..., None] * rig.moment_Am2
-        U = field_vector(np.broadcast_to(rig.centre, (len(x), 3)), positions, moments)
-        return np.concatenate([
-            (U - target) * weights,
-            penalty_weight * _pose_penalties(positions, rig),
-            norms - 1.0,
-        ], axis=-1)
-
-    step = 1e-7
-
-    def fun(x):
-        return residuals(x[None, :])[0]
-
-    def jac(x):
-        rows = residuals(np.vstack([x, x + step * np.eye(len(x))]))
-        return ((rows[1:] - rows[0]) / step).T
+    limits = rig.limits
+    problem = (np.asarray(rig.centre, dtype=float), target, 1.0 / U_SCALE_SI, float(rig.moment_Am2),
+               np.array([rig.side(a) for a in range(count)]), limits.epm_keep_out_m + IM_MARGIN_M,
+               MAX_DISTANCE_M, SIDE_MARGIN_M, limits.epm_min_distance_m + IM_MARGIN_M)
 
     def starts():  # lazily: most sequences need only the first one or two
         if start_positions is not None:
@@ -483,7 +626,7 @@ def inverse_magnetics_solutions(
     found: list[EpmPoses] = []
     for positions, dirs in itertools.islice(starts(), max_starts):
         x0 = np.round(np.concatenate([positions.reshape(-1), dirs.reshape(-1)]), 10)
-        x = levenberg_marquardt(fun, jac, x0, max_iterations=150).x
+        x = _pose_fit(*problem, x0, 150, 1e-12)
         positions = np.round(x[: 3 * count].reshape(count, 3), 10)
         unit = np.round(_unit_rows(x[3 * count:].reshape(count, 3)), 12)
         if np.any(_pose_penalties(positions, rig) > 1e-9):
@@ -604,6 +747,23 @@ def home_joints(rig: DepmRig) -> np.ndarray:
         arm.solve_or_raise(positions[a], directions[a], seed, keep_out=_keep_out(rig))
         for a, arm in enumerate(rig.arms)
     ])
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's cache) the planner's kernels (inverse kinematics, the moment
+    refinement, inverse magnetics) if this process has not yet; returns the seconds it took. The
+    first plan of a process would otherwise pay it in its first transition (compiling: ~15 s of
+    CPU, once per installation; loading: well under a second)."""
+    started = time.perf_counter()
+    _load_kernels()
+    return time.perf_counter() - started
+
+
+@functools.cache
+def _load_kernels() -> None:
+    rig = default_rig()
+    home_joints(rig)  # inverse kinematics and the moment refinement
+    next(inverse_magnetics_solutions(np.array([1e-3] + [0.0] * 7), rig, max_starts=1), None)
 
 
 def _reachable_ends(
