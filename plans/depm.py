@@ -873,7 +873,8 @@ def _hybrid_transition(
             if min(gaps) < min_gap:
                 continue
             dirs = moments_for(desired[n], positions, rig, previous=previous_dirs)
-            U = field_vector(rig.centre, positions, dirs * rig.moment_Am2)
+            U = np.empty(8)  # field_vector's numbers to the last bit, without its overhead
+            _dipoles_U(rig.centre, positions, dirs * rig.moment_Am2, U)
             # Eq. 22, plus (ours) a small cost for hopping between alternatives, so consecutive
             # waypoints do not jump radially for a negligible magnetic gain.
             hop = float(np.sum(np.linalg.norm(positions - previous_positions, axis=1)))
