@@ -50,6 +50,7 @@ from rigctl.physics.kinematics import (
     ArmModel,
     base_transform,
     cholesky_solve,
+    frames_kernel,
 )
 from rigctl.physics.magnetics import MU0, actuation_matrix, cylinder_moment, field_vector
 from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
@@ -751,9 +752,9 @@ def home_joints(rig: DepmRig) -> np.ndarray:
 
 def warm_up() -> float:
     """Compile (or load from numba's cache) the planner's kernels (inverse kinematics, the moment
-    refinement, inverse magnetics) if this process has not yet; returns the seconds it took. The
-    first plan of a process would otherwise pay it in its first transition (compiling: ~15 s of
-    CPU, once per installation; loading: well under a second)."""
+    refinement, inverse magnetics, the transitions' breach check) if this process has not yet;
+    returns the seconds it took. The first plan of a process would otherwise pay it in its first
+    transition (compiling: ~15 s of CPU, once per installation; loading: well under a second)."""
     started = time.perf_counter()
     _load_kernels()
     return time.perf_counter() - started
@@ -762,7 +763,8 @@ def warm_up() -> float:
 @functools.cache
 def _load_kernels() -> None:
     rig = default_rig()
-    home_joints(rig)  # inverse kinematics and the moment refinement
+    home = home_joints(rig)  # inverse kinematics and the moment refinement
+    _first_breach(rig, np.stack([home, home], axis=1), np.array([1.0]))
     next(inverse_magnetics_solutions(np.array([1e-3] + [0.0] * 7), rig, max_starts=1), None)
 
 
@@ -1006,15 +1008,71 @@ MAX_REPAIRS = 16
 
 def _first_breach(rig: DepmRig, q: np.ndarray, h: np.ndarray) -> float | None:
     """The first time (s from the transition's start) its curves come closer than CHECK_MARGIN_M
-    to a positional constraint, or None."""
-    from dataclasses import replace
-
-    limits = replace(rig.limits, keep_out_radius_m=rig.limits.keep_out_radius_m + CHECK_MARGIN_M,
-                     epm_min_distance_m=rig.limits.epm_min_distance_m + CHECK_MARGIN_M)
+    to a positional constraint or leave a joint range, or None: `violations`' tests of those
+    (its earliest breach), compiled (`_first_breach_index`), as repairing a transition runs it
+    again and again; `plan_violations` still checks the whole plan at the end."""
+    limits = rig.limits
     times, curves = _padded_curves(q, h)
-    t = np.union1d(np.arange(0.0, times[-1], rig.limits.check_step_s / 4.0), times)
-    found = violations(t, np.array([curve(t) for curve in curves]), None, rig.arms, limits)
-    return found[0].time_s if found else None
+    t = np.union1d(np.arange(0.0, times[-1], limits.check_step_s / 4.0), times)
+    arms = rig.arms
+    index = _first_breach_index(
+        np.ascontiguousarray([curve(t) for curve in curves]), np.array([arm.base for arm in arms]),
+        np.array([arm._dh_table for arm in arms]), np.array([arm.model.tool_offset_m for arm in arms]),
+        np.array([arm.model.lower_rad for arm in arms]), np.array([arm.model.upper_rad for arm in arms]),
+        np.array([arm._capsule_links for arm in arms]), np.array([arm._capsule_radii for arm in arms]),
+        np.asarray(limits.centre_m, dtype=float), limits.keep_out_radius_m + CHECK_MARGIN_M,
+        limits.epm_radius_m, limits.epm_min_distance_m + CHECK_MARGIN_M)
+    return None if index < 0 else float(t[index])
+
+
+@njit(error_model="numpy")
+def _first_breach_index(q, bases, dh, tool_offsets, lower, upper, links, radii, centre, keep_out_m,
+                        epm_radius_m, min_gap_m):  # pragma: no cover - compiled
+    """The first sample of q (A, T, 7) where an EPM's bounding sphere or a link capsule is
+    inside the keep-out sphere, a joint is out of its range (1e-9 rad slack) or two EPMs are
+    closer than min_gap_m (the tests of `rigctl.plans.depm_safety.violations`), or -1."""
+    count, samples = q.shape[0], q.shape[1]
+    frames = np.empty((9, 4, 4))
+    epms = np.empty((count, 3))
+    for s in range(samples):
+        for a in range(count):
+            for j in range(7):
+                if q[a, s, j] < lower[a, j] - 1e-9 or q[a, s, j] > upper[a, j] + 1e-9:
+                    return s
+            frames_kernel(bases[a], dh[a], tool_offsets[a], q[a, s], frames)
+            for k in range(3):
+                epms[a, k] = frames[8, k, 3]
+            dx, dy, dz = epms[a, 0] - centre[0], epms[a, 1] - centre[1], epms[a, 2] - centre[2]
+            if np.sqrt(dx * dx + dy * dy + dz * dz) - epm_radius_m < keep_out_m:
+                return s
+            for link in range(links.shape[1]):
+                if _segment_clearance(frames, links[a, link, 0], links[a, link, 1],
+                                      centre) - radii[a, link] < keep_out_m:
+                    return s
+        for a in range(count):
+            for b in range(a + 1, count):
+                dx, dy, dz = epms[a, 0] - epms[b, 0], epms[a, 1] - epms[b, 1], epms[a, 2] - epms[b, 2]
+                if np.sqrt(dx * dx + dy * dy + dz * dz) < min_gap_m:
+                    return s
+    return -1
+
+
+@njit(error_model="numpy")
+def _segment_clearance(frames, first, second, centre):  # pragma: no cover - compiled
+    """Distance from `centre` to the segment between two frame origins (as
+    `depm_safety.segment_point_distance`)."""
+    ab, ac = np.empty(3), np.empty(3)
+    for k in range(3):
+        ab[k] = frames[second, k, 3] - frames[first, k, 3]
+        ac[k] = centre[k] - frames[first, k, 3]
+    length2 = ab[0] * ab[0] + ab[1] * ab[1] + ab[2] * ab[2]
+    t = (ac[0] * ab[0] + ac[1] * ab[1] + ac[2] * ab[2]) / length2 if length2 > 0 else 0.0
+    t = min(max(t, 0.0), 1.0)
+    total = 0.0
+    for k in range(3):
+        gap = frames[first, k, 3] + t * ab[k] - centre[k]
+        total += gap * gap
+    return np.sqrt(total)
 
 
 LIFTS_M = (0.0, 0.05, 0.10, 0.15)

@@ -316,7 +316,7 @@ _IK_SYMMETRY_BREAK = (1.0, 0.0, -1.0, 0.0, 1.0, 0.0, -1.0)
 
 
 @njit(error_model="numpy")
-def _ik_frames(base, dh, tool_offset, q, frames):  # pragma: no cover - compiled
+def frames_kernel(base, dh, tool_offset, q, frames):  # pragma: no cover - compiled
     """`ArmKinematics._frames_one` into `frames` (9, 4, 4)."""
     frames[0] = base
     for i in range(N_JOINTS):
@@ -338,7 +338,7 @@ def _ik_evaluate(q, weight, anchor, base, dh, tool_offset, target, direction, ko
                  ko_radius, links, radii, frames, jo, jtj, jtr):  # pragma: no cover - compiled
     """Normal equations of the IK residuals at q into jtj (7, 7) and jtr (7,); returns the cost
     |r|^2 and the norms of the position and (scaled) direction residuals."""
-    _ik_frames(base, dh, tool_offset, q, frames)
+    frames_kernel(base, dh, tool_offset, q, frames)
     _ik_origin_jacobians(frames, jo)
     jtj[:, :] = 0.0
     jtr[:] = 0.0
@@ -462,7 +462,7 @@ def cholesky_solve(matrix, rhs):  # pragma: no cover - compiled
 def _ik_errors(base, dh, tool_offset, q, target, direction):  # pragma: no cover - compiled
     """The EPM's position error (m) and moment direction error (rad) at joints q (7,)."""
     frames = np.empty((9, 4, 4))
-    _ik_frames(base, dh, tool_offset, q, frames)
+    frames_kernel(base, dh, tool_offset, q, frames)
     position_sq, cosine = 0.0, 0.0
     for k in range(3):
         position_sq += (frames[8, k, 3] - target[k]) ** 2
