@@ -52,7 +52,7 @@ from rigctl.physics.kinematics import (
     cholesky_solve,
     frames_kernel,
 )
-from rigctl.physics.magnetics import MU0, actuation_matrix, cylinder_moment, field_vector
+from rigctl.physics.magnetics import MU0, cylinder_moment, field_vector
 from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
 from rigctl.plans.schema import (
     SCHEMA_ID,
@@ -323,7 +323,11 @@ def moments_for(U_target: np.ndarray, positions: np.ndarray, rig: DepmRig,
     U_SCALE_SI), with a pull toward `previous` directions so the path does not flip; the
     refinement starts from the pseudo-inverse directions and from `previous`, the better kept.
     """
-    A = actuation_matrix(rig.centre, positions)  # (8, 3A)
+    positions = np.ascontiguousarray(positions, dtype=float)
+    rel = rig.centre - positions
+    r = np.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2 + rel[:, 2] ** 2)
+    A = np.empty((8, 3 * len(positions)))  # actuation_matrix's numbers, without its overhead
+    _actuation_matrix(rig.centre, positions, r ** 3, r ** 4, A)  # numpy's powers (see there)
     weights = 1.0 / U_SCALE_SI
     Aw = A * weights[:, None]
     moments = np.linalg.lstsq(Aw, U_target * weights, rcond=None)[0].reshape(-1, 3)
@@ -499,6 +503,30 @@ def _dipoles_U(centre, positions, moments, U):  # pragma: no cover - compiled
             if i == j:
                 value = value + m_dot
             U[3 + k] += g * value
+
+
+@njit(error_model="numpy")
+def _actuation_matrix(point, centres, r3, r4, A):  # pragma: no cover - compiled
+    """[L; M] (8, 3A) at `point` (3,) for magnets at `centres` (A, 3) into A:
+    `rigctl.physics.magnetics.actuation_matrix`, operation for operation, to the last bit. The
+    distances' cubes and fourth powers r3, r4 (A,) come from numpy: its `**` is its own SIMD
+    power, which neither libm's pow nor products match in the last bit."""
+    c_field = MU0 / (4.0 * np.pi)
+    for k in range(centres.shape[0]):
+        x, y, z = point[0] - centres[k, 0], point[1] - centres[k, 1], point[2] - centres[k, 2]
+        r = np.sqrt(x ** 2 + y ** 2 + z ** 2)
+        r_hat = (x / r, y / r, z / r)
+        c = 3.0 * MU0 / (4.0 * np.pi) / r4[k]
+        for i in range(3):
+            for j in range(3):
+                A[i, 3 * k + j] = c_field * (3.0 * (r_hat[i] * r_hat[j]) - (1.0 if i == j else 0.0)) / r3[k]
+        for row in range(5):  # the terms of GRADIENT_TERMS: (0, 0), (0, 1), (0, 2), (1, 1), (1, 2)
+            i, j = (0, 0, 0, 1, 1)[row], (0, 1, 2, 1, 2)[row]
+            factor = (1.0 if i == j else 0.0) - 5.0 * r_hat[i] * r_hat[j]
+            for m in range(3):
+                term = factor * r_hat[m] + (1.0 if m == i else 0.0) * r_hat[j]
+                term = term + r_hat[i] * (1.0 if m == j else 0.0)
+                A[3 + row, 3 * k + m] = c * term
 
 
 @njit(error_model="numpy")
