@@ -828,7 +828,6 @@ def _reachable_ends(
     )
 
 
-END_POSE_TRIALS = 3
 MAX_JOINT_STEP_RAD = np.radians(20.0)
 """Largest joint change allowed between consecutive knots; bigger steps are subdivided."""
 MAX_SUBDIVISIONS = 4
@@ -1194,34 +1193,181 @@ def _controller_end(rig: DepmRig, end_poses: Sequence[tuple[np.ndarray, np.ndarr
     ])
 
 
-def _best_transition(rig: DepmRig, q_now: np.ndarray, U_now: np.ndarray,
-                     ends: Iterator[tuple[EpmPoses, np.ndarray]], waypoints: int, k: int, bulge_m: float,
-                     component: str) -> tuple[np.ndarray, np.ndarray]:
-    """The hybrid transition from `q_now` (A, 7) to the first end pose of `ends` (as
-    `_reachable_ends` gives them) whose path the arms follow without changing configuration (a
-    configuration change swings the magnets off the planned path); failing that, among
-    END_POSE_TRIALS end poses the one with the fewest changes. Its knots (A, n, 7) rad and the
-    n - 1 durations between them, s."""
-    best = None
-    for trial, (end, q_end) in enumerate(itertools.islice(ends, END_POSE_TRIALS)):
+END_POSE_CANDIDATES = 5
+"""End poses whose transitions are planned and scored (`Table1Tally`) before one is kept."""
+SCORE_RATE_HZ = 50.0  # U samples per second of plan when a transition is scored (bench/depm.py's)
+SCORE_FIELD_BAND_mT, SCORE_GRADIENT_BAND_mT_per_m = 0.5, 5.0  # "close to 0" after a fall (Table 1)
+SCORE_FALL_DWELL_S = 0.5
+SCORE_SETTLE_FRACTION = 0.25
+OVERSHOOT_WEIGHT_PER_PCT = 1.0  # 1 % of over- or undershoot weighs like 1 mT of off-activation
+
+
+@dataclass
+class Table1Tally:
+    """What Table 1 (seed 003 Sec. 4.2; docs/depm.md, "The metrics") holds against a plan so far,
+    per U component (8,), from the model's U along its transitions and holds: the peak |u| and
+    the sum and count of u^2 while the component is off (not requested, and not falling any
+    more), and the largest overshoot (+) or undershoot (-), in % of the request, while it rises
+    and while it falls. Fields in mT, gradients in mT/m. `score` sums the averages as Table 1
+    gives them."""
+
+    off_peak: np.ndarray = field(default_factory=lambda: np.zeros(8))
+    off_sum_sq: np.ndarray = field(default_factory=lambda: np.zeros(8))
+    off_count: np.ndarray = field(default_factory=lambda: np.zeros(8))
+    rise_pct: np.ndarray = field(default_factory=lambda: np.zeros(8))
+    fall_pct: np.ndarray = field(default_factory=lambda: np.zeros(8))
+
+    def added(self, t_s: np.ndarray, U: np.ndarray, previous: np.ndarray, requested: np.ndarray,
+              reached_s: float) -> "Table1Tally":
+        """The tally with one more transition and its hold: U (T, 8) in mT and mT/m at times t_s
+        (T,) from the transition's start; `previous` and `requested` (8,): the old and the new
+        request (zero: not requested); the arms arrive at `reached_s`."""
+        new = Table1Tally(*(x.copy() for x in (self.off_peak, self.off_sum_sq, self.off_count,
+                                                self.rise_pct, self.fall_pct)))
+        rising = t_s < reached_s + SCORE_SETTLE_FRACTION * (t_s[-1] - reached_s)
+        for c in range(8):
+            u, R, R_old = U[:, c], requested[c], previous[c]
+            if abs(R) > 1e-9:  # rising (or staying on): past the request, or to the other sign
+                new.rise_pct[c] = _worse(new.rise_pct[c], _overshoot_pct(u[rising], R))
+                continue
+            off = np.ones(len(t_s), dtype=bool)
+            if abs(R_old) > 1e-9:  # falling, until |u| stays in the band of "close to 0"
+                band = SCORE_FIELD_BAND_mT if c < 3 else SCORE_GRADIENT_BAND_mT_per_m
+                end = _fall_end_index(t_s, u, band)
+                new.fall_pct[c] = _worse(new.fall_pct[c], _overshoot_pct(u[:end], R_old))
+                off[:end] = False
+            if off.any():
+                new.off_peak[c] = max(new.off_peak[c], float(np.max(np.abs(u[off]))))
+                new.off_sum_sq[c] += float(np.sum(u[off] ** 2))
+                new.off_count[c] += int(off.sum())
+        return new
+
+    def score(self) -> float:
+        """Table 1's averages summed, lower is better: peak off-activation and sigma while off
+        (fields in mT, gradients per 10 mT/m: eq. 22's 1 mT ~ 10 mT/m), and the overshoots
+        rising and falling (OVERSHOOT_WEIGHT_PER_PCT per %)."""
+        sigma = np.sqrt(self.off_sum_sq / np.maximum(self.off_count, 1))
+        off = (np.mean(self.off_peak[:3]) + np.mean(sigma[:3])
+               + (np.mean(self.off_peak[3:]) + np.mean(sigma[3:])) / 10.0)
+        overshoot = np.mean(np.abs(self.rise_pct)) + np.mean(np.abs(self.fall_pct))
+        return float(off + OVERSHOOT_WEIGHT_PER_PCT * overshoot)
+
+
+def _overshoot_pct(values: np.ndarray, requested: float) -> float:
+    """Seed 003 Sec. 4.2 (as `rigctl.rigs.depm.metrics`): how far the values pass the request
+    (+ %) or go to the opposite sign (- %), the larger of the two, in % of the request."""
+    if values.size == 0:
+        return 0.0
+    v = values * np.sign(requested) / abs(requested)
+    over, under = max(float(v.max()) - 1.0, 0.0), min(float(v.min()), 0.0)
+    return 100.0 * (under if -under > over else over)
+
+
+def _worse(a: float, b: float) -> float:
+    return a if abs(a) >= abs(b) else b
+
+
+def _fall_end_index(t_s: np.ndarray, u: np.ndarray, band: float) -> int:
+    """The first sample from which |u| stays within `band` for SCORE_FALL_DWELL_S (or to the
+    end); len(u) if there is none."""
+    outside = np.flatnonzero(np.abs(u) > band)
+    if not outside.size:
+        return 0
+    for i in range(len(u)):
+        if abs(u[i]) > band:
+            continue
+        later = outside[outside > i]
+        if not later.size or t_s[later[0]] - t_s[i] >= SCORE_FALL_DWELL_S:
+            return i
+    return len(u)
+
+
+def _transition_U(rig: DepmRig, q: np.ndarray, h: np.ndarray, hold_s: float
+                  ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The model's U (T, 8) in mT and mT/m along a transition's curves (knots q (A, M, 7),
+    durations h (M - 1,)) and its hold, sampled at SCORE_RATE_HZ from the transition's start, as
+    the whole plan will have them (`_padded_curves`); with the sample times and the arrival time."""
+    times, curves = _padded_curves(q, h)
+    reached = float(times[-1])
+    t = np.arange(0.0, reached + max(hold_s, MIN_REST_S) + 1e-9, 1.0 / SCORE_RATE_HZ)
+    joints = np.stack([curve(np.minimum(t, reached)) for curve in curves])  # (A, T, 7)
+    return t, rig.field_at_centre(joints) / U_TO_SI, reached
+
+
+def _transitions(rig: DepmRig, q_now: np.ndarray, U_now: np.ndarray,
+                 ends: Iterator[tuple[EpmPoses, np.ndarray]], waypoints: int, k: int, bulge_m: float,
+                 component: SequenceComponent) -> list[tuple]:
+    """The hybrid transitions from `q_now` (A, 7) to the first END_POSE_CANDIDATES end poses of
+    `ends` (as `_reachable_ends` gives them) that the arms can follow, with the fewest
+    configuration changes any of them needs (a change swings the magnets off the planned path; an
+    end pose is dropped as soon as it needs more than the best so far): [(changes, knots
+    (A, n, 7) rad, the n - 1 durations between them s, the model's U along the transition and
+    its hold as `_transition_U` gives it), ...] in the order found."""
+    found: list[tuple] = []
+    for trial, (end, q_end) in enumerate(itertools.islice(ends, END_POSE_CANDIDATES)):
+        fewest = min((f[0] for f in found), default=None)
         try:
             path, jumps = _hybrid_transition(rig, q_now, U_now, end, q_end, waypoints, k,
-                                             bulge_m, None if best is None else best[0])
+                                             bulge_m, None if fewest is None else fewest + 1)
             q, h = _made_safe(rig, path)
         except PlanError as err:
-            log.debug("%s: end pose %d: %s", component, trial, err)
+            log.debug("%s: end pose %d: %s", component.name, trial, err)
             continue
-        if best is None or jumps < best[0]:
-            best = (jumps, q, h)
-        if jumps == 0:
-            break
-    if best is None:
+        log.debug("%s: end pose %d: %d configuration change(s)", component.name, trial, jumps)
+        found.append((jumps, q, h, _transition_U(rig, q, h, component.hold_s)))
+    if not found:
         raise PlanError(
-            f"sequence component {component!r}: no path to any of its end poses "
+            f"sequence component {component.name!r}: no path to any of its end poses "
             "keeps the EPMs apart and clear of the keep-out sphere; raise --k or change "
             "the sequence"
         )
-    return best[1], best[2]
+    fewest = min(f[0] for f in found)
+    return [f for f in found if f[0] == fewest]
+
+
+BEAM_WIDTH = 3
+"""Partial plans kept after each component: the best by their Table 1 so far (`Table1Tally`)."""
+
+
+@dataclass
+class _Branch:
+    """One partial plan of the beam: its knots and times so far, where the arms stand, and the
+    configuration changes of its transitions and their `Table1Tally`."""
+
+    jumps: int
+    tally: Table1Tally
+    q_now: np.ndarray
+    U_now: np.ndarray
+    previous: np.ndarray
+    times: list
+    knots: list
+    segments: list
+
+    def extended(self, component: SequenceComponent, jumps: int, q: np.ndarray, h: np.ndarray,
+                 model_U: tuple | None, rig: DepmRig) -> "_Branch":
+        """This partial plan with one more transition (knots q (A, n, 7), durations h) and its
+        hold; `model_U`: (t, U, reached) from `_transition_U`, None: not scored."""
+        times, knots = list(self.times), list(self.knots)
+        start_s = times[-1]
+        for n in range(1, q.shape[1]):
+            times.append(times[-1] + float(h[n - 1]))
+            knots.append(q[:, n])
+        reached_s = times[-1]
+        q_end = q[:, -1]
+        times.append(reached_s + (component.hold_s if component.hold_s > 0 else MIN_REST_S))
+        knots.append(q_end)
+        U_reached = rig.field_at_centre(q_end[:, None, :])[0]
+        target = np.asarray(component.U, dtype=float) * U_TO_SI
+        segment = Segment(
+            name=component.name, U=component.U, start_s=start_s, reached_s=reached_s,
+            end_s=times[-1], residual=tuple(float(v) for v in (U_reached - target) / U_TO_SI),
+        )
+        requested = np.asarray(component.U, dtype=float)
+        tally = self.tally if model_U is None else self.tally.added(
+            model_U[0], model_U[1], self.previous, requested, model_U[2])
+        return _Branch(self.jumps + jumps, tally, q_end, U_reached,
+                       np.asarray(component.U, dtype=float), times, knots,
+                       self.segments + [segment])
 
 
 def plan_sequence(
@@ -1241,7 +1387,12 @@ def plan_sequence(
     """Plan a whole sequence and return the `field-sequence` plan (with `expected` filled).
 
     The arms start from `q_start` (A, 7) rad, or parked (`home_joints`). The end poses of every
-    component come from inverse magnetics. "hybrid" joins them with the planned transitions;
+    component come from inverse magnetics. "hybrid" joins them with the planned transitions,
+    choosing among up to END_POSE_CANDIDATES end poses per component by a beam search: after each
+    component the BEAM_WIDTH partial plans with the fewest configuration changes and then the
+    best Table 1 so far (`Table1Tally`: off-activation peak and sigma, overshoots, from the
+    model's U along them) are kept, each extended by the next component's candidates; the best
+    whole plan is returned (deterministic: ties keep the order found);
     "agnostic" plans the hybrid first and then moves to the very same EPM end poses by straight
     joint-space moves (the baseline, `baseline_of`). `end_poses` (per component: EPM positions
     (A, 3) and moment directions (A, 3)) replaces inverse magnetics for the agnostic planner;
@@ -1257,48 +1408,48 @@ def plan_sequence(
     rig = rig or default_rig()
     stats = stats if stats is not None else PlanStats()
     q_now = home_joints(rig) if q_start is None else np.asarray(q_start, dtype=float)
-    times = [0.0, START_HOLD_S]
-    knots = [q_now, q_now]
-    segments = []
-    U_now = rig.field_at_centre(q_now[:, None, :])[0]
-    for component in sequence:
+    U_start = rig.field_at_centre(q_now[:, None, :])[0]
+    beam = [_Branch(0, Table1Tally(), q_now, U_start, np.zeros(8), [0.0, START_HOLD_S], [q_now, q_now], [])]
+    for index, component in enumerate(sequence):
         started, started_cpu = time.perf_counter(), time.process_time()
         target = np.asarray(component.U, dtype=float) * U_TO_SI
-        try:
-            if end_poses is not None:
-                q_end = _controller_end(rig, end_poses, end_joints, len(segments), q_now)
-            else:
-                positions, directions = rig.epm_poses(q_now)
-                ends = _reachable_ends(target, rig, q_now, positions, directions, component.name)
-                first_end = next(ends)
-            im_done = time.perf_counter()
-            if planner == "hybrid":
-                q, h = _best_transition(rig, q_now, U_now, itertools.chain([first_end], ends),
-                                        waypoints, k, bulge_m, component.name)
-                q_end = q[:, -1]
-            else:
-                q = np.stack([q_now, q_end], axis=1)  # (A, 2, 7)
-                h = _segment_times(q, rig)
-        except PlanError:
+        children, refusal, im_s = [], None, 0.0
+        for branch in beam:
+            im_started = time.perf_counter()
+            try:
+                if end_poses is not None:
+                    q_end = _controller_end(rig, end_poses, end_joints, index, branch.q_now)
+                else:
+                    positions, directions = rig.epm_poses(branch.q_now)
+                    ends = _reachable_ends(target, rig, branch.q_now, positions, directions,
+                                           component.name)
+                    first_end = next(ends)
+                im_s += time.perf_counter() - im_started
+                if planner == "hybrid":
+                    found = _transitions(rig, branch.q_now, branch.U_now,
+                                         itertools.chain([first_end], ends), waypoints, k,
+                                         bulge_m, component)
+                else:
+                    q = np.stack([branch.q_now, q_end], axis=1)  # (A, 2, 7)
+                    found = [(0, q, _segment_times(q, rig), None)]
+            except PlanError as err:
+                refusal = refusal or err
+                continue
+            children += [branch.extended(component, *f, rig) for f in found]
+        if not children:
             stats.refused_s.append(time.perf_counter() - started)
             stats.refused_cpu_s.append(time.process_time() - started_cpu)
-            raise
-        stats.inverse_magnetics_s.append(im_done - started)
+            raise refusal
+        # the best partial plans: fewest configuration changes, then the best summed score (a
+        # stable sort: ties keep the order found, so the same input gives the same plan)
+        children.sort(key=lambda c: (c.jumps, c.tally.score()))
+        beam = children[:BEAM_WIDTH]
+        stats.inverse_magnetics_s.append(im_s)
         stats.transition_s.append(time.perf_counter() - started)
         stats.transition_cpu_s.append(time.process_time() - started_cpu)
-        start_s = times[-1]
-        for n in range(1, q.shape[1]):
-            times.append(times[-1] + float(h[n - 1]))
-            knots.append(q[:, n])
-        reached_s = times[-1]
-        times.append(reached_s + (component.hold_s if component.hold_s > 0 else MIN_REST_S))
-        knots.append(q_end)
-        U_reached = rig.field_at_centre(q_end[:, None, :])[0]
-        segments.append(Segment(
-            name=component.name, U=component.U, start_s=start_s, reached_s=reached_s,
-            end_s=times[-1], residual=tuple(float(v) for v in (U_reached - target) / U_TO_SI),
-        ))
-        q_now, U_now = q_end, U_reached
+    best = beam[0]
+    times, segments = best.times, best.segments
+    knots = best.knots
     knots = np.array(knots)  # (K, A, 7)
     arms = [
         ArmPlan(
