@@ -485,3 +485,31 @@ def test_random_transitions_keep_every_constraint():
         requested = np.asarray(component.U)
         for part in (slice(0, 3), slice(3, 8)):
             assert np.max(np.abs(U[part] - requested[part])) <= 0.02 * np.max(np.abs(requested[part]))
+
+
+# Issue 40 item 3: the model's Table 1 averages of the eight-component sequence (3 s holds) as the
+# numpy planner before the compiled solvers made them (main at bcaa236, `bench/depm.py --no-run
+# --no-random` on the shared machine): the planned sequence must do as well or better on each.
+TABLE1_BEFORE = {"peak_off_activation_field_mT": 2.6596, "peak_off_activation_gradient_mT_per_m": 46.040,
+                 "sigma_off_field_mT": 0.60789, "sigma_off_gradient_mT_per_m": 10.023,
+                 "overshoot_rise_pct": 2.5241, "overshoot_fall_pct": 0.0,
+                 "steady_state_error_max_pct": 1.6e-5}
+
+
+def test_eight_components_table1_no_worse_than_before_the_compiled_solvers():
+    """The planner's choice of end poses (beam search on what Table 1 measures) keeps every
+    Table 1 average of the seed's eight-component sequence, from the dipole model along the plan
+    at 50 Hz (as the bench measures it), at or below the numpy planner's; the compiled solvers
+    alone, taking the first end pose, made the field peaks, sigma and overshoots worse (3.9 mT,
+    0.79 mT, 7.4 / 3.6 %)."""
+    from rigctl.rigs.depm.metrics import table1, windows_of
+
+    plan = depm.plan_sequence(depm.eight_components(hold_s=3.0))
+    t = np.arange(plan.t_s[0], plan.t_s[-1], 1.0 / 50.0)
+    average = table1(t, depm.expected_U(plan, t), windows_of(plan))["average"]
+    for key, before in TABLE1_BEFORE.items():
+        # 1e-6 %: a few parts per billion of a request, the model's rounding (a fall that never
+        # passes its request can still end 1e-9 of it beyond, in the last digits)
+        assert abs(average[key]) <= before + (1e-6 if key.endswith("pct") else 1e-9), \
+            (key, average[key], before)
+    assert depm.plan_violations(plan) == []
