@@ -27,6 +27,7 @@ time. Figures and the reading of the paper: docs/depm.md.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import logging
@@ -41,14 +42,17 @@ from numpy.typing import ArrayLike
 from scipy.interpolate import PchipInterpolator
 
 from rigctl.core.errors import PlanError
+from rigctl.core.jit import njit
 from rigctl.physics.kinematics import (
     DEFAULT_BASES,
     LBR_IIWA_14_R820,
     ArmKinematics,
     ArmModel,
     base_transform,
+    cholesky_solve,
+    frames_kernel,
 )
-from rigctl.physics.magnetics import actuation_matrix, cylinder_moment, field_vector
+from rigctl.physics.magnetics import MU0, cylinder_moment, field_vector
 from rigctl.plans.depm_safety import SafetyLimits, check_samples, violations
 from rigctl.plans.schema import (
     SCHEMA_ID,
@@ -309,49 +313,6 @@ def _im_seeds(rig: DepmRig) -> list[np.ndarray]:
     return seeds
 
 
-@dataclass(frozen=True)
-class _Fit:
-    x: np.ndarray
-    cost: float
-
-
-def levenberg_marquardt(
-    fun, jac, x0: np.ndarray, *, max_iterations: int = 200, tolerance: float = 1e-12,
-) -> _Fit:
-    """Minimise |fun(x)|^2 by Levenberg-Marquardt (Marquardt's diagonal scaling).
-
-    Our own rather than scipy's MINPACK: its results can differ in the last bits with the memory
-    layout of the Jacobian, and from a far start that picks a different solution from run to run.
-    Stops when a step improves the cost by less than `tolerance` relative or moves x by < 1e-13.
-    """
-    x = np.asarray(x0, dtype=float).copy()
-    r = fun(x)
-    cost = float(r @ r)
-    damping = 1e-3
-    floor = 1e-12 * np.eye(len(x))
-    for _ in range(max_iterations):
-        J = jac(x)
-        normal = J.T @ J
-        gradient = J.T @ r
-        scale = np.diag(np.diag(normal)) + floor
-        while True:
-            step = np.linalg.solve(normal + damping * scale, -gradient)
-            trial = x + step
-            r_trial = fun(trial)
-            cost_trial = float(r_trial @ r_trial)
-            if cost_trial < cost:
-                break
-            damping *= 4.0
-            if damping > 1e12:
-                return _Fit(x, cost)
-        improvement = cost - cost_trial
-        x, r, cost = trial, r_trial, cost_trial
-        damping = max(damping / 3.0, 1e-12)
-        if improvement <= tolerance * cost or np.max(np.abs(step)) < 1e-13 or cost < 1e-30:
-            break
-    return _Fit(x, cost)
-
-
 def moments_for(U_target: np.ndarray, positions: np.ndarray, rig: DepmRig,
                 previous: np.ndarray | None = None, refine: bool = True) -> np.ndarray:
     """Unit moment directions (A, 3) at fixed EPM positions (A, 3) for a desired U (8,) in SI.
@@ -362,7 +323,11 @@ def moments_for(U_target: np.ndarray, positions: np.ndarray, rig: DepmRig,
     U_SCALE_SI), with a pull toward `previous` directions so the path does not flip; the
     refinement starts from the pseudo-inverse directions and from `previous`, the better kept.
     """
-    A = actuation_matrix(rig.centre, positions)  # (8, 3A)
+    positions = np.ascontiguousarray(positions, dtype=float)
+    rel = rig.centre - positions
+    r = np.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2 + rel[:, 2] ** 2)
+    A = np.empty((8, 3 * len(positions)))  # actuation_matrix's numbers, without its overhead
+    _actuation_matrix(rig.centre, positions, r ** 3, r ** 4, A)  # numpy's powers (see there)
     weights = 1.0 / U_SCALE_SI
     Aw = A * weights[:, None]
     moments = np.linalg.lstsq(Aw, U_target * weights, rcond=None)[0].reshape(-1, 3)
@@ -373,49 +338,276 @@ def moments_for(U_target: np.ndarray, positions: np.ndarray, rig: DepmRig,
     directions = np.round(directions, 9)  # LAPACK's last bits must not steer what follows
     if not refine:
         return directions
-    pull = 0.3  # turning a magnet right round costs like 0.6 mT of error: the path does not flip
-    count = len(positions)
+    pull = 0.3 if previous is not None else 0.0  # turning a magnet right round costs like
+    # 0.6 mT of error: the path does not flip (without `previous` its rows are zeros)
     target = U_target * weights
-
-    def parts(x):
-        dirs = x.reshape(count, 3)
-        norms = _norm3(dirs)
-        unit = dirs / norms[:, None]
-        # d unit / d dirs = (I - u u^T) / |dirs|, per magnet
-        d_unit = (np.eye(3)[None] - unit[:, :, None] * unit[:, None, :]) / norms[:, None, None]
-        return norms, unit, d_unit
-
-    def residual(x):
-        norms, unit, _ = parts(x)
-        res = [_matvec(Aw, (unit * rig.moment_Am2).reshape(-1)) - target, norms - 1.0]
-        if previous is not None:
-            res.append(pull * (unit - previous).reshape(-1))
-        return np.concatenate(res)
-
-    def jacobian(x):
-        norms, unit, d_unit = parts(x)
-        blocks = np.zeros((3 * count, 3 * count))
-        for a in range(count):
-            blocks[3 * a: 3 * a + 3, 3 * a: 3 * a + 3] = d_unit[a]
-        rows = [rig.moment_Am2 * Aw @ blocks]
-        norm_rows = np.zeros((count, 3 * count))
-        for a in range(count):
-            norm_rows[a, 3 * a: 3 * a + 3] = unit[a]
-        rows.append(norm_rows)
-        if previous is not None:
-            rows.append(pull * blocks)
-        return np.vstack(rows)
-
+    toward = np.zeros_like(directions) if previous is None else np.asarray(previous, dtype=float)
+    args = (np.ascontiguousarray(Aw), target, float(rig.moment_Am2), toward.reshape(-1), pull)
     start = directions
     if previous is not None:
         # Refine from whichever is better already: the pseudo-inverse directions or the previous
         # waypoint's (the latter keeps the path from flipping when the two are close in cost).
-        from_pinv, from_previous = residual(directions.reshape(-1)), residual(previous.reshape(-1))
-        if from_previous @ from_previous <= from_pinv @ from_pinv:
+        if _direction_cost(*args, toward.reshape(-1)) <= _direction_cost(*args,
+                                                                        directions.reshape(-1)):
             start = previous
-    fit = levenberg_marquardt(residual, jacobian, start.reshape(-1), max_iterations=60,
-                              tolerance=1e-8)
-    return np.round(_unit_rows(fit.x.reshape(-1, 3)), 12)  # run-to-run identical (see above)
+    x = _direction_fit(*args, np.array(start, dtype=float).reshape(-1), 60, 1e-8)
+    return np.round(_unit_rows(x.reshape(-1, 3)), 12)  # run-to-run identical (see above)
+
+
+# The refinement of `moments_for`, compiled (the planner solves it at every waypoint of every
+# alternative path). Unknowns x (3A,): each magnet's direction, unnormalised; residuals: the
+# weighted U error Aw (|m| x / |x|) - target (8), |x_a| - 1 per magnet, and pull (x_a / |x_a| -
+# previous_a) per magnet (zeros when pull is 0).
+
+
+@njit(error_model="numpy")
+def _direction_residuals(Aw, target, moment, previous, pull, x, r, jac):  # pragma: no cover
+    """Residuals into r (8 + 4A,) and, with `jac` of 8 + 4A rows, their Jacobian (8 + 4A, 3A)."""
+    n = x.shape[0]
+    count = n // 3
+    unit = np.empty(n)
+    d_unit = np.empty((3, 3))
+    for a in range(count):
+        o = 3 * a
+        norm = np.sqrt(x[o] * x[o] + x[o + 1] * x[o + 1] + x[o + 2] * x[o + 2])
+        for i in range(3):
+            unit[o + i] = x[o + i] / norm
+        r[8 + a] = norm - 1.0
+        for i in range(3):
+            r[8 + count + o + i] = pull * (unit[o + i] - previous[o + i])
+        if jac.shape[0] == 0:
+            continue
+        for i in range(3):  # d unit_i / d x_j = (delta_ij - u_i u_j) / |x|
+            for j in range(3):
+                d_unit[i, j] = ((1.0 if i == j else 0.0) - unit[o + i] * unit[o + j]) / norm
+        for j in range(3):
+            jac[8 + a, o + j] = unit[o + j]
+            for i in range(3):
+                jac[8 + count + o + i, o + j] = pull * d_unit[i, j]
+            for k in range(8):
+                total = 0.0
+                for i in range(3):
+                    total += Aw[k, o + i] * d_unit[i, j]
+                jac[k, o + j] = moment * total
+    for k in range(8):
+        total = 0.0
+        for j in range(n):
+            total += Aw[k, j] * (unit[j] * moment)
+        r[k] = total - target[k]
+
+
+@njit(error_model="numpy")
+def _direction_cost(Aw, target, moment, previous, pull, x):  # pragma: no cover - compiled
+    """|residuals|^2 of directions x (3A,)."""
+    r = np.empty(8 + 4 * (x.shape[0] // 3))
+    _direction_residuals(Aw, target, moment, previous, pull, x, r, np.empty((0, 0)))
+    return np.sum(r * r)
+
+
+@njit(error_model="numpy")
+def _normal_equations(jac, r, normal, gradient):  # pragma: no cover - compiled
+    """J^T J into normal (n, n) and J^T r into gradient (n,) for J (m, n), r (m,)."""
+    rows, n = jac.shape
+    for i in range(n):
+        total = 0.0
+        for k in range(rows):
+            total += jac[k, i] * r[k]
+        gradient[i] = total
+        for j in range(i + 1):
+            total = 0.0
+            for k in range(rows):
+                total += jac[k, i] * jac[k, j]
+            normal[i, j] = normal[j, i] = total
+
+
+@njit(error_model="numpy")
+def _damped_step(normal, gradient, damping):  # pragma: no cover - compiled
+    """The Levenberg-Marquardt step with Marquardt's scaling: (N + damping (diag N + 1e-12)) s =
+    -g."""
+    system = normal.copy()
+    for i in range(gradient.shape[0]):
+        system[i, i] += damping * (normal[i, i] + 1e-12)
+    return cholesky_solve(system, -gradient)
+
+
+@njit(error_model="numpy")
+def _direction_fit(Aw, target, moment, previous, pull, x0, max_iterations,
+                   tolerance):  # pragma: no cover - compiled
+    """Levenberg-Marquardt (Marquardt's diagonal scaling) from x0 (3A,): the fitted x (3A,).
+
+    Our own rather than scipy's MINPACK: its results can differ in the last bits with the memory
+    layout of the Jacobian, and from a far start that picks a different solution from run to run.
+    Stops when a step improves the cost by less than `tolerance` relative or moves x by < 1e-13.
+    """
+    n = x0.shape[0]
+    rows = 8 + 4 * (n // 3)
+    empty = np.empty((0, 0))
+    x = x0.copy()
+    r, r_trial = np.empty(rows), np.empty(rows)
+    jac = np.zeros((rows, n))
+    normal, gradient = np.empty((n, n)), np.empty(n)
+    _direction_residuals(Aw, target, moment, previous, pull, x, r, empty)
+    cost = np.sum(r * r)
+    damping = 1e-3
+    for _ in range(max_iterations):
+        _direction_residuals(Aw, target, moment, previous, pull, x, r, jac)
+        _normal_equations(jac, r, normal, gradient)
+        while True:
+            step = _damped_step(normal, gradient, damping)
+            trial = x + step
+            _direction_residuals(Aw, target, moment, previous, pull, trial, r_trial, empty)
+            cost_trial = np.sum(r_trial * r_trial)
+            if cost_trial < cost:
+                break
+            damping *= 4.0
+            if damping > 1e12:
+                return x
+        improvement = cost - cost_trial
+        x, cost = trial, cost_trial
+        damping = max(damping / 3.0, 1e-12)
+        if improvement <= tolerance * cost or np.max(np.abs(step)) < 1e-13 or cost < 1e-30:
+            break
+    return x
+
+
+# Inverse magnetics, compiled: unknowns x (6A,) = the EPM centres (A, 3) then their moment
+# directions, unnormalised (A, 3); residuals (8 + 4A + A(A-1)/2,): the weighted U error, the
+# one-sided penalties of `_pose_penalties` (in its order) times PENALTY_WEIGHT, |direction| - 1.
+
+PENALTY_WEIGHT = 1e3  # 1 mm of constraint violation weighs like 1 mT of field error
+FD_STEP = 1e-7  # forward-difference step of the Jacobian (m; unitless for directions)
+
+
+@njit(error_model="numpy")
+def _dipoles_U(centre, positions, moments, U):  # pragma: no cover - compiled
+    """U (8,) in T and T/m at `centre` (3,) of dipoles (A, 3) with moments (A, 3): the sums of
+    `rigctl.physics.magnetics._dipole_kernel`, term by term, magnets added in order."""
+    c = MU0 / (4.0 * np.pi)
+    U[:] = 0.0
+    for a in range(positions.shape[0]):
+        x, y, z = centre[0] - positions[a, 0], centre[1] - positions[a, 1], centre[2] - positions[a, 2]
+        mx, my, mz = moments[a, 0], moments[a, 1], moments[a, 2]
+        r2 = x * x + y * y + z * z
+        inv_r2 = 1.0 / r2 if r2 > 0 else np.nan
+        inv_r = np.sqrt(inv_r2)
+        inv_r3 = inv_r * inv_r2
+        inv_r5 = inv_r3 * inv_r2
+        m_dot = mx * x + my * y + mz * z
+        rel, mom = (x, y, z), (mx, my, mz)
+        for i in range(3):
+            U[i] += c * (3.0 * m_dot * rel[i] * inv_r5 - mom[i] * inv_r3)
+        g = 3.0 * c * inv_r5
+        for k in range(5):  # the terms of GRADIENT_TERMS: (0, 0), (0, 1), (0, 2), (1, 1), (1, 2)
+            i, j = (0, 0, 0, 1, 1)[k], (0, 1, 2, 1, 2)[k]
+            value = rel[i] * mom[j] + mom[i] * rel[j] - 5.0 * m_dot * rel[i] * rel[j] * inv_r2
+            if i == j:
+                value = value + m_dot
+            U[3 + k] += g * value
+
+
+@njit(error_model="numpy")
+def _actuation_matrix(point, centres, r3, r4, A):  # pragma: no cover - compiled
+    """[L; M] (8, 3A) at `point` (3,) for magnets at `centres` (A, 3) into A:
+    `rigctl.physics.magnetics.actuation_matrix`, operation for operation, to the last bit. The
+    distances' cubes and fourth powers r3, r4 (A,) come from numpy: its `**` is its own SIMD
+    power, which neither libm's pow nor products match in the last bit."""
+    c_field = MU0 / (4.0 * np.pi)
+    for k in range(centres.shape[0]):
+        x, y, z = point[0] - centres[k, 0], point[1] - centres[k, 1], point[2] - centres[k, 2]
+        r = np.sqrt(x ** 2 + y ** 2 + z ** 2)
+        r_hat = (x / r, y / r, z / r)
+        c = 3.0 * MU0 / (4.0 * np.pi) / r4[k]
+        for i in range(3):
+            for j in range(3):
+                A[i, 3 * k + j] = c_field * (3.0 * (r_hat[i] * r_hat[j]) - (1.0 if i == j else 0.0)) / r3[k]
+        for row in range(5):  # the terms of GRADIENT_TERMS: (0, 0), (0, 1), (0, 2), (1, 1), (1, 2)
+            i, j = (0, 0, 0, 1, 1)[row], (0, 1, 2, 1, 2)[row]
+            factor = (1.0 if i == j else 0.0) - 5.0 * r_hat[i] * r_hat[j]
+            for m in range(3):
+                term = factor * r_hat[m] + (1.0 if m == i else 0.0) * r_hat[j]
+                term = term + r_hat[i] * (1.0 if m == j else 0.0)
+                A[3 + row, 3 * k + m] = c * term
+
+
+@njit(error_model="numpy")
+def _pose_residuals(centre, target, weights, moment, sides, keep_out_m, reach_m, side_margin_m,
+                    min_gap_m, x, r):  # pragma: no cover - compiled
+    """The residuals of inverse magnetics at x (6A,) into r."""
+    count = sides.shape[0]
+    positions = x[: 3 * count].reshape((count, 3))
+    dirs = x[3 * count:].reshape((count, 3))
+    moments = np.empty((count, 3))
+    penalties = 8
+    norms_at = 8 + 3 * count + count * (count - 1) // 2
+    for a in range(count):
+        norm = np.sqrt(dirs[a, 0] * dirs[a, 0] + dirs[a, 1] * dirs[a, 1] + dirs[a, 2] * dirs[a, 2])
+        for k in range(3):
+            moments[a, k] = dirs[a, k] / norm * moment
+        r[norms_at + a] = norm - 1.0
+        rx, ry, rz = (positions[a, 0] - centre[0], positions[a, 1] - centre[1],
+                      positions[a, 2] - centre[2])
+        distance = np.sqrt(rx * rx + ry * ry + rz * rz)
+        along = rx * sides[a, 0] + ry * sides[a, 1] + rz * sides[a, 2]
+        r[penalties + a] = PENALTY_WEIGHT * max(0.0, keep_out_m - distance)
+        r[penalties + count + a] = PENALTY_WEIGHT * max(0.0, distance - reach_m)
+        r[penalties + 2 * count + a] = PENALTY_WEIGHT * max(0.0, side_margin_m - along)
+    pair = penalties + 3 * count
+    for a in range(count):
+        for b in range(a + 1, count):
+            dx, dy, dz = (positions[a, 0] - positions[b, 0], positions[a, 1] - positions[b, 1],
+                          positions[a, 2] - positions[b, 2])
+            gap = np.sqrt(dx * dx + dy * dy + dz * dz)
+            r[pair] = PENALTY_WEIGHT * max(0.0, min_gap_m - gap)
+            pair += 1
+    U = np.empty(8)
+    _dipoles_U(centre, positions, moments, U)
+    for k in range(8):
+        r[k] = (U[k] - target[k]) * weights[k]
+
+
+@njit(error_model="numpy")
+def _pose_fit(centre, target, weights, moment, sides, keep_out_m, reach_m, side_margin_m,
+              min_gap_m, x0, max_iterations, tolerance):  # pragma: no cover - compiled
+    """Levenberg-Marquardt (Marquardt's diagonal scaling) of inverse magnetics from x0 (6A,), on
+    a forward-difference Jacobian: the fitted x. Stops when a step improves the cost by less than
+    `tolerance` relative or moves x by < 1e-13 (the loop of `_direction_fit`)."""
+    n = x0.shape[0]
+    count = sides.shape[0]
+    rows = 8 + 4 * count + count * (count - 1) // 2
+    x = x0.copy()
+    r, r_trial, r_step = np.empty(rows), np.empty(rows), np.empty(rows)
+    jac = np.empty((rows, n))
+    normal, gradient = np.empty((n, n)), np.empty(n)
+    problem = (centre, target, weights, moment, sides, keep_out_m, reach_m, side_margin_m,
+               min_gap_m)
+    _pose_residuals(*problem, x, r)
+    cost = np.sum(r * r)
+    damping = 1e-3
+    for _ in range(max_iterations):
+        for j in range(n):
+            shifted = x.copy()
+            shifted[j] = x[j] + FD_STEP
+            _pose_residuals(*problem, shifted, r_step)
+            for i in range(rows):
+                jac[i, j] = (r_step[i] - r[i]) / FD_STEP
+        _normal_equations(jac, r, normal, gradient)
+        while True:
+            step = _damped_step(normal, gradient, damping)
+            trial = x + step
+            _pose_residuals(*problem, trial, r_trial)
+            cost_trial = np.sum(r_trial * r_trial)
+            if cost_trial < cost:
+                break
+            damping *= 4.0
+            if damping > 1e12:
+                return x
+        improvement = cost - cost_trial
+        x, cost = trial, cost_trial
+        r, r_trial = r_trial, r
+        damping = max(damping / 3.0, 1e-12)
+        if improvement <= tolerance * cost or np.max(np.abs(step)) < 1e-13 or cost < 1e-30:
+            break
+    return x
 
 
 def inverse_magnetics(U_target: ArrayLike, rig: DepmRig, **options) -> list[EpmPoses]:
@@ -439,38 +631,18 @@ def inverse_magnetics_solutions(
     Unknowns: each EPM's centre and moment direction (|m| fixed to `rig.moment_Am2`); residuals:
     the weighted U error plus one-sided penalties that keep every EPM outside the keep-out sphere
     (with its radius and a margin), within reach (<= MAX_DISTANCE_M), on its own arm's side, and
-    the EPMs apart. Solved by Levenberg-Marquardt (`levenberg_marquardt`) from the current poses and
+    the EPMs apart. Solved by Levenberg-Marquardt (`_pose_fit`) from the current poses and
     from structured starting poses, directions from eq. 21. Yields every distinct solution that
     meets all constraints and makes U within `tolerance` (relative to the largest requested entry
     of its kind), the current poses' neighbourhood first; the caller takes the first the arms
     reach, so later starts are only tried when needed.
     """
     target = np.asarray(U_target, dtype=float)
-    weights = 1.0 / U_SCALE_SI
     count = len(rig.arms)
-    penalty_weight = 1e3  # 1 mm of constraint violation weighs like 1 mT of field error
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        """Residual vectors for parameter rows x (B, 6A) -> (B, R), all in one numpy pass."""
-        positions = x[:, : 3 * count].reshape(-1, count, 3)
-        dirs = x[:, 3 * count:].reshape(-1, count, 3)
-        norms = _norm3(dirs)
-        moments = dirs / norms[..., None] * rig.moment_Am2
-        U = field_vector(np.broadcast_to(rig.centre, (len(x), 3)), positions, moments)
-        return np.concatenate([
-            (U - target) * weights,
-            penalty_weight * _pose_penalties(positions, rig),
-            norms - 1.0,
-        ], axis=-1)
-
-    step = 1e-7
-
-    def fun(x):
-        return residuals(x[None, :])[0]
-
-    def jac(x):
-        rows = residuals(np.vstack([x, x + step * np.eye(len(x))]))
-        return ((rows[1:] - rows[0]) / step).T
+    limits = rig.limits
+    problem = (np.asarray(rig.centre, dtype=float), target, 1.0 / U_SCALE_SI, float(rig.moment_Am2),
+               np.array([rig.side(a) for a in range(count)]), limits.epm_keep_out_m + IM_MARGIN_M,
+               MAX_DISTANCE_M, SIDE_MARGIN_M, limits.epm_min_distance_m + IM_MARGIN_M)
 
     def starts():  # lazily: most sequences need only the first one or two
         if start_positions is not None:
@@ -483,7 +655,7 @@ def inverse_magnetics_solutions(
     found: list[EpmPoses] = []
     for positions, dirs in itertools.islice(starts(), max_starts):
         x0 = np.round(np.concatenate([positions.reshape(-1), dirs.reshape(-1)]), 10)
-        x = levenberg_marquardt(fun, jac, x0, max_iterations=150).x
+        x = _pose_fit(*problem, x0, 150, 1e-12)
         positions = np.round(x[: 3 * count].reshape(count, 3), 10)
         unit = np.round(_unit_rows(x[3 * count:].reshape(count, 3)), 12)
         if np.any(_pose_penalties(positions, rig) > 1e-9):
@@ -606,6 +778,24 @@ def home_joints(rig: DepmRig) -> np.ndarray:
     ])
 
 
+def warm_up() -> float:
+    """Compile (or load from numba's cache) the planner's kernels (inverse kinematics, the moment
+    refinement, inverse magnetics, the transitions' breach check) if this process has not yet;
+    returns the seconds it took. The first plan of a process would otherwise pay it in its first
+    transition (compiling: ~15 s of CPU, once per installation; loading: well under a second)."""
+    started = time.perf_counter()
+    _load_kernels()
+    return time.perf_counter() - started
+
+
+@functools.cache
+def _load_kernels() -> None:
+    rig = default_rig()
+    home = home_joints(rig)  # inverse kinematics and the moment refinement
+    _first_breach(rig, np.stack([home, home], axis=1), np.array([1.0]))
+    next(inverse_magnetics_solutions(np.array([1e-3] + [0.0] * 7), rig, max_starts=1), None)
+
+
 def _reachable_ends(
     target: np.ndarray, rig: DepmRig, q_now: np.ndarray, positions: np.ndarray,
     directions: np.ndarray, name: str,
@@ -638,7 +828,6 @@ def _reachable_ends(
     )
 
 
-END_POSE_TRIALS = 3
 MAX_JOINT_STEP_RAD = np.radians(20.0)
 """Largest joint change allowed between consecutive knots; bigger steps are subdivided."""
 MAX_SUBDIVISIONS = 4
@@ -713,7 +902,8 @@ def _hybrid_transition(
             if min(gaps) < min_gap:
                 continue
             dirs = moments_for(desired[n], positions, rig, previous=previous_dirs)
-            U = field_vector(rig.centre, positions, dirs * rig.moment_Am2)
+            U = np.empty(8)  # field_vector's numbers to the last bit, without its overhead
+            _dipoles_U(rig.centre, positions, dirs * rig.moment_Am2, U)
             # Eq. 22, plus (ours) a small cost for hopping between alternatives, so consecutive
             # waypoints do not jump radially for a negligible magnetic gain.
             hop = float(np.sum(np.linalg.norm(positions - previous_positions, axis=1)))
@@ -845,15 +1035,71 @@ MAX_REPAIRS = 16
 
 def _first_breach(rig: DepmRig, q: np.ndarray, h: np.ndarray) -> float | None:
     """The first time (s from the transition's start) its curves come closer than CHECK_MARGIN_M
-    to a positional constraint, or None."""
-    from dataclasses import replace
-
-    limits = replace(rig.limits, keep_out_radius_m=rig.limits.keep_out_radius_m + CHECK_MARGIN_M,
-                     epm_min_distance_m=rig.limits.epm_min_distance_m + CHECK_MARGIN_M)
+    to a positional constraint or leave a joint range, or None: `violations`' tests of those
+    (its earliest breach), compiled (`_first_breach_index`), as repairing a transition runs it
+    again and again; `plan_violations` still checks the whole plan at the end."""
+    limits = rig.limits
     times, curves = _padded_curves(q, h)
-    t = np.union1d(np.arange(0.0, times[-1], rig.limits.check_step_s / 4.0), times)
-    found = violations(t, np.array([curve(t) for curve in curves]), None, rig.arms, limits)
-    return found[0].time_s if found else None
+    t = np.union1d(np.arange(0.0, times[-1], limits.check_step_s / 4.0), times)
+    arms = rig.arms
+    index = _first_breach_index(
+        np.ascontiguousarray([curve(t) for curve in curves]), np.array([arm.base for arm in arms]),
+        np.array([arm._dh_table for arm in arms]), np.array([arm.model.tool_offset_m for arm in arms]),
+        np.array([arm.model.lower_rad for arm in arms]), np.array([arm.model.upper_rad for arm in arms]),
+        np.array([arm._capsule_links for arm in arms]), np.array([arm._capsule_radii for arm in arms]),
+        np.asarray(limits.centre_m, dtype=float), limits.keep_out_radius_m + CHECK_MARGIN_M,
+        limits.epm_radius_m, limits.epm_min_distance_m + CHECK_MARGIN_M)
+    return None if index < 0 else float(t[index])
+
+
+@njit(error_model="numpy")
+def _first_breach_index(q, bases, dh, tool_offsets, lower, upper, links, radii, centre, keep_out_m,
+                        epm_radius_m, min_gap_m):  # pragma: no cover - compiled
+    """The first sample of q (A, T, 7) where an EPM's bounding sphere or a link capsule is
+    inside the keep-out sphere, a joint is out of its range (1e-9 rad slack) or two EPMs are
+    closer than min_gap_m (the tests of `rigctl.plans.depm_safety.violations`), or -1."""
+    count, samples = q.shape[0], q.shape[1]
+    frames = np.empty((9, 4, 4))
+    epms = np.empty((count, 3))
+    for s in range(samples):
+        for a in range(count):
+            for j in range(7):
+                if q[a, s, j] < lower[a, j] - 1e-9 or q[a, s, j] > upper[a, j] + 1e-9:
+                    return s
+            frames_kernel(bases[a], dh[a], tool_offsets[a], q[a, s], frames)
+            for k in range(3):
+                epms[a, k] = frames[8, k, 3]
+            dx, dy, dz = epms[a, 0] - centre[0], epms[a, 1] - centre[1], epms[a, 2] - centre[2]
+            if np.sqrt(dx * dx + dy * dy + dz * dz) - epm_radius_m < keep_out_m:
+                return s
+            for link in range(links.shape[1]):
+                if _segment_clearance(frames, links[a, link, 0], links[a, link, 1],
+                                      centre) - radii[a, link] < keep_out_m:
+                    return s
+        for a in range(count):
+            for b in range(a + 1, count):
+                dx, dy, dz = epms[a, 0] - epms[b, 0], epms[a, 1] - epms[b, 1], epms[a, 2] - epms[b, 2]
+                if np.sqrt(dx * dx + dy * dy + dz * dz) < min_gap_m:
+                    return s
+    return -1
+
+
+@njit(error_model="numpy")
+def _segment_clearance(frames, first, second, centre):  # pragma: no cover - compiled
+    """Distance from `centre` to the segment between two frame origins (as
+    `depm_safety.segment_point_distance`)."""
+    ab, ac = np.empty(3), np.empty(3)
+    for k in range(3):
+        ab[k] = frames[second, k, 3] - frames[first, k, 3]
+        ac[k] = centre[k] - frames[first, k, 3]
+    length2 = ab[0] * ab[0] + ab[1] * ab[1] + ab[2] * ab[2]
+    t = (ac[0] * ab[0] + ac[1] * ab[1] + ac[2] * ab[2]) / length2 if length2 > 0 else 0.0
+    t = min(max(t, 0.0), 1.0)
+    total = 0.0
+    for k in range(3):
+        gap = frames[first, k, 3] + t * ab[k] - centre[k]
+        total += gap * gap
+    return np.sqrt(total)
 
 
 LIFTS_M = (0.0, 0.05, 0.10, 0.15)
@@ -947,34 +1193,181 @@ def _controller_end(rig: DepmRig, end_poses: Sequence[tuple[np.ndarray, np.ndarr
     ])
 
 
-def _best_transition(rig: DepmRig, q_now: np.ndarray, U_now: np.ndarray,
-                     ends: Iterator[tuple[EpmPoses, np.ndarray]], waypoints: int, k: int, bulge_m: float,
-                     component: str) -> tuple[np.ndarray, np.ndarray]:
-    """The hybrid transition from `q_now` (A, 7) to the first end pose of `ends` (as
-    `_reachable_ends` gives them) whose path the arms follow without changing configuration (a
-    configuration change swings the magnets off the planned path); failing that, among
-    END_POSE_TRIALS end poses the one with the fewest changes. Its knots (A, n, 7) rad and the
-    n - 1 durations between them, s."""
-    best = None
-    for trial, (end, q_end) in enumerate(itertools.islice(ends, END_POSE_TRIALS)):
+END_POSE_CANDIDATES = 5
+"""End poses whose transitions are planned and scored (`Table1Tally`) before one is kept."""
+SCORE_RATE_HZ = 50.0  # U samples per second of plan when a transition is scored (bench/depm.py's)
+SCORE_FIELD_BAND_mT, SCORE_GRADIENT_BAND_mT_per_m = 0.5, 5.0  # "close to 0" after a fall (Table 1)
+SCORE_FALL_DWELL_S = 0.5
+SCORE_SETTLE_FRACTION = 0.25
+OVERSHOOT_WEIGHT_PER_PCT = 1.0  # 1 % of over- or undershoot weighs like 1 mT of off-activation
+
+
+@dataclass
+class Table1Tally:
+    """What Table 1 (seed 003 Sec. 4.2; docs/depm.md, "The metrics") holds against a plan so far,
+    per U component (8,), from the model's U along its transitions and holds: the peak |u| and
+    the sum and count of u^2 while the component is off (not requested, and not falling any
+    more), and the largest overshoot (+) or undershoot (-), in % of the request, while it rises
+    and while it falls. Fields in mT, gradients in mT/m. `score` sums the averages as Table 1
+    gives them."""
+
+    off_peak: np.ndarray = field(default_factory=lambda: np.zeros(8))
+    off_sum_sq: np.ndarray = field(default_factory=lambda: np.zeros(8))
+    off_count: np.ndarray = field(default_factory=lambda: np.zeros(8))
+    rise_pct: np.ndarray = field(default_factory=lambda: np.zeros(8))
+    fall_pct: np.ndarray = field(default_factory=lambda: np.zeros(8))
+
+    def added(self, t_s: np.ndarray, U: np.ndarray, previous: np.ndarray, requested: np.ndarray,
+              reached_s: float) -> "Table1Tally":
+        """The tally with one more transition and its hold: U (T, 8) in mT and mT/m at times t_s
+        (T,) from the transition's start; `previous` and `requested` (8,): the old and the new
+        request (zero: not requested); the arms arrive at `reached_s`."""
+        new = Table1Tally(*(x.copy() for x in (self.off_peak, self.off_sum_sq, self.off_count,
+                                                self.rise_pct, self.fall_pct)))
+        rising = t_s < reached_s + SCORE_SETTLE_FRACTION * (t_s[-1] - reached_s)
+        for c in range(8):
+            u, R, R_old = U[:, c], requested[c], previous[c]
+            if abs(R) > 1e-9:  # rising (or staying on): past the request, or to the other sign
+                new.rise_pct[c] = _worse(new.rise_pct[c], _overshoot_pct(u[rising], R))
+                continue
+            off = np.ones(len(t_s), dtype=bool)
+            if abs(R_old) > 1e-9:  # falling, until |u| stays in the band of "close to 0"
+                band = SCORE_FIELD_BAND_mT if c < 3 else SCORE_GRADIENT_BAND_mT_per_m
+                end = _fall_end_index(t_s, u, band)
+                new.fall_pct[c] = _worse(new.fall_pct[c], _overshoot_pct(u[:end], R_old))
+                off[:end] = False
+            if off.any():
+                new.off_peak[c] = max(new.off_peak[c], float(np.max(np.abs(u[off]))))
+                new.off_sum_sq[c] += float(np.sum(u[off] ** 2))
+                new.off_count[c] += int(off.sum())
+        return new
+
+    def score(self) -> float:
+        """Table 1's averages summed, lower is better: peak off-activation and sigma while off
+        (fields in mT, gradients per 10 mT/m: eq. 22's 1 mT ~ 10 mT/m), and the overshoots
+        rising and falling (OVERSHOOT_WEIGHT_PER_PCT per %)."""
+        sigma = np.sqrt(self.off_sum_sq / np.maximum(self.off_count, 1))
+        off = (np.mean(self.off_peak[:3]) + np.mean(sigma[:3])
+               + (np.mean(self.off_peak[3:]) + np.mean(sigma[3:])) / 10.0)
+        overshoot = np.mean(np.abs(self.rise_pct)) + np.mean(np.abs(self.fall_pct))
+        return float(off + OVERSHOOT_WEIGHT_PER_PCT * overshoot)
+
+
+def _overshoot_pct(values: np.ndarray, requested: float) -> float:
+    """Seed 003 Sec. 4.2 (as `rigctl.rigs.depm.metrics`): how far the values pass the request
+    (+ %) or go to the opposite sign (- %), the larger of the two, in % of the request."""
+    if values.size == 0:
+        return 0.0
+    v = values * np.sign(requested) / abs(requested)
+    over, under = max(float(v.max()) - 1.0, 0.0), min(float(v.min()), 0.0)
+    return 100.0 * (under if -under > over else over)
+
+
+def _worse(a: float, b: float) -> float:
+    return a if abs(a) >= abs(b) else b
+
+
+def _fall_end_index(t_s: np.ndarray, u: np.ndarray, band: float) -> int:
+    """The first sample from which |u| stays within `band` for SCORE_FALL_DWELL_S (or to the
+    end); len(u) if there is none."""
+    outside = np.flatnonzero(np.abs(u) > band)
+    if not outside.size:
+        return 0
+    for i in range(len(u)):
+        if abs(u[i]) > band:
+            continue
+        later = outside[outside > i]
+        if not later.size or t_s[later[0]] - t_s[i] >= SCORE_FALL_DWELL_S:
+            return i
+    return len(u)
+
+
+def _transition_U(rig: DepmRig, q: np.ndarray, h: np.ndarray, hold_s: float
+                  ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The model's U (T, 8) in mT and mT/m along a transition's curves (knots q (A, M, 7),
+    durations h (M - 1,)) and its hold, sampled at SCORE_RATE_HZ from the transition's start, as
+    the whole plan will have them (`_padded_curves`); with the sample times and the arrival time."""
+    times, curves = _padded_curves(q, h)
+    reached = float(times[-1])
+    t = np.arange(0.0, reached + max(hold_s, MIN_REST_S) + 1e-9, 1.0 / SCORE_RATE_HZ)
+    joints = np.stack([curve(np.minimum(t, reached)) for curve in curves])  # (A, T, 7)
+    return t, rig.field_at_centre(joints) / U_TO_SI, reached
+
+
+def _transitions(rig: DepmRig, q_now: np.ndarray, U_now: np.ndarray,
+                 ends: Iterator[tuple[EpmPoses, np.ndarray]], waypoints: int, k: int, bulge_m: float,
+                 component: SequenceComponent) -> list[tuple]:
+    """The hybrid transitions from `q_now` (A, 7) to the first END_POSE_CANDIDATES end poses of
+    `ends` (as `_reachable_ends` gives them) that the arms can follow, with the fewest
+    configuration changes any of them needs (a change swings the magnets off the planned path; an
+    end pose is dropped as soon as it needs more than the best so far): [(changes, knots
+    (A, n, 7) rad, the n - 1 durations between them s, the model's U along the transition and
+    its hold as `_transition_U` gives it), ...] in the order found."""
+    found: list[tuple] = []
+    for trial, (end, q_end) in enumerate(itertools.islice(ends, END_POSE_CANDIDATES)):
+        fewest = min((f[0] for f in found), default=None)
         try:
             path, jumps = _hybrid_transition(rig, q_now, U_now, end, q_end, waypoints, k,
-                                             bulge_m, None if best is None else best[0])
+                                             bulge_m, None if fewest is None else fewest + 1)
             q, h = _made_safe(rig, path)
         except PlanError as err:
-            log.debug("%s: end pose %d: %s", component, trial, err)
+            log.debug("%s: end pose %d: %s", component.name, trial, err)
             continue
-        if best is None or jumps < best[0]:
-            best = (jumps, q, h)
-        if jumps == 0:
-            break
-    if best is None:
+        log.debug("%s: end pose %d: %d configuration change(s)", component.name, trial, jumps)
+        found.append((jumps, q, h, _transition_U(rig, q, h, component.hold_s)))
+    if not found:
         raise PlanError(
-            f"sequence component {component!r}: no path to any of its end poses "
+            f"sequence component {component.name!r}: no path to any of its end poses "
             "keeps the EPMs apart and clear of the keep-out sphere; raise --k or change "
             "the sequence"
         )
-    return best[1], best[2]
+    fewest = min(f[0] for f in found)
+    return [f for f in found if f[0] == fewest]
+
+
+BEAM_WIDTH = 3
+"""Partial plans kept after each component: the best by their Table 1 so far (`Table1Tally`)."""
+
+
+@dataclass
+class _Branch:
+    """One partial plan of the beam: its knots and times so far, where the arms stand, and the
+    configuration changes of its transitions and their `Table1Tally`."""
+
+    jumps: int
+    tally: Table1Tally
+    q_now: np.ndarray
+    U_now: np.ndarray
+    previous: np.ndarray
+    times: list
+    knots: list
+    segments: list
+
+    def extended(self, component: SequenceComponent, jumps: int, q: np.ndarray, h: np.ndarray,
+                 model_U: tuple | None, rig: DepmRig) -> "_Branch":
+        """This partial plan with one more transition (knots q (A, n, 7), durations h) and its
+        hold; `model_U`: (t, U, reached) from `_transition_U`, None: not scored."""
+        times, knots = list(self.times), list(self.knots)
+        start_s = times[-1]
+        for n in range(1, q.shape[1]):
+            times.append(times[-1] + float(h[n - 1]))
+            knots.append(q[:, n])
+        reached_s = times[-1]
+        q_end = q[:, -1]
+        times.append(reached_s + (component.hold_s if component.hold_s > 0 else MIN_REST_S))
+        knots.append(q_end)
+        U_reached = rig.field_at_centre(q_end[:, None, :])[0]
+        target = np.asarray(component.U, dtype=float) * U_TO_SI
+        segment = Segment(
+            name=component.name, U=component.U, start_s=start_s, reached_s=reached_s,
+            end_s=times[-1], residual=tuple(float(v) for v in (U_reached - target) / U_TO_SI),
+        )
+        requested = np.asarray(component.U, dtype=float)
+        tally = self.tally if model_U is None else self.tally.added(
+            model_U[0], model_U[1], self.previous, requested, model_U[2])
+        return _Branch(self.jumps + jumps, tally, q_end, U_reached,
+                       np.asarray(component.U, dtype=float), times, knots,
+                       self.segments + [segment])
 
 
 def plan_sequence(
@@ -994,7 +1387,12 @@ def plan_sequence(
     """Plan a whole sequence and return the `field-sequence` plan (with `expected` filled).
 
     The arms start from `q_start` (A, 7) rad, or parked (`home_joints`). The end poses of every
-    component come from inverse magnetics. "hybrid" joins them with the planned transitions;
+    component come from inverse magnetics. "hybrid" joins them with the planned transitions,
+    choosing among up to END_POSE_CANDIDATES end poses per component by a beam search: after each
+    component the BEAM_WIDTH partial plans with the fewest configuration changes and then the
+    best Table 1 so far (`Table1Tally`: off-activation peak and sigma, overshoots, from the
+    model's U along them) are kept, each extended by the next component's candidates; the best
+    whole plan is returned (deterministic: ties keep the order found);
     "agnostic" plans the hybrid first and then moves to the very same EPM end poses by straight
     joint-space moves (the baseline, `baseline_of`). `end_poses` (per component: EPM positions
     (A, 3) and moment directions (A, 3)) replaces inverse magnetics for the agnostic planner;
@@ -1010,48 +1408,48 @@ def plan_sequence(
     rig = rig or default_rig()
     stats = stats if stats is not None else PlanStats()
     q_now = home_joints(rig) if q_start is None else np.asarray(q_start, dtype=float)
-    times = [0.0, START_HOLD_S]
-    knots = [q_now, q_now]
-    segments = []
-    U_now = rig.field_at_centre(q_now[:, None, :])[0]
-    for component in sequence:
+    U_start = rig.field_at_centre(q_now[:, None, :])[0]
+    beam = [_Branch(0, Table1Tally(), q_now, U_start, np.zeros(8), [0.0, START_HOLD_S], [q_now, q_now], [])]
+    for index, component in enumerate(sequence):
         started, started_cpu = time.perf_counter(), time.process_time()
         target = np.asarray(component.U, dtype=float) * U_TO_SI
-        try:
-            if end_poses is not None:
-                q_end = _controller_end(rig, end_poses, end_joints, len(segments), q_now)
-            else:
-                positions, directions = rig.epm_poses(q_now)
-                ends = _reachable_ends(target, rig, q_now, positions, directions, component.name)
-                first_end = next(ends)
-            im_done = time.perf_counter()
-            if planner == "hybrid":
-                q, h = _best_transition(rig, q_now, U_now, itertools.chain([first_end], ends),
-                                        waypoints, k, bulge_m, component.name)
-                q_end = q[:, -1]
-            else:
-                q = np.stack([q_now, q_end], axis=1)  # (A, 2, 7)
-                h = _segment_times(q, rig)
-        except PlanError:
+        children, refusal, im_s = [], None, 0.0
+        for branch in beam:
+            im_started = time.perf_counter()
+            try:
+                if end_poses is not None:
+                    q_end = _controller_end(rig, end_poses, end_joints, index, branch.q_now)
+                else:
+                    positions, directions = rig.epm_poses(branch.q_now)
+                    ends = _reachable_ends(target, rig, branch.q_now, positions, directions,
+                                           component.name)
+                    first_end = next(ends)
+                im_s += time.perf_counter() - im_started
+                if planner == "hybrid":
+                    found = _transitions(rig, branch.q_now, branch.U_now,
+                                         itertools.chain([first_end], ends), waypoints, k,
+                                         bulge_m, component)
+                else:
+                    q = np.stack([branch.q_now, q_end], axis=1)  # (A, 2, 7)
+                    found = [(0, q, _segment_times(q, rig), None)]
+            except PlanError as err:
+                refusal = refusal or err
+                continue
+            children += [branch.extended(component, *f, rig) for f in found]
+        if not children:
             stats.refused_s.append(time.perf_counter() - started)
             stats.refused_cpu_s.append(time.process_time() - started_cpu)
-            raise
-        stats.inverse_magnetics_s.append(im_done - started)
+            raise refusal
+        # the best partial plans: fewest configuration changes, then the best summed score (a
+        # stable sort: ties keep the order found, so the same input gives the same plan)
+        children.sort(key=lambda c: (c.jumps, c.tally.score()))
+        beam = children[:BEAM_WIDTH]
+        stats.inverse_magnetics_s.append(im_s)
         stats.transition_s.append(time.perf_counter() - started)
         stats.transition_cpu_s.append(time.process_time() - started_cpu)
-        start_s = times[-1]
-        for n in range(1, q.shape[1]):
-            times.append(times[-1] + float(h[n - 1]))
-            knots.append(q[:, n])
-        reached_s = times[-1]
-        times.append(reached_s + (component.hold_s if component.hold_s > 0 else MIN_REST_S))
-        knots.append(q_end)
-        U_reached = rig.field_at_centre(q_end[:, None, :])[0]
-        segments.append(Segment(
-            name=component.name, U=component.U, start_s=start_s, reached_s=reached_s,
-            end_s=times[-1], residual=tuple(float(v) for v in (U_reached - target) / U_TO_SI),
-        ))
-        q_now, U_now = q_end, U_reached
+    best = beam[0]
+    times, segments = best.times, best.segments
+    knots = best.knots
     knots = np.array(knots)  # (K, A, 7)
     arms = [
         ArmPlan(

@@ -64,6 +64,11 @@ def pytest_configure(config) -> None:
     seconds = warm_up()
     if seconds > 1.0:
         print(f"geometry kernels compiled in {seconds:.1f} s (cached for later processes)")
+    from rigctl.plans.depm import warm_up as warm_up_depm  # the dEPM planner's kernels, likewise
+
+    seconds = warm_up_depm()
+    if seconds > 1.0:
+        print(f"dEPM planner kernels compiled in {seconds:.1f} s (cached for later processes)")
 
 
 _PRIORITY: dict[str, int] = {}  # "base": the worker's niceness; "favoured": where permitted

@@ -73,7 +73,10 @@ def _compile_module(namespace: dict) -> None:
 
     numba.core.config.reload_config()  # in case numba was imported before CACHE_DIR was set
     for name, kernel in list(namespace.items()):
-        if isinstance(kernel, _Kernel) and kernel.dispatcher is None:
+        if not isinstance(kernel, _Kernel):
+            continue
+        if kernel.dispatcher is None:
             kernel.dispatcher = numba.njit(cache=CACHE_DIR is not None, **kernel.options)(
                 kernel.py_func)
-            namespace[name] = kernel.dispatcher
+        # a kernel imported from a module compiled before this one is its dispatcher here too
+        namespace[name] = kernel.dispatcher

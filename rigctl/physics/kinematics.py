@@ -21,7 +21,10 @@ Sources for the arm data (LBR_IIWA_14_R820):
   (`SafetyLimits.accel_fraction`) and by the emulated arm, so a plan stays well inside what the
   emulated (and, with that margin, the real) arm follows without lagging.
 
-Everything is in SI (m, rad, rad/s) and vectorised over leading axes of the joint array.
+Everything is in SI (m, rad, rad/s) and vectorised over leading axes of the joint array. Inverse
+kinematics, which the dual-EPM planner calls hundreds of times per transition, is one compiled
+kernel (`_ik_kernel`, numba): the same Levenberg-Marquardt as written out in `ArmKinematics.solve`,
+without numpy's per-call overhead on 4x4 and 7x7 arrays.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rigctl.core.errors import LimitError
+from rigctl.core.jit import njit
 
 log = logging.getLogger(__name__)
 
@@ -150,6 +154,9 @@ class ArmKinematics:
         m = self.model
         self._dh = [(float(np.cos(m.alpha_rad[i])), float(np.sin(m.alpha_rad[i])), float(m.a_m[i]),
                      float(m.d_m[i])) for i in range(N_JOINTS)]
+        self._dh_table = np.array(self._dh)  # (7, 4): cos alpha, sin alpha, a, d (the IK kernel's)
+        self._capsule_links = np.array(m.capsule_links, dtype=np.int64)
+        self._capsule_radii = np.array(m.capsule_radii_m, dtype=float)
 
     # ------------------------------------------------------------ forward kinematics
 
@@ -265,87 +272,19 @@ class ArmKinematics:
         direction = direction / np.linalg.norm(direction)
         lower, upper = self.model.lower_rad, self.model.upper_rad
         seed = np.clip(np.asarray(q_seed, dtype=float), lower, upper)
-        direction_scale = 0.3  # m: a 1 rad direction error weighs like a 0.3 m position error
-        penalty_scale = 3.0  # penetrating the keep-out sphere costs 3x a position error
-        if keep_out is not None:
-            ko_centre = np.asarray(keep_out[0], dtype=float)
-            fracs = np.linspace(0.0, 1.0, 5)
-            links = np.array(self.model.capsule_links)
-            first = np.repeat(links[:, 0], len(fracs))
-            second = np.repeat(links[:, 1], len(fracs))
-            frac = np.tile(fracs, len(links))
-            reach = float(keep_out[1]) + np.repeat(self.model.capsule_radii_m, len(fracs))
-
-        def evaluate(q: np.ndarray, weight: float, anchor: np.ndarray):
-            frames = self._frames_one(q)
-            jo = self._origin_jacobians(frames)
-            epm_p, epm_d = frames[8, :3, 3], frames[8, :3, 0]
-            axes = frames[:N_JOINTS, :3, 2]
-            res = [epm_p - target, direction_scale * (epm_d - direction), weight * (q - anchor)]
-            jac = [jo[8], direction_scale * _cross(axes, epm_d).T, weight * np.eye(N_JOINTS)]
-            if keep_out is not None:
-                origins = frames[:, :3, 3]
-                points = (1 - frac)[:, None] * origins[first] + frac[:, None] * origins[second]
-                rel = points - ko_centre
-                dist = np.linalg.norm(rel, axis=1)
-                depth = reach - dist
-                active = np.flatnonzero(depth > 0)
-                if len(active):  # only penetrating points have a residual (the others' is 0)
-                    f = frac[active]
-                    jpoints = ((1 - f)[:, None, None] * jo[first[active]]
-                               + f[:, None, None] * jo[second[active]])
-                    normal = rel[active] / np.maximum(dist[active], 1e-9)[:, None]
-                    res.append(penalty_scale * depth[active])
-                    jac.append(-penalty_scale * np.einsum("mk,mkj->mj", normal, jpoints))
-            return np.concatenate(res), np.vstack(jac)
-
-        # A seed on a symmetric configuration (q1 = q3 = q5 = 0) can sit on a saddle of the task:
-        # a tiny fixed offset breaks the symmetry without moving the answer noticeably.
-        q = np.clip(seed + 1e-4 * np.array([1.0, 0.0, -1.0, 0.0, 1.0, 0.0, -1.0]), lower, upper)
-        for weight, rel_tol in ((stay_weight, 1e-3), (stay_weight * 1e-3, 1e-12)):
-            anchor = seed if weight == stay_weight else q.copy()
-            r, jac = evaluate(q, weight, anchor)
-            cost = r @ r
-            damping = 1e-4
-            for _ in range(max_iterations):
-                # Joints resting on a bound and pushed outward are held (active set).
-                free = np.ones(N_JOINTS, dtype=bool)
-                for _pass in range(2):
-                    jf = jac * free
-                    normal_matrix = jf.T @ jf
-                    gradient = jf.T @ r
-                    step = np.linalg.solve(
-                        normal_matrix + damping * np.diag(np.diag(normal_matrix))
-                        + (1e-9 + damping * 1e-6) * np.eye(N_JOINTS),
-                        -gradient,
-                    )
-                    blocked = ((q <= lower + 1e-12) & (step < 0)) | ((q >= upper - 1e-12) & (step > 0))
-                    if not np.any(blocked & free):
-                        break
-                    free &= ~blocked
-                trial = np.clip(q + step * free, lower, upper)
-                r_trial, jac_trial = evaluate(trial, weight, anchor)
-                cost_trial = r_trial @ r_trial
-                if cost_trial < cost:
-                    converged = (cost - cost_trial <= rel_tol * cost) or np.max(np.abs(trial - q)) < 1e-10
-                    q, r, jac, cost = trial, r_trial, jac_trial, cost_trial
-                    damping = max(damping / 3.0, 1e-9)
-                    task_met = (
-                        np.linalg.norm(r[:3]) < 1e-3 * position_tol_m
-                        and np.linalg.norm(r[3:6]) < 1e-3 * direction_tol_rad * direction_scale
-                    )
-                    if converged or cost < 1e-24 or (rel_tol < 1e-6 and task_met):
-                        break
-                else:
-                    damping *= 4.0
-                    if damping > 1e8:
-                        break
+        if keep_out is None:
+            ko_centre, ko_radius = np.zeros(3), -1.0  # a negative radius: no keep-out residuals
+        else:
+            ko_centre, ko_radius = np.asarray(keep_out[0], dtype=float), float(keep_out[1])
+        q = _ik_kernel(self.base, self._dh_table, self.model.tool_offset_m, lower, upper, target,
+                       direction, seed, ko_centre, ko_radius, self._capsule_links,
+                       self._capsule_radii, stay_weight, position_tol_m, direction_tol_rad,
+                       max_iterations)
         # numpy's vectorised sums can differ in the last bit with memory alignment; rounding far
         # below any physical scale keeps plans identical from run to run.
         q = np.round(q, 12)
-        position, moment = self.epm_pose(q)
-        pos_err = float(np.linalg.norm(position - target))
-        dir_err = float(np.arccos(np.clip(moment @ direction, -1.0, 1.0)))
+        pos_err, dir_err = _ik_errors(self.base, self._dh_table, self.model.tool_offset_m, q,
+                                      target, direction)
         ok = pos_err <= position_tol_m and dir_err <= direction_tol_rad
         return IKResult(q=q, position_error_m=pos_err, direction_error_rad=dir_err, ok=ok)
 
@@ -362,6 +301,241 @@ class ArmKinematics:
                 device=self.name,
             )
         return result.q
+
+
+# ---------------------------------------------------------------- the inverse-kinematics kernel
+# `ArmKinematics.solve` in compiled form. Residuals, in this order: EPM position error (3, m), the
+# scaled moment direction error (3), the pull toward the anchor (7) and the keep-out penalty of
+# every link point inside its reach; the normal equations J^T J and J^T r are summed row by row
+# instead of stacking J.
+
+_IK_DIRECTION_SCALE = 0.3  # m: a 1 rad direction error weighs like a 0.3 m position error
+_IK_PENALTY_SCALE = 3.0  # penetrating the keep-out sphere costs 3x a position error
+_IK_FRACTIONS = (0.0, 0.25, 0.5, 0.75, 1.0)  # five points along every link capsule
+_IK_SYMMETRY_BREAK = (1.0, 0.0, -1.0, 0.0, 1.0, 0.0, -1.0)
+
+
+@njit(error_model="numpy")
+def frames_kernel(base, dh, tool_offset, q, frames):  # pragma: no cover - compiled
+    """`ArmKinematics._frames_one` into `frames` (9, 4, 4)."""
+    frames[0] = base
+    for i in range(N_JOINTS):
+        ct, st = np.cos(q[i]), np.sin(q[i])
+        ca, sa, a, d = dh[i, 0], dh[i, 1], dh[i, 2], dh[i, 3]
+        for r in range(4):  # row r of frames[i] @ the DH link transform
+            x, y, z, w = frames[i, r, 0], frames[i, r, 1], frames[i, r, 2], frames[i, r, 3]
+            frames[i + 1, r, 0] = x * ct + y * st
+            frames[i + 1, r, 1] = x * (-st * ca) + y * (ct * ca) + z * sa
+            frames[i + 1, r, 2] = x * (st * sa) + y * (-ct * sa) + z * ca
+            frames[i + 1, r, 3] = x * (a * ct) + y * (a * st) + z * d + w
+    frames[8] = frames[7]
+    for k in range(3):
+        frames[8, k, 3] = frames[7, k, 3] + tool_offset * frames[7, k, 2]
+
+
+@njit(error_model="numpy")
+def _ik_evaluate(q, weight, anchor, base, dh, tool_offset, target, direction, ko_centre,
+                 ko_radius, links, radii, frames, jo, jtj, jtr):  # pragma: no cover - compiled
+    """Normal equations of the IK residuals at q into jtj (7, 7) and jtr (7,); returns the cost
+    |r|^2 and the norms of the position and (scaled) direction residuals."""
+    frames_kernel(base, dh, tool_offset, q, frames)
+    _ik_origin_jacobians(frames, jo)
+    jtj[:, :] = 0.0
+    jtr[:] = 0.0
+    row = np.empty(N_JOINTS)
+    position_sq = 0.0
+    for k in range(3):  # the EPM position
+        r = frames[8, k, 3] - target[k]
+        for i in range(N_JOINTS):
+            row[i] = jo[8, k, i]
+        _ik_accumulate(row, r, jtj, jtr)
+        position_sq += r * r
+    direction_sq = 0.0
+    epm_d = frames[8, :3, 0]
+    for k in range(3):  # the moment direction: d(epm_d)/dq_i = z_i x epm_d
+        r = _IK_DIRECTION_SCALE * (epm_d[k] - direction[k])
+        for i in range(N_JOINTS):
+            z = frames[i, :3, 2]
+            if k == 0:
+                row[i] = _IK_DIRECTION_SCALE * (z[1] * epm_d[2] - z[2] * epm_d[1])
+            elif k == 1:
+                row[i] = _IK_DIRECTION_SCALE * (z[2] * epm_d[0] - z[0] * epm_d[2])
+            else:
+                row[i] = _IK_DIRECTION_SCALE * (z[0] * epm_d[1] - z[1] * epm_d[0])
+        _ik_accumulate(row, r, jtj, jtr)
+        direction_sq += r * r
+    cost = position_sq + direction_sq
+    for i in range(N_JOINTS):  # the pull toward the anchor
+        r = weight * (q[i] - anchor[i])
+        jtj[i, i] += weight * weight
+        jtr[i] += weight * r
+        cost += r * r
+    if ko_radius >= 0.0:
+        cost += _ik_keep_out(frames, jo, ko_centre, ko_radius, links, radii, row, jtj, jtr)
+    return cost, np.sqrt(position_sq), np.sqrt(direction_sq)
+
+
+@njit(error_model="numpy")
+def _ik_origin_jacobians(frames, jo):  # pragma: no cover - compiled
+    """Positional Jacobians (9, 3, 7) of every frame origin into jo (`_origin_jacobians`): joint
+    i turns about z of frame i and moves every frame after it."""
+    for f in range(9):
+        for i in range(N_JOINTS):
+            if i < f:
+                z = frames[i, :3, 2]
+                dx = frames[f, 0, 3] - frames[i, 0, 3]
+                dy = frames[f, 1, 3] - frames[i, 1, 3]
+                dz = frames[f, 2, 3] - frames[i, 2, 3]
+                jo[f, 0, i] = z[1] * dz - z[2] * dy
+                jo[f, 1, i] = z[2] * dx - z[0] * dz
+                jo[f, 2, i] = z[0] * dy - z[1] * dx
+            else:
+                jo[f, 0, i] = jo[f, 1, i] = jo[f, 2, i] = 0.0
+
+
+@njit(error_model="numpy")
+def _ik_keep_out(frames, jo, ko_centre, ko_radius, links, radii, row, jtj,
+                 jtr):  # pragma: no cover - compiled
+    """The keep-out penalties of the link points into the normal equations (only penetrating
+    points have a residual); returns their part of the cost."""
+    cost = 0.0
+    for link in range(links.shape[0]):
+        first, second = links[link, 0], links[link, 1]
+        reach = ko_radius + radii[link]
+        for f in _IK_FRACTIONS:
+            rel = np.empty(3)
+            for k in range(3):
+                rel[k] = (1.0 - f) * frames[first, k, 3] + f * frames[second, k, 3] - ko_centre[k]
+            dist = np.sqrt(rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2])
+            depth = reach - dist
+            if depth <= 0.0:
+                continue
+            scale = -_IK_PENALTY_SCALE / max(dist, 1e-9)
+            for i in range(N_JOINTS):
+                total = 0.0
+                for k in range(3):
+                    total += rel[k] * ((1.0 - f) * jo[first, k, i] + f * jo[second, k, i])
+                row[i] = scale * total
+            r = _IK_PENALTY_SCALE * depth
+            _ik_accumulate(row, r, jtj, jtr)
+            cost += r * r
+    return cost
+
+
+@njit(error_model="numpy")
+def _ik_accumulate(row, r, jtj, jtr):  # pragma: no cover - compiled
+    """Add one residual r with Jacobian row (7,) to the normal equations."""
+    for i in range(N_JOINTS):
+        jtr[i] += row[i] * r
+        for j in range(N_JOINTS):
+            jtj[i, j] += row[i] * row[j]
+
+
+@njit(error_model="numpy")
+def cholesky_solve(matrix, rhs):  # pragma: no cover - compiled
+    """x with matrix @ x = rhs for a symmetric positive definite matrix (n, n) (its lower
+    triangle is read), by Cholesky: for the small normal equations of Levenberg-Marquardt, where
+    numba's LAPACK binding would cost more to compile than the solve."""
+    n = rhs.shape[0]
+    low = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            total = matrix[i, j]
+            for k in range(j):
+                total -= low[i, k] * low[j, k]
+            low[i, j] = np.sqrt(total) if i == j else total / low[j, j]
+    x = np.empty(n)
+    for i in range(n):
+        total = rhs[i]
+        for k in range(i):
+            total -= low[i, k] * x[k]
+        x[i] = total / low[i, i]
+    for i in range(n - 1, -1, -1):
+        total = x[i]
+        for k in range(i + 1, n):
+            total -= low[k, i] * x[k]
+        x[i] = total / low[i, i]
+    return x
+
+
+@njit(error_model="numpy")
+def _ik_errors(base, dh, tool_offset, q, target, direction):  # pragma: no cover - compiled
+    """The EPM's position error (m) and moment direction error (rad) at joints q (7,)."""
+    frames = np.empty((9, 4, 4))
+    frames_kernel(base, dh, tool_offset, q, frames)
+    position_sq, cosine = 0.0, 0.0
+    for k in range(3):
+        position_sq += (frames[8, k, 3] - target[k]) ** 2
+        cosine += frames[8, k, 0] * direction[k]
+    return np.sqrt(position_sq), np.arccos(min(max(cosine, -1.0), 1.0))
+
+
+@njit(error_model="numpy")
+def _ik_kernel(base, dh, tool_offset, lower, upper, target, direction, seed, ko_centre, ko_radius,
+               links, radii, stay_weight, position_tol, direction_tol,
+               max_iterations):  # pragma: no cover - compiled
+    """The two Levenberg-Marquardt passes of `ArmKinematics.solve` from `seed` (7,): joints (7,)."""
+    n = N_JOINTS
+    frames = np.empty((9, 4, 4))
+    jo = np.empty((9, 3, n))
+    jtj, jtr = np.empty((n, n)), np.empty(n)
+    jtj_trial, jtr_trial = np.empty((n, n)), np.empty(n)
+    system, rhs = np.empty((n, n)), np.empty(n)
+    # A seed on a symmetric configuration (q1 = q3 = q5 = 0) can sit on a saddle of the task:
+    # a tiny fixed offset breaks the symmetry without moving the answer noticeably.
+    q = np.empty(n)
+    for i in range(n):
+        q[i] = min(max(seed[i] + 1e-4 * _IK_SYMMETRY_BREAK[i], lower[i]), upper[i])
+    for stage in range(2):
+        weight = stay_weight if stage == 0 else stay_weight * 1e-3
+        rel_tol = 1e-3 if stage == 0 else 1e-12
+        anchor = seed.copy() if weight == stay_weight else q.copy()
+        cost, _, _ = _ik_evaluate(q, weight, anchor, base, dh, tool_offset, target, direction,
+                                  ko_centre, ko_radius, links, radii, frames, jo, jtj, jtr)
+        damping = 1e-4
+        for _ in range(max_iterations):
+            # Joints resting on a bound and pushed outward are held (active set).
+            free = np.ones(n, dtype=np.bool_)
+            step = np.zeros(n)
+            for _pass in range(2):
+                for i in range(n):
+                    rhs[i] = -jtr[i] if free[i] else 0.0
+                    for j in range(n):
+                        system[i, j] = jtj[i, j] if free[i] and free[j] else 0.0
+                    system[i, i] += damping * system[i, i] + (1e-9 + damping * 1e-6)
+                step = cholesky_solve(system, rhs)
+                newly_blocked = False
+                for i in range(n):
+                    blocked = ((q[i] <= lower[i] + 1e-12 and step[i] < 0.0)
+                               or (q[i] >= upper[i] - 1e-12 and step[i] > 0.0))
+                    if blocked and free[i]:
+                        free[i] = False
+                        newly_blocked = True
+                if not newly_blocked:
+                    break
+            trial = np.empty(n)
+            moved = 0.0
+            for i in range(n):
+                trial[i] = min(max(q[i] + (step[i] if free[i] else 0.0), lower[i]), upper[i])
+                moved = max(moved, abs(trial[i] - q[i]))
+            cost_trial, position_norm, direction_norm = _ik_evaluate(
+                trial, weight, anchor, base, dh, tool_offset, target, direction, ko_centre,
+                ko_radius, links, radii, frames, jo, jtj_trial, jtr_trial)
+            if cost_trial < cost:
+                converged = (cost - cost_trial <= rel_tol * cost) or moved < 1e-10
+                q, cost = trial, cost_trial
+                jtj, jtj_trial = jtj_trial, jtj
+                jtr, jtr_trial = jtr_trial, jtr
+                damping = max(damping / 3.0, 1e-9)
+                task_met = (position_norm < 1e-3 * position_tol
+                            and direction_norm < 1e-3 * direction_tol * _IK_DIRECTION_SCALE)
+                if converged or cost < 1e-24 or (rel_tol < 1e-6 and task_met):
+                    break
+            else:
+                damping *= 4.0
+                if damping > 1e8:
+                    break
+    return q
 
 
 def default_arms(model: ArmModel = LBR_IIWA_14_R820) -> list[ArmKinematics]:

@@ -40,7 +40,9 @@ def hybrid():
 
 @pytest.fixture(scope="module")
 def agnostic():
-    return depm.plan_sequence(SHORT, waypoints=8, planner="agnostic")
+    # the hybrid plan it is the baseline of is `hybrid` (the same k: the planner picks among the
+    # end poses by the transitions it plans to them, so another k can pick other end poses)
+    return depm.plan_sequence(SHORT, waypoints=8, k=3, planner="agnostic")
 
 
 def rebuilt(plan, rate_hz=200.0):
@@ -450,3 +452,67 @@ def test_baseline_arm_controller_takes_the_taught_joints_when_its_own_solve_miss
     q = depm._controller_joints(arm, position, direction, start, taught)
     reached, pointing = arm.epm_pose(q)
     assert np.linalg.norm(reached - position) < 1e-3 and pointing @ direction > np.cos(1e-2)
+
+
+def random_requests(seed: int, count: int) -> list[SequenceComponent]:
+    """Requests as bench/depm.py draws them: every U component random, fields within 10 mT and
+    gradients within 100 mT/m, all scaled by one random factor in [0.2, 1]."""
+    rng = np.random.default_rng(seed)
+    return [SequenceComponent(
+        name=f"r{index}", hold_s=0.5,
+        U=tuple(float(v) for v in np.concatenate([rng.uniform(-1, 1, 3) * 10,
+                                                  rng.uniform(-1, 1, 5) * 100])
+                * rng.uniform(0.2, 1.0))) for index in range(count)]
+
+
+def test_random_transitions_keep_every_constraint():
+    """Issue 40: two random requests planned with the bench's settings (20 waypoints, k = 4) by
+    the compiled solvers: every constraint holds along the rebuilt curves at 1 kHz (links, EPMs,
+    EPM pair, speeds, accelerations), the joints stay within the data sheet's ranges, and each
+    end pose makes its request within 2 % of the largest requested entry of its kind, by dipole
+    fields summed here."""
+    sequence = random_requests(40, 2)
+    plan = depm.plan_sequence(sequence)
+    assert_clear_between_the_knots(plan)
+    _, q = rebuilt(plan, rate_hz=1000.0)
+    assert np.all(np.abs(q) <= np.radians([170, 120, 170, 120, 170, 120, 175]) + 1e-9)
+    rig = depm.rig_for_plan(plan)
+    knots = np.asarray(plan.t_s)
+    for segment, component in zip(plan.segments, sequence):
+        index = int(np.argmin(np.abs(knots - segment.reached_s)))
+        poses = [arm.epm_pose(np.array(plan.arms[a].joints_rad[index])) for a, arm in enumerate(rig.arms)]
+        U = field_vector_by_hand([p for p, _ in poses], [plan.epm_moment_Am2 * d for _, d in poses]) * 1e3
+        requested = np.asarray(component.U)
+        for part in (slice(0, 3), slice(3, 8)):
+            assert np.max(np.abs(U[part] - requested[part])) <= 0.02 * np.max(np.abs(requested[part]))
+
+
+# Issue 40 item 3: the model's Table 1 averages of the eight-component sequence (3 s holds) as the
+# numpy planner before the compiled solvers made them (main at bcaa236, `bench/depm.py --no-run
+# --no-random` on the shared machine): the planned sequence must do as well or better on each.
+TABLE1_BEFORE = {"peak_off_activation_field_mT": 2.6596, "peak_off_activation_gradient_mT_per_m": 46.040,
+                 "sigma_off_field_mT": 0.60789, "sigma_off_gradient_mT_per_m": 10.023,
+                 "overshoot_rise_pct": 2.5241, "overshoot_fall_pct": 0.0}
+# the steady state is inverse magnetics' to make, within its tolerance (1e-4 of the request:
+# 0.01 %), whichever end pose is kept (before: 1.6e-5 %)
+STEADY_STATE_ERROR_MAX_PCT = 1e-2
+
+
+def test_eight_components_table1_no_worse_than_before_the_compiled_solvers():
+    """The planner's choice of end poses (beam search on what Table 1 measures) keeps every
+    Table 1 average of the seed's eight-component sequence, from the dipole model along the plan
+    at 50 Hz (as the bench measures it), at or below the numpy planner's; the compiled solvers
+    alone, taking the first end pose, made the field peaks, sigma and overshoots worse (3.9 mT,
+    0.79 mT, 7.4 / 3.6 %)."""
+    from rigctl.rigs.depm.metrics import table1, windows_of
+
+    plan = depm.plan_sequence(depm.eight_components(hold_s=3.0))
+    t = np.arange(plan.t_s[0], plan.t_s[-1], 1.0 / 50.0)
+    average = table1(t, depm.expected_U(plan, t), windows_of(plan))["average"]
+    for key, before in TABLE1_BEFORE.items():
+        # 1e-6 %: a few parts per billion of a request, the model's rounding (a fall that never
+        # passes its request can still end 1e-9 of it beyond, in the last digits)
+        assert abs(average[key]) <= before + (1e-6 if key.endswith("pct") else 1e-9), \
+            (key, average[key], before)
+    assert average["steady_state_error_max_pct"] <= STEADY_STATE_ERROR_MAX_PCT
+    assert depm.plan_violations(plan) == []
