@@ -150,7 +150,8 @@ class _Problem:
         for s, (k, src) in enumerate(self.coil_sources):
             coil_sources[k].append(Source(tuple(positions[s]), tuple(dirs[s]), src.kind,
                                           tuple(float(c) for c in per_source[s])))
-        offset = [Source(tuple(float(v) for v in self.centre), tuple(np.eye(3)[i]), "A",
+        centre = (float(self.centre[0]), float(self.centre[1]), float(self.centre[2]))
+        offset = [Source(centre, tuple(np.eye(3)[i]), "A",
                          (float(coeffs[self.n_sources * self.order + i]),)) for i in range(3)]
         return MPEM(self.names, coil_sources, offset, name=name,
                     workspace_m=[(float(lo), float(hi)) for lo, hi in workspace])
