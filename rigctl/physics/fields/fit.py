@@ -32,6 +32,7 @@ from scipy.optimize import least_squares
 
 from rigctl.core.errors import ConfigError
 from rigctl.physics.fields.loops import LoopModel
+from rigctl.physics.fields.model import FieldModel
 from rigctl.physics.fields.mpem import KIND_A, KIND_B, MPEM, Source, _mpem_kernel
 from rigctl.physics.magnetics import MU0
 
@@ -197,7 +198,7 @@ def fit_mpem(points_m: np.ndarray, currents_A: np.ndarray, fields_T: np.ndarray,
                    cpu_s=time.process_time() - started_cpu, evaluations=int(fit.nfev))
 
 
-def held_out_error(model: MPEM, points_m: np.ndarray, currents_A: np.ndarray,
+def held_out_error(model: FieldModel, points_m: np.ndarray, currents_A: np.ndarray,
                    fields_T: np.ndarray) -> tuple[float, float]:
     """(RMS |B_model - B_measured| in mT, that as % of the mean |B_measured|) over samples
     points (K, 3), currents (P, N), fields (P, K, 3)."""
