@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Protocol, Union
+from typing import Annotated, Any, Protocol, Union, runtime_checkable
 
 import tomli_w
 from pydantic import (
@@ -432,10 +432,11 @@ class RigConfig(_Strict):
         return self, {}
 
 
+@runtime_checkable
 class CoilRig(Protocol):
     """What the coils' field (`rigctl.physics.coils`) reads of a rig file: an electromagnet rig's
     (`rigctl.rigs.six_coil.settings.SixCoilRig`, which the layers below the rigs cannot import).
-    Read-only here, so a pydantic model's fields match."""
+    Read-only here, so a pydantic model's fields match; `isinstance` asks for the three."""
 
     @property
     def rig(self) -> RigInfo: ...

@@ -21,7 +21,7 @@ import ipaddress
 import json
 import re
 from enum import Enum
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, cast
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -147,7 +147,7 @@ def _request_id(value: Any) -> str | int | None:
     is refused (`bad_request`) rather than converted: pydantic's lax union made `1.0` and `true`
     the integer 1 and `false` 0, so a reply carried another id than the request's."""
     if value is None or type(value) in (str, int):  # not bool, a subclass of int
-        return value
+        return cast("str | int | None", value)
     kind = {bool: "a boolean", float: "a number with a fraction or an exponent", list: "a list",
             dict: "an object"}.get(type(value), type(value).__name__)
     raise PydanticCustomError("request_id", "an id is a string or an integer, not {kind}",
@@ -202,7 +202,7 @@ def read_json(text: str | bytes) -> Any:
     """`json.loads(text)` at orjson's speed: orjson reads it unless a number has 19 digits or
     more (orjson makes a float of an integer beyond 64 bits), the standard library reads what
     orjson refuses (NaN, an unpaired surrogate, invalid JSON: its ValueError says why)."""
-    if not (_DIGITS_19 if isinstance(text, str) else _DIGITS_19_BYTES).search(text):
+    if not (_DIGITS_19.search(text) if isinstance(text, str) else _DIGITS_19_BYTES.search(text)):
         try:
             return orjson.loads(text)
         except orjson.JSONDecodeError:
