@@ -29,12 +29,11 @@ import orjson
 from pydantic import BaseModel, ConfigDict, Field, PlainValidator, model_validator
 from pydantic_core import PydanticCustomError
 
-from rigctl.core.config import (  # noqa: F401  (the rig file's [daemon] table and its defaults)
-    DEFAULT_COMMAND_ENDPOINT,
-    DEFAULT_EVENTS_ENDPOINT,
-    DEFAULT_TELEMETRY_ENDPOINT,
-    DaemonSettings,
-)
+# the rig file's [daemon] table and its defaults, re-exported ("X as X": mypy's explicit form)
+from rigctl.core.config import DEFAULT_COMMAND_ENDPOINT as DEFAULT_COMMAND_ENDPOINT
+from rigctl.core.config import DEFAULT_EVENTS_ENDPOINT as DEFAULT_EVENTS_ENDPOINT
+from rigctl.core.config import DEFAULT_TELEMETRY_ENDPOINT as DEFAULT_TELEMETRY_ENDPOINT
+from rigctl.core.config import DaemonSettings as DaemonSettings
 from rigctl.core.errors import ConfigError
 
 PROTOCOL = "rigctl.apps.daemon/1"
