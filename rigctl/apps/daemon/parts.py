@@ -18,23 +18,21 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import zmq
 
-    from rigctl.apps.daemon.active_run import ActiveRun
     from rigctl.apps.daemon.admission import Admission
-    from rigctl.apps.daemon.commands import _LoadedPlan
-    from rigctl.apps.daemon.goals import GoalPlanning
     from rigctl.apps.daemon.keys import CurveServer
     from rigctl.apps.daemon.messages import Command, DaemonState
     from rigctl.apps.daemon.plan_runs import RunFactory, RunLike
     from rigctl.apps.daemon.replay import ReplayCache
-    from rigctl.apps.daemon.requests import _Loading, _Wakeup
     from rigctl.apps.daemon.sdnotify import SystemdNotifier
-    from rigctl.apps.daemon.server import DaemonEndpoints
     from rigctl.apps.daemon.telemetry import CycleBatch, TelemetryPublisher
     from rigctl.core.channels import Channel
     from rigctl.core.config import RigConfig
     from rigctl.rigs.base import RigKind
 
 
+# The parts' own modules import this one: naming their classes here would make an import cycle
+# (tools/import_graph.py counts the type checker's imports too), so those are Any, each with the
+# class it is named in a comment.
 class DaemonParts:
     """The daemon's state and methods its parts share (see the module docstring)."""
 
@@ -48,20 +46,20 @@ class DaemonParts:
         notifier: SystemdNotifier
         curve: CurveServer | None
         publisher: TelemetryPublisher | None
-        endpoints: DaemonEndpoints | None
+        endpoints: Any  # DaemonEndpoints | None (server.py)
         state: DaemonState
         _state_info: dict[str, Any]
         last_fault: dict[str, Any] | None
         last_run: dict[str, Any] | None
         _lock: threading.RLock
-        _active: ActiveRun | None
-        _plans: OrderedDict[str, _LoadedPlan]
+        _active: Any  # ActiveRun | None (active_run.py)
+        _plans: OrderedDict[str, Any]  # _LoadedPlan (commands.py)
         _deliveries: deque[Callable[[], None]]
         _replay: ReplayCache
         _worker: ThreadPoolExecutor
         load_deadline_s: float
-        _wakeup: _Wakeup
-        _loading: _Loading | None
+        _wakeup: Any  # _Wakeup (requests.py)
+        _loading: Any  # _Loading | None (requests.py)
         admission: Admission
         _stop: threading.Event
         _shutdown_requested: threading.Event
@@ -72,7 +70,7 @@ class DaemonParts:
         unsafe: set[str]
         channels: list[Channel]
         devices: dict[str, dict[str, str]]
-        goals: GoalPlanning
+        goals: Any  # GoalPlanning (goals.py)
         _handlers: dict[Command, Callable[[Any], Any]]
 
         def _require(self, *states: DaemonState, doing: str) -> None: ...
@@ -81,10 +79,10 @@ class DaemonParts:
         def _publish_state(self) -> None: ...
         def _on_cycles(self, batch: CycleBatch) -> None: ...
         def _on_run_state(self, run_state: Any, info: dict[str, Any]) -> None: ...
-        def _run_thread(self, active: ActiveRun) -> None: ...
+        def _run_thread(self, active: Any) -> None: ...
         def _device(self, name: str, health: str, detail: str) -> None: ...
-        def _sample_agents(self, active: ActiveRun) -> None: ...
-        def _activate(self, active: ActiveRun, event: str) -> None: ...
+        def _sample_agents(self, active: Any) -> None: ...
+        def _activate(self, active: Any, event: str) -> None: ...
         def _prepare(self, plan: Any) -> RunLike: ...
         def _shut_down_step(self) -> bool: ...
         def _close(self) -> None: ...
