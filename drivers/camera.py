@@ -27,6 +27,7 @@ import logging
 import threading
 import time
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -164,7 +165,7 @@ class CameraDriver:
         self.reconnects = 0  # reopenings that succeeded
         self._capture: cv2.VideoCapture | None = None
         self._count = 0
-        self._last_fingerprint: tuple | None = None
+        self._last_fingerprint: tuple[object, ...] | None = None
         # live sources: the reader thread hands over the newest frame through these
         self._cond = threading.Condition()
         self._latest: tuple[np.ndarray, float] | None = None
@@ -236,7 +237,7 @@ class CameraDriver:
             self._returned_seq = self._latest_seq
         return self._frame(image, t_capture)
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[Frame]:
         """Frames until the end of a file (live sources: until an error)."""
         while True:
             try:
@@ -255,7 +256,7 @@ class CameraDriver:
             else:
                 log.debug("%s: frame without a readable stamp", self.name)
         if self.stamped and number is not None:
-            fingerprint: tuple = (t_source, number)
+            fingerprint: tuple[object, ...] = (t_source, number)
         else:
             fingerprint = (image[::17, ::13].tobytes(),)
         repeated = fingerprint == self._last_fingerprint
@@ -302,7 +303,7 @@ class CameraDriver:
             ok, image = (False, None) if capture is None else capture.read()
             if self._stop.is_set():
                 break
-            if ok:
+            if ok and image is not None:
                 failures = 0
                 with self._cond:
                     self._latest = (image, time.monotonic())

@@ -38,7 +38,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rigctl.core.errors import (
     ConfigError,
@@ -167,14 +167,14 @@ class CoilBoard:
     # -- opening --------------------------------------------------------------------------------
 
     @classmethod
-    def open(cls, url: str, **options) -> "CoilBoard":
+    def open(cls, url: str, **options: Any) -> "CoilBoard":
         """Open the link, handshake, and start the heartbeat; Disconnected/DeviceError on failure."""
         board = cls(url, **options)
         board.connect()
         return board
 
     @classmethod
-    def from_settings(cls, settings: "CoilBoardSettings", *, name: str = "coil board", **options
+    def from_settings(cls, settings: "CoilBoardSettings", *, name: str = "coil board", **options: Any
                       ) -> "CoilBoard":
         """Open the board a rig file's [board] table names."""
         options = {
@@ -412,7 +412,7 @@ class CoilBoard:
 
     # -- the commands ---------------------------------------------------------------------------
 
-    def _encode(self, commands: Sequence[int]) -> bytes:
+    def _encode(self, commands: Sequence[float]) -> bytes:  # a non-integer is refused here
         if len(commands) != proto.CHANNELS:
             raise LimitError(f"the board takes {proto.CHANNELS} coil commands, got {len(commands)}",
                              device=self.name)
@@ -432,7 +432,7 @@ class CoilBoard:
         """An e-stop latched: every SET leaves as all zeros until `connect`."""
         return self._estopped
 
-    def set(self, commands: Sequence[int]) -> Ack:
+    def set(self, commands: Sequence[float]) -> Ack:
         """Apply four coil commands (-max_command..max_command; +x, -x, +y, -y); returns the ACK.
         After an e-stop the board is sent all zeros instead (the ACK says so).
 

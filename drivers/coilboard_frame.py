@@ -23,7 +23,7 @@ from __future__ import annotations
 import binascii
 import struct
 from dataclasses import astuple, dataclass
-from typing import ClassVar
+from typing import ClassVar, Self
 
 from rigctl.core.config import BOARD_FULL_SCALE
 
@@ -221,7 +221,7 @@ class _FlatPayload:
     FORMAT: ClassVar[str]
 
     @classmethod
-    def decode(cls, payload: bytes):
+    def decode(cls, payload: bytes) -> Self:
         return cls(*struct.unpack(cls.FORMAT, payload))
 
     def encode(self) -> bytes:

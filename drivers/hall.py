@@ -21,6 +21,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -91,7 +92,7 @@ class HallBoard:
             transport.close()
             raise
 
-    def _line(self) -> dict:
+    def _line(self) -> dict[str, Any]:
         try:
             raw = self._transport.read_until(b"\n", timeout_s=self.timeout_s, max_bytes=MAX_LINE_BYTES)
         except DeviceTimeout:

@@ -310,7 +310,7 @@ class EmulatedBench:
             print(f"{READY_PREFIX}{rig_out.resolve()}", flush=True)
             lines = [f"emulated {bench.title} up; rig file: {rig_out}; stop with Ctrl-C",
                      *(f"  {what:<10} {url}" for what, url in bench.served(rig)),
-                     f"  backdoor   {rig.emulation.backdoor}"]
+                     f"  backdoor   {bench.rig.emulation.backdoor}"]  # the copy's (pid aside)
             print("\n".join(lines), file=sys.stderr, flush=True)
             stop.wait()
         return EXIT_OK

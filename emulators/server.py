@@ -44,7 +44,7 @@ import threading
 import time
 import tty
 from collections.abc import Awaitable, Callable
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, cast
 
 log = logging.getLogger(__name__)
 
@@ -428,7 +428,8 @@ class EmulatorServer:
             self._loop.create_task(coroutine)  # type: ignore[arg-type]
             return None
         loop = self._loop
-        future = asyncio.run_coroutine_threadsafe(coroutine, loop)  # type: ignore[arg-type]
+        future: concurrent.futures.Future[T] = asyncio.run_coroutine_threadsafe(
+            coroutine, loop)  # type: ignore[arg-type]
         try:
             return future.result(CALL_TIMEOUT_S)
         except concurrent.futures.TimeoutError:
@@ -443,7 +444,7 @@ class EmulatorServer:
         async def invoke() -> T:
             return fn(*args)
 
-        return self._run(invoke())
+        return cast(T, self._run(invoke()))  # not in the loop thread: the result, never None
 
     def every(self, period_s: float, fn: Callable[[], None]) -> None:
         """Call `fn()` in the loop every `period_s` seconds (monotonic schedule, no drift).

@@ -78,7 +78,9 @@ _LOOKAHEAD_CORNERS = 12
 class CentreRegion(Protocol):
     """The convex region where particle centres may be (mm)."""
 
-    size: float
+    @property
+    def size(self) -> float:
+        """(read only: the regions are frozen dataclasses)"""
 
     def contains(self, points: np.ndarray, slack: float = 0.0) -> np.ndarray:
         """(k,) True where points (k, 2) lie inside, at least `slack` mm from the boundary."""

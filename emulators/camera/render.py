@@ -246,6 +246,7 @@ class Renderer:
             self._sharp = sharp
             self._background = self._blur(sharp)
             self._workspace = workspace
+        assert self._sharp is not None  # made with the background
         return self._sharp, self._background
 
     def render(self, scene: Scene) -> np.ndarray:

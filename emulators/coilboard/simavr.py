@@ -30,6 +30,7 @@ import subprocess
 import time
 from importlib.resources import files
 from pathlib import Path
+from typing import TextIO
 
 from rigctl.core.errors import DeviceError
 
@@ -115,7 +116,7 @@ class SimavrBoard:
         self.returncode: int | None = None  # the harness's exit status once stopped (0: clean)
         self.log_path = self.build_dir / f"harness-{os.getpid()}-{id(self):x}.log"
         self._proc: subprocess.Popen[str] | None = None
-        self._log = None
+        self._log: TextIO | None = None
         require_tools()
 
     @property

@@ -29,7 +29,8 @@ class ModelClock:
 
     def __init__(self, step: Callable[[float], None], speed: float = 1.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        self.step, self.sim, self._last = step, SimClock(speed, monotonic=clock), None
+        self.step, self.sim = step, SimClock(speed, monotonic=clock)
+        self._last: float | None = None
 
     def advance(self) -> None:
         now = self.sim.now()

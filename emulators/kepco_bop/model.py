@@ -596,7 +596,8 @@ class BopCoilModel:
 
     def _heat(self, dt: float, mean_square_A2: float) -> None:
         """The winding over `dt` with the step's mean square current; trip or recover."""
-        assert self._winding is not None and self.winding_C is not None
+        # all three are set together, from a winding
+        assert self._winding is not None and self.winding_C is not None and self.winding_peak_C is not None
         self.winding_C = step_current_one(self.winding_C, math.sqrt(mean_square_A2), dt,
                                           self._winding)
         self.winding_peak_C = max(self.winding_peak_C, self.winding_C)

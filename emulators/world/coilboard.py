@@ -181,7 +181,7 @@ class CoilBoardWorld:
         clearance, normal, _ = self.workspace.surface(self.positions_mm)
         on_wall = clearance <= self.radii_mm + _CONTACT_TOL_MM
         held = np.zeros(len(v), dtype=bool)
-        for i in np.flatnonzero(on_wall):
+        for i in np.flatnonzero(on_wall).tolist():
             v[i], held[i] = self._contact(v[i], normal[i])
         # Particle pairs: a held particle is a wall for the other; free ones push each other.
         for _ in range(2):

@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.core.config import RigConfig
+from rigctl.core.config import CoilRig
 from rigctl.emulators.world.rolling import Mismatch
 from rigctl.physics.coils import coil_field_and_gradient
 from rigctl.physics.magnetics import MU0
@@ -44,7 +44,7 @@ class PairWorld:
     rig: the bench's coils (geometry); floor_centre_mm: the workspace point under the coils' centre.
     """
 
-    def __init__(self, workspace, positions_mm: ArrayLike, physics: PairPhysics, rig: RigConfig,
+    def __init__(self, workspace, positions_mm: ArrayLike, physics: PairPhysics, rig: CoilRig,
                  floor_centre_mm: ArrayLike, mismatch: Mismatch | None = None) -> None:
         self.workspace = workspace
         self.physics = physics

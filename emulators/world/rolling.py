@@ -126,16 +126,16 @@ class RollingMagnetWorld:
         self._flush()
         return self._positions_mm
 
+    @positions_mm.setter
+    def positions_mm(self, value: ArrayLike) -> None:
+        self._pending[:] = 0.0
+        self._positions_mm = np.array(value, dtype=float).reshape(-1, 2)
+
     @property
     def settled_positions_mm(self) -> np.ndarray:
         """Centres (n, 2) mm as of the last applied piece (up to FLUSH_MM behind), without applying
         what is pending: cheap enough to call every simulation step."""
         return self._positions_mm
-
-    @positions_mm.setter
-    def positions_mm(self, value: ArrayLike) -> None:
-        self._pending[:] = 0.0
-        self._positions_mm = np.array(value, dtype=float).reshape(-1, 2)
 
     # -- moving ---------------------------------------------------------------------------------
     def _move(self, displacements: np.ndarray) -> None:

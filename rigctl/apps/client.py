@@ -65,7 +65,7 @@ class _Curve:
         self.client_key = client_key
 
     def apply(self, sock: zmq.Socket) -> None:
-        if self.server_public is not None:
+        if self.server_public is not None and self.client_key is not None:  # both or neither
             secure_client(sock, self.server_public, self.client_key)
 
 
@@ -220,10 +220,11 @@ class Rig:
     def set_field(self, field_mT: Iterable[float], ramp_s: float = 0.1) -> dict:
         return self.request("set_field", field_mT=[float(b) for b in field_mT], ramp_s=ramp_s)
 
-    def teleop(self, mode: str | None = None) -> dict:
+    def teleop(self, mode: str | None = None) -> dict[str, Any]:
         """Start steering by hand (docs/teleoperation.md): the rig's inputs, their units and
         ranges. Then `steer` every ~50 ms while the input is held; `end_teleop` (or `abort`)."""
-        return self.request("teleop", **({} if mode is None else {"mode": mode}))
+        args: dict[str, Any] = {} if mode is None else {"mode": mode}
+        return self.request("teleop", **args)
 
     def steer(self, **values: float) -> dict:
         """The operator's input now (`heading_deg=.., speed=..` rolling, `heading_deg=..,

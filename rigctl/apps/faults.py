@@ -760,9 +760,9 @@ def figures(cells: list[Cell]) -> dict:
         group = [c for c in cells if c.rig == rig and c.outcome != "n/a"]
         stopped = [c for c in group if c.outcome in ("faulted", "e-stopped", "aborted")
                    and c.fault_to_safe_s is not None]
-        worst = max(stopped, key=lambda c: c.fault_to_safe_s, default=None)  # type: ignore[arg-type]
+        worst = max(stopped, key=lambda c: c.fault_to_safe_s or 0.0, default=None)  # None filtered
         timed = [c for c in group if c.decision_to_stopping_s is not None]
-        slowest = max(timed, key=lambda c: c.decision_to_stopping_s, default=None)  # type: ignore[arg-type]
+        slowest = max(timed, key=lambda c: c.decision_to_stopping_s or 0.0, default=None)  # as above
         periods = {c.stream_period_s for c in timed if c.stream_period_s is not None}
         counts: dict[str, int] = {}
         for c in group:

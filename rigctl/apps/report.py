@@ -714,7 +714,8 @@ def _title_lines(data: RunData, notes: list[str], width_chars: int) -> list[tupl
     name = data.plan.get("name") or "plan"
     head = textwrap.shorten(f"{_run_name(data.run_dir, data.plan)}: {name}", width=2 * width_chars,
                             placeholder=" …")
-    lines = [(line, {"fontsize": 10.5}) for line in textwrap.wrap(head, width_chars)]
+    lines: list[tuple[str, dict[str, Any]]] = [(line, {"fontsize": 10.5})
+                                               for line in textwrap.wrap(head, width_chars)]
     lines.append((textwrap.shorten(verdict, width=width_chars, placeholder=" …"),
                   {"fontsize": 10, "color": colour, "fontweight": "bold"}))
     lines.append((textwrap.shorten(summary_line(read_certificate(data.run_dir)),

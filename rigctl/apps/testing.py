@@ -173,6 +173,7 @@ def daemon_on(bench, runs: Path) -> Iterator[tuple[Any, Any, Path]]:
         daemon = Daemon(bench.rig, command="tcp://127.0.0.1:0", telemetry="tcp://127.0.0.1:0",
                         events="tcp://127.0.0.1:0", runs_dir=runs)
         daemon.start_thread()
+        assert daemon.endpoints is not None  # bound by start_thread
         try:
             with Rig(daemon.endpoints.command, timeout_s=10.0) as rig, \
                     BackdoorClient.of(bench.rig.emulation) as backdoor:

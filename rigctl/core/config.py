@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Union
+from typing import Annotated, Any, Protocol, Union, runtime_checkable
 
 import tomli_w
 from pydantic import (
@@ -432,6 +432,20 @@ class RigConfig(_Strict):
         return self, {}
 
 
+@runtime_checkable
+class CoilRig(Protocol):
+    """What the coils' field (`rigctl.physics.coils`) reads of a rig file: an electromagnet rig's
+    (`rigctl.rigs.six_coil.settings.SixCoilRig`, which the layers below the rigs cannot import).
+    Read-only here, so a pydantic model's fields match; `isinstance` asks for the three."""
+
+    @property
+    def rig(self) -> RigInfo: ...
+    @property
+    def coils(self) -> list[Coil]: ...
+    @property
+    def actuation_matrix_T_per_A(self) -> list[list[float]] | None: ...
+
+
 def settings_of(kind: str) -> type[RigConfig]:
     """The rig file model of the installed rig kind `kind` (ConfigError naming the installed ones)."""
     from rigctl.core.registry import rig_kind
@@ -447,7 +461,9 @@ def rig_json_schema() -> dict:
     from rigctl.core.registry import kind_names
 
     models = tuple(settings_of(name) for name in kind_names())
-    schema = TypeAdapter(Union[models]).json_schema() if len(models) > 1 else models[0].model_json_schema()
+    # a Union built at run time from the installed kinds, which mypy cannot see as a type
+    union = Union[models]  # type: ignore[valid-type]
+    schema = TypeAdapter(union).json_schema() if len(models) > 1 else models[0].model_json_schema()
     return {"title": "rig file", **schema}
 
 

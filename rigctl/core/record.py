@@ -263,7 +263,7 @@ def _jsonable(value: Any) -> Any:
 
 def read_events(run_dir: str | Path) -> list[dict]:
     """Every event of the log; a last line cut off by a crash is skipped."""
-    events = []
+    events: list[dict] = []
     path = Path(run_dir) / "events.jsonl"
     if not path.is_file():
         return events
@@ -325,7 +325,8 @@ def read_stream(run_dir: str | Path) -> dict[str, Any] | None:
     if journal.is_file():
         header, rows = _read_journal(journal, skip_rows=n_parquet)
         if not channels:
-            channels = [Channel(*h[4:].rsplit("_", 1)) for h in header if h.startswith("cmd_")]
+            channels = [Channel(name, unit) for name, unit in
+                        (h[4:].rsplit("_", 1) for h in header if h.startswith("cmd_"))]
         if rows:
             tail = np.asarray(rows, dtype=float)
             source = "journal" if n_parquet == 0 else "parquet+journal"

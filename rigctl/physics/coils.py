@@ -19,7 +19,7 @@ import yaml
 from numpy.typing import ArrayLike
 from pydantic import BaseModel, ConfigDict, PrivateAttr
 
-from rigctl.core.config import RigConfig
+from rigctl.core.config import CoilRig
 from rigctl.core.errors import ConfigError, LimitError
 from rigctl.physics.field_calibration import FieldCalibration, parse_field_calibration
 from rigctl.physics.fields.loops import GRADIENT_STEP_MM, LoopModel, coil_loops
@@ -83,7 +83,7 @@ def load_calibration(path: str | Path) -> FieldCalibration | MPEMCalibration:
     return calibration
 
 
-def field_model(rig: RigConfig) -> FieldModel:
+def field_model(rig: CoilRig) -> FieldModel:
     """The rig's field model, its coils in `rig.coils` order: the MPEM its `field_calibration`
     names, the loops a "rigctl-loop-v1" calibration fitted, or the rig file's loops (gain 1).
 
@@ -107,12 +107,12 @@ def field_model(rig: RigConfig) -> FieldModel:
     return LoopModel(names, coil_loops(rig))
 
 
-def actuation_matrix(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
+def actuation_matrix(rig: CoilRig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
     """The actuation matrix of the rig's coils at `point_mm`.
 
     Parameters
     ----------
-    rig : RigConfig
+    rig : CoilRig
         Its `coils` (loop of `turns` turns, `centre_mm`, `axis`, `loop_radius_mm`), the model
         its `field_calibration` names (`field_model`), or its measured
         `actuation_matrix_T_per_A`, which takes precedence.
@@ -143,7 +143,7 @@ def actuation_matrix(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> n
     return np.ascontiguousarray(matrix)
 
 
-def field_offset(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
+def field_offset(rig: CoilRig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
     """The current-independent part of U (8,) (T, T/m; `U_COMPONENTS`) at `point_mm`: an MPEM's
     Offset field, zero for loops and for a measured actuation matrix. The currents for a field B
     make B - offset[0:3] through the actuation matrix."""
@@ -154,7 +154,7 @@ def field_offset(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.nd
     return field_model(rig).offset(point)
 
 
-def coil_field_and_gradient(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
+def coil_field_and_gradient(rig: CoilRig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
     """Field (3, n) T/A and gradient (3, 3, n) T/m/A of every coil per ampere at `point_mm`
     (through `field_model`: for loops, central differences of `loop_field` with the step
     `GRADIENT_STEP_MM`); returns (B, G) stacked as a (3, 4, n) array: [..., 0, :] the field,
@@ -170,18 +170,18 @@ def coil_field_and_gradient(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0
     out[:, 0, :] = per_A[:, 0:3].T
     out[:, 1:, :] = per_A[:, 3:].reshape(-1, 3, 3).transpose(1, 2, 0)  # [i, j, k] = dB_i/dx_j
     if not np.isfinite(out).all():
-        raise ConfigError(f"point {point_mm} mm lies on a coil's winding")
+        raise ConfigError(f"point {point_mm!s} mm lies on a coil's winding")
     return out
 
 
-def u_actuation_matrix(rig: RigConfig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
+def u_actuation_matrix(rig: CoilRig, point_mm: ArrayLike = (0.0, 0.0, 0.0)) -> np.ndarray:
     """The 8 x n actuation matrix of U (rows `U_COMPONENTS`) at `point_mm`, per ampere."""
     fg = coil_field_and_gradient(rig, point_mm)
     gradient = np.moveaxis(fg[:, 1:, :], -1, 0)  # (n, 3, 3)
     return np.concatenate([fg[:, 0, :], gradient_terms(gradient).T])
 
 
-def max_planar_gradient(rig: RigConfig, b0_T: float, *, angles: int = 360) -> float:
+def max_planar_gradient(rig: CoilRig, b0_T: float, *, angles: int = 360) -> float:
     """The largest g (T/m) such that an in-plane field of `b0_T` at any angle together with any
     diagonal gradient |dBx/dx|, |dBy/dy| <= g stays within every coil's current limit (box corners
     suffice: the currents are linear in U); 0 for coils that cannot make those gradients with the

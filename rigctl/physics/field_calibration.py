@@ -18,6 +18,7 @@ lab that only wants the linear map there. Unknown keys are refused: a misspelt k
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -71,7 +72,7 @@ class FieldCalibration(BaseModel):
                               f"(it has {', '.join(self.coil_list)})") from None
 
     def to_yaml(self) -> str:
-        data = {"Calibration_Name": self.name, "Calibration_Model": self.model,
+        data: dict[str, Any] = {"Calibration_Name": self.name, "Calibration_Model": self.model,
                 "Workspace_Dimensions": list(self.workspace_m), "Coil_List": list(self.coil_list)}
         for name in self.coil_list:
             data[name] = self.coils[name].model_dump(by_alias=True, mode="json")

@@ -219,8 +219,8 @@ class RollingIdentifier:
             radial = np.array([a, b]) / g  # d g / d(a, b)
             tangent = np.array([-b, a]) / g ** 2  # d theta / d(a, b)
             cov = e.cov[:2, :2]
-            gain_std.append(math.sqrt(max(radial @ cov @ radial, 0.0)))
-            heading_std.append(math.sqrt(max(tangent @ cov @ tangent, 0.0)))
+            gain_std.append(math.sqrt(max(float(radial @ cov @ radial), 0.0)))
+            heading_std.append(math.sqrt(max(float(tangent @ cov @ tangent), 0.0)))
         return np.array(gain_std), np.array(heading_std)
 
     @property

@@ -313,6 +313,7 @@ class WindingMonitor:
     def update(self, drive: ArrayLike, dt_s: float) -> str:
         state = "ok"
         temperatures, step, scale = self.temperature_C, self._step, self._scale
+        drive = np.asarray(drive, dtype=float)
         for j, one in enumerate(self._one):
             t = step(float(temperatures[j]), float(drive[j]) * scale, dt_s, one)
             temperatures[j] = t

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import inspect
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 from rigctl.core.config import RigConfig
@@ -37,7 +38,10 @@ class Probe:
 def _camera(rig: RigConfig, device: Device) -> str:
     from rigctl.drivers.camera import CameraDriver
 
-    with CameraDriver(rig.camera.url, stamped=rig.camera.stamped, timeout_s=2.0,
+    camera_settings = rig.camera
+    if camera_settings is None:  # a camera device is listed only for a rig with a [camera]
+        raise ConfigError("the rig has no [camera]")
+    with CameraDriver(camera_settings.url, stamped=camera_settings.stamped, timeout_s=2.0,
                       reconnect_attempts=0) as camera:
         frame = camera.read()
     height, width = frame.image.shape[:2]
@@ -66,7 +70,8 @@ def probe_rig(rig: RigConfig, timed: bool = False) -> list[Probe]:
         try:
             probe = _probe_for(kind, device)
             if timed and "timed" in inspect.signature(probe).parameters:
-                detail = probe(rig, device, timed=True)
+                timed_probe: Callable[..., str] = probe  # one that takes `timed` (just checked)
+                detail = timed_probe(rig, device, timed=True)
             else:
                 detail = probe(rig, device)
             ok = True

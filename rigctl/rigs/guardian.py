@@ -214,15 +214,15 @@ class Ward:
                          "them by hand")
         if self.bench_pid is not None:
             lines.append(f"  the emulated bench it had started (pid {self.bench_pid}) "
-                         + self._stop_bench())
+                         + self._stop_bench(self.bench_pid))
         return lines
 
-    def _stop_bench(self) -> str:
+    def _stop_bench(self, pid: int) -> str:
         def send(sig: int) -> None:
             if self.bench_fd is not None:
                 signal.pidfd_send_signal(self.bench_fd, sig)
             else:
-                os.kill(self.bench_pid, sig)
+                os.kill(pid, sig)
 
         def gone_within(timeout_s: float) -> bool:
             if self.bench_fd is not None:  # readable once the process has exited
@@ -230,7 +230,7 @@ class Ward:
             deadline = time.monotonic() + timeout_s
             while time.monotonic() < deadline:
                 try:
-                    os.kill(self.bench_pid, 0)
+                    os.kill(pid, 0)
                 except ProcessLookupError:
                     return True
                 time.sleep(0.05)

@@ -103,8 +103,13 @@ class RigProgram(Protocol):
     late: str  # "slip" or "skip"
     n_moves: int
     duration_s: float
-    paused: bool
-    suspended: str | None  # why the run cannot go on by itself now (tracking lost), else None
+
+    # read only here (the engine never sets them): a program may make them properties
+    @property
+    def paused(self) -> bool: ...
+    @property
+    def suspended(self) -> str | None:
+        """Why the run cannot go on by itself now (tracking lost), else None."""
 
     def start(self, ctx: RunContext) -> None:
         """Before anything is connected: place the agents (emulated bench), find them with the

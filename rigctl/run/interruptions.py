@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rigctl.core.errors import DeviceTimeout
+
+if TYPE_CHECKING:
+    from rigctl.core.record import RunRecord
 
 
 class Requests:
@@ -77,7 +80,7 @@ class Suspension:
         self.reason: str | None = None
         self.since: float | None = None
         self.count = 0  # suspensions ended
-        self.record = None
+        self.record: RunRecord | None = None
         self.say: Callable[[str], None] = lambda text: None
 
     def lost(self, now: float, reason: str, failure: Exception | None = None,

@@ -94,7 +94,7 @@ class TeleopDrive:
         """The pre-flight of any input within the components' ranges on this rig."""
         raise NotImplementedError
 
-    def moves_mm(self, inputs: dict[str, Any], events: list[dict]) -> tuple[np.ndarray, list[str]]:
+    def moves_mm(self, inputs: dict[str, Any], events: list[dict[str, Any]]) -> tuple[np.ndarray, list[str]]:
         """The moves (m, 2) mm of a global-moves plan that replays a session from its record (the
         `teleop` series as `read_series` gives it, the events), and what the plan differs in,
         one line each (`rigctl.apps.teleop_save`). ConfigError where the mode has none."""
@@ -217,7 +217,7 @@ class TeleopProgram:
             if seq != self._seen and values is not None:
                 self.inputs += 1
             self._seen, self._live = seq, fresh
-            row = values if fresh else np.full(len(self.drive.components), np.nan)
+            row = values if fresh and values is not None else np.full(len(self.drive.components), np.nan)
             self._series.row([now - self._ctx.record.t0, 1.0 if fresh else 0.0, *row])
         setpoints = self.drive.step(values if fresh else None)
         if self.drive.blocked != self._blocked:  # a limit the input is stopped at, or no more

@@ -318,7 +318,7 @@ class Tracker:
                 region = cv2.resize(region, None, fx=scale, fy=scale,
                                     interpolation=cv2.INTER_NEAREST)
             region = region[: r1 - r0, : c1 - c0]
-            weight = cv2.LUT(gray[r0:r1, c0:c1], weight_of)
+            weight: np.ndarray = cv2.LUT(gray[r0:r1, c0:c1], weight_of)
             weight *= region
             moments = cv2.moments(weight)
             total = moments["m00"]

@@ -25,6 +25,7 @@ import numpy as np
 from rigctl.core.config import CameraSettings
 from rigctl.core.errors import ConfigError, DeviceTimeout, Disconnected, RigError
 from rigctl.core.priority import favour
+from rigctl.core.record import RunRecord
 from rigctl.drivers.camera import CameraDriver
 from rigctl.vision.tracker import Tracker
 from rigctl.vision.video import VideoRecorder
@@ -75,7 +76,7 @@ class TrackingLoop:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._driver: CameraDriver | None = None
-        self._record = None
+        self._record: RunRecord | None = None
         self._record_period_s = 0.1
         self._recorder: threading.Thread | None = None
         self._tap: Callable[[np.ndarray, TrackedState], None] | None = None
@@ -87,7 +88,7 @@ class TrackingLoop:
         console keeps the latest and encodes it on a thread of its own). None: no tap."""
         self._tap = on_frame
 
-    def record_to(self, record, hz: float = 10.0) -> None:
+    def record_to(self, record: RunRecord, hz: float = 10.0) -> None:
         """From now on, write the tracked positions into `record` (a `RunRecord`) as `tracked`
         events: `{"event": "tracked", "positions_mm": [[x, y], ...], "lost": [bool, ...],
         "frame": n, "t_frame_s": s}`, at most `hz` a second and only for a fresh frame;
@@ -116,7 +117,8 @@ class TrackingLoop:
             with self._cond:
                 record, period = self._record, self._record_period_s
                 state = self._latest
-                if state is None or state.frame == last_frame or self.failure is not None:
+                if (state is None or record is None or state.frame == last_frame
+                        or self.failure is not None):
                     self._cond.wait(0.1)  # woken by the next frame (or stop)
                     continue
             wait = last_written + period - time.monotonic()
@@ -289,7 +291,7 @@ class TrackingLoop:
                 self._latest = state
                 self._cond.notify_all()
                 video, record = self.video, self._record
-            if video is not None:  # a time check and a put_nowait: never waits for the disk
+            if video is not None and record is not None:  # a time check and a put_nowait: never waits for the disk
                 video.offer(frame.image, t - record.t0, state.frame)
             if self._tap is not None:
                 self._tap(frame.image, state)

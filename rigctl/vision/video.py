@@ -126,6 +126,7 @@ class VideoRecorder:
     def _pipe(self) -> None:
         """Hand the queued frames to the writer process; runs until `close` queues None."""
         proc = self._proc
+        assert proc.stdin is not None  # started with stdin=PIPE
         try:
             while (item := self._queue.get()) is not None:
                 if self.failure is not None:  # the writer is gone: drain, the offers stop
@@ -137,7 +138,7 @@ class VideoRecorder:
                 image = np.ascontiguousarray(image, dtype=np.uint8)
                 try:
                     proc.stdin.write(struct.pack(HEADER, image.shape[0], image.shape[1]))
-                    proc.stdin.write(memoryview(image).cast("B"))
+                    proc.stdin.write(image.data.cast("B"))
                 except (BrokenPipeError, OSError) as err:
                     self.failure = f"the video writer process ended ({err})"
                     log.error("video: %s; the run goes on without video", self.failure)
@@ -154,7 +155,8 @@ class VideoRecorder:
 
     def _finish(self, proc: subprocess.Popen) -> None:
         try:  # closes the pipe: the child writes what it has, closes the file and ends
-            proc.stdin.close()
+            if proc.stdin is not None:
+                proc.stdin.close()
         except OSError:  # it had ended already (the failure is said)
             pass
         try:
@@ -197,12 +199,12 @@ def write_video(path: str, fps: float, source=None) -> int:
             data = source.read(h * w * 3)
             if len(data) != h * w * 3:
                 break  # the run's process died mid-frame: keep what came whole
-            image = np.frombuffer(data, np.uint8).reshape(h, w, 3)
+            image: np.ndarray = np.frombuffer(data, np.uint8).reshape(h, w, 3)
             if writer is None:
                 size = (w + w % 2, h + h % 2)
                 # through OpenCV's FFmpeg: 18 kB and 2.3 ms of CPU a 659 x 494 frame of the
                 # emulated camera, where OpenCV's own MJPEG writer took 88 kB and 5.1 ms
-                writer = cv2.VideoWriter(path, cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*FOURCC),
+                writer = cv2.VideoWriter(path, cv2.CAP_FFMPEG, cv2.VideoWriter.fourcc(*FOURCC),
                                          fps, size)
                 if not writer.isOpened():
                     raise SystemExit(f"OpenCV cannot write {path} ({FOURCC}, {size[0]}x{size[1]})")

@@ -6,12 +6,17 @@ the camera measured a particle that Alg. 1 leaves on its wall 0.04 mm from where
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
+import pytest
 
+from rigctl.core.errors import PlanError
+from rigctl.plans.schema import parse_plan
 from rigctl.plans.wall_contact import centre_region
-from rigctl.rigs.coil_board.run import CoilBoardRunSettings, move_roles
+from rigctl.rigs.coil_board.run import CoilBoardRunSettings, move_roles, planning_region
 
 REGION = centre_region({"disk": [0.0, 0.0, 23.0]}, 0.5)
 SETTINGS = CoilBoardRunSettings()
@@ -55,3 +60,15 @@ def test_a_move_that_brings_a_particle_to_a_wall_ends_on_that_particle():
     roles = move_roles(REGION, SETTINGS, np.array([-1.0, 0.0]), before, end, before)
     assert roles.watched.tolist() == [True, False]
     assert not roles.pinned.any() and not roles.grazing.any()
+
+
+def test_a_plan_on_a_picture_workspace_is_refused_in_one_line_not_a_traceback():
+    # a coil-board plan whose workspace is a PNG (a drawn maze): Alg. 1 plans in a boundary it
+    # can draw (disk, rect, polygon), so the run refuses it by name (an AttributeError before)
+    examples = Path(__file__).resolve().parents[2] / "plans" / "examples"
+    data = json.loads((examples / "coilboard-disk.json").read_text())
+    data["workspace"] = {"image": str(examples / "vessel-maze.png"), "mm_per_px": 0.1}
+    data["moves"], data["expected"] = [], None
+    plan = parse_plan(data)
+    with pytest.raises(PlanError, match="drawn boundary"):
+        planning_region(plan, 0.5)

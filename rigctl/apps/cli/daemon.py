@@ -123,7 +123,7 @@ def _serve_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
         # one owner per rig: refused (exit 2) before anything connects if another process has it
         lock = stack.enter_context(RigLock(rig, "rigctl daemon"))
         # a bench started here is this process's to stop: its rig file names its pid
-        guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
+        guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None and rig.emulation is not None else None)
         preflight(rig)  # every device answers and is made safe first, or exit 2 naming it
         guardian.wait_armed()  # before a client can have anything energised
         daemon = Daemon(

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 from rigctl.core.errors import ConfigError, abort_on_sigterm, shielded_from_interrupts, take_interrupt
 
 if TYPE_CHECKING:
+    from rigctl.core.config import RigConfig
     from rigctl.rigs.guardian import Guardian
 
 # run options: CLI flag -> the builder's keyword (a builder takes only those it names)
@@ -136,7 +137,7 @@ def _execute_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
 
         rig = load_rig(args.rig)
         run = build_on(rig)
-        where_it_runs = contextlib.nullcontext(rig)
+        where_it_runs: contextlib.AbstractContextManager[RigConfig] = contextlib.nullcontext(rig)
     else:
         # the bench's own rig file (its links' addresses, its world) is known only once it is up:
         # the run is built on that; a plan the bench's rig refuses is refused before it starts
@@ -148,7 +149,7 @@ def _execute_guarded(args: argparse.Namespace, guardian: Guardian) -> int:
     with contextlib.ExitStack() as after_run:
         with where_it_runs as rig, RigLock(rig, "rigctl execute") as lock:  # one owner
             # a bench started here is this process's to stop: its rig file names its pid
-            guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None else None)
+            guardian.guard(rig, bench_pid=rig.emulation.pid if args.rig is None and rig.emulation is not None else None)
             preflight(rig)  # every device answers and is made safe, or exit 2 naming it
             if run is None:
                 run = build_on(rig)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rigctl.core.config import CoilRig
 from rigctl.core.errors import EXIT_OK, ConfigError, PlanError
 
 
@@ -48,11 +49,10 @@ def _model(source: str):
         from rigctl.core.config import load_rig
 
         rig = load_rig(path)
-        coils = getattr(rig, "coils", None)
-        if not coils:
+        if not isinstance(rig, CoilRig) or not rig.coils:
             raise ConfigError(f"field: {source} is a {rig.rig.kind} rig: it has no coils whose "
                               "field rigctl models")
-        return (field_model(rig), np.array([c.current_limit_A for c in coils]),
+        return (field_model(rig), np.array([c.current_limit_A for c in rig.coils]),
                 f"rig {rig.rig.name!r}")
     return load_field_model(path), None, f"calibration {path.name}"
 

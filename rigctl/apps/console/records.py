@@ -258,7 +258,8 @@ def record_document(run_dir: str | Path) -> dict:
     workspace = plan.get("workspace") or {}
     to_scene = None
     if arms is not None:
-        scene = {"kind": "arms", "why": "the arms from their recorded joints (no camera)"}
+        scene: dict[str, Any] = {"kind": "arms",
+                                 "why": "the arms from their recorded joints (no camera)"}
     elif video is not None and calibration is not None:
         camera = _RecordedCamera(calibration)
         scene = {"kind": "camera", "why": "the record's video", **camera.of_plan(plan),

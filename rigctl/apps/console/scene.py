@@ -86,7 +86,8 @@ class CameraScene:
         paths = plan_paths_mm(plan)
         if paths:
             out["paths"] = [self.to_px(p) for p in paths]
-        agents = plan.get("agents") if isinstance(plan.get("agents"), list) else []
+        agents = plan.get("agents")
+        agents = agents if isinstance(agents, list) else []
         goals = [a["goal"][:2] for a in agents if isinstance(a, dict) and a.get("goal")]
         out["goals"] = self.to_px(goals)
         for agent in agents:

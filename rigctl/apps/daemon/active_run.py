@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.apps.daemon.messages import ErrorCode, Topic
+from rigctl.apps.daemon.parts import DaemonParts
 from rigctl.apps.daemon.states import RUN_EVENTS, Refusal
 from rigctl.apps.daemon.telemetry import CycleBatch
 from rigctl.core.errors import RigError
@@ -34,7 +35,7 @@ class ActiveRun:
     kind: str  # "plan", "hold" or "teleop"
     job: Any
     plan_id: str | None
-    info: dict
+    info: dict[str, Any]
     thread: threading.Thread | None = None
     run_id: str | None = None
     sample: int = -1
@@ -47,7 +48,7 @@ class ActiveRun:
 
 
 
-class RunWatch:
+class RunWatch(DaemonParts):
     """The `Daemon`'s run thread and the callbacks the stream process's reports arrive by."""
 
     # -- the run thread and its callbacks (called on the stream thread) -------------------------
@@ -126,7 +127,7 @@ class RunWatch:
         if self.publisher is not None:
             self.publisher.publish_frame(*frame)
 
-    def _on_run_state(self, run_state: Any, info: dict) -> None:
+    def _on_run_state(self, run_state: Any, info: dict[str, Any]) -> None:
         value = run_state.value
         active = self._active
         if active is not None and active.run_id is None and active.job.record is not None:
@@ -169,8 +170,11 @@ class RunWatch:
         expected = plan.expected if plan.kind == "global-moves" else None  # positions per move
         starts = [list(a.start) for a in plan.agents] if expected is not None else []
         shown = -1  # the move whose expected positions are shown
+        emulation, publisher = self.rig.emulation, self.publisher
+        if emulation is None or publisher is None:  # started for an emulated rig, once bound
+            return
         try:
-            with BackdoorClient.of(self.rig.emulation, timeout_s=1.0) as backdoor:
+            with BackdoorClient.of(emulation, timeout_s=1.0) as backdoor:
                 while not self._agents_stop.wait(1.0 / AGENTS_HZ) and self._active is active:
                     truth = backdoor.request("truth")["agents"]
                     move = active.move
@@ -183,7 +187,7 @@ class RunWatch:
                         exp = [list(map(float, p)) for p in
                                (expected[shown] if shown >= 0 else starts)]
                     tracked = [[round(float(x), 4) for x in p] for p in truth]
-                    self.publisher.publish_agents(move, tracked, exp, "emulator ground truth")
+                    publisher.publish_agents(move, tracked, exp, "emulator ground truth")
                     if active.job.record is not None:
                         active.job.record.event("agents", move=move, tracked=tracked)
         except (RigError, OSError, ValueError) as err:

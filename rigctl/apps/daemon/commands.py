@@ -18,6 +18,7 @@ import numpy as np
 
 from rigctl.apps.daemon.active_run import ActiveRun
 from rigctl.apps.daemon.messages import PROTOCOL, ErrorCode, HoldArgs
+from rigctl.apps.daemon.parts import DaemonParts
 from rigctl.apps.daemon.plan_runs import MAX_PLANS, RunLike
 from rigctl.apps.daemon.states import ACTIVE, Refusal, S
 from rigctl.core import errors
@@ -34,20 +35,20 @@ HOLD_START_TIMEOUT_S = 30.0  # hold waits this long for the rig to stream the ho
 class _LoadedPlan:
     plan_id: str
     plan: Any
-    info: dict
+    info: dict[str, Any]
     prepared: RunLike | None
 
 
 
-class Commands:
+class Commands(DaemonParts):
     """The `Daemon`'s command handlers, by name in its `_handlers`."""
 
     # -- commands -------------------------------------------------------------------------------
-    def _cmd_ping(self, _: Any) -> dict:
+    def _cmd_ping(self, _: Any) -> dict[str, Any]:
         return {"protocol": PROTOCOL, "pid": os.getpid(),
                 "telemetry": self.endpoints.as_dict() if self.endpoints else None}
 
-    def _cmd_status(self, _: Any) -> dict:
+    def _cmd_status(self, _: Any) -> dict[str, Any]:
         with self._lock:
             active = self._active
             run = None
@@ -71,7 +72,7 @@ class Commands:
                 "uptime_s": round(time.monotonic() - self.t0, 3),
             }
 
-    def _cmd_load(self, args: Any) -> dict:
+    def _cmd_load(self, args: Any) -> dict[str, Any]:
         plan = self.factory.parse_plan(args.plan)
         plan_id = hashlib.sha256(json.dumps(args.plan, sort_keys=True).encode()).hexdigest()[:12]
         prepared = self._prepare(plan)
@@ -92,7 +93,7 @@ class Commands:
         return self.factory.prepare(plan, rig, runs_dir=self.runs_dir,
                                     on_cycles=self._on_cycles, on_state=self._on_run_state)
 
-    def _cmd_execute(self, args: Any) -> dict:
+    def _cmd_execute(self, args: Any) -> dict[str, Any]:
         with self._lock:
             if self._active is not None and self._active.kind == "hold":
                 raise Refusal(ErrorCode.WRONG_STATE,
@@ -124,9 +125,10 @@ class Commands:
                                              name=f"daemon-{active.kind}")
             active.thread.start()
 
-    def _cmd_pause(self, args: Any) -> dict:
+    def _cmd_pause(self, args: Any) -> dict[str, Any]:
         with self._lock:
             self._require(*ACTIVE, doing="pause")
+            assert self._active is not None  # in an ACTIVE state
             if self._active.kind == "hold":
                 raise Refusal(ErrorCode.WRONG_STATE, f'{CANNOT_PAUSE} (hold {{"release": true}})')
             if self._active.kind == "teleop":
@@ -136,19 +138,21 @@ class Commands:
         return {"state": self.state.value, "pending": "pause now" if args.immediate
                 else "pause at the end of the current move"}
 
-    def _cmd_resume(self, _: Any) -> dict:
+    def _cmd_resume(self, _: Any) -> dict[str, Any]:
         with self._lock:
             self._require(S.PAUSED, doing="resume")
+            assert self._active is not None  # paused
             self._active.job.resume()
         return {"state": self.state.value, "pending": "resume"}
 
-    def _cmd_abort(self, _: Any) -> dict:
+    def _cmd_abort(self, _: Any) -> dict[str, Any]:
         with self._lock:
             self._require(*ACTIVE, doing="abort")
+            assert self._active is not None  # in an ACTIVE state
             self._active.job.abort()
         return {"state": self.state.value, "pending": "ramp down and stop"}
 
-    def _cmd_estop(self, _: Any) -> dict:
+    def _cmd_estop(self, _: Any) -> dict[str, Any]:
         active = self._active
         unreached: list[str] = []
         if active is not None:  # first, before any lock: the supplies are zeroed from this thread
@@ -174,7 +178,7 @@ class Commands:
             zeroing = "done: every device told to stop (supplies 0 A and off, coils off, arms held)"
         return {"state": self.state.value, "zeroing": zeroing, "unreached": unreached}
 
-    def _cmd_reset(self, _: Any) -> dict:
+    def _cmd_reset(self, _: Any) -> dict[str, Any]:
         with self._lock:
             if self.state == S.IDLE:
                 return {"state": "idle"}
@@ -184,7 +188,7 @@ class Commands:
             self._transition("reset")
         return {"state": self.state.value}
 
-    def _cmd_hold(self, args: Any) -> dict:
+    def _cmd_hold(self, args: Any) -> dict[str, Any]:
         """A manual hold (any rig), retargeted while one is on, released by `release` or by a
         target at the rig's rest (zero). Limits are checked here before anything moves: the
         target's, and the ramp's from what is held now (between the setpoints the stream last
@@ -228,7 +232,8 @@ class Commands:
             if self._active is not None:
                 raise Refusal(ErrorCode.BUSY, "the last run is still stopping")
         # streamed by the stream process; this (the worker) waits until it streams or cannot start
-        job = self._prepare(HoldPlan(rig=self.rig.rig.kind, target=request.target,
+        # the stream process's host (RunHost): started, streaming, error and result besides RunLike
+        job: Any = self._prepare(HoldPlan(rig=self.rig.rig.kind, target=request.target,
                                      ramp_s=args.ramp_s))
         active = ActiveRun("hold", job, None, dict(job.info), setpoints=request.setpoints)
         with self._lock:
@@ -239,23 +244,24 @@ class Commands:
         if not job.started.wait(HOLD_START_TIMEOUT_S):
             job.estop()  # still connecting: it must not switch on after hold has failed
         if not job.streaming:  # it could not start (a device, a limit at the arms): say why
+            assert active.thread is not None  # _activate started it
             active.thread.join(HOLD_START_TIMEOUT_S)
             raise job.error or _start_error(job.result)
         for name in self.devices:
             self._device(name, "ok", "manual hold")
         return reply
 
-    def _cmd_set_field(self, args: Any) -> dict:
+    def _cmd_set_field(self, args: Any) -> dict[str, Any]:
         """The six-coil shorthand of `hold {"target": {"field_mT": ...}}` (zero releases)."""
         result = self._cmd_hold(HoldArgs(target={"field_mT": args.field_mT}, ramp_s=args.ramp_s))
         return {"field_mT": args.field_mT, "currents_A": result["setpoints"]}
 
-    def _cmd_runs(self, args: Any) -> list[dict]:
+    def _cmd_runs(self, args: Any) -> list[dict[str, Any]]:
         from rigctl.core.record import list_runs
 
         return list_runs(self.runs_dir, limit=args.limit)
 
-    def _cmd_run(self, args: Any) -> dict:
+    def _cmd_run(self, args: Any) -> dict[str, Any]:
         if "/" in args.run or args.run.startswith(".") or not (self.runs_dir / args.run).is_dir():
             raise Refusal(ErrorCode.UNKNOWN_RUN, f"no run {args.run!r} in {self.runs_dir}")
         from rigctl.core.record import describe_run

@@ -56,16 +56,16 @@ class Tracked:
     source: str  # the run summary's positions_from
     run: str | None
     rig: str
-    workspace: dict
+    workspace: dict[str, Any]
     radii_mm: list[float]
     min_separation_mm: float
     tolerance_mm: float
 
     positions_px: list[list[float]] | None = None  # in the camera's pixels (a calibration's)
     plan_kind: str = "global-moves"
-    template: dict | None = None  # a pair formation's plan document: its physics and bounds
+    template: dict[str, Any] | None = None  # a pair formation's plan document: its physics and bounds
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         """What `status` says of it (`tracked`): where the agents are, mm and px, and whence."""
         return {"positions_mm": self.positions_mm, "positions_px": self.positions_px,
                 "radii_mm": self.radii_mm, "source": self.source, "run": self.run}
@@ -100,7 +100,7 @@ def tracked_after(plan: Any, summary: Any, calibration: Any = None) -> Tracked |
                    float(plan.min_separation_mm), float(plan.tolerance_mm), px)
 
 
-def planned_paths_mm(plan: dict, starts_mm: list) -> list[list[list[float]]]:
+def planned_paths_mm(plan: dict[str, Any], starts_mm: list[Any]) -> list[list[list[float]]]:
     """Each agent's planned path (mm): its start, then where the plan expects it after every move
     (a pair formation: after every segment, from the formation's centroid, separation and
     heading)."""
@@ -215,7 +215,7 @@ class GoalPlanning:
         if tracked is not None:
             self.tracked = tracked
 
-    def status(self) -> dict | None:
+    def status(self) -> dict[str, Any] | None:
         """`status`'s `tracked`: where the daemon last saw the agents (None: nowhere yet)."""
         tracked = self.tracked
         return None if tracked is None else tracked.as_dict()
@@ -240,7 +240,7 @@ class GoalPlanning:
 
         threading.Thread(target=work, name="daemon-goals", daemon=True).start()
 
-    def command(self, args: Any) -> dict:
+    def command(self, args: Any) -> dict[str, Any]:
         """Plan from the tracked positions to the goals, load the plan; its id, document, the
         planned paths (mm and, with a camera calibration, px) and where the agents start."""
         from rigctl.plans.goals import GoalProblem

@@ -19,6 +19,7 @@ import os
 import shutil
 import threading
 from pathlib import Path
+from typing import Any
 
 import zmq
 import zmq.auth
@@ -84,7 +85,7 @@ def allowed_public_keys(allowed_dir: str | Path) -> list[bytes]:
     return [load_public(p) for p in sorted(folder.glob("*.key"))]
 
 
-def _listing(folder: Path) -> tuple:
+def _listing(folder: Path) -> tuple[Any, ...]:
     """What changes when a key file is added, removed or rewritten."""
     try:
         return tuple(sorted((p.name, st.st_mtime_ns, st.st_size)
@@ -98,7 +99,7 @@ class CurveServer:
     reads again when the folder changes. `allowed` holds the Z85 public keys let in now (what a
     connection's ZAP `User-Id` is)."""
 
-    def __init__(self, context: zmq.Context, secret_key_file: str | Path,
+    def __init__(self, context: zmq.Context[zmq.Socket[bytes]], secret_key_file: str | Path,
                  allowed_dir: str | Path) -> None:
         self.public, self.secret = load_secret(secret_key_file)
         self.allowed_dir = Path(allowed_dir)
@@ -139,7 +140,7 @@ class CurveServer:
         """Whether a request's connection (its ZAP User-Id: the client's Z85 key) is allowed now."""
         return user_id is not None and user_id.encode() in self.allowed
 
-    def secure(self, sock: zmq.Socket) -> None:
+    def secure(self, sock: zmq.Socket[bytes]) -> None:
         """Make `sock` (before bind) a CURVE server with the daemon's key."""
         sock.curve_secretkey = self.secret
         sock.curve_publickey = self.public
@@ -151,7 +152,7 @@ class CurveServer:
         self._auth.stop()
 
 
-def secure_client(sock: zmq.Socket, server_public_key: bytes, client_secret_file: str | Path) -> None:
+def secure_client(sock: zmq.Socket[bytes], server_public_key: bytes, client_secret_file: str | Path) -> None:
     """Make `sock` (before connect) a CURVE client of a daemon with that public key."""
     public, secret = load_secret(client_secret_file)
     sock.curve_publickey = public

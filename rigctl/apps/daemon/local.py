@@ -37,6 +37,8 @@ from rigctl.apps.daemon.messages import (
     PROTOCOL,
     Command,
     ErrorCode,
+    PauseArgs,
+    Reply,
     Request,
     Topic,
     error_reply,
@@ -66,7 +68,7 @@ class LocalControl:
         self.run = run
         self.owner = owner
         self.started = time.monotonic()
-        self._context = zmq.Context.instance()
+        self._context: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
         self._sock = self._context.socket(zmq.REP)
         self._sock.setsockopt(zmq.LINGER, 0)
         self._sock.bind("tcp://127.0.0.1:0")
@@ -74,7 +76,7 @@ class LocalControl:
         self.publisher = TelemetryPublisher(
             self._context, "tcp://127.0.0.1:0", "tcp://127.0.0.1:0",
             channels=rig_kind(run.rig.rig.kind).channels(run.rig), clock_origin=self.started)
-        self._cycles: deque[list] = deque()  # appended by the stream thread, drained by this one
+        self._cycles: deque[list[Any]] = deque()  # appended by the stream thread, drained by this one
         self._streaming = False
         self._at = (-1, -1)  # the last cycle's (sample, move), set by the stream thread
         self._hook(run)
@@ -92,7 +94,7 @@ class LocalControl:
             self._cycles.append(CycleBatch.row(time.monotonic() - self.started, sample, move,
                                                commanded, measured, run.stream_loop.last_error_s))
 
-        def state(run_state: Any, info: dict) -> None:
+        def state(run_state: Any, info: dict[str, Any]) -> None:
             if on_state is not None:
                 on_state(run_state, info)
             try:  # telemetry is for watchers: nothing here may end the run
@@ -102,7 +104,7 @@ class LocalControl:
 
         run.on_cycle, run.on_state = cycle, state
 
-    def _publish_state(self, run: Any, state: str, info: dict) -> None:
+    def _publish_state(self, run: Any, state: str, info: dict[str, Any]) -> None:
         record = getattr(run, "record", None)
         name = str(record.path) if record is not None else None
         if state == "faulted":
@@ -151,7 +153,7 @@ class LocalControl:
                 reply = error_reply(None, ErrorCode.INTERNAL, f"internal error: {err}")
             self._sock.send(reply.model_dump_json().encode())
 
-    def _answer(self, payload: bytes):
+    def _answer(self, payload: bytes) -> Reply:
         try:
             request = Request.model_validate_json(payload)
         except ValidationError as err:
@@ -171,7 +173,7 @@ class LocalControl:
         run = self.run
         try:
             if cmd == Command.PAUSE:
-                run.pause(immediate=args.immediate)
+                run.pause(immediate=isinstance(args, PauseArgs) and args.immediate)
             elif cmd == Command.RESUME:
                 run.resume()
             elif cmd == Command.ABORT:
@@ -188,19 +190,19 @@ class LocalControl:
             return ok_reply(request.id, self.ping())
         if cmd == Command.STATUS:
             return ok_reply(request.id, self.status())
-        pending = "pause now" if cmd == Command.PAUSE and args.immediate else PENDING[cmd]
+        pending = "pause now" if isinstance(args, PauseArgs) and args.immediate else PENDING[cmd]
         return ok_reply(request.id, {"state": self.status()["state"], "pending": pending})
 
-    def _endpoints(self) -> dict:
+    def _endpoints(self) -> dict[str, Any]:
         return {"command": self.endpoint, "data": self.publisher.data_endpoint,
                 "events": self.publisher.events_endpoint}
 
-    def ping(self) -> dict:
+    def ping(self) -> dict[str, Any]:
         """The daemon's `ping`: the protocol, this process, where its telemetry is."""
         return {"protocol": PROTOCOL, "pid": os.getpid(), "telemetry": self._endpoints(),
                 "owner": self.owner}
 
-    def status(self) -> dict:
+    def status(self) -> dict[str, Any]:
         """The daemon's `status` (docs/daemon-protocol.md), of the one run this process makes:
         `run` while it is on (`sample` and `move` of the last cycle streamed, -1 before the
         first), `last_run` from its record's summary once it ended; no plans kept, no manual
@@ -236,7 +238,7 @@ class LocalControl:
                 "owner": self.owner, "telemetry": self._endpoints()}
 
 
-def _last_run(record: Any) -> dict | None:
+def _last_run(record: Any) -> dict[str, Any] | None:
     """What the daemon's `last_run` says of a run, from its record's summary (None until the
     run has written it: it is written last)."""
     try:

@@ -21,7 +21,7 @@ import ipaddress
 import json
 import re
 from enum import Enum
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, cast
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -29,12 +29,11 @@ import orjson
 from pydantic import BaseModel, ConfigDict, Field, PlainValidator, model_validator
 from pydantic_core import PydanticCustomError
 
-from rigctl.core.config import (  # noqa: F401  (the rig file's [daemon] table and its defaults)
-    DEFAULT_COMMAND_ENDPOINT,
-    DEFAULT_EVENTS_ENDPOINT,
-    DEFAULT_TELEMETRY_ENDPOINT,
-    DaemonSettings,
-)
+# the rig file's [daemon] table and its defaults, re-exported ("X as X": mypy's explicit form)
+from rigctl.core.config import DEFAULT_COMMAND_ENDPOINT as DEFAULT_COMMAND_ENDPOINT
+from rigctl.core.config import DEFAULT_EVENTS_ENDPOINT as DEFAULT_EVENTS_ENDPOINT
+from rigctl.core.config import DEFAULT_TELEMETRY_ENDPOINT as DEFAULT_TELEMETRY_ENDPOINT
+from rigctl.core.config import DaemonSettings as DaemonSettings
 from rigctl.core.errors import ConfigError
 
 PROTOCOL = "rigctl.apps.daemon/1"
@@ -147,7 +146,7 @@ def _request_id(value: Any) -> str | int | None:
     is refused (`bad_request`) rather than converted: pydantic's lax union made `1.0` and `true`
     the integer 1 and `false` 0, so a reply carried another id than the request's."""
     if value is None or type(value) in (str, int):  # not bool, a subclass of int
-        return value
+        return cast("str | int | None", value)
     kind = {bool: "a boolean", float: "a number with a fraction or an exponent", list: "a list",
             dict: "an object"}.get(type(value), type(value).__name__)
     raise PydanticCustomError("request_id", "an id is a string or an integer, not {kind}",
@@ -202,7 +201,7 @@ def read_json(text: str | bytes) -> Any:
     """`json.loads(text)` at orjson's speed: orjson reads it unless a number has 19 digits or
     more (orjson makes a float of an integer beyond 64 bits), the standard library reads what
     orjson refuses (NaN, an unpaired surrogate, invalid JSON: its ValueError says why)."""
-    if not (_DIGITS_19 if isinstance(text, str) else _DIGITS_19_BYTES).search(text):
+    if not (_DIGITS_19.search(text) if isinstance(text, str) else _DIGITS_19_BYTES.search(text)):
         try:
             return orjson.loads(text)
         except orjson.JSONDecodeError:

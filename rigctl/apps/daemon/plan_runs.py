@@ -29,7 +29,7 @@ class RunLike(Protocol):
     def estop(self) -> list[str]: ...  # the supplies it could not reach
 
     plan: Any  # the plan being run (agents, expected)
-    info: dict  # what `load` and `status` say of it: name, size, planned duration
+    info: dict[str, Any]  # what `load` and `status` say of it: name, size, planned duration
     record: Any  # the run record once execute() has made it, else None
 
 
@@ -37,11 +37,11 @@ class RunLike(Protocol):
 class RunFactory(Protocol):
     def start(self) -> None: ...  # when the daemon starts (spawn helpers)
     def close(self) -> None: ...  # when it stops
-    def parse_plan(self, data: dict) -> Any: ...
+    def parse_plan(self, data: dict[str, Any]) -> Any: ...
 
     def prepare(self, plan: Any, rig: RigConfig, *, runs_dir: Path,
                 on_cycles: Callable[[CycleBatch], None],
-                on_state: Callable[[Any, dict], None]) -> RunLike: ...
+                on_state: Callable[[Any, dict[str, Any]], None]) -> RunLike: ...
     # a run hands its stream cycles to on_cycles in batches (t: time.monotonic())
 
 
@@ -57,7 +57,7 @@ class PlanRuns:
         self._lock = threading.Lock()
         # id(plan) -> (plan, the plan as prepared, what load says of it): a plan executed again
         # is not realized and allocated again here (on the command thread) just to be described
-        self._checked: OrderedDict[int, tuple[Any, Any, dict]] = OrderedDict()
+        self._checked: OrderedDict[int, tuple[Any, Any, dict[str, Any]]] = OrderedDict()
 
     def start(self) -> None:
         self.host.start()
@@ -65,12 +65,14 @@ class PlanRuns:
     def close(self) -> None:
         self.host.close()
 
-    def parse_plan(self, data: dict) -> Any:
+    def parse_plan(self, data: dict[str, Any]) -> Any:
         from rigctl.plans.schema import parse_plan
 
         return parse_plan(data, "plan")
 
-    def prepare(self, plan, rig, *, runs_dir, on_cycles, on_state) -> RunLike:
+    def prepare(self, plan: Any, rig: RigConfig, *, runs_dir: Path,
+                on_cycles: Callable[[CycleBatch], None],
+                on_state: Callable[[Any, dict[str, Any]], None]) -> RunLike:
         """The first time: the run built here refuses a bad plan before anything else happens and
         tells the plan's size. The stream process builds its own from the same prepared plan and
         rig (deterministic, so the same program) and streams that."""

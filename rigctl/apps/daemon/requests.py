@@ -12,7 +12,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import orjson
 import zmq
@@ -32,6 +32,7 @@ from rigctl.apps.daemon.messages import (
     error_reply,
     ok_reply,
 )
+from rigctl.apps.daemon.parts import DaemonParts
 from rigctl.apps.daemon.replay import replay_key
 from rigctl.apps.daemon.runhost import make_realtime
 from rigctl.apps.daemon.states import Refusal, S
@@ -116,7 +117,7 @@ class _Wakeup:
 
 
 
-class RequestServer:
+class RequestServer(DaemonParts):
     """The `Daemon`'s command thread: its socket (`_router`), admission, replay cache, worker and
     `load` thread, and the replies they finish."""
 
@@ -131,6 +132,7 @@ class RequestServer:
         next_heartbeat = time.monotonic() + STATE_HEARTBEAT_S
         if self._command_priority is not None:
             make_realtime(self._command_priority, "command thread")
+        assert self.endpoints is not None  # bound by start()
         self.notifier.ready(f"serving {self.endpoints.command}")
         self._serving.set()
         try:
@@ -160,7 +162,7 @@ class RequestServer:
                             break
                         self._admit(frames)
                         # no more waiting: asked, not found by a receive that raises (40 us cold)
-                        if not self._router.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                        if not cast(int, self._router.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
                             break
                 for frames in self.admission.ready(time.monotonic()):
                     self._on_message(frames)
@@ -182,7 +184,7 @@ class RequestServer:
         return True
 
     # -- requests -------------------------------------------------------------------------------
-    def _admit(self, received: list) -> None:
+    def _admit(self, received: list[Any]) -> None:
         """Answer a request now, let it wait for the request budget, or answer `busy`
         (`rigctl.apps.daemon.admission`); with CURVE, refuse one from a connection whose key has
         been removed from the allow-list since it connected (frames are `zmq.Frame`s then, for
@@ -269,7 +271,8 @@ class RequestServer:
             log.exception("%s failed on the quick path; answering through the general one",
                           cmd.decode())
             return False
-        request_id = text_id.decode() if text_id is not None else int(number_id)
+        assert text_id is not None or number_id is not None  # QUICK_REQUEST's id is one of them
+        request_id = text_id.decode() if text_id is not None else int(number_id or b"")
         self._send_json(envelope, {"id": request_id, "ok": True, "result": result, "error": None})
         return True
 
@@ -353,7 +356,7 @@ class RequestServer:
                                f"the reply could not be encoded: {type(err).__name__}").model_dump_json().encode()
         self._send_bytes(envelope, body)
 
-    def _send_json(self, envelope: list[bytes], reply: dict) -> None:
+    def _send_json(self, envelope: list[bytes], reply: dict[str, Any]) -> None:
         """A reply built without the models (`QUICK_COMMANDS`). Its request was checked to be
         exactly what `Request` accepts, and the bytes are what `Reply.model_dump_json` gives (the
         protocol tests compare the two). The models cost 10-40 us each when the caches are cold,

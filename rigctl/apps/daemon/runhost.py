@@ -57,7 +57,7 @@ import time
 from collections import deque
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -212,7 +212,7 @@ class RunHost:
             while acks is not None and acks.poll(max(0.0, deadline - time.monotonic())):
                 token, unreached = acks.recv()
                 if token == asked_at:
-                    return unreached  # (an older e-stop's late answer is passed over)
+                    return cast("list[str] | None", unreached)  # (an older e-stop's late answer is passed over)
         except (EOFError, OSError):
             pass
         return None
@@ -311,7 +311,7 @@ def device_patience_s(rig: RigConfig) -> float:
     stream process silent for twice this is hung."""
     from rigctl.rigs import rig_kind
 
-    return max(rig.stream.reply_timeout_s, rig_kind(rig.rig.kind).patience_s(rig))
+    return float(max(rig.stream.reply_timeout_s, rig_kind(rig.rig.kind).patience_s(rig)))
 
 
 class _RecordView:
@@ -334,7 +334,7 @@ class RemoteRun:
     `build_run`), with the interface of the run it stands for; a manual hold's also takes
     `retarget` and `release`."""
 
-    def __init__(self, host: RunHost, job: tuple, rig: RigConfig, *, plan: Any, info: dict,
+    def __init__(self, host: RunHost, job: tuple[Any, ...], rig: RigConfig, *, plan: Any, info: dict[str, Any],
                  on_cycles: Any, on_state: Any) -> None:
         self._host = host
         self.job = job  # the message that starts it in the host
@@ -354,7 +354,7 @@ class RemoteRun:
         self._error: Exception | None = None
         self._lock = threading.Lock()
         self._submitted = False
-        self._early: list[tuple] = []  # control calls made before the host had the run
+        self._early: list[tuple[Any, ...]] = []  # control calls made before the host had the run
         self._stop_asked = False  # an abort or e-stop was asked: a lost run is not started again
 
     @property
@@ -389,7 +389,7 @@ class RemoteRun:
         """The run's summary once it ended (None before, or if it failed)."""
         return self._result
 
-    def retarget(self, target: dict, setpoints: np.ndarray, ramp_s: float) -> None:
+    def retarget(self, target: dict[str, Any], setpoints: np.ndarray, ramp_s: float) -> None:
         """A manual hold's new target (`rigctl.run.hold.HoldProgram.retarget`)."""
         self._control("retarget", target, np.asarray(setpoints, dtype=float).tolist(), ramp_s)
 
@@ -454,7 +454,7 @@ class RemoteRun:
             self._early, self._submitted = [], True
 
     # called on the host's reader thread
-    def _receive(self, message: tuple) -> None:
+    def _receive(self, message: tuple[Any, ...]) -> None:
         kind = message[0]
         if kind == "cycles":
             self._last_cycles = time.monotonic()
@@ -525,7 +525,7 @@ class _Uplink:
     def __init__(self, up: Any) -> None:
         self._up = up
         self._lock = threading.Lock()
-        self._queue: deque = deque(maxlen=UPLINK_MAX_QUEUED)
+        self._queue: deque[Any] = deque(maxlen=UPLINK_MAX_QUEUED)
         self._wake = threading.Event()
         self._stop = False
         self._thread = threading.Thread(target=self._serve, name="runhost-uplink", daemon=True)
@@ -543,7 +543,7 @@ class _Uplink:
         self._wake.set()
 
     def flush(self) -> None:
-        batch: list = []
+        batch: list[Any] = []
         while self._queue:
             item = self._queue.popleft()
             if isinstance(item[0], str):
@@ -572,11 +572,11 @@ class _Uplink:
             except (OSError, ValueError):  # the daemon is gone; the main thread sees it too
                 return
 
-    def _send_cycles(self, batch: list) -> None:
+    def _send_cycles(self, batch: list[Any]) -> None:
         if batch:
             self._send(("cycles", np.array(batch)))
 
-    def _send(self, message: tuple) -> None:
+    def _send(self, message: tuple[Any, ...]) -> None:
         with self._lock:
             self._up.send(message)
 
@@ -594,7 +594,7 @@ class _FrameTap:
         self.uplink = uplink
         self.calibration: Any = None  # the running rig's camera calibration (set per run)
         self._cond = threading.Condition()
-        self._latest: tuple | None = None
+        self._latest: tuple[Any, ...] | None = None
         self._last_t = -float("inf")
         self._thread = threading.Thread(target=self._serve, name="runhost-frames", daemon=True)
         self._thread.start()
@@ -614,7 +614,9 @@ class _FrameTap:
         while True:
             with self._cond:
                 self._cond.wait_for(lambda: self._latest is not None)
-                (image, state), self._latest = self._latest, None
+                latest, self._latest = self._latest, None
+            assert latest is not None  # waited for
+            image, state = latest
             height, width = image.shape[:2]
             if width > FRAME_MAX_WIDTH:
                 scale = FRAME_MAX_WIDTH / width
@@ -661,7 +663,7 @@ class _Host:
         self.realtime_priority = realtime_priority
         self._lock = threading.Lock()
         self.run: Any = None
-        self._pending: list[tuple[str, tuple]] = []  # calls made while the Run was being built
+        self._pending: list[tuple[str, tuple[Any, ...]]] = []  # calls made while the Run was being built
         self._thread: threading.Thread | None = None
 
     def serve(self, down: Any) -> None:
@@ -714,7 +716,7 @@ class _Host:
                    winding_start_C: list[float] | None = None) -> Any:
         if self.frames is not None:
             self.frames.calibration = rig.camera.calibration if rig.camera is not None else None
-        run = build_run(
+        run: Any = build_run(  # (typed here: the callbacks below name it)
             plan, rig, runs_dir=runs_dir,
             on_cycle=lambda k, move, cmd, meas: self.uplink.cycle(
                 k, move, cmd, meas, run.stream_loop.last_error_s),
@@ -761,7 +763,7 @@ class _Host:
 PROGRAM_CALLS = {"retarget", "release", "steer", "end"}  # a hold's, a teleoperation's: on its program
 
 
-def _apply(run: Any, name: str, args: tuple) -> Any:
+def _apply(run: Any, name: str, args: tuple[Any, ...]) -> Any:
     return getattr(run.program if name in PROGRAM_CALLS else run, name)(*args)
 
 

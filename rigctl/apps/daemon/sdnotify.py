@@ -35,7 +35,7 @@ class SystemdNotifier:
 
     def notify(self, *fields: str) -> bool:
         """Send `KEY=VALUE` lines; False (and a log line) when it could not be sent."""
-        if self._sock is None:
+        if self._sock is None or self.address is None:
             return False
         try:
             self._sock.sendto("\n".join(fields).encode(), self.address)

@@ -67,7 +67,7 @@ from rigctl.apps.daemon.sdnotify import SystemdNotifier
 from rigctl.apps.daemon.states import RunStates
 from rigctl.apps.daemon.telemetry import TelemetryPublisher, WindingEstimate
 from rigctl.apps.daemon.teleop import TeleopCommands
-from rigctl.core.config import RigConfig
+from rigctl.core.config import CoilRig, RigConfig
 from rigctl.core.errors import ConfigError
 from rigctl.physics.thermal import Windings
 from rigctl.rigs import rig_kind
@@ -81,7 +81,7 @@ class DaemonEndpoints:
     telemetry: str
     events: str
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {"command": self.command, "data": self.telemetry, "events": self.events}
 
 
@@ -166,8 +166,8 @@ class Daemon(RequestServer, Commands, TeleopCommands, RunWatch, RunStates):
         self.t0 = time.monotonic()
         self._lock = threading.RLock()
         self.state = DaemonState.IDLE
-        self._state_info: dict = {}
-        self.last_fault: dict | None = None
+        self._state_info: dict[str, Any] = {}
+        self.last_fault: dict[str, Any] | None = None
         self._active: ActiveRun | None = None
         self._plans: OrderedDict[str, _LoadedPlan] = OrderedDict()
         self._deliveries: deque[Callable[[], None]] = deque()
@@ -181,7 +181,7 @@ class Daemon(RequestServer, Commands, TeleopCommands, RunWatch, RunStates):
         self._shutdown_requested = threading.Event()
         self._serving = threading.Event()
         self._thread: threading.Thread | None = None
-        self._router: zmq.Socket | None = None
+        self._router: zmq.Socket[bytes] | None = None
         self._log_handler: _TelemetryLogHandler | None = None
         self._agents_stop = threading.Event()
         self.unsafe: set[str] = set()  # devices a run could not confirm safe: zeroed once they answer
@@ -193,14 +193,15 @@ class Daemon(RequestServer, Commands, TeleopCommands, RunWatch, RunStates):
         self.channels = actuators
         self.devices = {d.name: {"name": d.name, "url": d.url, "kind": d.kind, "health": "unknown",
                                  "detail": ""} for d in self.kind.devices(rig)}
-        self.held: dict | None = None  # the manual hold's target
-        self.last_run: dict | None = None
+        self.held: dict[str, Any] | None = None  # the manual hold's target
+        self.last_run: dict[str, Any] | None = None
         self.goals = GoalPlanning(self)  # plan_goals, and where the last run left the agents
         self._actuation = self._actuation_matrix()
         self._field_offset = None
         if self._actuation is not None:  # the field plot shows B = A I + an MPEM's Offset field
             from rigctl.physics.coils import field_offset
 
+            assert isinstance(self.rig, CoilRig)  # it has an actuation matrix
             self._field_offset = field_offset(self.rig)[0:3]
         self._handlers: dict[Command, Callable[[Any], Any]] = {
             Command.PING: self._cmd_ping, Command.STATUS: self._cmd_status,
@@ -216,18 +217,20 @@ class Daemon(RequestServer, Commands, TeleopCommands, RunWatch, RunStates):
 
     # -- life cycle -----------------------------------------------------------------------------
     def _actuation_matrix(self) -> np.ndarray | None:
-        if not getattr(self.rig, "coils", None):  # a rig of coils fed by supplies
+        rig = self.rig
+        if not isinstance(rig, CoilRig) or not rig.coils:  # a rig of coils fed by supplies
             return None
         from rigctl.physics.coils import actuation_matrix
 
-        return actuation_matrix(self.rig)
+        return actuation_matrix(rig)
 
     def start(self) -> DaemonEndpoints:
         """Bind every socket and start the telemetry thread; returns the bound endpoints."""
         command, telemetry, events = self._wanted
         secure = None
-        if self._keys[0] is not None:
-            self.curve = CurveServer(self.context, self._keys[0], self._keys[1])
+        server_key, allowed_keys = self._keys
+        if server_key is not None and allowed_keys is not None:  # both or neither (__init__)
+            self.curve = CurveServer(self.context, server_key, allowed_keys)
             secure = self.curve.secure
         router = self.context.socket(zmq.ROUTER)
         router.setsockopt(zmq.LINGER, 0)

@@ -8,6 +8,7 @@ import logging
 from typing import Any
 
 from rigctl.apps.daemon.messages import DaemonState, ErrorCode, Topic
+from rigctl.apps.daemon.parts import DaemonParts
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +51,7 @@ class Refusal(Exception):
 
 
 
-class RunStates:
+class RunStates(DaemonParts):
     """The `Daemon`'s state (`state`, `_state_info`, under `_lock`) and its changes."""
 
     # -- state ----------------------------------------------------------------------------------

@@ -30,6 +30,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, Literal, cast
 
 import numpy as np
 import zmq
@@ -141,7 +142,7 @@ class WindingEstimate:
         """Where the next run's model starts: the estimate now."""
         self.now()
         with self._lock:
-            return self._monitor.temperature_C.tolist()
+            return [float(t) for t in self._monitor.temperature_C]
 
 
 @dataclass
@@ -160,7 +161,7 @@ class TelemetryPublisher:
 
     def __init__(
         self,
-        context: zmq.Context,
+        context: zmq.Context[zmq.Socket[bytes]],
         data_endpoint: str,
         events_endpoint: str,
         *,
@@ -172,7 +173,7 @@ class TelemetryPublisher:
         stream_hz: float = 10.0,
         queue_batches: int = 4096,
         batch_s: float = TELEMETRY_BATCH_S,
-        secure: Callable[[zmq.Socket], None] | None = None,
+        secure: Callable[[zmq.Socket[bytes]], None] | None = None,
         clock_origin: float | None = None,
         windings: WindingEstimate | None = None,
         winding_hz: float = 10.0,
@@ -212,7 +213,7 @@ class TelemetryPublisher:
         self._thread = threading.Thread(target=self._serve, name="telemetry", daemon=True)
 
     def _bind(self, endpoint: str, hwm: int,
-              secure: Callable[[zmq.Socket], None] | None) -> zmq.Socket:
+              secure: Callable[[zmq.Socket[bytes]], None] | None) -> zmq.Socket[bytes]:
         sock = self.context.socket(zmq.PUB)
         sock.setsockopt(zmq.SNDHWM, hwm)
         sock.setsockopt(zmq.LINGER, 0)
@@ -257,7 +258,7 @@ class TelemetryPublisher:
                                                              fields)))
             self._cond.notify()
 
-    def publish_agents(self, move: int, tracked: list | None, expected: list | None,
+    def publish_agents(self, move: int, tracked: list[Any] | None, expected: list[Any] | None,
                        source: str) -> None:
         with self._cond:
             msg = AgentsMsg(seq=self._next_seq(Topic.AGENTS), t=self.now(), move=move,
@@ -266,7 +267,7 @@ class TelemetryPublisher:
             self._cond.notify()
 
     def publish_frame(self, jpeg_b64: str, width: int, height: int, t_source: float,
-                      t_source_unix: float, positions_mm: list, tracked_px: list, lost: list,
+                      t_source_unix: float, positions_mm: list[Any], tracked_px: list[Any], lost: list[Any],
                       frame: int) -> None:
         """A camera frame (JPEG, base64; `t_source` monotonic s) from the stream process's reader
         thread, sent by the publisher thread like `agents`."""
@@ -319,7 +320,8 @@ class TelemetryPublisher:
         sock = self._events if topic in ("state", "fault", "log") else self._data
         try:
             sock.send_multipart([topic.encode(), msg.model_dump_json().encode()], flags=zmq.NOBLOCK)
-            self.stats.sent[topic] += 1
+            if self.stats.sent is not None:
+                self.stats.sent[topic] += 1
         except zmq.Again:  # PUB drops rather than blocks; kept for completeness
             log.debug("telemetry %s dropped", topic)
 
@@ -332,7 +334,8 @@ class TelemetryPublisher:
         self._send("winding", WindingMsg(
             seq=self._next_seq(Topic.WINDING), t=round(at - self.t0, 6), names=list(w.names),
             temperature_C=[round(t, 4) for t in temperatures], warning_C=w.warning_C.tolist(),
-            limit_C=w.limit_C.tolist(), state=state, source=source))
+            limit_C=w.limit_C.tolist(), state=cast("Literal['ok', 'warning', 'limit']", state),
+            source=cast("Literal['run', 'cooling']", source)))
 
     def _publish_batch(self, batch: CycleBatch) -> None:
         if self._pending_reset is not None:
@@ -381,8 +384,9 @@ class TelemetryPublisher:
                 period_error_max_us=round(float(worst), 1), dropped_samples=self.stats.dropped))
 
 
-def _event_model(topic: Topic, seq: int, t: float, fields: dict) -> BaseModel:
-    models = {Topic.STATE: StateMsg, Topic.FAULT: FaultMsg, Topic.LOG: LogMsg}
+def _event_model(topic: Topic, seq: int, t: float, fields: dict[str, Any]) -> BaseModel:
+    models: dict[Topic, type[BaseModel]] = {Topic.STATE: StateMsg, Topic.FAULT: FaultMsg,
+                                            Topic.LOG: LogMsg}
     if topic not in models:
         raise ValueError(f"{topic.value} is not an event topic")
     return models[topic](seq=seq, t=t, **fields)

@@ -18,15 +18,16 @@ from typing import Any
 from rigctl.apps.daemon.active_run import ActiveRun
 from rigctl.apps.daemon.commands import HOLD_START_TIMEOUT_S, _start_error
 from rigctl.apps.daemon.messages import ErrorCode
+from rigctl.apps.daemon.parts import DaemonParts
 from rigctl.apps.daemon.states import Refusal, S
 from rigctl.core.errors import ConfigError
 from rigctl.run.teleop import NO_TELEOP, TeleopPlan
 
 
-class TeleopCommands:
+class TeleopCommands(DaemonParts):
     """The `Daemon`'s `teleop` and `steer` handlers (mixed in beside `Commands`)."""
 
-    def _cmd_teleop(self, args: Any) -> dict:
+    def _cmd_teleop(self, args: Any) -> dict[str, Any]:
         """Start a session on this rig (on the worker: it waits until it streams), or end it."""
         with self._lock:
             active = self._active if self._active is not None and \
@@ -47,7 +48,8 @@ class TeleopCommands:
         except ConfigError as err:
             raise Refusal(ErrorCode.BAD_ARGS, str(err)) from None
         # the certificate of any input on this rig is checked here, before anything is opened
-        job = self._prepare(TeleopPlan(rig=self.rig.rig.kind, mode=args.mode))
+        # the stream process's host (RunHost): started, streaming, error and result besides RunLike
+        job: Any = self._prepare(TeleopPlan(rig=self.rig.rig.kind, mode=args.mode))
         active = ActiveRun("teleop", job, None, dict(job.info), drive=drive)
         with self._lock:
             if self.state != S.IDLE or self._active is not None or self._stop.is_set():
@@ -59,13 +61,14 @@ class TeleopCommands:
         if not job.started.wait(HOLD_START_TIMEOUT_S):
             job.estop()  # still connecting: it must not switch on after teleop has failed
         if not job.streaming:
+            assert active.thread is not None  # _activate started it
             active.thread.join(HOLD_START_TIMEOUT_S)
             raise job.error or _start_error(job.result, "teleoperation session")
         for name in self.devices:
             self._device(name, "ok", "teleoperation")
         return {"state": self.state.value, **drive.describe(), "silence_s": job.info["silence_s"]}
 
-    def _cmd_steer(self, args: Any) -> dict:
+    def _cmd_steer(self, args: Any) -> dict[str, Any]:
         """The operator's input now (None: let go), clipped to the rig's ranges."""
         active = self._active
         if active is None or active.kind != "teleop":

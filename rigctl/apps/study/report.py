@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 from collections import defaultdict
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +74,7 @@ MAX_LINES = 8
 
 
 def summarise(rows: list[dict], parameter: str, figure: str, *, share: bool,
-              by: list[str] = ()) -> list[dict]:
+              by: Sequence[str] = ()) -> list[dict]:
     """Per value of `parameter` (and per combination of the parameters `by`, the line): n cases,
     the mean of `figure` and its 95 % interval (the module docstring); cases without it left out."""
     cells: dict[tuple, list[dict]] = defaultdict(list)

@@ -32,6 +32,7 @@ from scipy.optimize import least_squares
 
 from rigctl.core.errors import ConfigError
 from rigctl.physics.fields.loops import LoopModel
+from rigctl.physics.fields.model import FieldModel
 from rigctl.physics.fields.mpem import KIND_A, KIND_B, MPEM, Source, _mpem_kernel
 from rigctl.physics.magnetics import MU0
 
@@ -150,7 +151,8 @@ class _Problem:
         for s, (k, src) in enumerate(self.coil_sources):
             coil_sources[k].append(Source(tuple(positions[s]), tuple(dirs[s]), src.kind,
                                           tuple(float(c) for c in per_source[s])))
-        offset = [Source(tuple(float(v) for v in self.centre), tuple(np.eye(3)[i]), "A",
+        centre = (float(self.centre[0]), float(self.centre[1]), float(self.centre[2]))
+        offset = [Source(centre, tuple(np.eye(3)[i]), "A",
                          (float(coeffs[self.n_sources * self.order + i]),)) for i in range(3)]
         return MPEM(self.names, coil_sources, offset, name=name,
                     workspace_m=[(float(lo), float(hi)) for lo, hi in workspace])
@@ -196,7 +198,7 @@ def fit_mpem(points_m: np.ndarray, currents_A: np.ndarray, fields_T: np.ndarray,
                    cpu_s=time.process_time() - started_cpu, evaluations=int(fit.nfev))
 
 
-def held_out_error(model: MPEM, points_m: np.ndarray, currents_A: np.ndarray,
+def held_out_error(model: FieldModel, points_m: np.ndarray, currents_A: np.ndarray,
                    fields_T: np.ndarray) -> tuple[float, float]:
     """(RMS |B_model - B_measured| in mT, that as % of the mean |B_measured|) over samples
     points (K, 3), currents (P, N), fields (P, K, 3)."""

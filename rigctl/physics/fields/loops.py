@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from rigctl.core.config import RigConfig
+from rigctl.core.config import CoilRig
 from rigctl.physics.field_calibration import FieldCalibration, fitted_loops
 from rigctl.physics.fields.model import FieldModel
 from rigctl.physics.magnetics import loop_field
@@ -27,7 +27,7 @@ GRADIENT_STEP_MM = 0.05
 relative for the cube's coils; round-off ~1e-10 relative."""
 
 
-def coil_loops(rig: RigConfig) -> list[Loop]:
+def coil_loops(rig: CoilRig) -> list[Loop]:
     """(centre m, unit axis, radius m, turns, gain) of each coil, in `rig.coils` order: the fitted
     loops of the rig's `field_calibration` if it is a "rigctl-loop-v1" file, else the rig file's
     (gain 1; also for a rig whose calibration is an MPEM: these are the coils as drawn)."""
@@ -50,7 +50,7 @@ class LoopModel(FieldModel):
                            for c, a, r, t, g in loops)
 
     @classmethod
-    def from_rig(cls, rig: RigConfig) -> LoopModel:
+    def from_rig(cls, rig: CoilRig) -> LoopModel:
         """The rig file's coils, or the loops of the field calibration it names."""
         return cls([c.name for c in rig.coils], coil_loops(rig))
 

@@ -81,7 +81,8 @@ def _source(node: object, where: str) -> Source:
     if math.hypot(*direction) == 0.0:
         raise ConfigError(f"{where}.Source_Direction: the zero vector has no direction")
     position = _numbers(node["Source_Position"], 3, f"{where}.Source_Position")
-    return Source(tuple(position), tuple(direction), kind, tuple(coefficients))
+    return Source((position[0], position[1], position[2]), (direction[0], direction[1], direction[2]),
+                  kind, tuple(coefficients))
 
 
 def _workspace(data: dict, source: str) -> list[list[float]]:

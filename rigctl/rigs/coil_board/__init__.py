@@ -2,17 +2,30 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from rigctl.core.channels import Channel
 from rigctl.core.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
 from rigctl.rigs.coil_board.faults import fault_profile
 from rigctl.rigs.coil_board.report import REPORT
 
+if TYPE_CHECKING:
+    from rigctl.rigs.coil_board.settings import CoilBoardRig
+
+
+
+def _own(rig: RigConfig) -> CoilBoardRig:
+    """`rig` as this kind's rig file model (imported when a hook runs, not when the kind loads)."""
+    from rigctl.rigs.coil_board.settings import coil_board_rig
+
+    return coil_board_rig(rig)
 
 def _global_moves(plan, rig: RigConfig, **run):
     """Always closed loop (no `closed_loop` option): a move ends when the camera sees it done."""
     from rigctl.rigs.coil_board.run import CoilBoardRun
 
+    rig = _own(rig)
     return CoilBoardRun(plan, rig, **run)
 
 
@@ -36,10 +49,12 @@ def _bench_rig() -> RigConfig:
 def _channels(rig: RigConfig) -> list[Channel]:
     from rigctl.rigs.coil_board.actuators import board_channels
 
+    rig = _own(rig)
     return board_channels(rig)
 
 
 def _devices(rig: RigConfig) -> list[Device]:
+    rig = _own(rig)
     board = [Device("coil board", rig.board.url, "board")] if rig.board is not None else []
     return board + camera_devices(rig)
 
@@ -50,6 +65,7 @@ def _make_safe(rig: RigConfig) -> dict[str, str | None]:
     from rigctl.core.errors import RigError
     from rigctl.drivers.coilboard import CoilBoard
 
+    rig = _own(rig)
     if rig.board is None:
         return {}
     try:
@@ -73,6 +89,7 @@ def _hold(rig: RigConfig, target: dict):
     from rigctl.rigs.coil_board.actuators import BoardActuators
     from rigctl.run.hold import HoldRequest, target_values
 
+    rig = _own(rig)
     board = rig.board
     if board is None:
         raise ConfigError("the rig has no [board] table: it is not a coil board")
@@ -93,6 +110,7 @@ def _hold(rig: RigConfig, target: dict):
 def _teleop(rig: RigConfig, mode: str | None):
     from rigctl.rigs.coil_board.teleop import teleop_drive
 
+    rig = _own(rig)
     return teleop_drive(rig, mode)
 
 
@@ -106,6 +124,7 @@ def _settings() -> type[RigConfig]:
 def _probe_board(rig: RigConfig, device: Device) -> str:
     from rigctl.rigs.coil_board.probes import board
 
+    rig = _own(rig)
     return board(rig, device)
 
 
@@ -113,12 +132,14 @@ def _windings(rig: RigConfig):
     """The board's four coils, each driven by a SyRen in drive units (a voltage)."""
     from rigctl.physics.thermal import Windings
 
+    rig = _own(rig)
     return Windings.of_board(rig.board)
 
 
 def _patience_s(rig: RigConfig) -> float:
     """A request's retries and a reconnect after an unplug, the board's driver's own patience."""
-    board = rig.board
+    board = _own(rig).board
+    assert board is not None  # CoilBoardRig's check
     return board.reconnect_s + (board.retries + 1) * board.reply_timeout_s
 
 

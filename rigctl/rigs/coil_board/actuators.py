@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,12 +26,15 @@ from rigctl.core.errors import ConfigError, DeviceTimeout, RigError
 from rigctl.drivers.coilboard import CoilBoard
 from rigctl.physics.thermal import Windings
 
+if TYPE_CHECKING:
+    from rigctl.rigs.coil_board.settings import CoilBoardRig
+
 log = logging.getLogger(__name__)
 
 SYREN_READY_TIMEOUT_S = 5.0  # the SyRens start 2 s after power-on; a board just plugged in too
 
 
-def board_channels(rig: RigConfig) -> list[Channel]:
+def board_channels(rig: CoilBoardRig) -> list[Channel]:
     """Each coil's drive in SyRen units within the board's limit: the coil board's channels."""
     board = rig.board
     if board is None:
@@ -59,6 +63,9 @@ class BoardActuators:
                 ) -> BoardActuators:
         """Open the rig's [board] and handshake (the coils stay off); Disconnected or DeviceError
         naming the board if it cannot be opened."""
+        from rigctl.rigs.coil_board.settings import coil_board_rig
+
+        rig = coil_board_rig(rig)  # a run's `connect` is handed the rig as a RigConfig
         if rig.board is None:
             raise ConfigError("the rig has no [board] table: it is not a coil board")
         return cls(CoilBoard.from_settings(rig.board), board_channels(rig),

@@ -7,9 +7,10 @@ bus at 9600 baud per stream cycle; the plan's size and the run's longest duratio
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from rigctl.core.config import RigConfig
 from rigctl.core.transport import parse_url
 from rigctl.drivers.coilboard_frame import (
     ACK,
@@ -21,6 +22,9 @@ from rigctl.drivers.coilboard_frame import (
 from rigctl.physics.thermal import Windings, step_voltage, voltage_steady_C
 from rigctl.plans.schema import MAX_DURATION_S
 from rigctl.run.certificate import Check, ceiling, link_checks, serial_seconds, size_checks
+
+if TYPE_CHECKING:
+    from rigctl.rigs.coil_board.settings import CoilBoardRig
 
 SYREN_BAUD = 9600  # firmware/coilboard/syren.h
 SYREN_PACKET_BYTES = 4  # address, command, data, checksum (SyRen packetized serial)
@@ -36,7 +40,7 @@ def drive_for_limit(w: Windings, supply_V: float, max_command: int) -> int:
     return best
 
 
-def board_checks(rig: RigConfig, settings, n_moves: int) -> list[Check]:
+def board_checks(rig: CoilBoardRig, settings, n_moves: int) -> list[Check]:
     """Every check of a coil-board run with `settings` (`CoilBoardRunSettings`; its rate_hz None:
     the rig file's `[board] rate_hz`) of a plan of `n_moves` moves."""
     board = rig.board

@@ -43,18 +43,17 @@ import time
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import ClassVar, TextIO
+from typing import TYPE_CHECKING, ClassVar, TextIO
 
 import numpy as np
 
-from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError, DeviceTimeout, PlanError
 from rigctl.physics.identify import LinearEstimate
 from rigctl.plans.checks import check_plan, plan_workspace
-from rigctl.plans.schema import GlobalMovesPlan
+from rigctl.plans.schema import GlobalMovesPlan, ShapeWorkspaceSpec
 from rigctl.plans.wall_contact import (
-    CentreRegion,
     DiskRegion,
+    PolygonRegion,
     centre_region,
     plan_two_particles,
 )
@@ -64,6 +63,11 @@ from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
 from rigctl.run.interruptions import RequestedControl, Requests, Suspension
 from rigctl.run.summary import RunSummary
+
+if TYPE_CHECKING:
+    from rigctl.core.record import RunRecord
+    from rigctl.rigs.coil_board.settings import CoilBoardRig
+    from rigctl.vision.tracking import TrackingLoop
 
 log = logging.getLogger(__name__)
 
@@ -138,10 +142,13 @@ class CoilBoardRunSettings:
     lost_limit_s: float | None = None
 
 
-def planning_region(plan: GlobalMovesPlan, radius_mm: float) -> CentreRegion:
+def planning_region(plan: GlobalMovesPlan, radius_mm: float) -> PolygonRegion | DiskRegion:
     """The convex region Alg. 1 plans in: the plan's boundary (disk, rect, convex polygon), or for
     a boundary that is not convex (the intestine phantom's protrusions) the largest disk about the
     boundary's centroid that stays clear of it, as the paper planned its ring on a disk."""
+    if not isinstance(plan.workspace, ShapeWorkspaceSpec):
+        raise PlanError(f"{plan.source}: workspace: the wall-contact planner plans in a drawn "
+                        "boundary (disk, rect, polygon), not in a picture's")
     boundary = plan.workspace.boundary.model_dump()
     try:
         return centre_region(boundary, radius_mm)
@@ -300,7 +307,7 @@ class MoveRoles:
     grazing: np.ndarray
 
 
-def move_roles(region: CentreRegion, s: CoilBoardRunSettings, u: np.ndarray, start: np.ndarray,
+def move_roles(region: PolygonRegion | DiskRegion, s: CoilBoardRunSettings, u: np.ndarray, start: np.ndarray,
                end: np.ndarray, before: np.ndarray) -> MoveRoles:
     """The roles of the particles in a move along unit `u` (2,) that Alg. 1 planned from state
     `before` to `end` (2, 2), the particles measured at `start` (2, 2). What the move does to a
@@ -335,7 +342,7 @@ class CoilBoardProgram(RequestedControl):
 
     late = "slip"  # a late cycle only holds the pull a little longer; a move ends on the camera
 
-    def __init__(self, plan: GlobalMovesPlan, rig: RigConfig, *,
+    def __init__(self, plan: GlobalMovesPlan, rig: CoilBoardRig, *,
                  settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> None:
         if plan.kind != "global-moves" or plan.rig != "coil-board":
             raise PlanError(f"{plan.source}: a coil-board run takes a coil-board global-moves plan")
@@ -353,8 +360,10 @@ class CoilBoardProgram(RequestedControl):
         check_plan(plan)
         if settings.rate_hz is None:  # the rig file's rate, as every rig's run streams at
             settings = replace(settings, rate_hz=rig.board.rate_hz)
+        assert settings.rate_hz is not None
         self.plan = plan
         self.rig = rig
+        self.camera = rig.camera  # there is one (checked above)
         self.settings = settings
         self.rate_hz = settings.rate_hz
         self.planned_moves = np.array(plan.moves, dtype=float).reshape(-1, 2)
@@ -375,8 +384,8 @@ class CoilBoardProgram(RequestedControl):
         self.replans = 0
         self.moves_done = 0
         self.drift = RelativeDrift()
-        self.tracking = None  # TrackingLoop, from `start`
-        self.record = None
+        self.tracking: TrackingLoop | None = None  # from `start`
+        self.record: RunRecord | None = None
         self.reached = False
         self._say: Callable[[str], None] = lambda text: None
         self._commands: Commands | None = None
@@ -424,12 +433,12 @@ class CoilBoardProgram(RequestedControl):
         place_agents(ctx, self.plan, [{"position": a.start, "radius": a.radius}
                                       for a in self.plan.agents])
         xmin, ymin, xmax, ymax = self.workspace.bounds
-        self.tracking = TrackingLoop(self.rig.camera, self.radii, self.starts,
-                                     roi_mm=(xmin, ymin, xmax, ymax),
-                                     on_floor=self.workspace.contains)
-        self.tracking.record_to(ctx.record)  # the camera's positions, in the run record
-        self.tracking.tap(ctx.on_frame)  # the console's camera view, if any
-        self.tracking.start(self.settings.acquire_timeout_s)
+        self.tracking = tracking = TrackingLoop(self.camera, self.radii, self.starts,
+                                                roi_mm=(xmin, ymin, xmax, ymax),
+                                                on_floor=self.workspace.contains)
+        tracking.record_to(ctx.record)  # the camera's positions, in the run record
+        tracking.tap(ctx.on_frame)  # the console's camera view, if any
+        tracking.start(self.settings.acquire_timeout_s)
         self._position = self._measure_now()
         ctx.record.event("found", positions=self._position.tolist(),
                          tolerance_mm=self.tolerance)
@@ -458,7 +467,8 @@ class CoilBoardProgram(RequestedControl):
             self.tracking.stop()
         agents, source = agent_results(self.goals, measured, read_truth(ctx.backdoor))
         # Reached: the camera's last look, after the coils were stopped, has both within tolerance.
-        reached = measured is not None and all(a.error_mm <= self.tolerance for a in agents)
+        reached = measured is not None and all(a.error_mm is not None and a.error_mm <= self.tolerance
+                                               for a in agents)
         tracking = None
         if self.tracking is not None:
             tracking = {"frames": self.tracking.frames, "lost_frames": self.tracking.lost_frames,
@@ -526,6 +536,7 @@ class CoilBoardProgram(RequestedControl):
                               f"{error:.3f} mm")
                     self._reached(error)
                     return
+            assert expected is not None  # followed only with one; a re-plan gives one
             move, end = moves[index], expected[index]
             before = expected[index - 1] if index > 0 else planned_from
             index += 1
@@ -585,6 +596,7 @@ class CoilBoardProgram(RequestedControl):
             goals = aimed
             result = plan_two_particles(self.region, inside, goals, aim, reach=reach, push=push)
         # Alg. 1 ends with the translation to the aimed goals; the real goals' midpoint is the same.
+        assert self.record is not None  # from `start`
         self.record.event("replan", measured=position.tolist(), moves=result.moves.tolist(),
                           aimed_goals=goals.tolist(), drift_k=self.drift.k.tolist(),
                           mobility_diff=self.drift.mobility_diff, push_mm=push,
@@ -647,7 +659,7 @@ class CoilBoardProgram(RequestedControl):
                 break
             now = time.monotonic()
             state = tracking.latest()
-            if not tracking.ok(now):
+            if state is None or not tracking.ok(now):
                 # Suspended (coils off) while the tracker looks for them.
                 self.suspension.lost(now, f"tracking lost during a move "
                                      f"({tracking.why_lost(now, 'particle')}); the coils were "
@@ -667,7 +679,7 @@ class CoilBoardProgram(RequestedControl):
                 (t0, p0), (t1, p1) = history[-3], history[-1]
                 velocity = np.mean((p1 - p0)[watched], axis=0) / (t1 - t0)
             # Where the watched particles will be when a command sent now takes effect.
-            lead = (now - state.t_source) + 1.0 / s.rate_hz
+            lead = (now - state.t_source) + 1.0 / self.rate_hz
             offset = target - np.mean(state.positions_mm[watched], axis=0) - velocity * lead
             if offset @ u <= 0 or now - began > s.move_timeout_s or self._stalled(
                     history, now, began, watched):
@@ -711,7 +723,9 @@ class CoilBoardProgram(RequestedControl):
             self.drift.observe(start.mean(axis=0) - self.coils_centre,
                                measured.mean(axis=0) - start.mean(axis=0),
                                start[1] - start[0], measured[1] - measured[0])
+            assert self.record is not None  # from `start`
             self._series.row(self.drift.series_row(time.monotonic() - self.record.t0))
+        assert self.record is not None  # from `start`
         self.record.event("move", number=number, move=move.tolist(), expected=end.tolist(),
                           measured=measured.tolist(), lean_deg=math.degrees(lean),
                           seconds=time.monotonic() - began, interrupted=interrupted)
@@ -749,7 +763,7 @@ class CoilBoardProgram(RequestedControl):
         """Positions (2, 2) mm from the first frame taken from now on (blocking: nothing is
         being streamed); DeviceTimeout naming the camera if none comes in its timeout."""
         assert self.tracking is not None
-        state = self.tracking.captured_after(time.monotonic(), self.rig.camera.timeout_s)
+        state = self.tracking.captured_after(time.monotonic(), self.camera.timeout_s)
         if state is None:
             raise DeviceTimeout("no frame with both particles", device="camera")
         return state.positions_mm.copy()
@@ -758,11 +772,12 @@ class CoilBoardProgram(RequestedControl):
         """The first frame from now on, else the last one seen (None: none ever was)."""
         if self.tracking is None or self.tracking.latest() is None:
             return None
-        state = self.tracking.captured_after(time.monotonic(), self.rig.camera.timeout_s)
-        return (state or self.tracking.latest()).positions_mm.copy()
+        state = self.tracking.captured_after(time.monotonic(), self.camera.timeout_s)
+        state = state or self.tracking.latest()
+        return state.positions_mm.copy() if state is not None else None
 
 
-def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *,
+def CoilBoardRun(plan: GlobalMovesPlan, rig: CoilBoardRig, *,
                  settings: CoilBoardRunSettings = CoilBoardRunSettings(), **run_options) -> EngineRun:
     """The run of a two-particle plan on a coil board (the one engine with `CoilBoardProgram`);
     `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`). Refusals
@@ -773,7 +788,7 @@ def CoilBoardRun(plan: GlobalMovesPlan, rig: RigConfig, *,
     return EngineRun(program, rig, connect, **run_options)
 
 
-def execute_coilboard(plan: GlobalMovesPlan, rig: RigConfig, *, runs_dir: str | Path = "runs",
+def execute_coilboard(plan: GlobalMovesPlan, rig: CoilBoardRig, *, runs_dir: str | Path = "runs",
                       progress_out: TextIO | None = sys.stderr,
                       settings: CoilBoardRunSettings = CoilBoardRunSettings()) -> RunSummary:
     """Run `plan` on the coil board `rig` and return the summary; refusals raise before anything

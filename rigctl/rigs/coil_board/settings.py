@@ -10,6 +10,7 @@ from __future__ import annotations
 from pydantic import model_validator
 
 from rigctl.core.config import CoilBoardSettings, RigConfig
+from rigctl.core.errors import ConfigError
 
 
 class CoilBoardRig(RigConfig):
@@ -22,3 +23,11 @@ class CoilBoardRig(RigConfig):
         if self.board is None:
             raise ValueError("a coil-board rig needs a [board] table (at least its url)")
         return self
+
+
+def coil_board_rig(rig: RigConfig) -> CoilBoardRig:
+    """`rig` as the coil-board rig it is (the kind's hooks are handed a `RigConfig`; a rig file of
+    kind coil-board is always a `CoilBoardRig`), a ConfigError if it is of another kind."""
+    if not isinstance(rig, CoilBoardRig):
+        raise ConfigError(f"rig '{rig.rig.name}' is a {rig.rig.kind} rig, not a coil-board rig")
+    return rig

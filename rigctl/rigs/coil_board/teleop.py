@@ -12,12 +12,15 @@ zeroes the outputs too, should the stream stop talking to it).
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rigctl.core.config import RigConfig
 from rigctl.run.certificate import Check, ceiling
 from rigctl.run.teleop import InputComponent, TeleopDrive
+
+if TYPE_CHECKING:
+    from rigctl.rigs.coil_board.settings import CoilBoardRig
 
 
 def pulls(heading_deg: float, drive: float, max_command: int) -> np.ndarray:
@@ -41,7 +44,7 @@ class BoardDrive(TeleopDrive):
         InputComponent("drive", "1", 0.0, 1.0, "the pull as a fraction of the board's max_command"),
     )
 
-    def __init__(self, rig: RigConfig) -> None:
+    def __init__(self, rig: CoilBoardRig) -> None:
         from rigctl.core.errors import ConfigError
         from rigctl.rigs.coil_board.actuators import BoardActuators
 
@@ -98,7 +101,7 @@ class BoardDrive(TeleopDrive):
                 for name in self.board.coil_names]
 
 
-def teleop_drive(rig: RigConfig, mode: str | None) -> TeleopDrive:
+def teleop_drive(rig: CoilBoardRig, mode: str | None) -> TeleopDrive:
     """The coil board's teleoperation: "drive" (the pull of global moves)."""
     from rigctl.core.errors import ConfigError
 

@@ -3,16 +3,29 @@ moves with their camera supervisor, and pair formation with pure pursuit."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from rigctl.core.channels import Channel
 from rigctl.core.config import RigConfig
 from rigctl.rigs.base import Device, RigKind, camera_devices
 from rigctl.rigs.six_coil.faults import fault_profile
 from rigctl.rigs.six_coil.report import REPORT
 
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
+
+
+
+def _own(rig: RigConfig) -> SixCoilRig:
+    """`rig` as this kind's rig file model (imported when a hook runs, not when the kind loads)."""
+    from rigctl.rigs.six_coil.settings import six_coil_rig
+
+    return six_coil_rig(rig)
 
 def _global_moves(plan, rig: RigConfig, *, closed_loop: bool | None = None, **run):
     from rigctl.rigs.six_coil.global_moves import Run
 
+    rig = _own(rig)
     return Run(plan, rig, closed_loop=rig.camera is not None if closed_loop is None else closed_loop,
                **run)
 
@@ -20,6 +33,7 @@ def _global_moves(plan, rig: RigConfig, *, closed_loop: bool | None = None, **ru
 def _pair_formation(plan, rig: RigConfig, *, closed_loop: bool | None = None, **run):
     from rigctl.rigs.six_coil.pair import PairRun, PairRunSettings, loopback_rig
 
+    rig = _own(rig)
     closed = rig.camera is not None if closed_loop is None else closed_loop
     if rig.emulation is not None:
         rig = loopback_rig(rig)
@@ -39,16 +53,19 @@ def _bench_args(plan) -> list[str]:
 def _channels(rig: RigConfig) -> list[Channel]:
     from rigctl.rigs.six_coil.supplies import supply_channels
 
+    rig = _own(rig)
     return supply_channels(rig)
 
 
 def _devices(rig: RigConfig) -> list[Device]:
+    rig = _own(rig)
     return [Device(c.name, c.url, "supply") for c in rig.coils] + camera_devices(rig)
 
 
 def _make_safe(rig: RigConfig) -> dict[str, str | None]:
     from rigctl.rigs.six_coil.supplies import zero_supplies_directly
 
+    rig = _own(rig)
     return zero_supplies_directly(rig)
 
 
@@ -62,6 +79,7 @@ def _hold(rig: RigConfig, target: dict):
     from rigctl.rigs.six_coil.supplies import CoilSupplies
     from rigctl.run.hold import HoldRequest, ramp, target_values
 
+    rig = _own(rig)
     field_mT = target_values(target, "field_mT", (3,), KIND.name, "mT")
     currents = currents_for_field(actuation_matrix(rig), field_mT * 1e-3 - field_offset(rig)[0:3])
     rate = rig.stream.rate_hz
@@ -84,6 +102,7 @@ def _hold(rig: RigConfig, target: dict):
 def _teleop(rig: RigConfig, mode: str | None):
     from rigctl.rigs.six_coil.teleop import teleop_drive
 
+    rig = _own(rig)
     return teleop_drive(rig, mode)
 
 
@@ -97,6 +116,7 @@ def _settings() -> type[RigConfig]:
 def _probe_supply(rig: RigConfig, device: Device, timed: bool = False) -> str:
     from rigctl.rigs.six_coil.probes import supply
 
+    rig = _own(rig)
     return supply(rig, device, timed)
 
 
@@ -104,6 +124,7 @@ def _windings(rig: RigConfig):
     """The rig's coils (six on the cube, any N >= 3), each fed a current by its supply."""
     from rigctl.physics.thermal import Windings
 
+    rig = _own(rig)
     return Windings.of_coils(rig.coils)
 
 

@@ -25,15 +25,18 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.core.config import RigConfig
 from rigctl.core.errors import LimitError, PlanError
 from rigctl.physics.coils import actuation_matrix, field_offset
 from rigctl.physics.magnetics import U_COMPONENTS
 from rigctl.rigs.six_coil.realize import FieldProgram
+
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
 
 logger = logging.getLogger(__name__)
 
@@ -98,7 +101,7 @@ class CurrentProgram:
             )
 
 
-def check_current_limits(currents: np.ndarray, rig: RigConfig, rate_hz: float | None,
+def check_current_limits(currents: np.ndarray, rig: SixCoilRig, rate_hz: float | None,
                          describe: Callable[[int], str], *, current_advice: str,
                          voltage_advice: str = "",
                          start_A: np.ndarray | None = None) -> np.ndarray | None:
@@ -111,7 +114,7 @@ def check_current_limits(currents: np.ndarray, rig: RigConfig, rate_hz: float | 
     limits = np.array([c.current_limit_A for c in rig.coils])
     over = np.abs(currents) / limits
     if over.size and over.max() > 1.0:
-        k, j = np.unravel_index(np.argmax(over), over.shape)
+        k, j = (int(x) for x in np.unravel_index(np.argmax(over), over.shape))
         raise LimitError(
             f"{describe(k)} needs {abs(currents[k, j]):.1f} A on coil {names[j]} "
             f"(limit {limits[j]:.1f} A); {current_advice}"
@@ -128,7 +131,7 @@ def check_current_limits(currents: np.ndarray, rig: RigConfig, rate_hz: float | 
     volts = resistive + inductive
     over_v = np.abs(volts) / compliance
     if over_v.size and over_v.max() > 1.0:
-        k, j = np.unravel_index(np.argmax(over_v), over_v.shape)
+        k, j = (int(x) for x in np.unravel_index(np.argmax(over_v), over_v.shape))
         raise LimitError(
             f"{describe(k)} needs {abs(volts[k, j]):.1f} V on coil {names[j]} "
             f"(limit {compliance[j]:.1f} V; R*I = {resistive[k, j]:.1f} V, "
@@ -137,7 +140,7 @@ def check_current_limits(currents: np.ndarray, rig: RigConfig, rate_hz: float | 
     return volts
 
 
-def allocate(program: FieldProgram, rig: RigConfig, *,
+def allocate(program: FieldProgram, rig: SixCoilRig, *,
              start_A: np.ndarray | None = None) -> CurrentProgram:
     """Currents for every sample of `program` on `rig`, after checking every limit; the voltage's
     dI/dt of the first sample from `start_A` (n,) A, the currents the supplies carry when it
@@ -181,6 +184,7 @@ def allocate(program: FieldProgram, rig: RigConfig, *,
         start_A=start_A,
     )
 
+    assert volts is not None  # checked at the program's rate
     if currents.size:
         logger.info(
             "allocated %d samples to %d coils: peak %.2f A, peak %.2f V",
@@ -236,7 +240,7 @@ def field_and_pull_u(psi_rad: ArrayLike, force_N: ArrayLike, moment_Am2: float,
     return u
 
 
-def currents_for_u(A8: ArrayLike, U: ArrayLike, rig: RigConfig | None = None) -> np.ndarray:
+def currents_for_u(A8: ArrayLike, U: ArrayLike, rig: SixCoilRig | None = None) -> np.ndarray:
     """Minimum-norm currents (..., n) for 8-vectors U (..., 8) through the 8 x n matrix `A8`.
 
     The six coils span fewer than eight terms (at the centre of a cube: the field and two

@@ -6,10 +6,10 @@ stream cycle, and the program's size and duration."""
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rigctl.core.config import RigConfig
 from rigctl.core.transport import parse_url
 from rigctl.physics.coils import actuation_matrix, field_offset, u_actuation_matrix
 from rigctl.physics.magnetics import U_COMPONENTS
@@ -24,13 +24,16 @@ from rigctl.run.certificate import (
     size_checks,
 )
 
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
+
 # one stream cycle on a supply's link: the setpoint and the query in one line, and its answer
 # (drivers/kepco_bop.py `send_setpoint`, the BOP's scientific-notation reply)
 CYCLE_REQUEST = "CURR -20.0000;:MEAS:CURR?\n"
 CYCLE_REPLY = "-2.000000E+01\n"
 
 
-def supply_link_seconds(rig: RigConfig) -> dict[str, float]:
+def supply_link_seconds(rig: SixCoilRig) -> dict[str, float]:
     """Each supply link's time per stream cycle, s: the bytes at its baud rate on a serial link
     (both directions share the time: the reply follows the request), the rig file's measured
     round trip on a LAN link."""
@@ -45,7 +48,7 @@ def supply_link_seconds(rig: RigConfig) -> dict[str, float]:
     return out
 
 
-def current_program_checks(rig: RigConfig, currents_A: np.ndarray, rate_hz: float, *,
+def current_program_checks(rig: SixCoilRig, currents_A: np.ndarray, rate_hz: float, *,
                            move_ends: Sequence[int], describe: Callable[[int], str] | None = None,
                            rest_key: str = "field.rest_s") -> list[Check]:
     """Every check of a current program (T, n) A streamed at `rate_hz` from 0 A (a re-plan: the

@@ -36,16 +36,19 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError, DeviceError
 from rigctl.physics.field_calibration import FORMAT, CoilFit, FieldCalibration
 from rigctl.physics.fields import MPEM, LoopModel, Source
 from rigctl.physics.fields.fit import MpemFit, fit_mpem, held_out_error, start_from_loops
 from rigctl.physics.magnetics import loop_field
+
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +71,7 @@ errors (seed 0, the probe's readings computed, 3 uT noise; order 3) held-out 0.9
 centre, 0.39 % from 0.5, 0.75 or 1 radius back (the same minimum)."""
 
 
-def drive_patterns(rig: RigConfig, *, seed: int = 0, mixed: int = MIXED_PATTERNS,
+def drive_patterns(rig: SixCoilRig, *, seed: int = 0, mixed: int = MIXED_PATTERNS,
                    current_A: float | None = None) -> np.ndarray:
     """The current patterns (P, n) A: zero, each coil alone at +-I0, then `mixed` seeded mixes
     (every coil uniform in +-I0); the zero pattern ends the list too, so the rig ends at rest.
@@ -87,7 +90,7 @@ def drive_patterns(rig: RigConfig, *, seed: int = 0, mixed: int = MIXED_PATTERNS
     return np.concatenate([np.zeros((1, n)), single, mixes, np.zeros((1, n))])
 
 
-def ramp_program(rig: RigConfig, patterns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ramp_program(rig: SixCoilRig, patterns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Setpoints (T, n) A at the rig's stream rate through `patterns`, each change ramped over
     RAMP_S and then held while the coils settle (the holds last until the probe's samples are in;
     a hold's voltage is R I whatever its length), and the pattern index (T,) each sample holds (-1
@@ -120,7 +123,7 @@ class Measurements:
     duration_s: float
 
 
-def measure(rig: RigConfig, patterns: np.ndarray, *,
+def measure(rig: SixCoilRig, patterns: np.ndarray, *,
             progress: Callable[[str], None] = lambda _: None) -> Measurements:
     """Drive `patterns` on the rig's supplies and read its `field_probe` (see the module
     docstring). Checks every limit first (LimitError, nothing energised); the supplies are ramped
@@ -255,7 +258,7 @@ def fit_coil(points_m: np.ndarray, column: np.ndarray, centre_m: np.ndarray, axi
     return fit.x, sigma, float(np.sqrt(s2)) * scale
 
 
-def fit_calibration(rig: RigConfig, m: Measurements, *, name: str | None = None) -> FieldCalibration:
+def fit_calibration(rig: SixCoilRig, m: Measurements, *, name: str | None = None) -> FieldCalibration:
     """The calibration of the rig's coils from the probe's measurements (both stages)."""
     F, background, linear_rms = measured_maps(m)
     fits: dict[str, CoilFit] = {}
@@ -266,7 +269,8 @@ def fit_calibration(rig: RigConfig, m: Measurements, *, name: str | None = None)
         x, sigma, rms = fit_coil(m.points_m, F[:, :, j], centre, axis, coil.loop_radius_mm * 1e-3,
                                  coil.turns)
         fitted_axis = _tilted(axis, x[4:6])
-        fits[coil.name] = CoilFit(
+        # populate_by_name: mypy knows only the aliases (Loop_Centre, ...) as arguments
+        fits[coil.name] = CoilFit(  # type: ignore[call-arg]
             centre_m=tuple(float(v) for v in centre + x[1:4]),
             axis=tuple(float(v) for v in fitted_axis), radius_m=coil.loop_radius_mm * 1e-3,
             turns=coil.turns, gain=float(x[0]), offset_m=tuple(float(v) for v in x[1:4]),
@@ -278,7 +282,7 @@ def fit_calibration(rig: RigConfig, m: Measurements, *, name: str | None = None)
         np.zeros(3), fits[c.name].centre_m, fits[c.name].axis, fits[c.name].radius_m,
         fits[c.name].turns, 1.0) for c in rig.coils], axis=1)
     lo, hi = m.points_m.min(axis=0), m.points_m.max(axis=0)
-    return FieldCalibration(
+    return FieldCalibration(  # type: ignore[call-arg]  # by name, as CoilFit above
         name=name or f"{rig.rig.name} field calibration",
         model=FORMAT,
         workspace_m=(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), float(lo[2]),
@@ -293,7 +297,7 @@ def fit_calibration(rig: RigConfig, m: Measurements, *, name: str | None = None)
              "duration_s": round(m.duration_s, 3)})
 
 
-def model_field(rig: RigConfig, points_m: np.ndarray, currents_A: np.ndarray) -> np.ndarray:
+def model_field(rig: SixCoilRig, points_m: np.ndarray, currents_A: np.ndarray) -> np.ndarray:
     """The field (P, K, 3) T the rig's model (its calibration if it names one, else the drawn
     coils) predicts at points (K, 3) m for currents (P, n) A."""
     from rigctl.physics.coils import coil_loops
@@ -303,7 +307,7 @@ def model_field(rig: RigConfig, points_m: np.ndarray, currents_A: np.ndarray) ->
     return np.einsum("kin,pn->pki", maps, currents_A)
 
 
-def prediction_error(rig: RigConfig, m: Measurements) -> float:
+def prediction_error(rig: SixCoilRig, m: Measurements) -> float:
     """RMS |B_model - B_measured| (T) over every pattern and sensor, the background taken out
     (it is not the coils'): how well `rig`'s model explains the probe."""
     _, background, _ = measured_maps(m)
@@ -346,16 +350,19 @@ def mpem_start(loops: LoopModel, workspace_centre_m: np.ndarray) -> MPEM:
     centre along its axis), each source moved START_BEHIND_RADII loop radii along its axis, away
     from `workspace_centre_m` (3,) m."""
     start = start_from_loops(loops)
+
+    def moved(s: Source, shift_m: np.ndarray) -> Source:
+        x, y, z = (float(v) for v in np.asarray(s.position_m) + shift_m)
+        return Source((x, y, z), s.direction, s.kind, s.coefficients)
+
     sources = []
     for (centre, axis, radius, _, _), coil in zip(loops.loops, start.coil_sources):
         away = 1.0 if axis @ (centre - workspace_centre_m) >= 0 else -1.0
-        sources.append([Source(tuple(float(v) for v in np.asarray(s.position_m)
-                                   + away * START_BEHIND_RADII * radius * axis),
-                               s.direction, s.kind, s.coefficients) for s in coil])
+        sources.append([moved(s, away * START_BEHIND_RADII * radius * axis) for s in coil])
     return MPEM(start.coil_names, sources, name=start.name)
 
 
-def fit_mpem_calibration(rig: RigConfig, m: Measurements, *, order: int = 3, seed: int = 0,
+def fit_mpem_calibration(rig: SixCoilRig, m: Measurements, *, order: int = 3, seed: int = 0,
                          name: str | None = None) -> MpemCalibration:
     """An MPEM of `order` for the rig's coils (its coil order) fitted to the probe's samples at
     the sensors `held_out_split` keeps, from the drawn loops (see the module docstring), and its

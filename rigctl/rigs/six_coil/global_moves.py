@@ -17,15 +17,14 @@ import logging
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
 
-from rigctl.core.config import RigConfig
 from rigctl.core.errors import PlanError
 from rigctl.emulators.backdoor import BackdoorClient
 from rigctl.plans.checks import check_plan, contact_for_rig, simulate
-from rigctl.plans.schema import Plan
+from rigctl.plans.schema import GlobalMovesPlan, Plan
 from rigctl.rigs.six_coil.allocate import CurrentProgram, allocate
 from rigctl.rigs.six_coil.realize import FieldProgram, realize_global_moves
 from rigctl.rigs.six_coil.sequencer import Sequencer
@@ -37,12 +36,17 @@ from rigctl.run.engine import Run as EngineRun
 from rigctl.run.interruptions import RequestedControl
 from rigctl.run.summary import RunSummary
 
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
+
 log = logging.getLogger(__name__)
 
 
-def prepare(plan: Plan, rig: RigConfig) -> tuple[Plan, FieldProgram, CurrentProgram]:
+def prepare(plan: Plan, rig: SixCoilRig) -> tuple[GlobalMovesPlan, FieldProgram, CurrentProgram]:
     """Everything that can refuse a plan, with no I/O: returns the plan (expected filled), its
     field program and the allocated currents. Raises PlanError or LimitError naming what is wrong."""
+    if not isinstance(plan, GlobalMovesPlan):
+        raise PlanError(f"{plan.source}: a six-coil global-moves run takes a global-moves plan")
     if plan.rig != rig.rig.kind:
         raise PlanError(
             f"the plan is for a {plan.rig} rig but the rig file describes a {rig.rig.kind} rig"
@@ -64,7 +68,7 @@ class GlobalMovesProgram(RequestedControl):
 
     late = "slip"
 
-    def __init__(self, plan: Plan, rig: RigConfig, *, closed_loop: bool = False,
+    def __init__(self, plan: Plan, rig: SixCoilRig, *, closed_loop: bool = False,
                  supervisor_settings: SupervisorSettings | None = None) -> None:
         self.plan, self.field_program, self.currents = prepare(plan, rig)
         self.rig = rig
@@ -142,7 +146,7 @@ class GlobalMovesProgram(RequestedControl):
         if supervisor is not None:
             supervisor.stop()
             closed, camera = supervisor.summary(), supervisor.final_positions
-        agents, positions_from = agent_results([a.goal for a in plan.agents], camera,
+        agents, positions_from = agent_results(np.array([a.goal for a in plan.agents], dtype=float), camera,
                                                read_truth(ctx.backdoor))
         tolerance = plan.tolerance_mm
         reached = all(a.error_mm is not None and a.error_mm <= tolerance for a in agents)
@@ -157,7 +161,7 @@ class GlobalMovesProgram(RequestedControl):
             self.supervisor.stop()
 
 
-def Run(plan: Plan, rig: RigConfig, *, closed_loop: bool = False,
+def Run(plan: Plan, rig: SixCoilRig, *, closed_loop: bool = False,
         supervisor_settings: SupervisorSettings | None = None, **run_options) -> EngineRun:
     """The run of a global-moves plan on a six-coil rig (the one engine with this program);
     `run_options` are the engine's (`runs_dir`, `progress_out`, `on_cycle`, `on_state`)."""
@@ -168,7 +172,7 @@ def Run(plan: Plan, rig: RigConfig, *, closed_loop: bool = False,
 
 def execute_plan(
     plan: Plan,
-    rig: RigConfig,
+    rig: SixCoilRig,
     *,
     runs_dir: str | Path = "runs",
     progress_out: TextIO | None = sys.stderr,

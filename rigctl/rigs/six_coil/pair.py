@@ -38,10 +38,10 @@ import math
 import threading
 import time
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError, LimitError, PlanError
 from rigctl.core.record import RunRecord
 from rigctl.emulators.backdoor import BackdoorClient
@@ -70,6 +70,9 @@ from rigctl.run.agents import agent_results, place_agents, read_truth
 from rigctl.run.engine import Outcome, RunContext, Step
 from rigctl.run.engine import Run as EngineRun
 from rigctl.run.interruptions import RequestedControl, Requests, Suspension
+
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +161,7 @@ def open_loop_controls(plan: PairFormationPlan, rate_hz: float,
             np.concatenate([stage, np.full(held, HOLD), np.full(ramp, RAMP)]).astype(int))
 
 
-def prepare_pair(plan: PairFormationPlan, rig: RigConfig, settings: PairRunSettings) -> PreparedPair:
+def prepare_pair(plan: PairFormationPlan, rig: SixCoilRig, settings: PairRunSettings) -> PreparedPair:
     """Every refusal, no I/O: plan checks, the rig's pull, the open-loop program's limits."""
     if rig.rig.kind != "six-coil":
         raise PlanError(f"a pair-formation plan runs on a six-coil rig, not a {rig.rig.kind} rig")
@@ -215,7 +218,7 @@ class CoilSlew:
     compliance: a jump between two segments' currents is spread over the samples it needs (the
     coils' L/R = 20 ms lags them about as much anyway)."""
 
-    def __init__(self, rig: RigConfig) -> None:
+    def __init__(self, rig: SixCoilRig) -> None:
         self.rate = rig.stream.rate_hz
         self.resistance = np.array([c.resistance_ohm for c in rig.coils])
         self.inductance = np.array([c.inductance_H for c in rig.coils])
@@ -229,7 +232,7 @@ class CoilSlew:
         return last + np.clip(target - last, -room, room)
 
 
-def slew_limited(program: np.ndarray, rig: RigConfig) -> np.ndarray:
+def slew_limited(program: np.ndarray, rig: SixCoilRig) -> np.ndarray:
     """A current program (T, n) with every step limited by `CoilSlew` (starting from 0 A).
 
     Between two rows where the program changes its target is constant, and once a step there
@@ -391,7 +394,7 @@ class PairProgram(RequestedControl):
 
     late = "slip"  # a field program: a late cycle shifts the rest, it must not bunch the path
 
-    def __init__(self, plan: PairFormationPlan, rig: RigConfig,
+    def __init__(self, plan: PairFormationPlan, rig: SixCoilRig,
                  settings: PairRunSettings = PairRunSettings()) -> None:
         if settings.closed_loop and rig.camera is None:
             raise ConfigError("closed loop needs the rig's camera; this rig has none "
@@ -819,7 +822,7 @@ def _details(metrics: dict) -> list[str]:
     return lines
 
 
-def PairRun(plan: PairFormationPlan, rig: RigConfig, *, closed_loop: bool | None = None,
+def PairRun(plan: PairFormationPlan, rig: SixCoilRig, *, closed_loop: bool | None = None,
             settings: PairRunSettings = PairRunSettings(), **run_options) -> EngineRun:
     """The run of a pair-formation plan on a six-coil rig (the one engine with `PairProgram`);
     `closed_loop`, if given, overrides the settings'; `run_options` are the engine's (`runs_dir`,
@@ -914,7 +917,7 @@ class _Metrics:
 
 
 
-def loopback_rig(rig: RigConfig) -> RigConfig:
+def loopback_rig(rig: SixCoilRig) -> SixCoilRig:
     """The rig of the emulated bench `execute` starts itself, with the supplies' reply watchdog
     at least `LOOPBACK_REPLY_TIMEOUT_S`: the bench is a process on the same (perhaps busy)
     machine, nothing real is energised, and a scheduler stall of a few hundred ms is not a

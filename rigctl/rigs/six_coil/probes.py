@@ -5,17 +5,20 @@ rig file's `[preflight] scpi_round_trip_ms`."""
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rigctl.core.config import RigConfig
 from rigctl.core.errors import RigError
 from rigctl.rigs.base import Device
+
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
 
 ROUND_TRIPS = 20  # `MEAS:CURR?` queries timed per supply by `rigctl doctor`
 
 
-def supply(rig: RigConfig, device: Device, timed: bool = False) -> str:
+def supply(rig: SixCoilRig, device: Device, timed: bool = False) -> str:
     """One supply's identity and empty error queue; `timed`: its query round trip too."""
     from rigctl.core.transport import open_transport
     from rigctl.drivers.kepco_bop import KepcoBop
@@ -41,7 +44,7 @@ def supply(rig: RigConfig, device: Device, timed: bool = False) -> str:
     return f"{identity}; error queue empty" + (_round_trip(rig, coil.url, trips) if trips else "")
 
 
-def _round_trip(rig: RigConfig, url: str, trips_ms: list[float]) -> str:
+def _round_trip(rig: SixCoilRig, url: str, trips_ms: list[float]) -> str:
     """The measured query round trip against what the pre-flight assumes of a LAN link
     (`[preflight] scpi_round_trip_ms`; a serial link's time comes from its baud rate)."""
     p50, worst = float(np.median(trips_ms)), max(trips_ms)

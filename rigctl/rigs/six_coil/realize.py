@@ -35,13 +35,16 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError, PlanError
 from rigctl.plans.schema import MAX_DURATION_S, MAX_PROGRAM_SAMPLES
+
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
 
 logger = logging.getLogger(__name__)
 
@@ -169,7 +172,7 @@ def _check_moves(moves: np.ndarray, radius_mm: float) -> np.ndarray:
 
 
 def realize_global_moves(
-    moves_mm: ArrayLike, rig: RigConfig, *, start_field_T: ArrayLike | None = None
+    moves_mm: ArrayLike, rig: SixCoilRig, *, start_field_T: ArrayLike | None = None
 ) -> FieldProgram:
     """Turn global moves into the six-coil rig's field program.
 
@@ -179,7 +182,7 @@ def realize_global_moves(
         Displacements in mm in the workspace xy plane, one per plan move, executed in order.
         Each must be a whole number of turns of the magnets (2 pi `magnets.radius_mm` mm per
         turn, tolerance 1e-3 turn); a zero move is realized as a hold only.
-    rig : RigConfig
+    rig : SixCoilRig
         Uses `field` (b0_mT, speeds, ramp_s, hold_s, initial_heading_deg, whole_turns),
         `magnets.radius_mm` and `stream.rate_hz`.
     start_field_T : (3,) array, optional
@@ -271,7 +274,7 @@ def realize_global_moves(
     )
 
 
-def _turns_of(moves: np.ndarray, rig: RigConfig) -> np.ndarray:
+def _turns_of(moves: np.ndarray, rig: SixCoilRig) -> np.ndarray:
     """Turns of the magnets (m,) for moves (m, 2) mm: checked whole with `field.whole_turns`.
     PlanError for moves of the wrong shape or not finite, ConfigError for a field too weak for
     the magnets to follow."""
@@ -293,7 +296,7 @@ def _turns_of(moves: np.ndarray, rig: RigConfig) -> np.ndarray:
     return np.linalg.norm(moves, axis=1) / (2.0 * math.pi * rig.magnets.radius_mm)
 
 
-def _check_size(turns: np.ndarray, rig: RigConfig) -> None:
+def _check_size(turns: np.ndarray, rig: SixCoilRig) -> None:
     """PlanError if the program of moves of `turns` (m,) could exceed MAX_PROGRAM_SAMPLES: an
     upper bound on its samples, before anything is allocated."""
     fs, rate = rig.field, rig.stream.rate_hz

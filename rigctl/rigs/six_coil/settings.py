@@ -21,6 +21,7 @@ from typing import Annotated, Any
 from pydantic import BeforeValidator, Field, ValidationInfo, model_validator
 
 from rigctl.core.config import Coil, FieldProbe, FieldSettings, MagnetSettings, RigConfig
+from rigctl.core.errors import ConfigError
 from rigctl.physics.coils import MPEMCalibration, load_calibration
 from rigctl.physics.field_calibration import FieldCalibration
 
@@ -93,3 +94,11 @@ class SixCoilRig(RigConfig):
         copy = calibration.model_copy(update={"source": "field_calibration.yaml"})
         return (self.model_copy(update={"field_calibration": copy}),
                 {"field_calibration.yaml": calibration.to_yaml()})
+
+
+def six_coil_rig(rig: RigConfig) -> SixCoilRig:
+    """`rig` as the electromagnet rig it is (the kind's hooks are handed a `RigConfig`; a rig file
+    of kind six-coil is always a `SixCoilRig`), a ConfigError if it is of another kind."""
+    if not isinstance(rig, SixCoilRig):
+        raise ConfigError(f"rig '{rig.rig.name}' is a {rig.rig.kind} rig, not an electromagnet rig")
+    return rig

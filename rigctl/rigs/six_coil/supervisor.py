@@ -63,13 +63,13 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rigctl.core.config import RigConfig
 from rigctl.core.errors import ConfigError, PlanError, RigError
 from rigctl.core.priority import step_back
-from rigctl.core.record import RunRecord
+from rigctl.core.record import RunRecord, Series
 from rigctl.physics.coils import actuation_matrix, field_offset
 from rigctl.physics.identify import RollingIdentifier
 from rigctl.plans.checks import plan_model
@@ -85,6 +85,9 @@ from rigctl.run.certificate import Certificate, certify
 from rigctl.run.hold import ramp
 from rigctl.run.interruptions import Suspension
 from rigctl.vision.tracking import TrackingLoop
+
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
 
 log = logging.getLogger(__name__)
 
@@ -277,7 +280,7 @@ class Supervisor:
     returning the emulator's true positions (n, 2) mm, to measure the tracker against.
     """
 
-    def __init__(self, plan: GlobalMovesPlan, rig: RigConfig, program: FieldProgram,
+    def __init__(self, plan: GlobalMovesPlan, rig: SixCoilRig, program: FieldProgram,
                  currents: CurrentProgram, *, ramp_samples: int,
                  settings: SupervisorSettings = SupervisorSettings(),
                  truth: Callable[[], np.ndarray] | None = None) -> None:
@@ -318,7 +321,7 @@ class Supervisor:
         self._commanded_at = {e: moves[i] for i, e in enumerate(ends)}  # each move's input, mm
         self._time_at: dict[int, float] = {}  # capture time of the frame each judgement used
         self.identifier = RollingIdentifier(len(starts))
-        self._series = None
+        self._series: Series | None = None
 
     # -- life cycle -----------------------------------------------------------------------------
     def start(self, record: RunRecord | None) -> None:
@@ -331,6 +334,7 @@ class Supervisor:
             self.tracking.record_to(record)  # the camera's positions, in the run record
             self._series = record.open_series("identification", self.identifier.series_columns(),
                                               self.identifier.series_units())
+        assert self.rig.camera is not None  # a supervisor is made for a rig with a camera only
         first = self.tracking.start(acquire_timeout_s=max(5.0, 2 * self.rig.camera.timeout_s))
         self._measured_at[0] = first.positions_mm
         self._time_at[0] = first.t_source
@@ -585,7 +589,7 @@ class Supervisor:
         radii, after = self.model.radii, before + displacement
         turns = float(np.hypot(*commanded)) / (2.0 * math.pi * self.rig.magnets.radius_mm)
         jitter = self.settings.contact_noise_mm * math.sqrt(turns)
-        for i in np.flatnonzero((np.hypot(*displacement.T) > 1.0) & ~free):
+        for i in np.flatnonzero((np.hypot(*displacement.T) > 1.0) & ~free).tolist():
             others = np.arange(len(before)) != i
             reach = radii[i] + radii[others] + self.model.min_separation_mm + _FREE_MARGIN_MM
             gap = before[others] - before[i]  # (m, 2), and how it changed over the move
@@ -685,7 +689,7 @@ class CertifiedReplan:
                 f"of {volts.subject} (limit {volts.limit:g} V)")
 
 
-def lead_in(start_A: np.ndarray, first_A: np.ndarray, rig: RigConfig) -> np.ndarray:
+def lead_in(start_A: np.ndarray, first_A: np.ndarray, rig: SixCoilRig) -> np.ndarray:
     """The setpoints (m, n) A that take the supplies from `start_A` (n,), the currents being
     streamed, to `first_A` (n,), a re-plan's first sample, without a step; `first_A` itself is
     not among them. Empty (m = 0) where they are equal, as when the re-plan starts from the field
@@ -707,7 +711,7 @@ def lead_in(start_A: np.ndarray, first_A: np.ndarray, rig: RigConfig) -> np.ndar
     return ramp(start, first, max(rig.field.ramp_s, float(need.max())), rig.stream.rate_hz)[:-1]
 
 
-def certified_replan(moves_mm: np.ndarray, rig: RigConfig, streamed_A: np.ndarray, *,
+def certified_replan(moves_mm: np.ndarray, rig: SixCoilRig, streamed_A: np.ndarray, *,
                      name: str) -> CertifiedReplan:
     """Realize, allocate and certify re-planned `moves_mm` (m, 2) on the run's `rig` to follow
     `streamed_A` (k, n) A, the samples the stream has sent (`SupervisedSequencer.streamed`): the
@@ -827,6 +831,7 @@ class ReplanWorker:
         return True
 
     def _read_ready(self) -> None:
+        assert self._proc.stdout is not None  # started with stdout=PIPE
         try:
             pickle.load(self._proc.stdout)
         except EOFError:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,10 +24,13 @@ from rigctl.core.transport import open_transport
 from rigctl.drivers.kepco_bop import KepcoBop
 from rigctl.physics.thermal import Windings
 
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
+
 log = logging.getLogger(__name__)
 
 
-def supply_channels(rig: RigConfig) -> list[Channel]:
+def supply_channels(rig: SixCoilRig) -> list[Channel]:
     """One current channel per supply, in A, within its limit: the coil rig's N channels."""
     return [Channel(c.name, "A", -c.current_limit_A, c.current_limit_A, "supplies") for c in rig.coils]
 
@@ -48,7 +52,7 @@ class CoilSupplies:
         self._cycles = 0
 
     @staticmethod
-    def make_safe_directly(rig: RigConfig) -> dict[str, str | None]:
+    def make_safe_directly(rig: SixCoilRig) -> dict[str, str | None]:
         """Every supply opened anew, zeroed and confirmed (`zero_supplies_directly`): a BOP holds
         its last setpoint while its link is down, so the engine tries again once it returns."""
         return zero_supplies_directly(rig)
@@ -57,6 +61,9 @@ class CoilSupplies:
     def connect(cls, rig: RigConfig) -> CoilSupplies:
         """Open, identify and configure every supply (outputs stay off). On any failure the ones
         already opened are switched off and closed, and the error is raised."""
+        from rigctl.rigs.six_coil.settings import six_coil_rig
+
+        rig = six_coil_rig(rig)  # a run's `connect` is handed the rig as a RigConfig
         supplies: list[KepcoBop] = []
         identities: list[str] = []
         try:
@@ -140,7 +147,7 @@ class CoilSupplies:
 CONFIRM_TIMEOUT_S = 0.5  # the direct make-safe waits this long for each supply's confirmation
 
 
-def zero_supplies_directly(rig: RigConfig) -> dict[str, str | None]:
+def zero_supplies_directly(rig: SixCoilRig) -> dict[str, str | None]:
     """E-stop without the stream's connections (no run active, or its process died): open each
     supply anew and tell it 0 A and output off, every supply first; then confirm each: its answer
     to a measurement sent after the zero on the same connection (SCPI answers in order) proves the

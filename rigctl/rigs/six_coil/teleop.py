@@ -22,13 +22,16 @@ fastest the field can change (rolling and steering at full speed while the magni
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rigctl.core.config import RigConfig
 from rigctl.physics.coils import actuation_matrix, field_offset
 from rigctl.run.certificate import Check, ceiling
 from rigctl.run.teleop import InputComponent, TeleopDrive
+
+if TYPE_CHECKING:
+    from rigctl.rigs.six_coil.settings import SixCoilRig
 
 STOP_S = 0.05
 """How long the field takes from full to zero when the input stops (s)."""
@@ -56,7 +59,7 @@ class RollingDrive(TeleopDrive):
                        "the rolling speed as a fraction of the rig's field.rolling_turns_per_s"),
     )
 
-    def __init__(self, rig: RigConfig) -> None:
+    def __init__(self, rig: SixCoilRig) -> None:
         from rigctl.rigs.six_coil.supplies import CoilSupplies
 
         self.rig = rig
@@ -184,7 +187,7 @@ class PairDrive(TeleopDrive):
                        "largest gradient the coils make with it"),
     )
 
-    def __init__(self, rig: RigConfig) -> None:
+    def __init__(self, rig: SixCoilRig) -> None:
         from rigctl.core.errors import ConfigError
         from rigctl.physics.coils import max_planar_gradient, u_actuation_matrix
         from rigctl.rigs.six_coil.supplies import CoilSupplies
@@ -258,7 +261,7 @@ class PairDrive(TeleopDrive):
 
 
 
-def teleop_drive(rig: RigConfig, mode: str | None) -> TeleopDrive:
+def teleop_drive(rig: SixCoilRig, mode: str | None) -> TeleopDrive:
     """The six-coil rig's teleoperation: "rolling" (global moves' rolling field, the default) or
     "pair" (pair formation's field angle and pull)."""
     from rigctl.core.errors import ConfigError
