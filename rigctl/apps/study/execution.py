@@ -131,12 +131,13 @@ def run_on_dask(client, function: Callable[..., dict], items: list, before: tupl
     for _ in range(min(len(queue), TASKS_PER_WORKER * workers)):
         submit()
     for future in running:
-        for row in future.result():
-            done_s += row["wall_s"]
-            done_n += 1
-            finished(row)
-        if queue:
+        rows = future.result()
+        done_s += sum(row["wall_s"] for row in rows)
+        done_n += len(rows)
+        if queue:  # the next task first: the worker is not kept waiting while the rows are stored
             submit()
+        for row in rows:
+            finished(row)
 
 
 def default_workers() -> int:
