@@ -108,7 +108,7 @@ FIGURES = {
     "faults.py": [("cells",), ("figures",)],
     "soak.py": [("daemon", "samples"), ("stream", "rss_MB")],
     "calibrate_field.py": [("worst", "after"), ("runs",)],
-    "study.py": [("planner_sweep", "runs"), ("campaign", "ran_ok")],
+    "study.py": [("studies",), ("tiny_cases", "overhead_ms_per_case"), ("campaign", "ran_ok")],
     "console.py": [("frames", "frames_drawn"), ("estop", "ok"), ("pages", "runs"),
                    ("websocket_watchers", "runs")],
     "fields.py": [("eval", "best_us"), ("allocate_8dof", "best_us"), ("fit", "held_out_pct"),

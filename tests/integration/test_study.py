@@ -1,6 +1,7 @@
 """Studies on Dask (rigctl.apps.study): two local workers give a serial run's planner results case for
-case; a stopped study resumes without running a finished case again; emulated cases side by side
-each get a bench of their own; `rigctl study report` draws what the table holds."""
+case, short cases sent several to a task too; a stopped study resumes without running a finished
+case again; emulated cases side by side each get a bench of their own; `rigctl study report` draws
+what the table holds."""
 
 from __future__ import annotations
 
@@ -62,6 +63,27 @@ def test_two_local_workers_give_the_serial_planner_results_case_for_case(tmp_pat
     alone = json.loads(subprocess.run(argv, capture_output=True, text=True, check=True).stdout)
     assert (alone["nodes"], alone["distance"], alone["moves"]) == (
         a[case.id]["fig_nodes"], a[case.id]["fig_distance"], a[case.id]["fig_moves"])
+
+
+def test_short_cases_sent_several_to_a_task_give_the_serial_results_seed_for_seed(tmp_path) -> None:
+    """12 RRT cases of a 300-node budget (short: after the first four, Dask gets them two to a
+    task, `execution.chunk_size`, unless the machine's load makes them longer than 0.25 s); each
+    seed's plan is still the one the serial run made."""
+    data = _rrt_study()
+    data["run"]["args"]["max-nodes"] = 300
+    data["seeds"] = {"count": 6}
+    spec = spec_from_dict(data, tmp_path)
+    serial = run_study(spec, tmp_path / "serial", serial=True, progress_out=None)
+    dask = run_study(spec, tmp_path / "dask", workers=2, progress_out=None)
+    assert serial.ran == dask.ran == 12 and serial.not_ok == dask.not_ok == 0
+    a, b = _rows(tmp_path / "serial"), _rows(tmp_path / "dask")
+    assert set(a) == set(b) == {c.id for c in spec.cases}
+    for case_id, row in a.items():
+        for key in ("fig_solved", "fig_nodes", "fig_distance", "fig_moves", "seed", "nn-eps"):
+            assert b[case_id][key] == row[key], (case_id, key)
+        plan_a = json.loads(Path(row["record"]).read_text())
+        plan_b = json.loads(Path(b[case_id]["record"]).read_text())
+        assert plan_a["moves"] == plan_b["moves"]
 
 
 class _Stop(KeyboardInterrupt):
