@@ -33,6 +33,7 @@ import numpy as np
 from rigctl.core.config import (
     CoilBoardSettings,
     CoilThermal,
+    Emulation,
     RigConfig,
     RigInfo,
     default_six_coil_coils,
@@ -95,7 +96,9 @@ def bench_rigs(repeat: int) -> dict:
     name, plan = six_coil_longest(six)
     out["six-coil"] = {"plan": name, **bench_plan_run("six-coil", six, plan, repeat,
                                                       closed_loop=False)}
-    depm = DepmRig(rig=RigInfo(kind="depm"), depm=depm_settings())
+    # as `rigctl emulate depm` writes it: real arms are refused until the arm model is corrected
+    depm = DepmRig(rig=RigInfo(kind="depm"), depm=depm_settings(),
+                   emulation=Emulation(backdoor="tcp://127.0.0.1:1"))
     out["depm"] = {"plan": "depm-plan.json",
                    **bench_plan_run("depm", depm, load_plan(EXAMPLES / "depm-plan.json"), repeat)}
     board = CoilBoardRig(rig=RigInfo(kind="coil-board"), board=CoilBoardSettings(url="/dev/pts/0"))
